@@ -1,0 +1,41 @@
+"""Errors that name where the bad input is: file, line/record and field."""
+
+from __future__ import annotations
+
+
+class LogpipeError(Exception):
+    """Base class of every error logpipe reports to a user (the CLI prints these without a traceback)."""
+
+
+class SourceError(LogpipeError):
+    """An input file is unreadable or violates its format.
+
+    Attributes:
+        file: the file (relative to the ingest root where known).
+        reason: what is wrong, in words.
+        line: 1-based line number (text formats) or record/message index, when known.
+        field: the column, topic or field concerned, when known.
+    """
+
+    def __init__(self, file: str, reason: str, *, line: int | None = None, field: str | None = None) -> None:
+        self.file = file
+        self.reason = reason
+        self.line = line
+        self.field = field
+        super().__init__(self.describe())
+
+    def describe(self) -> str:
+        """``file:line: field 'f': reason`` with the parts that are known."""
+        where = self.file
+        if self.line is not None:
+            where += f":{self.line}"
+        what = f"field '{self.field}': " if self.field else ""
+        return f"{where}: {what}{self.reason}"
+
+    def to_dict(self) -> dict[str, object]:
+        """Plain dict for manifests and ``--json`` summaries."""
+        return {"file": self.file, "line": self.line, "field": self.field, "reason": self.reason}
+
+
+class DatasetError(LogpipeError):
+    """A dataset folder is missing, incomplete or was written with incompatible settings."""

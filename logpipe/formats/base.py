@@ -1,0 +1,64 @@
+"""The one interface every input format implements, and the registry that finds the right adapter.
+
+An adapter turns input files into rows of the canonical track table (``schemas/tracks.json``) plus one
+``LogMeta`` per log. It never writes anything: the ingest stage owns sharding, manifests and atomic writes.
+Adding a format is one new module in ``logpipe/formats/`` registered in ``logpipe/formats/__init__.py``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import ClassVar, Protocol
+
+import pyarrow as pa
+
+from logpipe.errors import SourceError
+from logpipe.types import LogMeta, SampleProtocol, SourceFile
+
+
+@dataclass
+class ParsedLogs:
+    """What an adapter returns for a batch of inputs.
+
+    Attributes:
+        tracks: rows in the canonical track-table schema (``logpipe.schemas.tracks_schema()``), any order.
+        logs: one ``LogMeta`` per log present in ``tracks``.
+        failures: inputs that could not be read, one ``SourceError`` each (only when the caller asked the
+            adapter to keep going; otherwise the first error is raised).
+    """
+
+    tracks: pa.Table
+    logs: list[LogMeta]
+    failures: list[SourceError]
+
+
+class FormatAdapter(Protocol):
+    """An input format.
+
+    Attributes:
+        name: short id used on the CLI (``--format``) and in ``logs.source_format``.
+        default_protocol: the ``SampleProtocol`` preset this format's benchmark uses.
+        batch_files: how many inputs to hand to ``read`` at once (large for many small files).
+    """
+
+    name: ClassVar[str]
+    default_protocol: ClassVar[SampleProtocol]
+    batch_files: ClassVar[int]
+
+    def discover(self, root: Path) -> list[Path]:
+        """Input paths under ``root`` (a file or folder) that this adapter reads, sorted; [] if none."""
+        ...
+
+    def sniff(self, path: Path) -> bool:
+        """Cheap check whether ``path`` looks like this format (extension, header bytes)."""
+        ...
+
+    def read(self, sources: Sequence[SourceFile], *, keep_going: bool) -> ParsedLogs:
+        """Parse ``sources`` into canonical rows.
+
+        Raises:
+            SourceError: the first bad input, naming file, line/record and field, when ``keep_going`` is False.
+        """
+        ...
