@@ -24,6 +24,10 @@ class SourceError(LogpipeError):
         self.field = field
         super().__init__(self.describe())
 
+    def __reduce__(self) -> tuple[object, ...]:
+        # Keyword-only fields: rebuild explicitly so the error survives pickling across worker processes.
+        return (_rebuild_source_error, (self.file, self.reason, self.line, self.field))
+
     def describe(self) -> str:
         """``file:line: field 'f': reason`` with the parts that are known."""
         where = self.file
@@ -35,6 +39,10 @@ class SourceError(LogpipeError):
     def to_dict(self) -> dict[str, object]:
         """Plain dict for manifests and ``--json`` summaries."""
         return {"file": self.file, "line": self.line, "field": self.field, "reason": self.reason}
+
+
+def _rebuild_source_error(file: str, reason: str, line: int | None, field: str | None) -> SourceError:
+    return SourceError(file, reason, line=line, field=field)
 
 
 class DatasetError(LogpipeError):

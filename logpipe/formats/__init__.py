@@ -1,1 +1,49 @@
-"""logpipe/formats."""
+"""Input formats: one adapter module per format behind ``FormatAdapter`` (see ``base.py``).
+
+``ADAPTERS`` maps the CLI name to the adapter class; ``detect`` picks the adapter for a path by sniffing.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+from logpipe.errors import LogpipeError
+from logpipe.formats.apolloscape import ApolloScapeAdapter
+from logpipe.formats.argoverse1 import Argoverse1Adapter
+from logpipe.formats.base import FormatAdapter, ParsedLogs
+from logpipe.formats.ethucy import EthUcyAdapter
+
+ADAPTERS: dict[str, type[FormatAdapter]] = {
+    Argoverse1Adapter.name: Argoverse1Adapter,
+    EthUcyAdapter.name: EthUcyAdapter,
+    ApolloScapeAdapter.name: ApolloScapeAdapter,
+}
+
+
+def get_adapter(name: str, **options: Any) -> FormatAdapter:
+    """An adapter instance by CLI name, with its options (e.g. ``hz``, ``mapping`` for bags)."""
+    if name not in ADAPTERS:
+        raise LogpipeError(f"unknown format {name!r}; known: {', '.join(sorted(ADAPTERS))}")
+    return ADAPTERS[name](**options)
+
+
+def detect(path: Path) -> str:
+    """Name of the adapter that reads ``path`` (a file, or a folder: judged by its first readable input).
+
+    Raises:
+        LogpipeError: no adapter, or more than one, recognises it (then ``--format`` decides).
+    """
+    if not path.exists():
+        raise LogpipeError(f"{path}: no such file or folder")
+    candidates = [path] if path.is_file() else sorted(p for p in path.rglob("*") if p.is_file())[:200]
+    for candidate in candidates:
+        names = [name for name, cls in ADAPTERS.items() if cls().sniff(candidate)]
+        if len(names) == 1:
+            return names[0]
+        if len(names) > 1:
+            raise LogpipeError(f"{candidate}: looks like several formats ({', '.join(names)}); pass --format")
+    raise LogpipeError(f"{path}: no known format recognised; pass --format ({', '.join(sorted(ADAPTERS))})")
+
+
+__all__ = ["ADAPTERS", "FormatAdapter", "ParsedLogs", "detect", "get_adapter"]

@@ -1,0 +1,197 @@
+"""The ``logpipe`` command: a thin Typer layer over the stage functions.
+
+Every command prints a human summary, or with ``--json`` one JSON object on stdout (for CI). Errors that
+concern the user's input print one line naming file, line/record and field, and exit with code 2.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from dataclasses import replace
+from pathlib import Path
+from typing import Annotated, Any
+
+import typer
+from rich.console import Console
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+from logpipe import __version__
+from logpipe.errors import LogpipeError
+from logpipe.types import PROTOCOLS, SampleProtocol
+
+app = typer.Typer(
+    name="logpipe",
+    help="Offline pipeline for multi-agent trajectory forecasting: ingest → rasterise → train → predict → score.",
+    no_args_is_help=True,
+    add_completion=False,
+    pretty_exceptions_enable=False,
+)
+err = Console(stderr=True)
+
+
+def _version(value: bool) -> None:
+    if value:
+        typer.echo(f"logpipe {__version__}")
+        raise typer.Exit
+
+
+@app.callback()
+def main(
+    version: Annotated[bool, typer.Option("--version", callback=_version, is_eager=True,
+                                          help="Print the version and exit.")] = False,
+) -> None:
+    """Offline pipeline for multi-agent trajectory forecasting."""
+
+
+@contextmanager
+def _user_errors() -> Iterator[None]:
+    """Turn logpipe's own errors into one clear line and exit code 2 (no traceback)."""
+    try:
+        yield
+    except LogpipeError as exc:
+        err.print(f"[bold red]error:[/] {exc}", highlight=False, soft_wrap=True)
+        raise typer.Exit(code=2) from None
+
+
+@contextmanager
+def _progress(total: int, label: str, enabled: bool) -> Iterator[Callable[[int], None]]:
+    if not enabled:
+        yield lambda _n: None
+        return
+    columns = (TextColumn(label), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn())
+    with Progress(*columns, console=err, transient=True) as bar:
+        task = bar.add_task(label, total=total or None)
+        yield lambda n: bar.advance(task, n)
+
+
+def _emit(summary: dict[str, Any], as_json: bool, human: Callable[[dict[str, Any]], None]) -> None:
+    if as_json:
+        typer.echo(json.dumps(summary, indent=2, sort_keys=True))
+    else:
+        human(summary)
+
+
+def _protocol(preset: str | None, obs: int | None, pred: int | None, stride: int | None,
+              min_targets: int | None, targets: str | None,
+              default: SampleProtocol | None = None) -> SampleProtocol | None:
+    """The protocol the options describe: a preset (or ``default``) with overrides; None when none given."""
+    if preset is None and all(v is None for v in (obs, pred, stride, min_targets, targets)):
+        return None
+    if preset is not None and preset not in PROTOCOLS:
+        raise LogpipeError(f"unknown protocol {preset!r}; presets: {', '.join(PROTOCOLS)}")
+    base = PROTOCOLS[preset] if preset else default
+    if base is None:
+        base = SampleProtocol("custom", obs_len=obs or 8, pred_len=pred or 12)
+        preset = None
+    changes: dict[str, Any] = {}
+    for key, value in (("obs_len", obs), ("pred_len", pred), ("stride", stride), ("min_targets", min_targets),
+                       ("targets", targets)):
+        if value is not None:
+            changes[key] = value
+    if changes and base.name != "custom":
+        changes["name"] = f"{base.name.removesuffix('-custom')}-custom"
+    return replace(base, **changes)
+
+
+ProtocolOpt = Annotated[str | None, typer.Option("--protocol", help=f"Sample preset: {', '.join(PROTOCOLS)} "
+                                                 "(default: the format's own).")]
+ObsOpt = Annotated[int | None, typer.Option("--obs", help="Observed steps per sample (overrides the preset).")]
+PredOpt = Annotated[int | None, typer.Option("--pred", help="Predicted steps per sample.")]
+StrideOpt = Annotated[int | None, typer.Option("--stride", help="Steps between sliding windows.")]
+MinTargetsOpt = Annotated[int | None, typer.Option(
+    "--min-targets", help="Keep windows with at least this many fully observed agents (Social-GAN: 2).")]
+TargetsOpt = Annotated[str | None, typer.Option("--targets", help="fully_observed | focal")]
+JsonOpt = Annotated[bool, typer.Option("--json", help="Print a JSON summary on stdout (for CI).")]
+
+
+@app.command()
+def ingest(
+    inputs: Annotated[list[Path], typer.Argument(help="Input files or folders.", show_default=False)],
+    out: Annotated[Path, typer.Option("--out", "-o", help="Dataset folder to create or extend.")],
+    fmt: Annotated[str | None, typer.Option("--format", "-f", help="Input format (default: detected).")] = None,
+    protocol: ProtocolOpt = None,
+    obs: ObsOpt = None,
+    pred: PredOpt = None,
+    stride: StrideOpt = None,
+    min_targets: MinTargetsOpt = None,
+    targets: TargetsOpt = None,
+    on_error: Annotated[str, typer.Option(
+        "--on-error", help="fail: stop at the first bad input, write nothing. skip: quarantine bad inputs.")
+    ] = "fail",
+    mcap: Annotated[bool, typer.Option("--mcap/--no-mcap", help="Also write each log as an MCAP file.")] = True,
+    workers: Annotated[int, typer.Option("--workers", "-j", help="Worker processes (0 = all cores).")] = 0,
+    backend: Annotated[str, typer.Option("--backend", help="local | ray")] = "local",
+    batch_files: Annotated[int | None, typer.Option("--batch-files", help="Inputs per shard.")] = None,
+    as_json: JsonOpt = False,
+) -> None:
+    """Turn logs (Argoverse 1 CSV, ETH/UCY, ApolloScape, ...) into canonical Parquet shards, a sample index
+    and one MCAP per log. Re-running skips inputs already ingested (by content hash).
+
+    Example: logpipe ingest ../shared/data/argoverse1/data --out out/av1
+    """
+    from logpipe.stages.ingest import IngestOptions  # noqa: PLC0415 - fast --help
+    from logpipe.stages.ingest import ingest as run_ingest
+
+    if on_error not in ("fail", "skip"):
+        raise typer.BadParameter("--on-error must be fail or skip")
+    if backend not in ("local", "ray"):
+        raise typer.BadParameter("--backend must be local or ray")
+    with _user_errors():
+        options = IngestOptions(
+            out=out, format=fmt, protocol=_protocol(protocol, obs, pred, stride, min_targets, targets),
+            on_error=on_error,  # type: ignore[arg-type]
+            write_mcap=mcap, workers=workers, backend=backend,  # type: ignore[arg-type]
+            batch_files=batch_files,
+        )
+        with _progress(0, "ingest", enabled=not as_json and sys.stderr.isatty()) as advance:
+            summary = run_ingest(inputs, options, progress=advance)
+    _emit(summary, as_json, _print_ingest)
+
+
+def _print_ingest(s: dict[str, Any]) -> None:
+    err.print(
+        f"[bold]{s['dataset']}[/] ({s['format']}): {s['inputs_ingested']} inputs ingested, "
+        f"{s['inputs_skipped_already_ingested']} already there, {len(s['quarantined'])} quarantined; "
+        f"{s['logs']} logs, {s['rows']} rows, {s['samples']} samples in {s['seconds']} s. "
+        f"Dataset totals: {s['totals']['logs']} logs, {s['totals']['rows']} rows, {s['totals']['samples']} samples.",
+        highlight=False,
+    )
+    for q in s["quarantined"]:
+        e = q["error"]
+        where = e["file"] + (f":{e['line']}" if e["line"] else "") + (f" field '{e['field']}'" if e["field"] else "")
+        err.print(f"  quarantined {where}: {e['reason']}", highlight=False)
+
+
+@app.command()
+def index(
+    dataset: Annotated[Path, typer.Argument(help="Dataset folder written by `logpipe ingest`.")],
+    protocol: ProtocolOpt = None,
+    obs: ObsOpt = None,
+    pred: PredOpt = None,
+    stride: StrideOpt = None,
+    min_targets: MinTargetsOpt = None,
+    targets: TargetsOpt = None,
+    as_json: JsonOpt = False,
+) -> None:
+    """Rebuild the sample index of a dataset with another protocol (no re-ingest).
+
+    Example: logpipe index out/ethucy --min-targets 2
+    """
+    from logpipe.dataset import Dataset  # noqa: PLC0415
+    from logpipe.stages.ingest import reindex  # noqa: PLC0415
+
+    with _user_errors():
+        current = Dataset.open(dataset).protocol
+        chosen = _protocol(protocol, obs, pred, stride, min_targets, targets, default=current)
+        if chosen is None:
+            raise LogpipeError("give --protocol or at least one of --obs/--pred/--stride/--min-targets/--targets")
+        summary = reindex(dataset, chosen)
+    _emit(summary, as_json, lambda s: err.print(f"{s['dataset']}: {s['samples']} samples ({s['protocol']})",
+                                                highlight=False))
+
+
+if __name__ == "__main__":  # pragma: no cover
+    app()

@@ -1,0 +1,166 @@
+"""Reading a dataset folder written by ``logpipe ingest``.
+
+Layout::
+
+    DATASET/
+      manifest.json          versions, inputs (sha256), shards (rows, sha256), protocol, parameters
+      part-00000.parquet     track-table shards, whole logs each, sorted by log, time, track
+      logs.parquet           one row per log (schemas/logs.json)
+      samples.parquet        the prediction-sample index (schemas/samples.json)
+      mcap/<log_id>.mcap     each log for a viewer
+
+Only what the manifest lists is read, so a shard left behind by an interrupted run is never seen.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from dataclasses import dataclass
+from functools import cached_property
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.compute as pc
+import pyarrow.parquet as pq
+
+from logpipe.errors import DatasetError
+from logpipe.io import read_json
+from logpipe.types import OBJECT_TYPES, Role, SampleProtocol, SceneSample
+
+MANIFEST = "manifest.json"
+LOGS_FILE = "logs.parquet"
+SAMPLES_FILE = "samples.parquet"
+MCAP_DIR = "mcap"
+
+
+def shard_name(index: int) -> str:
+    """``part-NNNNN.parquet``."""
+    return f"part-{index:05d}.parquet"
+
+
+@dataclass
+class Dataset:
+    """An ingested dataset folder (read-only view).
+
+    Attributes:
+        root: the folder.
+        manifest: parsed ``manifest.json``.
+    """
+
+    root: Path
+    manifest: dict[str, Any]
+
+    @classmethod
+    def open(cls, root: Path) -> Dataset:
+        """Open ``root``; raises ``DatasetError`` when it holds no manifest."""
+        path = Path(root) / MANIFEST
+        if not path.is_file():
+            raise DatasetError(f"{root}: not a logpipe dataset (no {MANIFEST}); run `logpipe ingest` first")
+        return cls(Path(root), read_json(path))
+
+    @property
+    def protocol(self) -> SampleProtocol:
+        """The sample protocol the index was built with."""
+        return SampleProtocol(**self.manifest["protocol"])
+
+    @property
+    def kind(self) -> str:
+        """The input format (``argoverse1``, ``ethucy``, ...): what a checkpoint is matched against."""
+        return str(self.manifest["format"])
+
+    @property
+    def shard_paths(self) -> list[Path]:
+        """Shards listed in the manifest, in order."""
+        return [self.root / s["file"] for s in self.manifest["shards"]]
+
+    def logs(self) -> pa.Table:
+        """The logs table."""
+        return pq.read_table(self.root / LOGS_FILE)
+
+    def samples(self) -> pa.Table:
+        """The sample index."""
+        return pq.read_table(self.root / SAMPLES_FILE)
+
+    def tracks(self, columns: list[str] | None = None) -> pa.Table:
+        """All track rows (fine for ETH/UCY-sized data; stream with ``iter_logs`` for large sets)."""
+        tables = [pq.read_table(p, columns=columns) for p in self.shard_paths]
+        if not tables:
+            raise DatasetError(f"{self.root}: dataset has no shards")
+        return pa.concat_tables(tables)
+
+    @cached_property
+    def _shard_of_log(self) -> dict[str, str]:
+        logs = pq.read_table(self.root / LOGS_FILE, columns=["log_id", "shard"])
+        return dict(zip(logs.column("log_id").to_pylist(), logs.column("shard").to_pylist(), strict=True))
+
+    def log_tracks(self, log_id: str) -> pa.Table:
+        """Rows of one log, sorted by step (reads only its shard's matching row groups)."""
+        shard = self._shard_of_log.get(log_id)
+        if shard is None:
+            raise DatasetError(f"{self.root}: no log {log_id!r}")
+        return pq.read_table(self.root / shard, filters=[("log_id", "=", log_id)])
+
+    def iter_logs(self) -> Iterator[tuple[str, pa.Table]]:
+        """(log_id, rows) for every log, one shard in memory at a time."""
+        for path in self.shard_paths:
+            table = pq.read_table(path)
+            log_ids = table.column("log_id").to_numpy(zero_copy_only=False)
+            bounds = np.flatnonzero(log_ids[1:] != log_ids[:-1]) + 1
+            starts = np.concatenate([[0], bounds])
+            ends = np.concatenate([bounds, [len(log_ids)]])
+            for lo, hi in zip(starts.tolist(), ends.tolist(), strict=True):
+                yield str(log_ids[lo]), table.slice(lo, hi - lo)
+
+    def iter_scene_samples(self, sample_filter: pa.compute.Expression | None = None) -> Iterator[SceneSample]:
+        """``SceneSample``s for every sample (optionally filtered), grouped by log for one read per log."""
+        samples = self.samples()
+        if sample_filter is not None:
+            samples = samples.filter(sample_filter)
+        by_log: dict[str, list[dict[str, Any]]] = {}
+        for row in samples.to_pylist():
+            by_log.setdefault(row["log_id"], []).append(row)
+        for log_id, tracks in self.iter_logs():
+            for row in by_log.get(log_id, []):
+                yield scene_sample(tracks, row, self.protocol)
+
+
+def scene_sample(tracks: pa.Table, sample: dict[str, Any], protocol: SampleProtocol) -> SceneSample:
+    """Cut one sample's window out of a log's rows: every agent seen in it, NaN where unobserved.
+
+    Args:
+        tracks: the log's rows (sorted by step).
+        sample: a row of the sample index.
+        protocol: gives ``obs_len``.
+    """
+    start, end = int(sample["start_step"]), int(sample["end_step"])
+    window = tracks.filter(
+        pc.and_(pc.greater_equal(tracks.column("step"), start), pc.less_equal(tracks.column("step"), end))
+    )
+    steps = window.column("step").to_numpy() - start
+    track_col = pc.dictionary_encode(window.column("track_id")).combine_chunks()
+    names = track_col.dictionary.to_pylist()
+    codes = track_col.indices.to_numpy()
+    seq = end - start + 1
+    positions = np.full((len(names), seq, 2), np.nan)
+    positions[codes, steps, 0] = window.column("x").to_numpy()
+    positions[codes, steps, 1] = window.column("y").to_numpy()
+    timestamps = np.zeros(seq, dtype=np.int64)
+    timestamps[steps] = window.column("timestamp_ns").to_numpy()
+    type_code = {t: i for i, t in enumerate(OBJECT_TYPES)}
+    object_types = np.zeros(len(names), dtype=np.int64)
+    object_types[codes] = [type_code[t] for t in window.column("object_type").to_pylist()]
+    roles = window.column("role").to_pylist()
+    ego_codes = {int(c) for c, r in zip(codes, roles, strict=True) if r == Role.EGO.value}
+    targets = set(sample["target_track_ids"])
+    return SceneSample(
+        sample_id=str(sample["sample_id"]),
+        positions=positions,
+        timestamps_ns=timestamps,
+        track_ids=[str(n) for n in names],
+        object_types=object_types,
+        target_mask=np.array([n in targets for n in names], dtype=bool),
+        ego_index=min(ego_codes) if ego_codes else -1,
+        obs_len=protocol.obs_len,
+    )

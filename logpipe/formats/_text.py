@@ -1,0 +1,351 @@
+"""Helpers shared by the delimited-text adapters (Argoverse 1 CSV, ETH/UCY, ApolloScape).
+
+The fast path parses many files in one pyarrow call; these helpers do the bookkeeping that maps rows back
+to files and lines, the checks every text format needs, and the slow, exact search for the first bad line
+when a batch fails (only on the error path).
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.compute as pc
+import pyarrow.csv as pacsv
+
+from logpipe.errors import SourceError
+from logpipe.types import NDArrayBool, NDArrayInt, SourceFile
+
+_DECIMAL = re.compile(r"^[+-]?(\d+\.?\d*|\.\d+)$")
+
+
+@dataclass
+class TextBatch:
+    """Bodies of several files joined into one buffer, with where each file's rows start.
+
+    Attributes:
+        buffer: the joined data lines (headers removed), each file ending in exactly one newline.
+        rows_per_file: data lines of each file.
+        header_lines: lines skipped at the top of each file (to turn a row index into a line number).
+    """
+
+    buffer: bytes
+    rows_per_file: list[int]
+    header_lines: int
+
+    @property
+    def file_index(self) -> NDArrayInt:
+        """(rows,) index of the file each row came from."""
+        return np.repeat(np.arange(len(self.rows_per_file), dtype=np.int64), self.rows_per_file)
+
+    @property
+    def row_starts(self) -> NDArrayInt:
+        """(files + 1,) first row of each file, and the total."""
+        return np.concatenate([[0], np.cumsum(self.rows_per_file, dtype=np.int64)])
+
+
+def join_bodies(blobs: Sequence[bytes], header_lines: int) -> TextBatch:
+    """Drop ``header_lines`` lines from each blob and join them, normalising the final newline."""
+    parts: list[bytes | memoryview] = []
+    counts: list[int] = []
+    for blob in blobs:
+        start = 0
+        for _ in range(header_lines):
+            nl = blob.find(b"\n", start)
+            start = len(blob) if nl < 0 else nl + 1
+        end = len(blob)
+        while end > start and blob[end - 1] in b"\r\n \t":
+            end -= 1
+        if end > start:
+            parts.append(memoryview(blob)[start:end])
+            parts.append(b"\n")
+            counts.append(blob.count(b"\n", start, end) + 1)
+        else:
+            counts.append(0)
+    return TextBatch(b"".join(parts), counts, header_lines)
+
+
+def parse_batch(
+    batch: TextBatch, names: list[str], types: dict[str, pa.DataType], delimiter: str
+) -> pa.Table:
+    """Parse the joined buffer in one call (no quoting: none of these formats quote)."""
+    read = pacsv.ReadOptions(column_names=names, block_size=1 << 24, use_threads=False)
+    parse = pacsv.ParseOptions(
+        delimiter=delimiter, quote_char=False, double_quote=False, ignore_empty_lines=False
+    )
+    convert = pacsv.ConvertOptions(
+        column_types=types, strings_can_be_null=False, quoted_strings_can_be_null=False
+    )
+    return pacsv.read_csv(pa.py_buffer(batch.buffer), read, parse, convert)
+
+
+def locate_bad_line(
+    source: SourceFile,
+    blob: bytes,
+    names: list[str],
+    numeric: set[str],
+    header_lines: int,
+    splitter: str | None,
+) -> SourceError:
+    """Scan one file line by line and describe its first malformed line (the slow, exact error path).
+
+    Args:
+        source: the file (named in the error).
+        blob: its bytes.
+        names: expected columns in order.
+        numeric: columns that must hold finite numbers.
+        header_lines: lines before the data.
+        splitter: field delimiter, or None for runs of whitespace.
+    """
+    try:
+        text = blob.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        return SourceError(source.relpath, f"not UTF-8 text ({exc.reason} at byte {exc.start})")
+    lines = text.splitlines()
+    for number, raw in enumerate(lines[header_lines:], start=header_lines + 1):
+        line = raw.strip()
+        fields = line.split(splitter) if splitter else line.split()
+        if not line:
+            return SourceError(source.relpath, "empty line inside the data", line=number)
+        if len(fields) != len(names):
+            return SourceError(
+                source.relpath, f"expected {len(names)} columns ({', '.join(names)}), found {len(fields)}",
+                line=number,
+            )
+        for name, value in zip(names, fields, strict=True):
+            if name in numeric:
+                if not _DECIMAL.match(value.strip()):
+                    try:
+                        number_value = float(value)
+                    except ValueError:
+                        return SourceError(source.relpath, f"not a number: {value!r}", line=number, field=name)
+                    if not math.isfinite(number_value):
+                        return SourceError(source.relpath, f"not finite: {value!r}", line=number, field=name)
+                    return SourceError(source.relpath, f"not a plain decimal: {value!r}", line=number, field=name)
+    return SourceError(source.relpath, "could not be parsed (no single bad line found)")
+
+
+def first_true(mask: NDArrayBool) -> int:
+    """Index of the first True in ``mask`` (caller knows there is one)."""
+    return int(np.flatnonzero(mask)[0])
+
+
+def check_finite(
+    table: pa.Table, columns: Sequence[str], batch: TextBatch, sources: Sequence[SourceFile]
+) -> list[SourceError]:
+    """One error per file holding NaN or infinite values in ``columns``, naming the first such line."""
+    errors: dict[int, SourceError] = {}
+    files = batch.file_index
+    starts = batch.row_starts
+    for name in columns:
+        values = table.column(name).to_numpy()
+        bad = ~np.isfinite(values)
+        if bad.any():
+            for row in np.flatnonzero(bad):
+                f = int(files[row])
+                if f not in errors:
+                    line = int(row - starts[f]) + batch.header_lines + 1
+                    errors[f] = SourceError(
+                        sources[f].relpath, f"not finite: {values[row]!r}", line=line, field=name
+                    )
+    return [errors[f] for f in sorted(errors)]
+
+
+def check_time_and_duplicates(
+    ts_ns: NDArrayInt,
+    track_codes: NDArrayInt,
+    batch: TextBatch,
+    sources: Sequence[SourceFile],
+    time_field: str,
+    track_field: str,
+) -> list[SourceError]:
+    """Errors for files whose time goes backwards, or that repeat a (track, time) pair; first line named.
+
+    Rows must come in file order. Vectorised over the whole batch: one diff and one sort of int64 keys.
+    """
+    errors: dict[int, SourceError] = {}
+    files = batch.file_index
+    starts = batch.row_starts
+    n = len(ts_ns)
+    if n == 0:
+        return []
+
+    def line_of(row: int) -> int:
+        return int(row - starts[files[row]]) + batch.header_lines + 1
+
+    same_file = files[1:] == files[:-1]
+    backwards = np.flatnonzero(same_file & (ts_ns[1:] < ts_ns[:-1])) + 1
+    for row in backwards:
+        f = int(files[row])
+        errors.setdefault(
+            f,
+            SourceError(
+                sources[f].relpath,
+                f"time goes backwards ({ts_ns[row - 1]} ns then {ts_ns[row]} ns)",
+                line=line_of(int(row)),
+                field=time_field,
+            ),
+        )
+    # Duplicates: equal (file, time, track) keys. Time rank within the batch keeps keys in int64.
+    _, time_rank = np.unique(ts_ns, return_inverse=True)
+    key = (files * (int(time_rank.max()) + 1) + time_rank) * (int(track_codes.max()) + 1) + track_codes
+    order = np.argsort(key, kind="stable")
+    dup_sorted = np.flatnonzero(key[order][1:] == key[order][:-1]) + 1
+    for pos in dup_sorted:
+        row = int(order[pos])
+        f = int(files[row])
+        errors.setdefault(
+            f,
+            SourceError(
+                sources[f].relpath,
+                f"duplicated (track, time) row: first at line {line_of(int(order[pos - 1]))}",
+                line=line_of(row),
+                field=track_field,
+            ),
+        )
+    return [errors[f] for f in sorted(errors)]
+
+
+def steps_from_sorted_times(ts_ns: NDArrayInt, file_index: NDArrayInt) -> NDArrayInt:
+    """Step (rank of the distinct timestamp within its file) for rows sorted by time within each file."""
+    n = len(ts_ns)
+    if n == 0:
+        return np.zeros(0, dtype=np.int64)
+    new_file = np.ones(n, dtype=bool)
+    new_file[1:] = file_index[1:] != file_index[:-1]
+    new_time = new_file.copy()
+    new_time[1:] |= ts_ns[1:] != ts_ns[:-1]
+    counter = np.cumsum(new_time) - 1
+    first_of_file = counter[np.flatnonzero(new_file)]
+    file_starts = np.repeat(first_of_file, np.diff(np.append(np.flatnonzero(new_file), n)))
+    result: NDArrayInt = counter - file_starts
+    return result
+
+
+def decimal_seconds_to_ns(values: pa.Array, scale_ns: int = 1_000_000_000) -> tuple[pa.Array, pa.Array]:
+    """Exact conversion of decimal strings (``"315968203.70296454"``) to int64 nanoseconds.
+
+    Floats lose ~30 ns at Argoverse's 3e8 s; splitting integer and fraction keeps the written digits.
+    Works on the distinct values only (a few dozen per log). Returns (nanoseconds, valid mask); invalid
+    entries hold 0 and are reported by the caller.
+    """
+    encoded = pc.dictionary_encode(values) if not pa.types.is_dictionary(values.type) else values
+    chunk = encoded.combine_chunks() if isinstance(encoded, pa.ChunkedArray) else encoded
+    dictionary = chunk.dictionary
+    valid = pc.match_substring_regex(dictionary, r"^[+]?\d+(\.\d*)?$")
+    safe = pc.if_else(valid, dictionary, "0")
+    parts = pc.split_pattern(safe, ".", max_splits=1)
+    whole = pc.cast(pc.list_element(parts, 0), pa.int64())
+    has_fraction = pc.greater(pc.list_value_length(parts), 1)
+    fraction_text = pc.if_else(has_fraction, pc.list_element(pc.list_slice(parts, 1, 2), 0), "0")
+    digits = len(str(scale_ns)) - 1
+    padded = pc.utf8_rpad(pc.utf8_slice_codeunits(fraction_text, 0, digits), digits, "0")
+    ns = pc.add(pc.multiply(whole, scale_ns), pc.cast(padded, pa.int64()))
+    return pc.take(ns, chunk.indices), pc.take(valid, chunk.indices)
+
+
+ValidateFn = Callable[[pa.Table, TextBatch, Sequence[SourceFile]], list[SourceError]]
+HeaderFn = Callable[[SourceFile, bytes], SourceError | None]
+
+
+def _empty_check(source: SourceFile, blob: bytes) -> SourceError | None:
+    if not blob.strip():
+        return SourceError(source.relpath, "empty file (no rows)", line=1)
+    return None
+
+
+def parse_files(
+    sources: Sequence[SourceFile],
+    *,
+    keep_going: bool,
+    names: list[str],
+    types: dict[str, pa.DataType],
+    delimiter: str,
+    header_lines: int,
+    validate: ValidateFn,
+    check_header: HeaderFn = _empty_check,
+) -> tuple[pa.Table, TextBatch, list[SourceFile], list[SourceError]]:
+    """Read, join, parse and validate a batch of text files of one format.
+
+    Returns the parsed table, its ``TextBatch`` bookkeeping, the sources that made it in, and failures.
+    A failing file raises its ``SourceError`` unless ``keep_going``; then it is dropped and the rest retried.
+    """
+    numeric = {n for n, t in types.items() if pa.types.is_floating(t) or pa.types.is_integer(t)}
+    blobs: list[bytes] = []
+    good: list[SourceFile] = []
+    failures: list[SourceError] = []
+    for source in sources:
+        blob = Path(source.path).read_bytes()
+        error = check_header(source, blob)
+        if error is None:
+            blobs.append(blob)
+            good.append(source)
+        elif keep_going:
+            failures.append(error)
+        else:
+            raise error
+    while True:
+        batch = join_bodies(blobs, header_lines=header_lines)
+        try:
+            table = parse_batch(batch, names, types, delimiter)
+        except pa.ArrowInvalid:
+            errors = _locate_parse_errors(good, blobs, names, types, delimiter, header_lines, numeric)
+        else:
+            errors = _first_per_file(validate(table, batch, good), good)
+            if not errors:
+                return table, batch, good, failures
+        if not keep_going:
+            raise errors[0]
+        failures.extend(errors)
+        bad = {e.file for e in errors}
+        keep = [i for i, s in enumerate(good) if s.relpath not in bad]
+        good = [good[i] for i in keep]
+        blobs = [blobs[i] for i in keep]
+
+
+def _locate_parse_errors(
+    sources: Sequence[SourceFile],
+    blobs: Sequence[bytes],
+    names: list[str],
+    types: dict[str, pa.DataType],
+    delimiter: str,
+    header_lines: int,
+    numeric: set[str],
+) -> list[SourceError]:
+    """Slow path after a failed batch parse: every file that fails alone, with its first bad line."""
+    errors = []
+    splitter = None if delimiter == " " else delimiter
+    for source, blob in zip(sources, blobs, strict=True):
+        try:
+            parse_batch(join_bodies([blob], header_lines), names, types, delimiter)
+        except pa.ArrowInvalid:
+            errors.append(locate_bad_line(source, blob, names, numeric, header_lines, splitter))
+    return errors or [SourceError(sources[0].relpath, "batch failed to parse but no single file does")]
+
+
+def _first_per_file(errors: list[SourceError], sources: Sequence[SourceFile]) -> list[SourceError]:
+    first: dict[str, SourceError] = {}
+    for e in errors:
+        first.setdefault(e.file, e)
+    order = {s.relpath: i for i, s in enumerate(sources)}
+    return sorted(first.values(), key=lambda e: order[e.file])
+
+
+def row_error(
+    batch: TextBatch, sources: Sequence[SourceFile], row: int, reason: str, field: str
+) -> SourceError:
+    """A ``SourceError`` for batch row ``row``, with the file and line it came from."""
+    f = int(batch.file_index[row])
+    line = int(row - batch.row_starts[f]) + batch.header_lines + 1
+    return SourceError(sources[f].relpath, reason, line=line, field=field)
+
+
+def log_ids_column(batch: TextBatch, sources: Sequence[SourceFile]) -> pa.Array:
+    """(rows,) log id of each row: the stem of its file."""
+    stems = pa.array([Path(s.relpath).stem for s in sources], pa.string())
+    return pc.take(stems, pa.array(batch.file_index))

@@ -1,0 +1,127 @@
+"""ApolloScape trajectory files: ``frame obj type x y z length width height heading``, space-separated, CRLF.
+
+2 frames per second (``timestamp_ns = frame * 0.5 s``); x/y/z metres in a local frame per file; heading in
+radians. Type codes: 1 small vehicle, 2 big vehicle, 3 pedestrian, 4 bicyclist (or motorcyclist, the
+tracking release says), 5 others. Ids may disappear and reappear: the gap stays visible in the steps.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+from typing import ClassVar
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.compute as pc
+
+from logpipe.errors import SourceError
+from logpipe.formats._text import (
+    TextBatch,
+    check_finite,
+    check_time_and_duplicates,
+    log_ids_column,
+    parse_files,
+    row_error,
+    steps_from_sorted_times,
+)
+from logpipe.formats.base import ParsedLogs
+from logpipe.types import PROTOCOLS, LogMeta, ObjectType, Role, SampleProtocol, SourceFile
+
+COLUMNS = ["frame_id", "object_id", "object_type", "x", "y", "z", "length", "width", "height", "heading"]
+_TYPES = {name: pa.float64() for name in COLUMNS}
+FRAME_PERIOD_NS = 500_000_000
+TYPE_CODES: dict[int, str] = {
+    1: ObjectType.VEHICLE.value,
+    2: ObjectType.BUS_TRUCK.value,
+    3: ObjectType.PEDESTRIAN.value,
+    4: ObjectType.CYCLIST.value,
+    5: ObjectType.UNKNOWN.value,
+}
+
+
+class ApolloScapeAdapter:
+    """Reads ApolloScape ``result_*_frame.txt`` files (10 space-separated numeric columns)."""
+
+    name: ClassVar[str] = "apolloscape"
+    default_protocol: ClassVar[SampleProtocol] = PROTOCOLS["apolloscape"]
+    batch_files: ClassVar[int] = 64
+
+    def discover(self, root: Path) -> list[Path]:
+        """``*.txt`` files under ``root`` (or ``root`` itself)."""
+        if root.is_file():
+            return [root]
+        return sorted(p for p in root.rglob("*.txt") if p.is_file())
+
+    def sniff(self, path: Path) -> bool:
+        """True for a ``.txt`` whose first line has 10 space-separated numbers."""
+        if path.suffix.lower() != ".txt" or not path.is_file():
+            return False
+        with path.open("rb") as fh:
+            fields = fh.readline().split()
+        try:
+            return len(fields) == 10 and all(float(f) == float(f) for f in fields)
+        except ValueError:
+            return False
+
+    def read(self, sources: Sequence[SourceFile], *, keep_going: bool) -> ParsedLogs:
+        """Parse a batch of files; bad files raise (or, with ``keep_going``, are returned as failures)."""
+        table, batch, good, failures = parse_files(
+            sources, keep_going=keep_going, names=COLUMNS, types=_TYPES, delimiter=" ", header_lines=0,
+            validate=_validate,
+        )
+        ts = (table.column("frame_id").to_numpy().astype(np.int64)) * FRAME_PERIOD_NS
+        codes = table.column("object_type").to_numpy().astype(np.int64)
+        lookup = np.array([""] + [TYPE_CODES[c] for c in sorted(TYPE_CODES)], dtype=object)
+        tracks = pa.table(
+            {
+                "log_id": log_ids_column(batch, good),
+                "timestamp_ns": ts,
+                "step": steps_from_sorted_times(ts, batch.file_index).astype(np.int32),
+                "track_id": pc.cast(pa.array(table.column("object_id").to_numpy().astype(np.int64)), pa.string()),
+                "object_type": pa.array(lookup[codes], pa.string()),
+                "role": pa.array(np.full(len(ts), Role.OTHER.value)),
+                "x": table.column("x"),
+                "y": table.column("y"),
+                "heading": table.column("heading"),
+                "length": table.column("length"),
+                "width": table.column("width"),
+                "source_type": pc.cast(pa.array(codes), pa.string()),
+            }
+        )
+        logs = [
+            LogMeta(
+                log_id=Path(s.relpath).stem,
+                source_format=self.name,
+                source_file=s.relpath,
+                source_sha256=s.sha256,
+                map_id=None,
+                frame_rate_hz=2.0,
+                memberships=s.memberships,
+                attributes={},
+            )
+            for s in good
+        ]
+        return ParsedLogs(tracks=tracks, logs=logs, failures=failures)
+
+
+def _validate(table: pa.Table, batch: TextBatch, sources: Sequence[SourceFile]) -> list[SourceError]:
+    errors = check_finite(table, COLUMNS, batch, sources)
+    if errors:
+        return errors
+    for name in ("frame_id", "object_id", "object_type"):
+        values = table.column(name).to_numpy()
+        fractional = values != np.round(values)
+        if fractional.any():
+            row = int(np.flatnonzero(fractional)[0])
+            errors.append(row_error(batch, sources, row, f"not a whole number: {values[row]!r}", name))
+    codes = table.column("object_type").to_numpy()
+    unknown = ~np.isin(codes, list(TYPE_CODES))
+    if unknown.any():
+        row = int(np.flatnonzero(unknown)[0])
+        errors.append(row_error(batch, sources, row, f"unknown type code {codes[row]!r} (1-5)", "object_type"))
+    if errors:
+        return errors
+    ts = table.column("frame_id").to_numpy().astype(np.int64) * FRAME_PERIOD_NS
+    ids = table.column("object_id").to_numpy().astype(np.int64)
+    return check_time_and_duplicates(ts, ids - ids.min(), batch, sources, "frame_id", "object_id")

@@ -1,0 +1,114 @@
+"""ETH/UCY pedestrian files as distributed by Social-GAN: ``frame_id  ped_id  x  y``, tab-separated.
+
+frame_id is a video frame number (written as ``780`` or ``780.0``); annotations are 10 frames apart,
+0.4 s at the nominal 25 fps, so ``timestamp_ns = frame_id * 40 ms``. x/y are metres in a plane specific to
+each scene. The folder layout ``<scene>/<train|val|test>/<file>.txt`` gives each file its memberships
+(``eth/test``, ``univ/train``, ...); identical files under several scenes are one log with several
+memberships, so leave-one-scene-out selects logs by membership instead of copying data.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+from typing import ClassVar
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.compute as pc
+
+from logpipe.errors import SourceError
+from logpipe.formats._text import (
+    TextBatch,
+    check_finite,
+    check_time_and_duplicates,
+    log_ids_column,
+    parse_files,
+    row_error,
+    steps_from_sorted_times,
+)
+from logpipe.formats.base import ParsedLogs
+from logpipe.types import PROTOCOLS, LogMeta, ObjectType, Role, SampleProtocol, SourceFile
+
+COLUMNS = ["frame_id", "ped_id", "x", "y"]
+_TYPES = {name: pa.float64() for name in COLUMNS}
+FRAME_PERIOD_NS = 40_000_000  # 25 fps video; annotations every 10 frames = 0.4 s (2.5 Hz)
+
+
+class EthUcyAdapter:
+    """Reads ETH/UCY ``*.txt`` files (4 tab-separated numeric columns, no header)."""
+
+    name: ClassVar[str] = "ethucy"
+    default_protocol: ClassVar[SampleProtocol] = PROTOCOLS["ethucy"]
+    batch_files: ClassVar[int] = 64
+
+    def discover(self, root: Path) -> list[Path]:
+        """``*.txt`` files under ``root`` (or ``root`` itself)."""
+        if root.is_file():
+            return [root]
+        return sorted(p for p in root.rglob("*.txt") if p.is_file())
+
+    def sniff(self, path: Path) -> bool:
+        """True for a ``.txt`` whose first line has 4 tab-separated numbers."""
+        if path.suffix.lower() != ".txt" or not path.is_file():
+            return False
+        with path.open("rb") as fh:
+            fields = fh.readline().split(b"\t")
+        try:
+            return len(fields) == 4 and all(float(f) == float(f) for f in fields)
+        except ValueError:
+            return False
+
+    def read(self, sources: Sequence[SourceFile], *, keep_going: bool) -> ParsedLogs:
+        """Parse a batch of files; bad files raise (or, with ``keep_going``, are returned as failures)."""
+        table, batch, good, failures = parse_files(
+            sources, keep_going=keep_going, names=COLUMNS, types=_TYPES, delimiter="\t", header_lines=0,
+            validate=_validate,
+        )
+        frames = table.column("frame_id").to_numpy()
+        ts = np.rint(frames * FRAME_PERIOD_NS).astype(np.int64)
+        peds = table.column("ped_id").to_numpy()
+        tracks = pa.table(
+            {
+                "log_id": log_ids_column(batch, good),
+                "timestamp_ns": ts,
+                "step": steps_from_sorted_times(ts, batch.file_index).astype(np.int32),
+                "track_id": pc.cast(pa.array(peds.astype(np.int64)), pa.string()),
+                "object_type": pa.array(np.full(len(ts), ObjectType.PEDESTRIAN.value)),
+                "role": pa.array(np.full(len(ts), Role.OTHER.value)),
+                "x": table.column("x"),
+                "y": table.column("y"),
+                "source_type": pa.array(np.full(len(ts), "pedestrian")),
+            }
+        )
+        logs = [
+            LogMeta(
+                log_id=Path(s.relpath).stem,
+                source_format=self.name,
+                source_file=s.relpath,
+                source_sha256=s.sha256,
+                map_id=None,
+                frame_rate_hz=2.5,
+                memberships=s.memberships,
+                attributes={"recording": Path(s.relpath).stem.removesuffix("_train").removesuffix("_val")},
+            )
+            for s in good
+        ]
+        return ParsedLogs(tracks=tracks, logs=logs, failures=failures)
+
+
+def _validate(table: pa.Table, batch: TextBatch, sources: Sequence[SourceFile]) -> list[SourceError]:
+    errors = check_finite(table, COLUMNS, batch, sources)
+    if errors:
+        return errors
+    for name in ("frame_id", "ped_id"):
+        values = table.column(name).to_numpy()
+        fractional = values != np.round(values)
+        if fractional.any():
+            row = int(np.flatnonzero(fractional)[0])
+            errors.append(row_error(batch, sources, row, f"not a whole number: {values[row]!r}", name))
+    if errors:
+        return errors
+    ts = np.rint(table.column("frame_id").to_numpy() * FRAME_PERIOD_NS).astype(np.int64)
+    peds = table.column("ped_id").to_numpy().astype(np.int64)
+    return check_time_and_duplicates(ts, peds - peds.min(), batch, sources, "frame_id", "ped_id")

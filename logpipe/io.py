@@ -1,0 +1,96 @@
+"""File IO that never leaves a partial file visible: hashing, atomic writes, Parquet and JSON."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import tempfile
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import IO, Any
+
+import pyarrow as pa
+import pyarrow.parquet as pq
+
+_HASH_CHUNK = 1 << 20
+
+# Fixed writer settings so that the same table always gives the same bytes (reruns are byte-identical).
+PARQUET_OPTIONS: dict[str, Any] = {
+    "compression": "zstd",
+    "compression_level": 3,
+    "use_dictionary": True,
+    "write_statistics": True,
+    "row_group_size": 256 * 1024,
+}
+
+
+def sha256_bytes(data: bytes) -> str:
+    """Hex sha256 of ``data``."""
+    return hashlib.sha256(data).hexdigest()
+
+
+def sha256_file(path: Path) -> str:
+    """Hex sha256 of a file's bytes, read in 1 MiB chunks."""
+    digest = hashlib.sha256()
+    with path.open("rb") as fh:
+        while chunk := fh.read(_HASH_CHUNK):
+            digest.update(chunk)
+    return digest.hexdigest()
+
+
+def sha256_tree(path: Path) -> str:
+    """sha256 of a file, or for a folder the sha256 of its files' names and digests in name order."""
+    if path.is_file():
+        return sha256_file(path)
+    digest = hashlib.sha256()
+    for child in sorted(p for p in path.rglob("*") if p.is_file()):
+        digest.update(child.relative_to(path).as_posix().encode())
+        digest.update(sha256_file(child).encode())
+    return digest.hexdigest()
+
+
+@contextmanager
+def atomic_path(target: Path) -> Iterator[Path]:
+    """Yield a temporary path beside ``target``; on success it is renamed onto ``target`` in one step.
+
+    The temp file lives in the same folder so the rename never crosses file systems; on error it is removed
+    and ``target`` is untouched.
+    """
+    target.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp_name = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
+    os.close(fd)
+    tmp = Path(tmp_name)
+    try:
+        yield tmp
+        os.replace(tmp, target)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+
+
+@contextmanager
+def atomic_open(target: Path, mode: str = "wb") -> Iterator[IO[Any]]:
+    """Open a temporary file beside ``target`` for writing; it replaces ``target`` when the block succeeds."""
+    with atomic_path(target) as tmp, tmp.open(mode) as fh:
+        yield fh
+
+
+def write_parquet(table: pa.Table, target: Path) -> None:
+    """Write ``table`` to ``target`` atomically with the fixed, reproducible writer settings."""
+    with atomic_path(target) as tmp:
+        pq.write_table(table, tmp, **PARQUET_OPTIONS)
+
+
+def write_json(data: Any, target: Path) -> None:
+    """Write ``data`` as indented, key-sorted JSON atomically (stable bytes for identical content)."""
+    with atomic_open(target, "w") as fh:
+        json.dump(data, fh, indent=2, sort_keys=True)
+        fh.write("\n")
+
+
+def read_json(path: Path) -> Any:
+    """Parsed JSON of ``path``."""
+    with path.open(encoding="utf-8") as fh:
+        return json.load(fh)

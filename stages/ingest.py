@@ -1,0 +1,370 @@
+"""``logpipe ingest``: input logs → canonical Parquet shards, logs table, sample index, MCAP per log.
+
+Reads top-down: find and hash inputs → skip those already ingested (by content) → parse batches in
+parallel, each batch one shard written to a staging folder → commit by renames, manifest last.
+With ``on_error="fail"`` the first bad input stops the run and nothing becomes visible; with ``"skip"``
+bad inputs are quarantined (listed in the manifest and the summary) and the rest lands.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import time
+import uuid
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.compute as pc
+import pyarrow.parquet as pq
+
+from logpipe import __version__
+from logpipe.contracts import arrow_schema, conform, schema_version, tracks_schema
+from logpipe.dataset import LOGS_FILE, MANIFEST, MCAP_DIR, SAMPLES_FILE, shard_name
+from logpipe.errors import DatasetError, SourceError
+from logpipe.executor import Backend, run_ordered
+from logpipe.formats import detect, get_adapter
+from logpipe.inputs import collect_sources
+from logpipe.io import read_json, sha256_file, write_json, write_parquet
+from logpipe.mcapio import write_log_mcap
+from logpipe.samples import build_samples
+from logpipe.types import LogMeta, SampleProtocol, SourceFile
+
+OnError = Literal["fail", "skip"]
+SCHEMAS = ("tracks", "logs", "samples")
+
+
+@dataclass
+class IngestOptions:
+    """What ``ingest`` does.
+
+    Attributes:
+        out: dataset folder (created if missing; reruns add only new inputs).
+        format: adapter name, or None to detect it from the inputs.
+        protocol: sample windows; None = the format's default preset.
+        on_error: ``fail`` (nothing written) or ``skip`` (quarantine bad inputs).
+        write_mcap: also write ``mcap/<log_id>.mcap`` per log.
+        workers: processes (0 = every core); ``backend="ray"`` runs batches as Ray tasks.
+        batch_files: inputs per batch (= per shard); None = the adapter's default.
+        adapter_options: passed to the adapter's constructor (e.g. ``hz``, ``mapping``).
+    """
+
+    out: Path
+    format: str | None = None
+    protocol: SampleProtocol | None = None
+    on_error: OnError = "fail"
+    write_mcap: bool = True
+    workers: int = 0
+    backend: Backend = "local"
+    batch_files: int | None = None
+    adapter_options: dict[str, Any] = field(default_factory=dict)
+
+
+@dataclass
+class _BatchJob:
+    adapter: str
+    adapter_options: dict[str, Any]
+    sources: list[SourceFile]
+    shard_file: str
+    staging: str
+    protocol: SampleProtocol
+    keep_going: bool
+    write_mcap: bool
+
+
+@dataclass
+class _BatchResult:
+    shard: dict[str, Any] | None
+    logs: pa.Table
+    samples: pa.Table
+    ingested: list[SourceFile]
+    failures: list[tuple[SourceFile, SourceError]]
+    mcap_messages: int
+
+
+def ingest(roots: Sequence[Path], options: IngestOptions,
+           progress: Callable[[int], None] | None = None) -> dict[str, Any]:
+    """Ingest ``roots`` into ``options.out``; returns the run summary (also what ``--json`` prints).
+
+    Args:
+        roots: input files or folders.
+        options: see ``IngestOptions``.
+        progress: called with the number of inputs each finished batch covered.
+
+    Raises:
+        SourceError: a bad input, with ``on_error="fail"``.
+        DatasetError: the output folder holds a dataset of another format/protocol/schema, or log ids clash.
+    """
+    started = time.perf_counter()
+    fmt = options.format or detect(roots[0])
+    adapter = get_adapter(fmt, **options.adapter_options)
+    protocol = options.protocol or adapter.default_protocol
+    out = options.out
+    manifest = _load_compatible_manifest(out, fmt, protocol)
+    sources = collect_sources(roots, adapter)
+    known = {i["sha256"] for i in manifest["inputs"]} | {q["sha256"] for q in manifest["quarantined"]}
+    new = [s for s in sources if s.sha256 not in known]
+    summary: dict[str, Any] = {
+        "dataset": str(out), "format": fmt, "protocol": protocol.to_dict(), "inputs_found": len(sources),
+        "inputs_skipped_already_ingested": len(sources) - len(new), "inputs_ingested": 0, "quarantined": [],
+        "logs": 0, "rows": 0, "samples": 0, "shards_written": [],
+    }
+    if new:
+        _ingest_new(new, manifest, fmt, adapter.batch_files, protocol, options, summary, progress)
+    summary["seconds"] = round(time.perf_counter() - started, 3)
+    summary["totals"] = manifest["totals"]
+    return summary
+
+
+def _ingest_new(
+    new: list[SourceFile], manifest: dict[str, Any], fmt: str, default_batch: int, protocol: SampleProtocol,
+    options: IngestOptions, summary: dict[str, Any], progress: Callable[[int], None] | None,
+) -> None:
+    out = options.out
+    out.mkdir(parents=True, exist_ok=True)
+    per_batch = options.batch_files or default_batch
+    first_shard = 1 + max((int(s["file"][5:10]) for s in manifest["shards"]), default=-1)
+    staging = out / f".staging-{uuid.uuid4().hex[:12]}"
+    jobs = [
+        _BatchJob(fmt, options.adapter_options, new[i:i + per_batch], shard_name(first_shard + n), str(staging),
+                  protocol, options.on_error == "skip", options.write_mcap)
+        for n, i in enumerate(range(0, len(new), per_batch))
+    ]
+    try:
+        results = []
+        for result in run_ordered(_ingest_batch, jobs, workers=options.workers, backend=options.backend):
+            results.append(result)
+            if progress:
+                progress(len(result.ingested) + len(result.failures))
+        _commit(results, manifest, staging, out, summary)
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
+
+
+def _ingest_batch(job: _BatchJob) -> _BatchResult:
+    """Parse one batch and write its shard (and MCAPs) into the staging folder. Runs in a worker."""
+    adapter = get_adapter(job.adapter, **job.adapter_options)
+    parsed = adapter.read(job.sources, keep_going=job.keep_going)
+    by_path = {s.relpath: s for s in job.sources}
+    failures = [(by_path[e.file], e) for e in parsed.failures]
+    tracks = _canonical_order(parsed.tracks)
+    logs, empty = _log_rows(tracks, parsed.logs, job.shard_file)
+    for meta in empty:
+        error = SourceError(meta.source_file, "produced no track rows")
+        if not job.keep_going:
+            raise error
+        failures.append((by_path[meta.source_file], error))
+    staging = Path(job.staging)
+    shard = None
+    samples = arrow_schema("samples").empty_table()
+    messages = 0
+    if tracks.num_rows:
+        path = staging / job.shard_file
+        write_parquet(tracks, path)
+        shard = {"file": job.shard_file, "rows": tracks.num_rows, "sha256": sha256_file(path),
+                 "logs": logs.num_rows}
+        kept = [m for m in parsed.logs if m not in empty]
+        samples = build_samples(tracks, kept, job.protocol)
+        if job.write_mcap:
+            messages = _write_mcaps(tracks, kept, staging / MCAP_DIR)
+    failed = {s.relpath for s, _ in failures}
+    ingested = [s for s in job.sources if s.relpath not in failed]
+    return _BatchResult(shard, logs, samples, ingested, failures, messages)
+
+
+def _canonical_order(tracks: pa.Table) -> pa.Table:
+    """Rows sorted by log, time, track with ``step`` filled in, in the track-table schema.
+
+    Adapters that return ``step`` promise this order already (the text adapters keep file order, which is
+    by time), which saves a sort of millions of rows.
+    """
+    if "step" not in tracks.column_names:
+        tracks = tracks.sort_by([("log_id", "ascending"), ("timestamp_ns", "ascending"),
+                                 ("track_id", "ascending")])
+        log_ids = pc.dictionary_encode(tracks.column("log_id")).combine_chunks().indices.to_numpy()
+        from logpipe.formats._text import steps_from_sorted_times  # noqa: PLC0415 - shared helper
+
+        steps = steps_from_sorted_times(tracks.column("timestamp_ns").to_numpy(), log_ids.astype(np.int64))
+        tracks = tracks.append_column("step", pa.array(steps.astype(np.int32)))
+    return conform(tracks, tracks_schema())
+
+
+def _log_rows(tracks: pa.Table, metas: list[LogMeta], shard: str) -> tuple[pa.Table, list[LogMeta]]:
+    """The logs-table rows for ``metas`` (stats from ``tracks``), and the metas that have no rows."""
+    stats = tracks.group_by("log_id", use_threads=False).aggregate(
+        [("timestamp_ns", "min"), ("timestamp_ns", "max"), ("step", "max"), ("track_id", "count_distinct"),
+         ("log_id", "count"), ("role", "list")]
+    ) if tracks.num_rows else None
+    by_log: dict[str, dict[str, Any]] = {}
+    if stats is not None:
+        for row in stats.to_pylist():
+            by_log[row["log_id"]] = row
+    step_ts = _median_dt(tracks)
+    columns: dict[str, list[Any]] = {name: [] for name in arrow_schema("logs").names}
+    empty = []
+    for meta in metas:
+        row = by_log.get(meta.log_id)
+        if row is None:
+            empty.append(meta)
+            continue
+        columns["log_id"].append(meta.log_id)
+        columns["source_format"].append(meta.source_format)
+        columns["source_file"].append(meta.source_file)
+        columns["source_sha256"].append(meta.source_sha256)
+        columns["map_id"].append(meta.map_id)
+        columns["frame_rate_hz"].append(meta.frame_rate_hz)
+        columns["memberships"].append(list(meta.memberships))
+        columns["attributes"].append(json.dumps(meta.attributes, sort_keys=True))
+        columns["shard"].append(shard)
+        columns["num_rows"].append(row["log_id_count"])
+        columns["num_tracks"].append(row["track_id_count_distinct"])
+        columns["num_steps"].append(row["step_max"] + 1)
+        columns["start_ns"].append(row["timestamp_ns_min"])
+        columns["end_ns"].append(row["timestamp_ns_max"])
+        columns["median_dt_ns"].append(step_ts.get(meta.log_id, 0))
+        columns["has_ego"].append("ego" in row["role_list"])
+    return conform(pa.table(columns), arrow_schema("logs")), empty
+
+
+def _median_dt(tracks: pa.Table) -> dict[str, int]:
+    """Median step between distinct timestamps of each log, ns."""
+    if tracks.num_rows == 0:
+        return {}
+    log_ids = tracks.column("log_id").to_numpy(zero_copy_only=False)
+    steps = tracks.column("step").to_numpy()
+    ts = tracks.column("timestamp_ns").to_numpy()
+    first = np.flatnonzero(np.concatenate([[True], (steps[1:] != steps[:-1]) | (log_ids[1:] != log_ids[:-1])]))
+    step_logs, step_ts = log_ids[first], ts[first]
+    bounds = np.flatnonzero(step_logs[1:] != step_logs[:-1]) + 1
+    result = {}
+    for lo, hi in zip(np.concatenate([[0], bounds]).tolist(), np.concatenate([bounds, [len(first)]]).tolist(),
+                      strict=True):
+        result[str(step_logs[lo])] = int(np.median(np.diff(step_ts[lo:hi]))) if hi - lo > 1 else 0
+    return result
+
+
+def _write_mcaps(tracks: pa.Table, metas: list[LogMeta], folder: Path) -> int:
+    log_ids = tracks.column("log_id").to_numpy(zero_copy_only=False)
+    bounds = np.flatnonzero(log_ids[1:] != log_ids[:-1]) + 1
+    maps = {m.log_id: m.map_id for m in metas}
+    messages = 0
+    for lo, hi in zip(np.concatenate([[0], bounds]).tolist(), np.concatenate([bounds, [len(log_ids)]]).tolist(),
+                      strict=True):
+        log_id = str(log_ids[lo])
+        messages += write_log_mcap(log_id, tracks.slice(lo, hi - lo), folder / f"{log_id}.mcap", maps.get(log_id))
+    return messages
+
+
+def _empty_manifest(fmt: str, protocol: SampleProtocol) -> dict[str, Any]:
+    return {
+        "logpipe_version": __version__,
+        "schemas": {name: schema_version(name) for name in SCHEMAS},
+        "format": fmt,
+        "protocol": protocol.to_dict(),
+        "inputs": [],
+        "quarantined": [],
+        "shards": [],
+        "tables": {},
+        "totals": {"logs": 0, "rows": 0, "samples": 0, "inputs": 0, "quarantined": 0},
+    }
+
+
+def _load_compatible_manifest(out: Path, fmt: str, protocol: SampleProtocol) -> dict[str, Any]:
+    path = out / MANIFEST
+    if not path.exists():
+        return _empty_manifest(fmt, protocol)
+    manifest: dict[str, Any] = read_json(path)
+    problems = []
+    if manifest["format"] != fmt:
+        problems.append(f"format {manifest['format']!r} (now {fmt!r})")
+    if manifest["protocol"] != protocol.to_dict():
+        problems.append(f"protocol {manifest['protocol']} (now {protocol.to_dict()})")
+    versions = {name: schema_version(name) for name in SCHEMAS}
+    if manifest["schemas"] != versions:
+        problems.append(f"schema versions {manifest['schemas']} (now {versions})")
+    if problems:
+        raise DatasetError(f"{out}: existing dataset was written with " + "; ".join(problems)
+                           + ". Ingest into a new folder (or `logpipe index` to change the protocol).")
+    return manifest
+
+
+def _commit(results: list[_BatchResult], manifest: dict[str, Any], staging: Path, out: Path,
+            summary: dict[str, Any]) -> None:
+    """Make the batches visible: shards and MCAPs by rename, then the tables, the manifest last."""
+    new_logs = [r.logs for r in results if r.logs.num_rows]
+    existing_logs = pq.read_table(out / LOGS_FILE) if (out / LOGS_FILE).exists() else None
+    all_logs = pa.concat_tables(([existing_logs] if existing_logs is not None else []) + new_logs) \
+        if new_logs or existing_logs is not None else arrow_schema("logs").empty_table()
+    ids = all_logs.column("log_id").to_numpy(zero_copy_only=False)
+    unique, counts = np.unique(ids, return_counts=True)
+    if (counts > 1).any():
+        clash = str(unique[counts > 1][0])
+        files = all_logs.filter(pc.equal(all_logs.column("log_id"), clash)).column("source_file").to_pylist()
+        raise DatasetError(f"log id {clash!r} comes from different inputs {files}: ingest them into separate "
+                           "datasets (log ids are file stems)")
+    for result in results:
+        if result.shard is not None:
+            (staging / result.shard["file"]).replace(out / result.shard["file"])
+            manifest["shards"].append(result.shard)
+            summary["shards_written"].append(result.shard["file"])
+    if (staging / MCAP_DIR).is_dir():
+        (out / MCAP_DIR).mkdir(exist_ok=True)
+        for path in sorted((staging / MCAP_DIR).iterdir()):
+            path.replace(out / MCAP_DIR / path.name)
+    old_samples = [pq.read_table(out / SAMPLES_FILE)] if (out / SAMPLES_FILE).exists() else []
+    all_samples = pa.concat_tables(old_samples + [r.samples for r in results])
+    write_parquet(all_logs, out / LOGS_FILE)
+    write_parquet(all_samples, out / SAMPLES_FILE)
+    for result in results:
+        for source in result.ingested:
+            manifest["inputs"].append({"path": source.relpath, "sha256": source.sha256, "bytes": source.size,
+                                       "memberships": list(source.memberships)})
+        for source, error in result.failures:
+            entry = {"path": source.relpath, "sha256": source.sha256, "error": error.to_dict()}
+            manifest["quarantined"].append(entry)
+            summary["quarantined"].append(entry)
+    manifest["tables"] = {
+        "logs": {"file": LOGS_FILE, "rows": all_logs.num_rows, "sha256": sha256_file(out / LOGS_FILE)},
+        "samples": {"file": SAMPLES_FILE, "rows": all_samples.num_rows, "sha256": sha256_file(out / SAMPLES_FILE)},
+    }
+    manifest["totals"] = {
+        "logs": all_logs.num_rows,
+        "rows": sum(s["rows"] for s in manifest["shards"]),
+        "samples": all_samples.num_rows,
+        "inputs": len(manifest["inputs"]),
+        "quarantined": len(manifest["quarantined"]),
+    }
+    write_json(manifest, out / MANIFEST)
+    summary["inputs_ingested"] = sum(len(r.ingested) for r in results)
+    summary["logs"] = sum(r.logs.num_rows for r in results)
+    summary["rows"] = sum(r.shard["rows"] for r in results if r.shard)
+    summary["samples"] = sum(r.samples.num_rows for r in results)
+    summary["mcap_messages"] = sum(r.mcap_messages for r in results)
+
+
+def reindex(dataset_dir: Path, protocol: SampleProtocol) -> dict[str, Any]:
+    """Rebuild ``samples.parquet`` with ``protocol``, one shard in memory at a time; manifest updated last."""
+    from logpipe.dataset import Dataset  # noqa: PLC0415 - keeps module import light for workers
+
+    dataset = Dataset.open(dataset_dir)
+    logs = dataset.logs()
+    metas = [
+        LogMeta(log_id=r["log_id"], source_format=r["source_format"], source_file=r["source_file"],
+                source_sha256=r["source_sha256"], map_id=r["map_id"], frame_rate_hz=r["frame_rate_hz"])
+        for r in logs.select(["log_id", "source_format", "source_file", "source_sha256", "map_id",
+                              "frame_rate_hz"]).to_pylist()
+    ]
+    parts = [build_samples(pq.read_table(path), metas, protocol) for path in dataset.shard_paths]
+    samples = pa.concat_tables(parts) if parts else arrow_schema("samples").empty_table()
+    write_parquet(samples, dataset_dir / SAMPLES_FILE)
+    manifest = dataset.manifest
+    manifest["protocol"] = protocol.to_dict()
+    manifest["tables"]["samples"] = {"file": SAMPLES_FILE, "rows": samples.num_rows,
+                                     "sha256": sha256_file(dataset_dir / SAMPLES_FILE)}
+    manifest["totals"]["samples"] = samples.num_rows
+    write_json(manifest, dataset_dir / MANIFEST)
+    return {"dataset": str(dataset_dir), "protocol": protocol.to_dict(), "samples": samples.num_rows}
