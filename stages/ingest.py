@@ -125,6 +125,7 @@ def _ingest_new(
     options: IngestOptions, summary: dict[str, Any], progress: Callable[[int], None] | None,
 ) -> None:
     out = options.out
+    created = not out.exists()
     out.mkdir(parents=True, exist_ok=True)
     per_batch = options.batch_files or default_batch
     first_shard = 1 + max((int(s["file"][5:10]) for s in manifest["shards"]), default=-1)
@@ -143,6 +144,8 @@ def _ingest_new(
         _commit(results, manifest, staging, out, summary)
     finally:
         shutil.rmtree(staging, ignore_errors=True)
+        if created and not any(out.iterdir()):
+            out.rmdir()  # a failed first run leaves no trace
 
 
 def _ingest_batch(job: _BatchJob) -> _BatchResult:

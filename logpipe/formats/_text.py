@@ -239,10 +239,10 @@ def decimal_seconds_to_ns(values: pa.Array, scale_ns: int = 1_000_000_000) -> tu
     dictionary = chunk.dictionary
     valid = pc.match_substring_regex(dictionary, r"^[+]?\d+(\.\d*)?$")
     safe = pc.if_else(valid, dictionary, "0")
-    parts = pc.split_pattern(safe, ".", max_splits=1)
+    # A trailing "." guarantees two parts ("123" -> "123." -> ["123", ""]) so no branch needs a guard.
+    parts = pc.split_pattern(pc.binary_join_element_wise(safe, "", "."), ".", max_splits=1)
     whole = pc.cast(pc.list_element(parts, 0), pa.int64())
-    has_fraction = pc.greater(pc.list_value_length(parts), 1)
-    fraction_text = pc.if_else(has_fraction, pc.list_element(pc.list_slice(parts, 1, 2), 0), "0")
+    fraction_text = pc.utf8_rtrim(pc.list_element(parts, 1), ".")
     digits = len(str(scale_ns)) - 1
     padded = pc.utf8_rpad(pc.utf8_slice_codeunits(fraction_text, 0, digits), digits, "0")
     ns = pc.add(pc.multiply(whole, scale_ns), pc.cast(padded, pa.int64()))
@@ -291,6 +291,9 @@ def parse_files(
             raise error
     while True:
         batch = join_bodies(blobs, header_lines=header_lines)
+        if not good:  # every file failed: an empty table, so callers need no special case
+            empty = pa.schema([(n, types[n]) for n in names]).empty_table()
+            return empty, batch, good, failures
         try:
             table = parse_batch(batch, names, types, delimiter)
         except pa.ArrowInvalid:

@@ -1,0 +1,37 @@
+# logpipe — two commands set everything up on a fresh machine: `make demo` and `make test`.
+PYTHON ?= python3
+VENV ?= .venv
+PY := $(VENV)/bin/python
+STAMP := $(VENV)/.installed-stamp
+OUT ?= out
+
+.PHONY: setup demo test test-fast bench lint clean
+
+# torch first and pinned: a looser pin would pull a multi-GB CUDA build; 2.13.0 is a local CPU wheel here.
+$(STAMP): pyproject.toml
+	$(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install -q --upgrade pip
+	$(PY) -m pip install -q torch==2.13.0
+	$(PY) -m pip install -q -e '.[dev]'
+	touch $(STAMP)
+
+setup: $(STAMP)
+
+demo: setup
+	$(VENV)/bin/logpipe ingest tests/data/argoverse1 --out $(OUT)/demo/argoverse1
+	$(VENV)/bin/logpipe ingest tests/data/ethucy --out $(OUT)/demo/ethucy
+	$(VENV)/bin/logpipe ingest tests/data/apolloscape --out $(OUT)/demo/apolloscape
+	@echo "demo outputs in $(OUT)/demo (Parquet shards, samples.parquet, manifest.json, mcap/*.mcap)"
+
+test: setup
+	$(PY) -m pytest -q -p no:cacheprovider
+
+bench: setup
+	$(PY) -m benchmarks.run --out $(OUT)/bench.json
+
+lint: setup
+	$(VENV)/bin/ruff check logpipe stages model tests benchmarks
+	$(VENV)/bin/mypy logpipe stages model
+
+clean:
+	rm -rf $(OUT) .pytest_cache .mypy_cache .ruff_cache
