@@ -144,7 +144,7 @@ def _ingest_new(
         _commit(results, manifest, staging, out, summary)
     finally:
         shutil.rmtree(staging, ignore_errors=True)
-        if created and not any(out.iterdir()):
+        if created and out.is_dir() and not any(out.iterdir()):
             out.rmdir()  # a failed first run leaves no trace
 
 
@@ -197,20 +197,16 @@ def _canonical_order(tracks: pa.Table) -> pa.Table:
 
 
 def _log_rows(tracks: pa.Table, metas: list[LogMeta], shard: str) -> tuple[pa.Table, list[LogMeta]]:
-    """The logs-table rows for ``metas`` (stats from ``tracks``), and the metas that have no rows."""
-    stats = tracks.group_by("log_id", use_threads=False).aggregate(
-        [("timestamp_ns", "min"), ("timestamp_ns", "max"), ("step", "max"), ("track_id", "count_distinct"),
-         ("log_id", "count"), ("role", "list")]
-    ) if tracks.num_rows else None
-    by_log: dict[str, dict[str, Any]] = {}
-    if stats is not None:
-        for row in stats.to_pylist():
-            by_log[row["log_id"]] = row
-    step_ts = _median_dt(tracks)
+    """The logs-table rows for ``metas`` (stats from ``tracks``), and the metas that have no rows.
+
+    ``tracks`` is in canonical order (logs contiguous, time ascending), so every statistic is a slice
+    boundary or a reduction over contiguous runs: no hashing group-by.
+    """
+    stats = _log_stats(tracks)
     columns: dict[str, list[Any]] = {name: [] for name in arrow_schema("logs").names}
     empty = []
     for meta in metas:
-        row = by_log.get(meta.log_id)
+        row = stats.get(meta.log_id)
         if row is None:
             empty.append(meta)
             continue
@@ -223,31 +219,43 @@ def _log_rows(tracks: pa.Table, metas: list[LogMeta], shard: str) -> tuple[pa.Ta
         columns["memberships"].append(list(meta.memberships))
         columns["attributes"].append(json.dumps(meta.attributes, sort_keys=True))
         columns["shard"].append(shard)
-        columns["num_rows"].append(row["log_id_count"])
-        columns["num_tracks"].append(row["track_id_count_distinct"])
-        columns["num_steps"].append(row["step_max"] + 1)
-        columns["start_ns"].append(row["timestamp_ns_min"])
-        columns["end_ns"].append(row["timestamp_ns_max"])
-        columns["median_dt_ns"].append(step_ts.get(meta.log_id, 0))
-        columns["has_ego"].append("ego" in row["role_list"])
+        for key, value in row.items():
+            columns[key].append(value)
     return conform(pa.table(columns), arrow_schema("logs")), empty
 
 
-def _median_dt(tracks: pa.Table) -> dict[str, int]:
-    """Median step between distinct timestamps of each log, ns."""
-    if tracks.num_rows == 0:
+def _log_stats(tracks: pa.Table) -> dict[str, dict[str, Any]]:
+    """Per-log row count, distinct tracks and steps, time span, median step and whether an ego exists."""
+    n = tracks.num_rows
+    if n == 0:
         return {}
-    log_ids = tracks.column("log_id").to_numpy(zero_copy_only=False)
+    log_codes = pc.dictionary_encode(tracks.column("log_id")).combine_chunks()
+    logs = log_codes.indices.to_numpy().astype(np.int64)
+    names = log_codes.dictionary.to_pylist()
+    tracks_code = pc.dictionary_encode(tracks.column("track_id")).combine_chunks().indices.to_numpy()
     steps = tracks.column("step").to_numpy()
     ts = tracks.column("timestamp_ns").to_numpy()
-    first = np.flatnonzero(np.concatenate([[True], (steps[1:] != steps[:-1]) | (log_ids[1:] != log_ids[:-1])]))
-    step_logs, step_ts = log_ids[first], ts[first]
-    bounds = np.flatnonzero(step_logs[1:] != step_logs[:-1]) + 1
-    result = {}
-    for lo, hi in zip(np.concatenate([[0], bounds]).tolist(), np.concatenate([bounds, [len(first)]]).tolist(),
-                      strict=True):
-        result[str(step_logs[lo])] = int(np.median(np.diff(step_ts[lo:hi]))) if hi - lo > 1 else 0
-    return result
+    ego = pc.equal(tracks.column("role"), "ego").to_numpy(zero_copy_only=False)
+    starts = np.flatnonzero(np.concatenate([[True], logs[1:] != logs[:-1]]))
+    ends = np.append(starts[1:], n)
+    pairs = np.unique(logs * (int(tracks_code.max()) + 1) + tracks_code)
+    distinct = np.bincount(pairs // (int(tracks_code.max()) + 1), minlength=len(names))
+    egos = np.add.reduceat(ego.astype(np.int64), starts)
+    first_of_step = np.flatnonzero(np.concatenate([[True], (steps[1:] != steps[:-1]) | (logs[1:] != logs[:-1])]))
+    step_bounds = np.searchsorted(first_of_step, np.append(starts, n))
+    stats = {}
+    for i, (lo, hi) in enumerate(zip(starts.tolist(), ends.tolist(), strict=True)):
+        step_ts = ts[first_of_step[step_bounds[i]:step_bounds[i + 1]]]
+        stats[names[logs[lo]]] = {
+            "num_rows": hi - lo,
+            "num_tracks": int(distinct[logs[lo]]),
+            "num_steps": int(steps[hi - 1]) + 1,
+            "start_ns": int(ts[lo]),
+            "end_ns": int(ts[hi - 1]),
+            "median_dt_ns": int(np.median(np.diff(step_ts))) if len(step_ts) > 1 else 0,
+            "has_ego": bool(egos[i]),
+        }
+    return stats
 
 
 def _write_mcaps(tracks: pa.Table, metas: list[LogMeta], folder: Path) -> int:

@@ -1,0 +1,103 @@
+"""Ingest throughput on Argoverse 1 CSVs replicated to >= 10,000 files, against the devkit's way.
+
+Baseline (same run): ``pandas.read_csv`` per file and one ``pandas.concat`` — what argoverse-api's loader
+does. Ours: ``logpipe ingest`` end to end (hash, parse, validate, Parquet shards, sample index, manifest),
+without and with MCAP output. Each measurement runs in a fresh subprocess so its peak RSS (including worker
+processes) is its own; ours is measured at two corpus sizes to show memory does not grow with file count.
+Replicas differ in the AV's track id (same length), so content hashing does not merge them.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import statistics
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+from typing import Any
+
+REPO = Path(__file__).resolve().parents[1]
+SOURCE = REPO.parent / "shared" / "data" / "argoverse1" / "data"
+FALLBACK = REPO / "tests" / "data" / "argoverse1"
+AV_ID = b"00000000-0000-0000-0000-000000000000"
+
+_CHILD = r"""
+import json, resource, sys, time
+from pathlib import Path
+mode, src, out = sys.argv[1], Path(sys.argv[2]), Path(sys.argv[3])
+files = sorted(src.glob("*.csv"))
+t0 = time.perf_counter()
+if mode == "pandas":
+    import pandas as pd
+    frame = pd.concat([pd.read_csv(f) for f in files], ignore_index=True)
+    rows = len(frame)
+else:
+    from logpipe.stages.ingest import IngestOptions, ingest
+    summary = ingest([src], IngestOptions(out=out, write_mcap=(mode == "logpipe+mcap")))
+    rows = summary["rows"]
+seconds = time.perf_counter() - t0
+peak_kb = max(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss, resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss)
+print(json.dumps({"files": len(files), "rows": rows, "seconds": seconds, "peak_rss_mb": peak_kb / 1024}))
+"""
+
+
+def make_corpus(folder: Path, n_files: int) -> int:
+    """Write ``n_files`` distinct replicas of the real CSVs into ``folder``; returns the bytes written."""
+    source = SOURCE if SOURCE.is_dir() else FALLBACK
+    originals = [(p.stem, p.read_bytes()) for p in sorted(source.glob("*.csv"))]
+    folder.mkdir(parents=True, exist_ok=True)
+    total = 0
+    for i in range(n_files):
+        stem, blob = originals[i % len(originals)]
+        replica = blob.replace(AV_ID, f"{i:08d}".encode() + AV_ID[8:])
+        (folder / f"{i:06d}_{stem}.csv").write_bytes(replica)
+        total += len(replica)
+    return total
+
+
+def _measure(mode: str, src: Path, work: Path) -> dict[str, Any]:
+    out = work / f"out-{mode}"
+    shutil.rmtree(out, ignore_errors=True)
+    proc = subprocess.run([sys.executable, "-c", _CHILD, mode, str(src), str(out)],
+                          capture_output=True, text=True, check=True)
+    shutil.rmtree(out, ignore_errors=True)
+    result: dict[str, Any] = json.loads(proc.stdout.strip().splitlines()[-1])
+    return result
+
+
+def _median_run(mode: str, src: Path, work: Path, repeats: int) -> dict[str, Any]:
+    runs = [_measure(mode, src, work) for _ in range(repeats)]
+    seconds = statistics.median(r["seconds"] for r in runs)
+    return {"mode": mode, "files": runs[0]["files"], "rows": runs[0]["rows"], "median_seconds": round(seconds, 3),
+            "files_per_s": round(runs[0]["files"] / seconds, 1),
+            "peak_rss_mb": round(max(r["peak_rss_mb"] for r in runs), 1),
+            "runs_seconds": [round(r["seconds"], 3) for r in runs]}
+
+
+def run(quick: bool = False) -> dict[str, Any]:
+    """Measure and return the figures (JSON-able)."""
+    n_large, n_small, repeats = (1_000, 250, 1) if quick else (10_000, 2_500, 3)
+    with tempfile.TemporaryDirectory(prefix="logpipe-bench-") as tmp:
+        work = Path(tmp)
+        nbytes = make_corpus(work / "large", n_large)
+        make_corpus(work / "small", n_small)
+        baseline = _median_run("pandas", work / "large", work, repeats)
+        ours = _median_run("logpipe", work / "large", work, repeats)
+        ours_mcap = _median_run("logpipe+mcap", work / "large", work, 1)
+        ours_small = _median_run("logpipe", work / "small", work, 1)
+    if baseline["rows"] != ours["rows"]:
+        raise RuntimeError(f"row counts differ: pandas {baseline['rows']} vs logpipe {ours['rows']}")
+    return {
+        "benchmark": "ingest_argoverse1_csv",
+        "corpus": {"files": n_large, "bytes": nbytes, "replicated_from": "69 real AV1 CSVs"},
+        "baseline_pandas_read_csv_concat": baseline,
+        "logpipe_ingest_parquet": ours,
+        "logpipe_ingest_parquet_and_mcap": ours_mcap,
+        "logpipe_ingest_parquet_small_corpus": ours_small,
+        "speedup_vs_baseline": round(ours["files_per_s"] / baseline["files_per_s"], 2),
+        "speedup_with_mcap_vs_baseline": round(ours_mcap["files_per_s"] / baseline["files_per_s"], 2),
+        "peak_rss_ratio_large_vs_small_corpus": round(ours["peak_rss_mb"] / ours_small["peak_rss_mb"], 2),
+        "target": ">= 4x baseline files/s (aim 10x); peak memory independent of file count",
+    }

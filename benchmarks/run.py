@@ -1,0 +1,44 @@
+"""``make bench``: run every benchmark module and write one JSON file with their figures.
+
+Each ``benchmarks/bench_*.py`` exposes ``run(quick: bool) -> dict`` that measures its own baseline in the
+same process/run and reports medians and ratios (the machine is shared and noisy).
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import json
+import platform
+import sys
+import time
+from pathlib import Path
+
+BENCHMARKS = ["bench_ingest", "bench_rosbag", "bench_raster", "bench_model"]
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__)
+    parser.add_argument("--out", type=Path, default=Path("out/bench.json"))
+    parser.add_argument("--quick", action="store_true", help="small corpora, one repeat (smoke run)")
+    parser.add_argument("--only", nargs="*", help="benchmark module names to run")
+    args = parser.parse_args()
+    results: dict[str, object] = {"python": sys.version.split()[0], "machine": platform.machine(),
+                                  "started": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
+    for name in args.only or BENCHMARKS:
+        try:
+            module = importlib.import_module(f"benchmarks.{name}")
+        except ModuleNotFoundError:
+            continue
+        print(f"[bench] {name} ...", file=sys.stderr, flush=True)
+        started = time.perf_counter()
+        results[name] = module.run(quick=args.quick)
+        print(f"[bench] {name} done in {time.perf_counter() - started:.1f} s", file=sys.stderr, flush=True)
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(results, indent=2) + "\n")
+    print(json.dumps(results, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
