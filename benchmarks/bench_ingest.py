@@ -38,7 +38,8 @@ else:
     summary = ingest([src], IngestOptions(out=out, write_mcap=(mode == "logpipe+mcap")))
     rows = summary["rows"]
 seconds = time.perf_counter() - t0
-peak_kb = max(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss, resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss)
+usage = (resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN))
+peak_kb = max(u.ru_maxrss for u in usage)
 print(json.dumps({"files": len(files), "rows": rows, "seconds": seconds, "peak_rss_mb": peak_kb / 1024}))
 """
 

@@ -132,7 +132,7 @@ def ingest(
 
     Example: logpipe ingest ../shared/data/argoverse1/data --out out/av1
     """
-    from logpipe.stages.ingest import IngestOptions  # noqa: PLC0415 - fast --help
+    from logpipe.stages.ingest import IngestOptions
     from logpipe.stages.ingest import ingest as run_ingest
 
     if on_error not in ("fail", "skip"):
@@ -142,8 +142,8 @@ def ingest(
     with _user_errors():
         options = IngestOptions(
             out=out, format=fmt, protocol=_protocol(protocol, obs, pred, stride, min_targets, targets),
-            on_error=on_error,  # type: ignore[arg-type]
-            write_mcap=mcap, workers=workers, backend=backend,  # type: ignore[arg-type]
+            on_error=on_error,
+            write_mcap=mcap, workers=workers, backend=backend,
             batch_files=batch_files,
         )
         with _progress(0, "ingest", enabled=not as_json and sys.stderr.isatty()) as advance:
@@ -180,8 +180,8 @@ def index(
 
     Example: logpipe index out/ethucy --min-targets 2
     """
-    from logpipe.dataset import Dataset  # noqa: PLC0415
-    from logpipe.stages.ingest import reindex  # noqa: PLC0415
+    from logpipe.dataset import Dataset
+    from logpipe.stages.ingest import reindex
 
     with _user_errors():
         current = Dataset.open(dataset).protocol

@@ -64,7 +64,7 @@ def run_ordered(
 
 def _run_ray(fn: Callable[[T], R], items: Sequence[T], workers: int) -> Iterator[R]:
     try:
-        import ray  # noqa: PLC0415 - optional dependency, only for --backend ray
+        import ray
     except ImportError as exc:
         raise LogpipeError("--backend ray needs Ray: pip install 'logpipe[ray]'") from exc
     if not ray.is_initialized():

@@ -81,7 +81,7 @@ def write_log_mcap(log_id: str, tracks: pa.Table, target: Path, map_id: str | No
             count += 1
         if ego is not None:
             count += _write_ego(writer, ego, ego_rows, ts, x, y, heading)
-        writer.finish()
+        writer.finish()  # type: ignore[no-untyped-call]
     return count
 
 

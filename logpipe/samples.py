@@ -74,10 +74,8 @@ def _log_windows(
     # Timestamp of each step (rows are sorted by step, so the first row of each step carries it).
     first_rows = np.flatnonzero(np.diff(steps, prepend=-1))
     step_ts = ts[first_rows]
-    if protocol.window == "first":
-        window_starts = np.array([0])
-    else:
-        window_starts = np.arange(0, n_steps - seq + 1, protocol.stride)
+    last_start = 0 if protocol.window == "first" else n_steps - seq
+    window_starts = np.arange(0, last_start + 1, protocol.stride)
     local_ids, local = np.unique(tracks, return_inverse=True)
     presence = np.zeros((len(local_ids), n_steps + 1), dtype=np.int32)
     presence[local, steps + 1] = 1

@@ -189,7 +189,7 @@ def _canonical_order(tracks: pa.Table) -> pa.Table:
         tracks = tracks.sort_by([("log_id", "ascending"), ("timestamp_ns", "ascending"),
                                  ("track_id", "ascending")])
         log_ids = pc.dictionary_encode(tracks.column("log_id")).combine_chunks().indices.to_numpy()
-        from logpipe.formats._text import steps_from_sorted_times  # noqa: PLC0415 - shared helper
+        from logpipe.formats._text import steps_from_sorted_times
 
         steps = steps_from_sorted_times(tracks.column("timestamp_ns").to_numpy(), log_ids.astype(np.int64))
         tracks = tracks.append_column("step", pa.array(steps.astype(np.int32)))
@@ -359,7 +359,7 @@ def _commit(results: list[_BatchResult], manifest: dict[str, Any], staging: Path
 
 def reindex(dataset_dir: Path, protocol: SampleProtocol) -> dict[str, Any]:
     """Rebuild ``samples.parquet`` with ``protocol``, one shard in memory at a time; manifest updated last."""
-    from logpipe.dataset import Dataset  # noqa: PLC0415 - keeps module import light for workers
+    from logpipe.dataset import Dataset
 
     dataset = Dataset.open(dataset_dir)
     logs = dataset.logs()

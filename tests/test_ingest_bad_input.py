@@ -5,10 +5,10 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
+from logpipe.stages.ingest import IngestOptions, ingest
 
 from logpipe.errors import SourceError
 from logpipe.io import read_json
-from logpipe.stages.ingest import IngestOptions, ingest
 
 HEADER = "TIMESTAMP,TRACK_ID,OBJECT_TYPE,X,Y,CITY_NAME\n"
 GOOD = HEADER + "".join(
@@ -17,7 +17,8 @@ GOOD = HEADER + "".join(
 )
 
 AV1_CASES = {
-    "missing_column": (HEADER.replace(",CITY_NAME", "") + "1.0,a,AV,1.0,2.0\n", 1, None, "missing columns ['CITY_NAME']"),
+    "missing_column": (HEADER.replace(",CITY_NAME", "") + "1.0,a,AV,1.0,2.0\n", 1, None,
+                       "missing columns ['CITY_NAME']"),
     "extra_column": (HEADER.replace("CITY_NAME", "CITY_NAME,Z") + "1.0,a,AV,1.0,2.0,MIA,3\n", 1, None,
                      "unexpected columns ['Z']"),
     "non_numeric": (GOOD + "315968203.9,b,OTHERS,abc,2.0,MIA\n", 8, "X", "not a number: 'abc'"),

@@ -7,15 +7,15 @@ from decimal import Decimal
 from pathlib import Path
 
 import numpy as np
+import pyarrow as pa
 import pyarrow.compute as pc
 import pyarrow.parquet as pq
-import pytest
 from jsonschema import Draft202012Validator
+from logpipe.stages.ingest import IngestOptions, ingest, reindex
 from mcap.reader import make_reader
 
 from logpipe.contracts import arrow_schema, json_schema, tracks_schema
 from logpipe.dataset import Dataset
-from logpipe.stages.ingest import IngestOptions, ingest, reindex
 from logpipe.types import PROTOCOLS
 
 
@@ -71,7 +71,8 @@ def _counts_by_membership(ds: Dataset, scene: str, split: str) -> tuple[int, int
     logs = ds.logs()
     member = [f"{scene}/{split}" in m for m in logs.column("memberships").to_pylist()]
     ids = set(np.array(logs.column("log_id").to_pylist())[member].tolist())
-    samples = ds.samples().filter(pc.is_in(ds.samples().column("log_id"), value_set=__import__("pyarrow").array(sorted(ids))))
+    samples = ds.samples()
+    samples = samples.filter(pc.is_in(samples.column("log_id"), value_set=pa.array(sorted(ids))))
     return samples.num_rows, sum(len(t) for t in samples.column("target_track_ids").to_pylist())
 
 

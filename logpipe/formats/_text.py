@@ -118,15 +118,14 @@ def locate_bad_line(
                 line=number,
             )
         for name, value in zip(names, fields, strict=True):
-            if name in numeric:
-                if not _DECIMAL.match(value.strip()):
-                    try:
-                        number_value = float(value)
-                    except ValueError:
-                        return SourceError(source.relpath, f"not a number: {value!r}", line=number, field=name)
-                    if not math.isfinite(number_value):
-                        return SourceError(source.relpath, f"not finite: {value!r}", line=number, field=name)
-                    return SourceError(source.relpath, f"not a plain decimal: {value!r}", line=number, field=name)
+            if name in numeric and not _DECIMAL.match(value.strip()):
+                try:
+                    number_value = float(value)
+                except ValueError:
+                    return SourceError(source.relpath, f"not a number: {value!r}", line=number, field=name)
+                if not math.isfinite(number_value):
+                    return SourceError(source.relpath, f"not finite: {value!r}", line=number, field=name)
+                return SourceError(source.relpath, f"not a plain decimal: {value!r}", line=number, field=name)
     return SourceError(source.relpath, "could not be parsed (no single bad line found)")
 
 
@@ -180,7 +179,7 @@ def check_time_and_duplicates(
 
     same_file = files[1:] == files[:-1]
     backwards = np.flatnonzero(same_file & (ts_ns[1:] < ts_ns[:-1])) + 1
-    for row in backwards:
+    for row in backwards.tolist():
         f = int(files[row])
         errors.setdefault(
             f,
@@ -196,15 +195,15 @@ def check_time_and_duplicates(
     key = (files * (int(time_rank.max()) + 1) + time_rank) * (int(track_codes.max()) + 1) + track_codes
     order = np.argsort(key, kind="stable")
     dup_sorted = np.flatnonzero(key[order][1:] == key[order][:-1]) + 1
-    for pos in dup_sorted:
-        row = int(order[pos])
-        f = int(files[row])
+    for pos in dup_sorted.tolist():
+        dup_row = int(order[pos])
+        f = int(files[dup_row])
         errors.setdefault(
             f,
             SourceError(
                 sources[f].relpath,
                 f"duplicated (track, time) row: first at line {line_of(int(order[pos - 1]))}",
-                line=line_of(row),
+                line=line_of(dup_row),
                 field=track_field,
             ),
         )
