@@ -7,7 +7,7 @@ Layout::
       part-00000.parquet     track-table shards, whole logs each, sorted by log, time, track
       logs.parquet           one row per log (schemas/logs.json)
       samples.parquet        the prediction-sample index (schemas/samples.json)
-      mcap/<log_id>.mcap     each log for a viewer
+      mcap/part-NNNNN/<log_id>.mcap   each log for a viewer, grouped like the shards
 
 Only what the manifest lists is read, so a shard left behind by an interrupted run is never seen.
 """
@@ -26,7 +26,7 @@ import pyarrow.compute as pc
 import pyarrow.parquet as pq
 
 from logpipe.errors import DatasetError
-from logpipe.io import read_json
+from logpipe.io import as_numpy, read_json
 from logpipe.types import OBJECT_TYPES, Role, SampleProtocol, SceneSample
 
 MANIFEST = "manifest.json"
@@ -38,6 +38,11 @@ MCAP_DIR = "mcap"
 def shard_name(index: int) -> str:
     """``part-NNNNN.parquet``."""
     return f"part-{index:05d}.parquet"
+
+
+def mcap_folder(shard: str) -> str:
+    """``mcap/part-NNNNN``: the MCAP files of one shard's logs (moved into place as one folder)."""
+    return f"{MCAP_DIR}/{shard.removesuffix('.parquet')}"
 
 
 @dataclass
@@ -95,6 +100,13 @@ class Dataset:
         logs = pq.read_table(self.root / LOGS_FILE, columns=["log_id", "shard"])
         return dict(zip(logs.column("log_id").to_pylist(), logs.column("shard").to_pylist(), strict=True))
 
+    def mcap_path(self, log_id: str) -> Path:
+        """The MCAP file ingest wrote for ``log_id``."""
+        shard = self._shard_of_log.get(log_id)
+        if shard is None:
+            raise DatasetError(f"{self.root}: no log {log_id!r}")
+        return self.root / mcap_folder(shard) / f"{log_id}.mcap"
+
     def log_tracks(self, log_id: str) -> pa.Table:
         """Rows of one log, sorted by step (reads only its shard's matching row groups)."""
         shard = self._shard_of_log.get(log_id)
@@ -106,7 +118,7 @@ class Dataset:
         """(log_id, rows) for every log, one shard in memory at a time."""
         for path in self.shard_paths:
             table = pq.read_table(path)
-            log_ids = table.column("log_id").to_numpy(zero_copy_only=False)
+            log_ids = as_numpy(table.column("log_id"))
             bounds = np.flatnonzero(log_ids[1:] != log_ids[:-1]) + 1
             starts = np.concatenate([[0], bounds])
             ends = np.concatenate([bounds, [len(log_ids)]])
@@ -138,16 +150,16 @@ def scene_sample(tracks: pa.Table, sample: dict[str, Any], protocol: SampleProto
     window = tracks.filter(
         pc.and_(pc.greater_equal(tracks.column("step"), start), pc.less_equal(tracks.column("step"), end))
     )
-    steps = window.column("step").to_numpy() - start
+    steps = as_numpy(window.column("step")) - start
     track_col = pc.dictionary_encode(window.column("track_id")).combine_chunks()
     names = track_col.dictionary.to_pylist()
     codes = track_col.indices.to_numpy()
     seq = end - start + 1
     positions = np.full((len(names), seq, 2), np.nan)
-    positions[codes, steps, 0] = window.column("x").to_numpy()
-    positions[codes, steps, 1] = window.column("y").to_numpy()
+    positions[codes, steps, 0] = as_numpy(window.column("x"))
+    positions[codes, steps, 1] = as_numpy(window.column("y"))
     timestamps = np.zeros(seq, dtype=np.int64)
-    timestamps[steps] = window.column("timestamp_ns").to_numpy()
+    timestamps[steps] = as_numpy(window.column("timestamp_ns"))
     type_code = {t: i for i, t in enumerate(OBJECT_TYPES)}
     object_types = np.zeros(len(names), dtype=np.int64)
     object_types[codes] = [type_code[t] for t in window.column("object_type").to_pylist()]

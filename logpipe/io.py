@@ -94,3 +94,10 @@ def read_json(path: Path) -> Any:
     """Parsed JSON of ``path``."""
     with path.open(encoding="utf-8") as fh:
         return json.load(fh)
+
+
+def as_numpy(column: pa.Array | pa.ChunkedArray) -> Any:
+    """A column (``Array`` or ``ChunkedArray``) as one numpy array; copies only when it must."""
+    if isinstance(column, pa.ChunkedArray):
+        column = column.combine_chunks() if column.num_chunks != 1 else column.chunk(0)
+    return column.to_numpy(zero_copy_only=False)

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 import math
+from functools import cache
 from pathlib import Path
 from typing import Any
 
@@ -20,7 +21,7 @@ from mcap.writer import CompressionType, Writer
 
 from logpipe import __version__
 from logpipe.contracts import json_schema
-from logpipe.io import atomic_open
+from logpipe.io import as_numpy
 from logpipe.types import Role
 
 AGENTS_TOPIC = "/logpipe/agents"
@@ -28,11 +29,13 @@ EGO_TOPIC = "/logpipe/ego_pose"
 WORLD_FRAME = "world"
 
 
+@cache
+def _schema_bytes(schema_name: str) -> bytes:
+    return json.dumps(json_schema(schema_name), sort_keys=True).encode()
+
+
 def _register(writer: Writer, topic: str, schema_name: str) -> int:
-    schema = json_schema(schema_name)
-    schema_id = writer.register_schema(
-        name=schema_name, encoding="jsonschema", data=json.dumps(schema, sort_keys=True).encode()
-    )
+    schema_id = writer.register_schema(name=schema_name, encoding="jsonschema", data=_schema_bytes(schema_name))
     return writer.register_channel(topic=topic, message_encoding="json", schema_id=schema_id)
 
 
@@ -41,11 +44,15 @@ def _quaternion_z(yaw: float) -> dict[str, float]:
 
 
 def write_log_mcap(log_id: str, tracks: pa.Table, target: Path, map_id: str | None) -> int:
-    """Write one log's rows (sorted by step) to ``target`` atomically; returns the number of messages."""
-    steps = tracks.column("step").to_numpy()
-    ts = tracks.column("timestamp_ns").to_numpy()
-    x = tracks.column("x").to_numpy()
-    y = tracks.column("y").to_numpy()
+    """Write one log's rows (sorted by step) to ``target``; returns the number of messages.
+
+    ``target`` must be in a folder nobody reads yet (ingest's staging folder, renamed into place whole):
+    per-file temp-and-rename would cost more than the MCAP itself at millions of small logs.
+    """
+    steps = as_numpy(tracks.column("step"))
+    ts = as_numpy(tracks.column("timestamp_ns"))
+    x = as_numpy(tracks.column("x"))
+    y = as_numpy(tracks.column("y"))
     heading_col = tracks.column("heading")
     heading = heading_col.to_pylist() if heading_col.null_count < len(heading_col) else None
     track_ids = tracks.column("track_id").to_pylist()
@@ -56,7 +63,8 @@ def write_log_mcap(log_id: str, tracks: pa.Table, target: Path, map_id: str | No
     ends = np.concatenate([bounds, [len(steps)]]).tolist()
     ego_rows = [i for i, r in enumerate(roles) if r == Role.EGO.value]
     count = 0
-    with atomic_open(target) as fh:
+    target.parent.mkdir(parents=True, exist_ok=True)
+    with target.open("wb") as fh:
         writer = Writer(fh, compression=CompressionType.ZSTD)
         writer.start(profile="", library=f"logpipe {__version__}")
         writer.add_metadata("logpipe", {"log_id": log_id, "map_id": map_id or "", "frame_id": WORLD_FRAME})

@@ -14,6 +14,7 @@ import pyarrow as pa
 import pyarrow.compute as pc
 
 from logpipe.contracts import arrow_schema, conform
+from logpipe.io import as_numpy
 from logpipe.types import LogMeta, NDArrayInt, Role, SampleProtocol
 
 REGULAR_TOLERANCE = 0.5
@@ -38,9 +39,9 @@ def build_samples(tracks: pa.Table, logs: Sequence[LogMeta], protocol: SamplePro
     track_col = pc.dictionary_encode(tracks.column("track_id")).combine_chunks()
     track_code = track_col.indices.to_numpy().astype(np.int64)
     track_names = np.array(track_col.dictionary.to_pylist(), dtype=object)
-    steps = tracks.column("step").to_numpy().astype(np.int64)
-    ts = tracks.column("timestamp_ns").to_numpy()
-    focal = pc.equal(tracks.column("role"), Role.FOCAL.value).to_numpy(zero_copy_only=False)
+    steps = as_numpy(tracks.column("step")).astype(np.int64)
+    ts = as_numpy(tracks.column("timestamp_ns"))
+    focal = as_numpy(pc.equal(tracks.column("role"), Role.FOCAL.value))
     rate = {m.log_id: m.frame_rate_hz for m in logs}
 
     bounds = np.flatnonzero(np.diff(log_code)) + 1

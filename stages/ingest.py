@@ -24,12 +24,12 @@ import pyarrow.parquet as pq
 
 from logpipe import __version__
 from logpipe.contracts import arrow_schema, conform, schema_version, tracks_schema
-from logpipe.dataset import LOGS_FILE, MANIFEST, MCAP_DIR, SAMPLES_FILE, shard_name
+from logpipe.dataset import LOGS_FILE, MANIFEST, MCAP_DIR, SAMPLES_FILE, mcap_folder, shard_name
 from logpipe.errors import DatasetError, SourceError
 from logpipe.executor import Backend, run_ordered
 from logpipe.formats import detect, get_adapter
 from logpipe.inputs import collect_sources
-from logpipe.io import read_json, sha256_file, write_json, write_parquet
+from logpipe.io import as_numpy, read_json, sha256_file, write_json, write_parquet
 from logpipe.mcapio import write_log_mcap
 from logpipe.samples import build_samples
 from logpipe.types import LogMeta, SampleProtocol, SourceFile
@@ -173,7 +173,7 @@ def _ingest_batch(job: _BatchJob) -> _BatchResult:
         kept = [m for m in parsed.logs if m not in empty]
         samples = build_samples(tracks, kept, job.protocol)
         if job.write_mcap:
-            messages = _write_mcaps(tracks, kept, staging / MCAP_DIR)
+            messages = _write_mcaps(tracks, kept, staging / mcap_folder(job.shard_file))
     failed = {s.relpath for s, _ in failures}
     ingested = [s for s in job.sources if s.relpath not in failed]
     return _BatchResult(shard, logs, samples, ingested, failures, messages)
@@ -191,7 +191,7 @@ def _canonical_order(tracks: pa.Table) -> pa.Table:
         log_ids = pc.dictionary_encode(tracks.column("log_id")).combine_chunks().indices.to_numpy()
         from logpipe.formats._text import steps_from_sorted_times
 
-        steps = steps_from_sorted_times(tracks.column("timestamp_ns").to_numpy(), log_ids.astype(np.int64))
+        steps = steps_from_sorted_times(as_numpy(tracks.column("timestamp_ns")), log_ids.astype(np.int64))
         tracks = tracks.append_column("step", pa.array(steps.astype(np.int32)))
     return conform(tracks, tracks_schema())
 
@@ -233,9 +233,9 @@ def _log_stats(tracks: pa.Table) -> dict[str, dict[str, Any]]:
     logs = log_codes.indices.to_numpy().astype(np.int64)
     names = log_codes.dictionary.to_pylist()
     tracks_code = pc.dictionary_encode(tracks.column("track_id")).combine_chunks().indices.to_numpy()
-    steps = tracks.column("step").to_numpy()
-    ts = tracks.column("timestamp_ns").to_numpy()
-    ego = pc.equal(tracks.column("role"), "ego").to_numpy(zero_copy_only=False)
+    steps = as_numpy(tracks.column("step"))
+    ts = as_numpy(tracks.column("timestamp_ns"))
+    ego = as_numpy(pc.equal(tracks.column("role"), "ego"))
     starts = np.flatnonzero(np.concatenate([[True], logs[1:] != logs[:-1]]))
     ends = np.append(starts[1:], n)
     pairs = np.unique(logs * (int(tracks_code.max()) + 1) + tracks_code)
@@ -259,7 +259,7 @@ def _log_stats(tracks: pa.Table) -> dict[str, dict[str, Any]]:
 
 
 def _write_mcaps(tracks: pa.Table, metas: list[LogMeta], folder: Path) -> int:
-    log_ids = tracks.column("log_id").to_numpy(zero_copy_only=False)
+    log_ids = as_numpy(tracks.column("log_id"))
     bounds = np.flatnonzero(log_ids[1:] != log_ids[:-1]) + 1
     maps = {m.log_id: m.map_id for m in metas}
     messages = 0
@@ -310,7 +310,7 @@ def _commit(results: list[_BatchResult], manifest: dict[str, Any], staging: Path
     existing_logs = pq.read_table(out / LOGS_FILE) if (out / LOGS_FILE).exists() else None
     all_logs = pa.concat_tables(([existing_logs] if existing_logs is not None else []) + new_logs) \
         if new_logs or existing_logs is not None else arrow_schema("logs").empty_table()
-    ids = all_logs.column("log_id").to_numpy(zero_copy_only=False)
+    ids = as_numpy(all_logs.column("log_id"))
     unique, counts = np.unique(ids, return_counts=True)
     if (counts > 1).any():
         clash = str(unique[counts > 1][0])
@@ -324,8 +324,8 @@ def _commit(results: list[_BatchResult], manifest: dict[str, Any], staging: Path
             summary["shards_written"].append(result.shard["file"])
     if (staging / MCAP_DIR).is_dir():
         (out / MCAP_DIR).mkdir(exist_ok=True)
-        for path in sorted((staging / MCAP_DIR).iterdir()):
-            path.replace(out / MCAP_DIR / path.name)
+        for folder in sorted((staging / MCAP_DIR).iterdir()):  # one rename per shard, not per log
+            folder.replace(out / MCAP_DIR / folder.name)
     old_samples = [pq.read_table(out / SAMPLES_FILE)] if (out / SAMPLES_FILE).exists() else []
     all_samples = pa.concat_tables(old_samples + [r.samples for r in results])
     write_parquet(all_logs, out / LOGS_FILE)

@@ -132,7 +132,8 @@ def test_mcap_channels_decode_and_validate(bundled: Path, tmp_path: Path) -> Non
                   "foxglove.PoseInFrame": Draft202012Validator(json_schema("foxglove.PoseInFrame"))}
     counts: dict[str, int] = {}
     rows = 0
-    with (tmp_path / "av1" / "mcap" / "2645.mcap").open("rb") as fh:
+    assert ds.mcap_path("2645") == tmp_path / "av1" / "mcap" / "part-00000" / "2645.mcap"
+    with ds.mcap_path("2645").open("rb") as fh:
         for schema, channel, message in make_reader(fh).iter_messages():
             data = json.loads(message.data)
             validators[schema.name].validate(data)

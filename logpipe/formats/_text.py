@@ -19,6 +19,7 @@ import pyarrow.compute as pc
 import pyarrow.csv as pacsv
 
 from logpipe.errors import SourceError
+from logpipe.io import as_numpy
 from logpipe.types import NDArrayBool, NDArrayInt, SourceFile
 
 _DECIMAL = re.compile(r"^[+-]?(\d+\.?\d*|\.\d+)$")
@@ -142,7 +143,7 @@ def check_finite(
     files = batch.file_index
     starts = batch.row_starts
     for name in columns:
-        values = table.column(name).to_numpy()
+        values = as_numpy(table.column(name))
         bad = ~np.isfinite(values)
         if bad.any():
             for row in np.flatnonzero(bad):

@@ -26,6 +26,7 @@ from logpipe.formats._text import (
     steps_from_sorted_times,
 )
 from logpipe.formats.base import ParsedLogs
+from logpipe.io import as_numpy
 from logpipe.types import PROTOCOLS, LogMeta, ObjectType, Role, SampleProtocol, SourceFile
 
 COLUMNS = ["frame_id", "object_id", "object_type", "x", "y", "z", "length", "width", "height", "heading"]
@@ -70,15 +71,15 @@ class ApolloScapeAdapter:
             sources, keep_going=keep_going, names=COLUMNS, types=_TYPES, delimiter=" ", header_lines=0,
             validate=_validate,
         )
-        ts = (table.column("frame_id").to_numpy().astype(np.int64)) * FRAME_PERIOD_NS
-        codes = table.column("object_type").to_numpy().astype(np.int64)
+        ts = (as_numpy(table.column("frame_id")).astype(np.int64)) * FRAME_PERIOD_NS
+        codes = as_numpy(table.column("object_type")).astype(np.int64)
         lookup = np.array([""] + [TYPE_CODES[c] for c in sorted(TYPE_CODES)], dtype=object)
         tracks = pa.table(
             {
                 "log_id": log_ids_column(batch, good),
                 "timestamp_ns": ts,
                 "step": steps_from_sorted_times(ts, batch.file_index).astype(np.int32),
-                "track_id": pc.cast(pa.array(table.column("object_id").to_numpy().astype(np.int64)), pa.string()),
+                "track_id": pc.cast(pa.array(as_numpy(table.column("object_id")).astype(np.int64)), pa.string()),
                 "object_type": pa.array(lookup[codes], pa.string()),
                 "role": pa.array(np.full(len(ts), Role.OTHER.value)),
                 "x": table.column("x"),
@@ -110,18 +111,18 @@ def _validate(table: pa.Table, batch: TextBatch, sources: Sequence[SourceFile]) 
     if errors:
         return errors
     for name in ("frame_id", "object_id", "object_type"):
-        values = table.column(name).to_numpy()
+        values = as_numpy(table.column(name))
         fractional = values != np.round(values)
         if fractional.any():
             row = int(np.flatnonzero(fractional)[0])
             errors.append(row_error(batch, sources, row, f"not a whole number: {values[row]!r}", name))
-    codes = table.column("object_type").to_numpy()
+    codes = as_numpy(table.column("object_type"))
     unknown = ~np.isin(codes, list(TYPE_CODES))
     if unknown.any():
         row = int(np.flatnonzero(unknown)[0])
         errors.append(row_error(batch, sources, row, f"unknown type code {codes[row]!r} (1-5)", "object_type"))
     if errors:
         return errors
-    ts = table.column("frame_id").to_numpy().astype(np.int64) * FRAME_PERIOD_NS
-    ids = table.column("object_id").to_numpy().astype(np.int64)
+    ts = as_numpy(table.column("frame_id")).astype(np.int64) * FRAME_PERIOD_NS
+    ids = as_numpy(table.column("object_id")).astype(np.int64)
     return check_time_and_duplicates(ts, ids - ids.min(), batch, sources, "frame_id", "object_id")

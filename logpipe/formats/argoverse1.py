@@ -33,6 +33,7 @@ from logpipe.formats._text import (
     steps_from_sorted_times,
 )
 from logpipe.formats.base import ParsedLogs
+from logpipe.io import as_numpy
 from logpipe.types import PROTOCOLS, LogMeta, ObjectType, Role, SampleProtocol, SourceFile
 
 _NON_SPACE = re.compile(rb"\S")
@@ -112,7 +113,7 @@ def _validate(table: pa.Table, batch: TextBatch, sources: Sequence[SourceFile]) 
         value = table.column("TIMESTAMP")[row].as_py()
         errors.append(row_error(batch, sources, row, f"not a decimal number of seconds: {value!r}", "TIMESTAMP"))
     kinds = table.column("OBJECT_TYPE")
-    known = pc.is_in(kinds, value_set=pa.array(list(_ROLE))).to_numpy(zero_copy_only=False)
+    known = as_numpy(pc.is_in(kinds, value_set=pa.array(list(_ROLE))))
     if not known.all():
         row = first_true(~known)
         reason = f"unknown OBJECT_TYPE {kinds[row].as_py()!r} (AV, AGENT, OTHERS)"

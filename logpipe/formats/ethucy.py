@@ -28,6 +28,7 @@ from logpipe.formats._text import (
     steps_from_sorted_times,
 )
 from logpipe.formats.base import ParsedLogs
+from logpipe.io import as_numpy
 from logpipe.types import PROTOCOLS, LogMeta, ObjectType, Role, SampleProtocol, SourceFile
 
 COLUMNS = ["frame_id", "ped_id", "x", "y"]
@@ -65,9 +66,9 @@ class EthUcyAdapter:
             sources, keep_going=keep_going, names=COLUMNS, types=_TYPES, delimiter="\t", header_lines=0,
             validate=_validate,
         )
-        frames = table.column("frame_id").to_numpy()
+        frames = as_numpy(table.column("frame_id"))
         ts = np.rint(frames * FRAME_PERIOD_NS).astype(np.int64)
-        peds = table.column("ped_id").to_numpy()
+        peds = as_numpy(table.column("ped_id"))
         tracks = pa.table(
             {
                 "log_id": log_ids_column(batch, good),
@@ -102,13 +103,13 @@ def _validate(table: pa.Table, batch: TextBatch, sources: Sequence[SourceFile]) 
     if errors:
         return errors
     for name in ("frame_id", "ped_id"):
-        values = table.column(name).to_numpy()
+        values = as_numpy(table.column(name))
         fractional = values != np.round(values)
         if fractional.any():
             row = int(np.flatnonzero(fractional)[0])
             errors.append(row_error(batch, sources, row, f"not a whole number: {values[row]!r}", name))
     if errors:
         return errors
-    ts = np.rint(table.column("frame_id").to_numpy() * FRAME_PERIOD_NS).astype(np.int64)
-    peds = table.column("ped_id").to_numpy().astype(np.int64)
+    ts = np.rint(as_numpy(table.column("frame_id")) * FRAME_PERIOD_NS).astype(np.int64)
+    peds = as_numpy(table.column("ped_id")).astype(np.int64)
     return check_time_and_duplicates(ts, peds - peds.min(), batch, sources, "frame_id", "ped_id")
