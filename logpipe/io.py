@@ -77,10 +77,10 @@ def atomic_open(target: Path, mode: str = "wb") -> Iterator[IO[Any]]:
         yield fh
 
 
-def write_parquet(table: pa.Table, target: Path) -> None:
-    """Write ``table`` to ``target`` atomically with the fixed, reproducible writer settings."""
+def write_parquet(table: pa.Table, target: Path, options: dict[str, Any] | None = None) -> None:
+    """Write ``table`` to ``target`` atomically with fixed, reproducible writer settings."""
     with atomic_path(target) as tmp:
-        pq.write_table(table, tmp, **PARQUET_OPTIONS)
+        pq.write_table(table, tmp, **(options or PARQUET_OPTIONS))
 
 
 def write_json(data: Any, target: Path) -> None:

@@ -249,7 +249,8 @@ def decimal_seconds_to_ns(values: pa.Array, scale_ns: int = 1_000_000_000) -> tu
     return pc.take(ns, chunk.indices), pc.take(valid, chunk.indices)
 
 
-ValidateFn = Callable[[pa.Table, TextBatch, Sequence[SourceFile]], list[SourceError]]
+ValidateFn = Callable[[pa.Table, TextBatch, Sequence[SourceFile]], tuple[pa.Table, list[SourceError]]]
+"""Checks a parsed batch; returns the table (optionally with derived columns it computed anyway) and errors."""
 HeaderFn = Callable[[SourceFile, bytes], SourceError | None]
 
 
@@ -292,14 +293,15 @@ def parse_files(
     while True:
         batch = join_bodies(blobs, header_lines=header_lines)
         if not good:  # every file failed: an empty table, so callers need no special case
-            empty = pa.schema([(n, types[n]) for n in names]).empty_table()
+            empty, _ = validate(pa.schema([(n, types[n]) for n in names]).empty_table(), batch, good)
             return empty, batch, good, failures
         try:
             table = parse_batch(batch, names, types, delimiter)
         except pa.ArrowInvalid:
             errors = _locate_parse_errors(good, blobs, names, types, delimiter, header_lines, numeric)
         else:
-            errors = _first_per_file(validate(table, batch, good), good)
+            table, found = validate(table, batch, good)
+            errors = _first_per_file(found, good)
             if not errors:
                 return table, batch, good, failures
         if not keep_going:

@@ -106,7 +106,11 @@ class ApolloScapeAdapter:
         return ParsedLogs(tracks=tracks, logs=logs, failures=failures)
 
 
-def _validate(table: pa.Table, batch: TextBatch, sources: Sequence[SourceFile]) -> list[SourceError]:
+def _validate(table: pa.Table, batch: TextBatch, sources: Sequence[SourceFile]) -> tuple[pa.Table, list[SourceError]]:
+    return table, _errors(table, batch, sources)
+
+
+def _errors(table: pa.Table, batch: TextBatch, sources: Sequence[SourceFile]) -> list[SourceError]:
     errors = check_finite(table, COLUMNS, batch, sources)
     if errors:
         return errors

@@ -14,7 +14,7 @@ from __future__ import annotations
 import re
 from collections.abc import Sequence
 from pathlib import Path
-from typing import ClassVar
+from typing import Any, ClassVar
 
 import numpy as np
 import pyarrow as pa
@@ -42,10 +42,10 @@ HEADER = ",".join(COLUMNS).encode()
 _TYPES = {
     "TIMESTAMP": pa.string(),
     "TRACK_ID": pa.string(),
-    "OBJECT_TYPE": pa.string(),
+    "OBJECT_TYPE": pa.dictionary(pa.int32(), pa.string()),  # 3 values: encode while parsing
     "X": pa.float64(),
     "Y": pa.float64(),
-    "CITY_NAME": pa.string(),
+    "CITY_NAME": pa.dictionary(pa.int32(), pa.string()),
 }
 _ROLE = {"AV": Role.EGO.value, "AGENT": Role.FOCAL.value, "OTHERS": Role.OTHER.value}
 _OBJECT_TYPE = {"AV": ObjectType.VEHICLE.value, "AGENT": ObjectType.VEHICLE.value, "OTHERS": ObjectType.UNKNOWN.value}
@@ -103,7 +103,8 @@ def _check_header(source: SourceFile, blob: bytes) -> SourceError | None:
     return None
 
 
-def _validate(table: pa.Table, batch: TextBatch, sources: Sequence[SourceFile]) -> list[SourceError]:
+def _validate(table: pa.Table, batch: TextBatch, sources: Sequence[SourceFile]) -> tuple[pa.Table, list[SourceError]]:
+    """Checks, plus the exact nanosecond timestamps (column ``_ns``) that the checks need anyway."""
     errors = check_finite(table, ["X", "Y"], batch, sources)
     files = batch.file_index
     ns, valid = decimal_seconds_to_ns(table.column("TIMESTAMP"))
@@ -118,7 +119,7 @@ def _validate(table: pa.Table, batch: TextBatch, sources: Sequence[SourceFile]) 
         row = first_true(~known)
         reason = f"unknown OBJECT_TYPE {kinds[row].as_py()!r} (AV, AGENT, OTHERS)"
         errors.append(row_error(batch, sources, row, reason, "OBJECT_TYPE"))
-    city = pc.dictionary_encode(table.column("CITY_NAME")).combine_chunks().indices.to_numpy()
+    city = _codes(table.column("CITY_NAME"))
     changes = np.flatnonzero((city[1:] != city[:-1]) & (files[1:] == files[:-1])) + 1
     if len(changes):
         errors.append(row_error(batch, sources, int(changes[0]), "CITY_NAME changes inside the file", "CITY_NAME"))
@@ -128,15 +129,15 @@ def _validate(table: pa.Table, batch: TextBatch, sources: Sequence[SourceFile]) 
             check_time_and_duplicates(ns.to_numpy(), tracks.astype(np.int64), batch, sources,
                                       "TIMESTAMP", "TRACK_ID")
         )
-    return errors
+    return table.append_column("_ns", ns), errors
 
 
 def _to_canonical(
     table: pa.Table, batch: TextBatch, sources: Sequence[SourceFile]
 ) -> tuple[pa.Table, list[LogMeta]]:
     files = batch.file_index
-    ns, _ = decimal_seconds_to_ns(table.column("TIMESTAMP"))
-    ns_np = ns.to_numpy()
+    ns = table.column("_ns")
+    ns_np = as_numpy(ns)
     kinds = table.column("OBJECT_TYPE")
     roles = _map_values(kinds, _ROLE)
     object_types = _map_values(kinds, _OBJECT_TYPE)
@@ -150,7 +151,7 @@ def _to_canonical(
             "role": roles,
             "x": table.column("X"),
             "y": table.column("Y"),
-            "source_type": kinds,
+            "source_type": _dictionary(kinds).cast(pa.string()),
         }
     )
     starts = batch.row_starts
@@ -173,8 +174,18 @@ def _to_canonical(
     return tracks, logs
 
 
-def _map_values(values: pa.ChunkedArray, mapping: dict[str, str]) -> pa.ChunkedArray:
-    """Map each string through ``mapping`` via its dictionary (one lookup per distinct value)."""
-    encoded = pc.dictionary_encode(values).combine_chunks()
+def _dictionary(values: pa.ChunkedArray) -> pa.DictionaryArray:
+    """One dictionary array for a column parsed as dictionary (chunks may carry different dictionaries)."""
+    combined: pa.DictionaryArray = values.unify_dictionaries().combine_chunks()
+    return combined
+
+
+def _codes(values: pa.ChunkedArray) -> Any:
+    return _dictionary(values).indices.to_numpy()
+
+
+def _map_values(values: pa.ChunkedArray, mapping: dict[str, str]) -> pa.Array:
+    """Map each value through ``mapping`` via the dictionary (one lookup per distinct value)."""
+    encoded = _dictionary(values)
     mapped = pa.array([mapping[v] for v in encoded.dictionary.to_pylist()], pa.string())
-    return pa.chunked_array([pc.take(mapped, encoded.indices)])
+    return pc.take(mapped, encoded.indices)
