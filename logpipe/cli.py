@@ -125,12 +125,23 @@ def ingest(
     workers: Annotated[int, typer.Option("--workers", "-j", help="Worker processes (0 = all cores).")] = 0,
     backend: Annotated[str, typer.Option("--backend", help="local | ray")] = "local",
     batch_files: Annotated[int | None, typer.Option("--batch-files", help="Inputs per shard.")] = None,
+    mapping: Annotated[Path | None, typer.Option(
+        "--mapping", help="Bags/MCAP: TOML or YAML file naming the ego and agent topics (see README).")] = None,
+    overrides: Annotated[list[str] | None, typer.Option(
+        "--set", help="Bags/MCAP: mapping override KEY=VALUE, repeatable (ego=/odom, agent=/red_pose, map=lab).")
+    ] = None,
+    hz: Annotated[float | None, typer.Option(
+        "--hz", help="Bags/MCAP: resample tracks to this rate (default 10; 0 keeps original times).")] = None,
+    allow_empty: Annotated[bool, typer.Option(
+        "--allow-empty", help="Bags/MCAP/AV2: a log without tracks is kept empty instead of being an error.")
+    ] = False,
     as_json: JsonOpt = False,
 ) -> None:
     """Turn logs (Argoverse 1 CSV, ETH/UCY, ApolloScape, ...) into canonical Parquet shards, a sample index
     and one MCAP per log. Re-running skips inputs already ingested (by content hash).
 
     Example: logpipe ingest ../shared/data/argoverse1/data --out out/av1
+    Example: logpipe ingest run.bag --out out/run --set ego=/odom --set agent=/red_pose --hz 10
     """
     from logpipe.stages.ingest import IngestOptions
     from logpipe.stages.ingest import ingest as run_ingest
@@ -145,10 +156,26 @@ def ingest(
             on_error=on_error,
             write_mcap=mcap, workers=workers, backend=backend,
             batch_files=batch_files,
+            adapter_options=_adapter_options(mapping, overrides, hz, allow_empty),
         )
         with _progress(0, "ingest", enabled=not as_json and sys.stderr.isatty()) as advance:
             summary = run_ingest(inputs, options, progress=advance)
     _emit(summary, as_json, _print_ingest)
+
+
+def _adapter_options(mapping: Path | None, overrides: list[str] | None, hz: float | None,
+                     allow_empty: bool) -> dict[str, Any]:
+    """Only the options the user gave, so formats that do not take them are not handed them."""
+    options: dict[str, Any] = {}
+    if mapping is not None:
+        options["mapping"] = str(mapping)
+    if overrides:
+        options["mapping_overrides"] = tuple(overrides)
+    if hz is not None:
+        options["hz"] = hz
+    if allow_empty:
+        options["allow_empty"] = True
+    return options
 
 
 def _print_ingest(s: dict[str, Any]) -> None:
@@ -191,6 +218,28 @@ def index(
         summary = reindex(dataset, chosen)
     _emit(summary, as_json, lambda s: err.print(f"{s['dataset']}: {s['samples']} samples ({s['protocol']})",
                                                 highlight=False))
+
+
+@app.command()
+def inspect(
+    paths: Annotated[list[Path], typer.Argument(help="Bags (ROS1 .bag, ROS2 folders), MCAP files, AV2 logs.")],
+    as_json: JsonOpt = False,
+) -> None:
+    """List topics/channels with types, counts, time span and rate, and which of them logpipe can turn
+    into tracks with which mapping (like `ros2 bag info` / `mcap info`). Exit code 2 if any input is unreadable.
+
+    Example: logpipe inspect ../shared/data/rosbags/datmo/intersection.bag
+    """
+    from logpipe.inspect import inspect_paths, render
+
+    with _user_errors():
+        reports = inspect_paths(paths)
+    if as_json:
+        typer.echo(json.dumps(reports, indent=2, sort_keys=True, default=str))
+    else:
+        render(reports)
+    if not all(r.get("ok", False) for r in reports):
+        raise typer.Exit(code=2)
 
 
 if __name__ == "__main__":  # pragma: no cover

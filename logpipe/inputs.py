@@ -38,7 +38,8 @@ def collect_sources(roots: Sequence[Path], adapter: FormatAdapter, threads: int 
         paths = adapter.discover(root)
         if not paths:
             raise LogpipeError(f"{root}: no {adapter.name} inputs found")
-        base = root.parent if root.is_file() else root
+        # A root that is itself one input (a file, or a bag folder) is named by its own name, not ".".
+        base = root.parent if root.is_file() or paths == [root] else root
         found.extend((p, p.relative_to(base).as_posix()) for p in paths)
     with ThreadPoolExecutor(max_workers=threads) as pool:
         digests = list(pool.map(lambda item: sha256_tree(item[0]), found))

@@ -143,6 +143,8 @@ PROTOCOLS: dict[str, SampleProtocol] = {
     "argoverse": SampleProtocol("argoverse", obs_len=20, pred_len=30, window="first", targets="focal"),
     # Argoverse 2: 50 observed + 60 predicted at 10 Hz, the focal track is the target.
     "argoverse2": SampleProtocol("argoverse2", obs_len=50, pred_len=60, window="first", targets="focal"),
+    # Robot logs resampled to 10 Hz: 2 s observed + 3 s predicted (the Argoverse horizon), a window every second.
+    "rosbag": SampleProtocol("rosbag", obs_len=20, pred_len=30, stride=10, window="sliding"),
 }
 
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import numpy as np
 import pytest
 from typer.testing import CliRunner
 
@@ -19,7 +20,7 @@ def test_version() -> None:
     assert result.exit_code == 0 and __version__ in result.stdout
 
 
-@pytest.mark.parametrize("command", ["ingest", "index"])
+@pytest.mark.parametrize("command", ["ingest", "index", "inspect"])
 def test_every_command_has_help(command: str) -> None:
     result = runner.invoke(app, [command, "--help"])
     assert result.exit_code == 0
@@ -52,3 +53,32 @@ def test_index_changes_protocol(bundled: Path, tmp_path: Path) -> None:
     strict = json.loads(runner.invoke(app, ["index", str(tmp_path / "e"), "--min-targets", "2", "--json"]).stdout)
     assert strict["protocol"]["obs_len"] == 8 and strict["protocol"]["pred_len"] == 12
     assert 0 < strict["samples"] < loose["samples"]
+
+
+def test_inspect_json_names_the_track_topics(bundled: Path) -> None:
+    result = runner.invoke(app, ["inspect", str(bundled / "rosbags" / "datmo" / "intersection.bag"), "--json"])
+    assert result.exit_code == 0, result.output
+    report = json.loads(result.stdout)[0]
+    roles = {t["topic"]: t.get("role") for t in report["topics"]}
+    assert roles["/ego_pose"] == "ego" and roles["/red_pose"] == "agent"
+
+
+def test_ingest_bag_with_mapping_overrides_and_rate(bundled: Path, tmp_path: Path) -> None:
+    bag = str(bundled / "rosbags" / "datmo" / "intersection.bag")
+    result = runner.invoke(app, ["ingest", bag, "--out", str(tmp_path / "b"), "--set", "ego=/red_pose",
+                                 "--set", "agent=/ego_pose:blue", "--hz", "5", "--json"])
+    assert result.exit_code == 0, result.output
+    summary = json.loads(result.stdout)
+    assert summary["format"] == "rosbag" and summary["logs"] == 1
+    from logpipe.dataset import Dataset
+
+    tracks = Dataset.open(tmp_path / "b").tracks()
+    assert sorted(set(tracks.column("track_id").to_pylist())) == ["blue", "ego"]
+    ts = sorted(set(tracks.column("timestamp_ns").to_pylist()))
+    assert set(np.diff(ts)) == {200_000_000}
+
+
+def test_option_a_format_does_not_take_is_refused(bundled: Path, tmp_path: Path) -> None:
+    result = runner.invoke(app, ["ingest", str(bundled / "argoverse1"), "--out", str(tmp_path / "a"), "--hz", "5"])
+    assert result.exit_code == 2
+    assert "format 'argoverse1' takes no option(s) hz" in result.output

@@ -5,19 +5,26 @@
 
 from __future__ import annotations
 
+import inspect
 from pathlib import Path
 from typing import Any
 
 from logpipe.errors import LogpipeError
 from logpipe.formats.apolloscape import ApolloScapeAdapter
 from logpipe.formats.argoverse1 import Argoverse1Adapter
+from logpipe.formats.av2 import Av2Adapter
 from logpipe.formats.base import FormatAdapter, ParsedLogs
 from logpipe.formats.ethucy import EthUcyAdapter
+from logpipe.formats.mcapfile import McapAdapter
+from logpipe.formats.rosbag import RosbagAdapter
 
 ADAPTERS: dict[str, type[FormatAdapter]] = {
     Argoverse1Adapter.name: Argoverse1Adapter,
     EthUcyAdapter.name: EthUcyAdapter,
     ApolloScapeAdapter.name: ApolloScapeAdapter,
+    Av2Adapter.name: Av2Adapter,
+    RosbagAdapter.name: RosbagAdapter,
+    McapAdapter.name: McapAdapter,
 }
 
 
@@ -25,6 +32,11 @@ def get_adapter(name: str, **options: Any) -> FormatAdapter:
     """An adapter instance by CLI name, with its options (e.g. ``hz``, ``mapping`` for bags)."""
     if name not in ADAPTERS:
         raise LogpipeError(f"unknown format {name!r}; known: {', '.join(sorted(ADAPTERS))}")
+    accepted = set(inspect.signature(ADAPTERS[name]).parameters)
+    unknown = sorted(set(options) - accepted)
+    if unknown:
+        raise LogpipeError(f"format {name!r} takes no option(s) {', '.join(unknown)}"
+                           f" (it takes: {', '.join(sorted(accepted)) or 'none'})")
     return ADAPTERS[name](**options)
 
 
