@@ -83,11 +83,14 @@ def write_parquet(table: pa.Table, target: Path, options: dict[str, Any] | None 
         pq.write_table(table, tmp, **(options or PARQUET_OPTIONS))
 
 
-def write_json(data: Any, target: Path) -> None:
-    """Write ``data`` as indented, key-sorted JSON atomically (stable bytes for identical content)."""
+def write_json(data: Any, target: Path, *, indent: int | None = 2) -> None:
+    """Write ``data`` as key-sorted JSON atomically (stable bytes for identical content).
+
+    ``indent=None`` writes one line with the C encoder: ~10x faster for manifests listing 100k inputs.
+    """
+    text = json.dumps(data, indent=indent, sort_keys=True, separators=(",", ":") if indent is None else None)
     with atomic_open(target, "w") as fh:
-        json.dump(data, fh, indent=2, sort_keys=True)
-        fh.write("\n")
+        fh.write(text + "\n")
 
 
 def read_json(path: Path) -> Any:

@@ -32,7 +32,7 @@ from logpipe.inputs import collect_sources
 from logpipe.io import as_numpy, read_json, sha256_file, write_json, write_parquet
 from logpipe.mcapio import write_log_mcap
 from logpipe.samples import build_samples
-from logpipe.types import LogMeta, SampleProtocol, SourceFile
+from logpipe.types import LogMeta, NDArrayInt, SampleProtocol, SourceFile
 
 OnError = Literal["fail", "skip"]
 SCHEMAS = ("tracks", "logs", "samples")
@@ -240,22 +240,37 @@ def _log_stats(tracks: pa.Table) -> dict[str, dict[str, Any]]:
     ends = np.append(starts[1:], n)
     pairs = np.unique(logs * (int(tracks_code.max()) + 1) + tracks_code)
     distinct = np.bincount(pairs // (int(tracks_code.max()) + 1), minlength=len(names))
-    egos = np.add.reduceat(ego.astype(np.int64), starts)
+    egos = np.bincount(logs, weights=ego, minlength=len(names)) > 0
     first_of_step = np.flatnonzero(np.concatenate([[True], (steps[1:] != steps[:-1]) | (logs[1:] != logs[:-1])]))
-    step_bounds = np.searchsorted(first_of_step, np.append(starts, n))
+    median_dt = _median_step(logs[first_of_step], ts[first_of_step], len(names))
     stats = {}
-    for i, (lo, hi) in enumerate(zip(starts.tolist(), ends.tolist(), strict=True)):
-        step_ts = ts[first_of_step[step_bounds[i]:step_bounds[i + 1]]]
-        stats[names[logs[lo]]] = {
+    for i, lo, hi in zip(logs[starts].tolist(), starts.tolist(), ends.tolist(), strict=True):
+        stats[names[i]] = {
             "num_rows": hi - lo,
-            "num_tracks": int(distinct[logs[lo]]),
+            "num_tracks": int(distinct[i]),
             "num_steps": int(steps[hi - 1]) + 1,
             "start_ns": int(ts[lo]),
             "end_ns": int(ts[hi - 1]),
-            "median_dt_ns": int(np.median(np.diff(step_ts))) if len(step_ts) > 1 else 0,
+            "median_dt_ns": int(median_dt[i]),
             "has_ego": bool(egos[i]),
         }
     return stats
+
+
+def _median_step(step_logs: NDArrayInt, step_ts: NDArrayInt, n_logs: int) -> NDArrayInt:
+    """Median gap between consecutive step timestamps of each log (0 for a one-step log), vectorised."""
+    same = step_logs[1:] == step_logs[:-1]
+    gaps, owners = np.diff(step_ts)[same], step_logs[1:][same]
+    order = np.lexsort((gaps, owners))
+    gaps, owners = gaps[order], owners[order]
+    counts = np.bincount(owners, minlength=n_logs)
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    result = np.zeros(n_logs, dtype=np.int64)
+    has = counts > 0
+    lower = gaps[starts[has] + (counts[has] - 1) // 2]
+    upper = gaps[starts[has] + counts[has] // 2]
+    result[has] = (lower + upper) // 2  # the mean of the middle two for an even count, as np.median
+    return result
 
 
 def _write_mcaps(tracks: pa.Table, metas: list[LogMeta], folder: Path) -> int:
@@ -349,7 +364,7 @@ def _commit(results: list[_BatchResult], manifest: dict[str, Any], staging: Path
         "inputs": len(manifest["inputs"]),
         "quarantined": len(manifest["quarantined"]),
     }
-    write_json(manifest, out / MANIFEST)
+    write_json(manifest, out / MANIFEST, indent=None if len(manifest["inputs"]) > 1000 else 2)
     summary["inputs_ingested"] = sum(len(r.ingested) for r in results)
     summary["logs"] = sum(r.logs.num_rows for r in results)
     summary["rows"] = sum(r.shard["rows"] for r in results if r.shard)

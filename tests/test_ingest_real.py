@@ -43,6 +43,10 @@ def test_argoverse1_real_files_keep_every_row_and_true_times(shared: Path, tmp_p
     truth = sorted({int(Decimal(line.split(",")[0]) * 1_000_000_000) for line in text})
     got = np.unique(ds.log_tracks("2645").column("timestamp_ns").to_numpy())
     assert got.tolist() == truth
+    for row in logs.to_pylist():
+        times = np.unique(ds.log_tracks(row["log_id"]).column("timestamp_ns").to_numpy())
+        assert row["median_dt_ns"] == int(np.median(np.diff(times)))
+        assert (row["start_ns"], row["end_ns"], row["num_steps"]) == (times[0], times[-1], 50)
     samples = ds.samples()
     assert set(samples.column("current_step").to_pylist()) == {19}
     assert set(samples.column("end_step").to_pylist()) == {49}

@@ -32,7 +32,7 @@ from logpipe.formats._text import (
     row_error,
     steps_from_sorted_times,
 )
-from logpipe.formats.base import ParsedLogs
+from logpipe.formats.base import ParsedLogs, files_with_suffix
 from logpipe.io import as_numpy
 from logpipe.types import PROTOCOLS, LogMeta, ObjectType, Role, SampleProtocol, SourceFile
 
@@ -60,9 +60,7 @@ class Argoverse1Adapter:
 
     def discover(self, root: Path) -> list[Path]:
         """CSV files under ``root`` (or ``root`` itself)."""
-        if root.is_file():
-            return [root]
-        return sorted(p for p in root.rglob("*.csv") if p.is_file())
+        return files_with_suffix(root, (".csv",))
 
     def sniff(self, path: Path) -> bool:
         """True for a CSV whose first line is the Argoverse 1 header."""

@@ -8,6 +8,7 @@ Adding a format is one new module in ``logpipe/formats/`` registered in ``logpip
 from __future__ import annotations
 
 from collections.abc import Sequence
+import os
 from dataclasses import dataclass
 from pathlib import Path
 from typing import ClassVar, Protocol
@@ -16,6 +17,23 @@ import pyarrow as pa
 
 from logpipe.errors import SourceError
 from logpipe.types import LogMeta, SampleProtocol, SourceFile
+
+
+def files_with_suffix(root: Path, suffixes: tuple[str, ...]) -> list[Path]:
+    """Files under ``root`` (or ``root`` itself) whose lower-cased name ends in one of ``suffixes``, in path order.
+
+    ``os.walk`` and string sorting: ``Path.rglob`` + ``Path`` comparisons cost ~0.1 ms a file, which is
+    as much as parsing an Argoverse CSV.
+    """
+    if root.is_file():
+        return [root]
+    found = [
+        os.path.join(folder, name)
+        for folder, _, names in os.walk(root)
+        for name in names
+        if name.lower().endswith(suffixes)
+    ]
+    return [Path(p) for p in sorted(found)]
 
 
 @dataclass

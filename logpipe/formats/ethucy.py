@@ -27,7 +27,7 @@ from logpipe.formats._text import (
     row_error,
     steps_from_sorted_times,
 )
-from logpipe.formats.base import ParsedLogs
+from logpipe.formats.base import ParsedLogs, files_with_suffix
 from logpipe.io import as_numpy
 from logpipe.types import PROTOCOLS, LogMeta, ObjectType, Role, SampleProtocol, SourceFile
 
@@ -45,9 +45,7 @@ class EthUcyAdapter:
 
     def discover(self, root: Path) -> list[Path]:
         """``*.txt`` files under ``root`` (or ``root`` itself)."""
-        if root.is_file():
-            return [root]
-        return sorted(p for p in root.rglob("*.txt") if p.is_file())
+        return files_with_suffix(root, (".txt",))
 
     def sniff(self, path: Path) -> bool:
         """True for a ``.txt`` whose first line has 4 tab-separated numbers."""
