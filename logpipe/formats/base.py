@@ -7,8 +7,8 @@ Adding a format is one new module in ``logpipe/formats/`` registered in ``logpip
 
 from __future__ import annotations
 
-from collections.abc import Sequence
 import os
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import ClassVar, Protocol
