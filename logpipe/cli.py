@@ -221,6 +221,51 @@ def index(
 
 
 @app.command()
+def rasterise(
+    dataset: Annotated[Path, typer.Argument(help="Dataset folder written by `logpipe ingest`.")],
+    maps: Annotated[list[Path] | None, typer.Option(
+        "--maps", help="Folder(s) holding map files (AV1 *_lane_centerlines.npz, AV2 log_map_archive_*.json, "
+        "Lanelet2 .osm, AV1 vector-map .xml); repeatable.")] = None,
+    map_file: Annotated[list[str] | None, typer.Option(
+        "--map", help="MAP_ID=FILE: the map file of logs with that map id (e.g. lab=lab.osm); repeatable.")
+    ] = None,
+    centre: Annotated[str, typer.Option("--centre", help="ego (focal when a log has no ego) | focal")] = "ego",
+    rotate: Annotated[bool, typer.Option("--rotate/--no-rotate", help="Rotate to the centre's heading.")] = False,
+    preview: Annotated[int, typer.Option("--preview", help="Write PNG previews of the first N samples.")] = 0,
+    size: Annotated[int, typer.Option("--size", help="Raster side, pixels.")] = 224,
+    extent: Annotated[float, typer.Option("--extent", help="Raster side, metres.")] = 100.0,
+    channels: Annotated[str | None, typer.Option(
+        "--channels", help="Comma-separated channel names (default: all drawn layers).")] = None,
+    shard_size: Annotated[int, typer.Option("--shard-size", help="Samples per .npy shard.")] = 256,
+    force: Annotated[bool, typer.Option("--force", help="Replace a run made from other data or maps.")] = False,
+    as_json: JsonOpt = False,
+) -> None:
+    """Draw one ego-centred map raster per prediction sample (224x224 over 100 m by default) into
+    DATASET/rasters/<run>/, with the settings in the run manifest. Re-running skips finished shards.
+
+    Example: logpipe rasterise out/av1 --maps ../shared/data/argoverse1/maps --rotate --preview 4
+    """
+    from logpipe.maps import MapSource
+    from logpipe.raster import DEFAULT_CHANNELS, RasterSpec
+    from logpipe.stages.rasterise import rasterise_dataset
+
+    with _user_errors():
+        files = {}
+        for item in map_file or []:
+            if "=" not in item:
+                raise LogpipeError(f"--map expects MAP_ID=FILE, got {item!r}")
+            key, value = item.split("=", 1)
+            files[key] = Path(value)
+        spec = RasterSpec(size_px=size, extent_m=extent, rotate=rotate,
+                          channels=tuple(channels.split(",")) if channels else DEFAULT_CHANNELS)
+        with _progress(0, "rasterise", enabled=not as_json and sys.stderr.isatty()) as advance:
+            summary = rasterise_dataset(dataset, MapSource(roots=tuple(maps or ()), files=files), centre=centre,
+                                        rotate=rotate, preview=preview, spec=spec, shard_size=shard_size,
+                                        force=force, progress=advance)
+    _emit(summary, as_json, lambda s: err.print(json.dumps(s, indent=2, default=str), highlight=False))
+
+
+@app.command()
 def inspect(
     paths: Annotated[list[Path], typer.Argument(help="Bags (ROS1 .bag, ROS2 folders), MCAP files, AV2 logs.")],
     as_json: JsonOpt = False,

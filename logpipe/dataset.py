@@ -14,6 +14,7 @@ Only what the manifest lists is read, so a shard left behind by an interrupted r
 
 from __future__ import annotations
 
+import hashlib
 from collections.abc import Iterator
 from dataclasses import dataclass
 from functools import cached_property
@@ -33,6 +34,15 @@ MANIFEST = "manifest.json"
 LOGS_FILE = "logs.parquet"
 SAMPLES_FILE = "samples.parquet"
 MCAP_DIR = "mcap"
+
+
+HASH_SPLITS = {"train": (0.0, 0.7), "val": (0.7, 0.85), "test": (0.85, 1.0)}
+"""``hash/<split>``: a fixed split by log for datasets whose folders carry none (share of logs per split)."""
+
+
+def hash_fraction(log_id: str) -> float:
+    """Position of a log in [0, 1) from the sha256 of its id: stable across runs, machines and datasets."""
+    return int(hashlib.sha256(log_id.encode()).hexdigest()[:12], 16) / float(1 << 48)
 
 
 def shard_name(index: int) -> str:
@@ -83,6 +93,27 @@ class Dataset:
     def logs(self) -> pa.Table:
         """The logs table."""
         return pq.read_table(self.root / LOGS_FILE)
+
+    def logs_in_split(self, split: str) -> list[str]:
+        """Log ids of a split: a folder membership (``eth/train``, from the ETH/UCY layout) or ``hash/train``,
+        ``hash/val``, ``hash/test`` (70/15/15 by log, see ``HASH_SPLITS``).
+
+        Raises:
+            DatasetError: no log is in that split.
+        """
+        logs = self.logs()
+        ids = logs.column("log_id").to_pylist()
+        if split.startswith("hash/") and split[5:] in HASH_SPLITS:
+            lo, hi = HASH_SPLITS[split[5:]]
+            chosen = [i for i in ids if lo <= hash_fraction(i) < hi]
+        else:
+            memberships = logs.column("memberships").to_pylist()
+            chosen = [i for i, m in zip(ids, memberships, strict=True) if split in m]
+        if not chosen:
+            known = sorted({m for ms in logs.column("memberships").to_pylist() for m in ms})
+            raise DatasetError(f"{self.root}: no log in split {split!r}; splits here: "
+                               f"{', '.join(known + [f'hash/{k}' for k in HASH_SPLITS])}")
+        return chosen
 
     def samples(self) -> pa.Table:
         """The sample index."""

@@ -16,6 +16,16 @@ import pyarrow.parquet as pq
 
 _HASH_CHUNK = 1 << 20
 
+
+def _current_umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
+# mkstemp creates files 0600; finished outputs get the permissions a plain open() would have given them.
+_FILE_MODE = 0o666 & ~_current_umask()
+
 # Fixed writer settings so that the same table always gives the same bytes (reruns are byte-identical).
 PARQUET_OPTIONS: dict[str, Any] = {
     "compression": "zstd",
@@ -60,6 +70,7 @@ def atomic_path(target: Path) -> Iterator[Path]:
     """
     target.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp_name = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
+    os.fchmod(fd, _FILE_MODE)
     os.close(fd)
     tmp = Path(tmp_name)
     try:

@@ -1,0 +1,110 @@
+"""Raster runs on disk: where ``logpipe rasterise`` puts them and how training and prediction read them.
+
+A run lives in ``DATASET/rasters/<run_id>/`` (see ``logpipe.stages.rasterise`` for the layout); ``run_id``
+hashes every setting that changes pixels, so a reader asks for the settings it wants and never gets a
+raster made with others.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
+
+from logpipe.errors import DatasetError
+from logpipe.io import read_json
+from logpipe.raster import RasterSpec
+from logpipe.types import NDArrayByte, NDArrayFloat
+
+RASTER_DIR = "rasters"
+RUN_MANIFEST = "manifest.json"
+CENTRES = ("ego", "focal")
+MIN_HEADING_DISP_M = 0.5
+"""Motion heading: look back to the latest observed position at least this far away (metres)."""
+LANE_HEADING_MAX_DIST_M = 3.0
+"""Stationary agents take the direction of a centerline at most this far away (metres)."""
+
+
+def shard_file(i: int) -> str:
+    """``shard-NNNNN.npy``."""
+    return f"shard-{i:05d}.npy"
+
+
+def index_file(i: int) -> str:
+    """``index-NNNNN.parquet``."""
+    return f"index-{i:05d}.parquet"
+
+
+def run_settings(spec: RasterSpec, centre: str) -> dict[str, Any]:
+    """Everything that determines the pixels of a run (hashed into ``run_id``)."""
+    return {
+        "spec": spec.to_dict(),
+        "centre": centre,
+        "min_heading_disp_m": MIN_HEADING_DISP_M,
+        "lane_heading_max_dist_m": LANE_HEADING_MAX_DIST_M,
+    }
+
+
+def run_id(spec: RasterSpec, centre: str) -> str:
+    """Folder name of a run: short hash of ``run_settings``."""
+    blob = json.dumps(run_settings(spec, centre), sort_keys=True).encode()
+    return hashlib.sha256(blob).hexdigest()[:16]
+
+
+class RasterShards:
+    """Read side for training: rasters of one finished run, memory-mapped, by sample id.
+
+    ``open`` takes the settings the caller expects and refuses a run made with others, so a raster is
+    never used with the wrong size, extent, channels or rotation.
+
+    Attributes:
+        run_dir: the run folder.
+        spec: the run's raster spec.
+        index: the concatenated ``index-*.parquet`` tables (``schemas/raster.json``).
+    """
+
+    def __init__(self, run_dir: Path, spec: RasterSpec, index: pa.Table) -> None:
+        self.run_dir = run_dir
+        self.spec = spec
+        self.index = index
+        ids = index.column("sample_id").to_pylist()
+        shards = index.column("shard").to_pylist()
+        rows = index.column("row").to_pylist()
+        self._where = {s: (sh, r) for s, sh, r in zip(ids, shards, rows, strict=True)}
+        self._affine = dict(zip(ids, index.column("affine").to_pylist(), strict=True))
+        self._mmaps: dict[str, NDArrayByte] = {}
+
+    @classmethod
+    def open(cls, dataset_dir: Path, spec: RasterSpec, centre: str = "ego") -> RasterShards:
+        """The finished run for ``spec``/``centre`` in a dataset.
+
+        Raises:
+            DatasetError: no finished run with exactly these settings.
+        """
+        run_dir = Path(dataset_dir) / RASTER_DIR / run_id(spec, centre)
+        path = run_dir / RUN_MANIFEST
+        if not path.is_file():
+            raise DatasetError(
+                f"{dataset_dir}: no finished raster run for {spec.to_dict()} centre={centre}; run `logpipe rasterise`"
+            )
+        manifest = read_json(path)
+        if manifest["settings"] != json.loads(json.dumps(run_settings(spec, centre))):
+            raise DatasetError(f"{run_dir}: raster settings differ from the requested ones")
+        index = pa.concat_tables([pq.read_table(run_dir / s["index"]) for s in manifest["shards"]])
+        return cls(run_dir, spec, index)
+
+    def __len__(self) -> int:
+        return int(self.index.num_rows)
+
+    def get(self, sample_id: str) -> tuple[NDArrayByte, NDArrayFloat]:
+        """(C, H, W) uint8 raster (a read-only memory map view) and its (2, 3) world→pixel affine."""
+        shard, row = self._where[sample_id]
+        arr = self._mmaps.get(shard)
+        if arr is None:
+            arr = self._mmaps[shard] = np.load(self.run_dir / shard, mmap_mode="r", allow_pickle=False)
+        return arr[row], np.asarray(self._affine[sample_id], dtype=np.float64).reshape(2, 3)

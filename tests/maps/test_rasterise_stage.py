@@ -1,0 +1,114 @@
+"""The rasterise stage on a dataset ingested from the AV1 fixture CSVs."""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+from logpipe.stages.ingest import IngestOptions, ingest
+from logpipe.stages.rasterise import rasterise_dataset
+
+from logpipe.errors import DatasetError
+from logpipe.io import sha256_file
+from logpipe.maps import MapSource, load_map
+from logpipe.raster import Rasteriser, RasterSpec, heading_from_motion
+from logpipe.rasters import RasterShards
+
+DATA = Path(__file__).parents[1] / "data" / "maps"
+
+
+def _dataset(tmp: Path, drop_av_in: str | None = None) -> Path:
+    src = tmp / "csv"
+    src.mkdir()
+    for name in ("2645.csv", "3861.csv"):
+        text = (DATA / name).read_text()
+        if name == drop_av_in:  # a log without an ego
+            text = "\n".join(ln for ln in text.splitlines() if ",AV," not in ln) + "\n"
+        (src / name).write_text(text)
+    out = tmp / "ds"
+    ingest([src], IngestOptions(out=out, format="argoverse1", write_mcap=False, workers=1))
+    return out
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return _dataset(tmp_path_factory.mktemp("stage"))
+
+
+def test_stage_writes_index_shards_and_previews(dataset: Path) -> None:
+    maps = MapSource(roots=(DATA,))
+    summary = rasterise_dataset(dataset, maps, centre="ego", rotate=True, preview=2, shard_size=1)
+    assert summary["samples"] == 2 and summary["rendered"] == 2 and summary["empty"] == 0
+    assert summary["centre_role"] == {"ego": 2, "focal": 0}
+    run = Path(summary["run_dir"])
+    assert sorted(p.name for p in run.glob("shard-*.npy")) == ["shard-00000.npy", "shard-00001.npy"]
+    for png in summary["previews"]:
+        img = cv2.imread(png)
+        assert img is not None and img.shape == (672, 672, 3)
+
+    shards = RasterShards.open(dataset, RasterSpec(rotate=True), centre="ego")
+    assert len(shards) == 2
+    for sid, log_id in zip(
+        shards.index.column("sample_id").to_pylist(), shards.index.column("log_id").to_pylist(), strict=True
+    ):
+        image, affine = shards.get(sid)
+        assert image.shape == RasterSpec().shape and image.dtype == np.uint8
+        # Same pixels as rendering the AV at step 19 directly, rotated to its motion.
+        csv = (DATA / f"{log_id}.csv").read_text().splitlines()[1:]
+        av = [ln.split(",") for ln in csv if ",AV," in ln]
+        xy = np.array([[float(r[3]), float(r[4])] for r in sorted(av, key=lambda r: float(r[0]))])[:20]
+        city = av[0][5]
+        store = load_map(city, roots=[DATA])
+        h = heading_from_motion(xy)
+        if h is None:
+            h = store.lane_direction_at(*xy[-1])
+        ref = Rasteriser(store, RasterSpec(rotate=True)).render(*xy[-1], h)
+        assert np.array_equal(image, ref.image)
+        assert np.allclose(affine, ref.affine)
+
+    with pytest.raises(DatasetError, match="no finished raster run"):
+        RasterShards.open(dataset, RasterSpec(rotate=True, extent_m=80.0))
+    with pytest.raises(DatasetError, match="no finished raster run"):
+        RasterShards.open(dataset, RasterSpec(rotate=False))
+
+
+def test_rerun_skips_and_repairs_identically(dataset: Path) -> None:
+    maps = MapSource(roots=(DATA,))
+    first = rasterise_dataset(dataset, maps, centre="ego", rotate=False, shard_size=1)
+    run = Path(first["run_dir"])
+    before = {p.name: sha256_file(p) for p in run.iterdir() if p.is_file()}
+    again = rasterise_dataset(dataset, maps, centre="ego", rotate=False, shard_size=1)
+    assert again["skipped_existing"] == 2 and again["rendered"] == 0
+    (run / "shard-00001.npy").unlink()  # an interrupted run
+    repaired = rasterise_dataset(dataset, maps, centre="ego", rotate=False, shard_size=1)
+    assert repaired["rendered"] == 1 and repaired["skipped_existing"] == 1
+    assert {p.name: sha256_file(p) for p in run.iterdir() if p.is_file()} == before
+    assert not list(run.glob(".*.tmp"))
+
+
+def test_stale_run_is_refused_then_replaced_with_force(dataset: Path, tmp_path: Path) -> None:
+    maps = MapSource(roots=(DATA,))
+    rasterise_dataset(dataset, maps, centre="focal", rotate=False)
+    other = tmp_path / "maps"
+    other.mkdir()
+    for name in ("MIA_lane_centerlines_crop_2645.npz", "PIT_lane_centerlines_crop_3861.npz"):
+        shutil.copy(DATA / name, other / name.replace("crop", "copy"))
+    with np.load(other / "PIT_lane_centerlines_copy_3861.npz") as z:
+        arrays = {k: z[k] for k in z.files}
+    arrays["points"] = arrays["points"] + 0.5  # a different survey of the city
+    np.savez(other / "PIT_lane_centerlines_copy_3861.npz", **arrays)
+    with pytest.raises(DatasetError, match="other samples or maps"):
+        rasterise_dataset(dataset, MapSource(roots=(other,)), centre="focal", rotate=False)
+    summary = rasterise_dataset(dataset, MapSource(roots=(other,)), centre="focal", rotate=False, force=True)
+    assert summary["rendered"] == 2 and summary["centre_role"] == {"ego": 0, "focal": 2}
+
+
+def test_log_without_ego_centres_on_focal_and_missing_map_is_empty(tmp_path: Path) -> None:
+    ds = _dataset(tmp_path, drop_av_in="3861.csv")
+    summary = rasterise_dataset(ds, MapSource(roots=(DATA,)), centre="ego", rotate=True)
+    assert summary["centre_role"] == {"ego": 1, "focal": 1}
+    nomap = rasterise_dataset(ds, MapSource(roots=(tmp_path / "nothing",)), centre="ego", rotate=True, force=True)
+    assert nomap["empty"] == 2 and nomap["logs_without_map"] == 2
