@@ -5,9 +5,9 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
-from logpipe.stages.ingest import IngestOptions, ingest
 
 from logpipe.executor import run_ordered
+from logpipe.stages.ingest import IngestOptions, ingest
 
 
 def square(x: int) -> int:

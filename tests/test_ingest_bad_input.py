@@ -5,10 +5,10 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
-from logpipe.stages.ingest import IngestOptions, ingest
 
 from logpipe.errors import SourceError
 from logpipe.io import read_json
+from logpipe.stages.ingest import IngestOptions, ingest
 
 HEADER = "TIMESTAMP,TRACK_ID,OBJECT_TYPE,X,Y,CITY_NAME\n"
 GOOD = HEADER + "".join(

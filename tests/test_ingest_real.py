@@ -11,11 +11,11 @@ import pyarrow as pa
 import pyarrow.compute as pc
 import pyarrow.parquet as pq
 from jsonschema import Draft202012Validator
-from logpipe.stages.ingest import IngestOptions, ingest, reindex
 from mcap.reader import make_reader
 
 from logpipe.contracts import arrow_schema, json_schema, tracks_schema
 from logpipe.dataset import Dataset
+from logpipe.stages.ingest import IngestOptions, ingest, reindex
 from logpipe.types import PROTOCOLS
 
 

@@ -8,14 +8,14 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-from logpipe.stages.ingest import IngestOptions, ingest
-from logpipe.stages.rasterise import rasterise_dataset
 
 from logpipe.errors import DatasetError
 from logpipe.io import sha256_file
 from logpipe.maps import MapSource, load_map
 from logpipe.raster import Rasteriser, RasterSpec, heading_from_motion
 from logpipe.rasters import RasterShards
+from logpipe.stages.ingest import IngestOptions, ingest
+from logpipe.stages.rasterise import rasterise_dataset
 
 DATA = Path(__file__).parents[1] / "data" / "maps"
 
