@@ -8,6 +8,7 @@ the timestamps of its first, current and last step, and whether its steps are re
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import dataclass
 
 import numpy as np
 import pyarrow as pa
@@ -22,23 +23,52 @@ REGULAR_TOLERANCE = 0.5
 a dropped frame (2x) does not."""
 
 
-def build_samples(tracks: pa.Table, logs: Sequence[LogMeta], protocol: SampleProtocol) -> pa.Table:
+@dataclass
+class TrackCodes:
+    """Integer codes of the string columns of a track table (hash each string column once per batch).
+
+    Attributes:
+        log_code: (rows,) index into ``log_names``.
+        log_names: distinct log ids.
+        track_code: (rows,) index into ``track_names``.
+        track_names: (tracks,) distinct track ids (object array).
+    """
+
+    log_code: NDArrayInt
+    log_names: list[str]
+    track_code: NDArrayInt
+    track_names: np.ndarray
+
+    @classmethod
+    def of(cls, tracks: pa.Table) -> TrackCodes:
+        """Codes of ``tracks``' ``log_id`` and ``track_id``."""
+        log_col = pc.dictionary_encode(tracks.column("log_id")).combine_chunks()
+        track_col = pc.dictionary_encode(tracks.column("track_id")).combine_chunks()
+        return cls(
+            log_code=log_col.indices.to_numpy().astype(np.int64),
+            log_names=log_col.dictionary.to_pylist(),
+            track_code=track_col.indices.to_numpy().astype(np.int64),
+            track_names=np.array(track_col.dictionary.to_pylist(), dtype=object),
+        )
+
+
+def build_samples(
+    tracks: pa.Table, logs: Sequence[LogMeta], protocol: SampleProtocol, codes: TrackCodes | None = None
+) -> pa.Table:
     """Sample index rows for the logs of ``tracks`` (rows sorted by log, then step), in log order.
 
     Args:
         tracks: canonical track rows of whole logs, each log contiguous and sorted by step.
         logs: metadata of those logs (for the nominal frame rate).
         protocol: the window and target rules.
+        codes: ``TrackCodes.of(tracks)`` when the caller has them already.
     """
     schema = arrow_schema("samples")
     if tracks.num_rows == 0:
         return schema.empty_table()
-    log_col = pc.dictionary_encode(tracks.column("log_id")).combine_chunks()
-    log_code = log_col.indices.to_numpy().astype(np.int64)
-    log_names = log_col.dictionary.to_pylist()
-    track_col = pc.dictionary_encode(tracks.column("track_id")).combine_chunks()
-    track_code = track_col.indices.to_numpy().astype(np.int64)
-    track_names = np.array(track_col.dictionary.to_pylist(), dtype=object)
+    codes = codes or TrackCodes.of(tracks)
+    log_code, log_names = codes.log_code, codes.log_names
+    track_code, track_names = codes.track_code, codes.track_names
     steps = as_numpy(tracks.column("step")).astype(np.int64)
     ts = as_numpy(tracks.column("timestamp_ns"))
     focal = as_numpy(pc.equal(tracks.column("role"), Role.FOCAL.value))

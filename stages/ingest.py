@@ -31,7 +31,7 @@ from logpipe.formats import detect, get_adapter
 from logpipe.inputs import collect_sources
 from logpipe.io import as_numpy, read_json, sha256_file, write_json, write_parquet
 from logpipe.mcapio import write_log_mcap
-from logpipe.samples import build_samples
+from logpipe.samples import TrackCodes, build_samples
 from logpipe.types import LogMeta, NDArrayInt, SampleProtocol, SourceFile
 
 OnError = Literal["fail", "skip"]
@@ -155,7 +155,8 @@ def _ingest_batch(job: _BatchJob) -> _BatchResult:
     by_path = {s.relpath: s for s in job.sources}
     failures = [(by_path[e.file], e) for e in parsed.failures]
     tracks = _canonical_order(parsed.tracks)
-    logs, empty = _log_rows(tracks, parsed.logs, job.shard_file)
+    codes = TrackCodes.of(tracks) if tracks.num_rows else None
+    logs, empty = _log_rows(tracks, parsed.logs, job.shard_file, codes)
     for meta in empty:
         error = SourceError(meta.source_file, "produced no track rows")
         if not job.keep_going:
@@ -171,7 +172,7 @@ def _ingest_batch(job: _BatchJob) -> _BatchResult:
         shard = {"file": job.shard_file, "rows": tracks.num_rows, "sha256": sha256_file(path),
                  "logs": logs.num_rows}
         kept = [m for m in parsed.logs if m not in empty]
-        samples = build_samples(tracks, kept, job.protocol)
+        samples = build_samples(tracks, kept, job.protocol, codes)
         if job.write_mcap:
             messages = _write_mcaps(tracks, kept, staging / mcap_folder(job.shard_file))
     failed = {s.relpath for s, _ in failures}
@@ -196,13 +197,15 @@ def _canonical_order(tracks: pa.Table) -> pa.Table:
     return conform(tracks, tracks_schema())
 
 
-def _log_rows(tracks: pa.Table, metas: list[LogMeta], shard: str) -> tuple[pa.Table, list[LogMeta]]:
+def _log_rows(
+    tracks: pa.Table, metas: list[LogMeta], shard: str, codes: TrackCodes | None
+) -> tuple[pa.Table, list[LogMeta]]:
     """The logs-table rows for ``metas`` (stats from ``tracks``), and the metas that have no rows.
 
     ``tracks`` is in canonical order (logs contiguous, time ascending), so every statistic is a slice
     boundary or a reduction over contiguous runs: no hashing group-by.
     """
-    stats = _log_stats(tracks)
+    stats = _log_stats(tracks, codes) if codes is not None else {}
     columns: dict[str, list[Any]] = {name: [] for name in arrow_schema("logs").names}
     empty = []
     for meta in metas:
@@ -224,15 +227,10 @@ def _log_rows(tracks: pa.Table, metas: list[LogMeta], shard: str) -> tuple[pa.Ta
     return conform(pa.table(columns), arrow_schema("logs")), empty
 
 
-def _log_stats(tracks: pa.Table) -> dict[str, dict[str, Any]]:
+def _log_stats(tracks: pa.Table, codes: TrackCodes) -> dict[str, dict[str, Any]]:
     """Per-log row count, distinct tracks and steps, time span, median step and whether an ego exists."""
     n = tracks.num_rows
-    if n == 0:
-        return {}
-    log_codes = pc.dictionary_encode(tracks.column("log_id")).combine_chunks()
-    logs = log_codes.indices.to_numpy().astype(np.int64)
-    names = log_codes.dictionary.to_pylist()
-    tracks_code = pc.dictionary_encode(tracks.column("track_id")).combine_chunks().indices.to_numpy()
+    logs, names, tracks_code = codes.log_code, codes.log_names, codes.track_code
     steps = as_numpy(tracks.column("step"))
     ts = as_numpy(tracks.column("timestamp_ns"))
     ego = as_numpy(pc.equal(tracks.column("role"), "ego"))
