@@ -5,7 +5,10 @@ PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed-stamp
 OUT ?= out
 
-.PHONY: setup demo test test-fast bench lint clean
+SHARED ?= ../shared/data
+ETHUCY_SCENES := eth hotel univ zara1 zara2
+
+.PHONY: setup demo test bench lint clean train-ethucy
 
 # torch first and pinned: a looser pin would pull a multi-GB CUDA build; 2.13.0 is a local CPU wheel here.
 $(STAMP): pyproject.toml
@@ -35,3 +38,18 @@ lint: setup
 
 clean:
 	rm -rf $(OUT) .pytest_cache .mypy_cache .ruff_cache
+
+# The five ETH/UCY leave-one-scene-out models shipped in model/checkpoints/ethucy/<scene>/ (two at a time).
+train-ethucy: setup
+	$(VENV)/bin/logpipe ingest $(SHARED)/ethucy --out $(OUT)/ethucy --no-mcap
+	$(MAKE) -j2 $(addprefix train-ethucy-,$(ETHUCY_SCENES))
+
+train-ethucy-%:
+	rm -rf $(OUT)/runs/ethucy/$*
+	mkdir -p $(OUT)/runs/ethucy
+	$(VENV)/bin/logpipe train $(OUT)/ethucy --scene $* --config configs/ethucy.toml --out $(OUT)/runs/ethucy/$* \
+		--json > $(OUT)/runs/ethucy/$*.json
+	rm -rf model/checkpoints/ethucy/$*
+	mkdir -p model/checkpoints/ethucy
+	cp -r $(OUT)/runs/ethucy/$*/best model/checkpoints/ethucy/$*
+	cp $(OUT)/runs/ethucy/$*.json $(OUT)/runs/ethucy/$*/train_log.jsonl model/checkpoints/ethucy/$*/

@@ -266,6 +266,44 @@ def rasterise(
 
 
 @app.command()
+def train(
+    dataset: Annotated[Path, typer.Argument(help="Dataset folder written by `logpipe ingest`.")],
+    out: Annotated[Path, typer.Option("--out", "-o", help="Run folder (checkpoints best/ and last/, log).")],
+    scene: Annotated[str | None, typer.Option(
+        "--scene", help="ETH/UCY leave-one-scene-out: train on SCENE/train, validate on SCENE/val.")] = None,
+    train_split: Annotated[str | None, typer.Option(
+        "--train-split", help="Training logs: a folder split (eth/train) or hash/train (default).")] = None,
+    val_split: Annotated[str | None, typer.Option(
+        "--val-split", help="Validation logs (default: the matching /val split); 'none' disables.")] = None,
+    config: Annotated[Path | None, typer.Option(
+        "--config", help="TOML/JSON with every hyper-parameter (tables model and train); defaults: the paper's.")
+    ] = None,
+    steps: Annotated[int | None, typer.Option("--steps", help="Override train.steps.")] = None,
+    seed: Annotated[int | None, typer.Option("--seed", help="Override train.seed.")] = None,
+    resume: Annotated[bool, typer.Option("--resume", help="Continue from OUT/last.")] = False,
+    as_json: JsonOpt = False,
+) -> None:
+    """Train the Zhu et al. predictor (or a Table 4 ablation / LSTM baseline via the config) on a dataset.
+
+    Example: logpipe train out/ethucy --scene eth --out runs/eth --config configs/ethucy.toml
+    """
+    from logpipe.stages.train import train as run_train
+
+    with _user_errors():
+        chosen_train = train_split or (f"{scene}/train" if scene else "hash/train")
+        chosen_val = val_split or chosen_train.rsplit("/", 1)[0] + "/val"
+        overrides: dict[str, Any] = {}
+        if steps is not None:
+            overrides["steps"] = steps
+        if seed is not None:
+            overrides["seed"] = seed
+        summary = run_train(dataset, out, train_split=chosen_train,
+                            val_split=None if chosen_val == "none" else chosen_val, config_path=config,
+                            overrides=overrides, resume=resume, progress=not as_json and sys.stderr.isatty())
+    _emit(summary, as_json, lambda s: err.print(json.dumps(s, indent=2), highlight=False))
+
+
+@app.command()
 def inspect(
     paths: Annotated[list[Path], typer.Argument(help="Bags (ROS1 .bag, ROS2 folders), MCAP files, AV2 logs.")],
     as_json: JsonOpt = False,

@@ -82,3 +82,22 @@ def test_option_a_format_does_not_take_is_refused(bundled: Path, tmp_path: Path)
     result = runner.invoke(app, ["ingest", str(bundled / "argoverse1"), "--out", str(tmp_path / "a"), "--hz", "5"])
     assert result.exit_code == 2
     assert "format 'argoverse1' takes no option(s) hz" in result.output
+
+
+def test_train_a_few_steps_writes_a_loadable_checkpoint(bundled: Path, tmp_path: Path) -> None:
+    runner.invoke(app, ["ingest", str(bundled / "ethucy"), "--out", str(tmp_path / "e"), "--no-mcap"])
+    config = tmp_path / "c.toml"
+    config.write_text("[train]\nsteps = 4\neval_every = 2\nval_max_samples = 16\nnum_threads = 1\n")
+    result = runner.invoke(app, ["train", str(tmp_path / "e"), "--train-split", "eth/train", "--val-split",
+                                 "hotel/test", "--config", str(config), "--out", str(tmp_path / "run"), "--json"])
+    assert result.exit_code == 0, result.output
+    summary = json.loads(result.stdout)
+    assert summary["steps"] == 4 and summary["train_samples"] > 0
+    assert np.isfinite(summary["best_val_ade"])
+    from logpipe.model.checkpoints import load_checkpoint
+
+    loaded = load_checkpoint(Path(summary["best_checkpoint"]), expect_kind="ethucy")
+    assert loaded.net.config.obs_len == 8
+    again = runner.invoke(app, ["train", str(tmp_path / "e"), "--train-split", "eth/train", "--val-split", "none",
+                                "--config", str(config), "--out", str(tmp_path / "run")])
+    assert again.exit_code == 2  # an existing run is not overwritten without --resume

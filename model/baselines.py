@@ -1,0 +1,193 @@
+"""Classical baselines behind the ``Predictor`` interface (the paper's Linear and KF rows, constant
+velocity, and a constant-velocity sampler used as a best-of-K floor).
+
+All work in world metres per step (the protocols sample at a fixed rate), vectorised over targets. The
+LSTM and Noise-LSTM rows are ``TrajectoryNet`` presets (``config.preset("lstm")`` / ``"baseline"``).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from logpipe.types import NDArrayBool, NDArrayFloat, SceneSample
+
+
+def _observed(sample: SceneSample) -> tuple[NDArrayFloat, NDArrayBool]:
+    """Observed target tracks (N_t, T_obs, 2) world metres and their validity (N_t, T_obs)."""
+    obs = np.asarray(sample.positions, np.float64)[np.asarray(sample.target_mask, bool), : sample.obs_len]
+    ok: NDArrayBool = np.all(np.isfinite(obs), axis=-1)
+    return obs, ok
+
+
+def _last_velocity(obs: NDArrayFloat, ok: NDArrayBool) -> tuple[NDArrayFloat, NDArrayFloat]:
+    """(current position, velocity per step) from the last two observations of each track.
+
+    The velocity uses the latest earlier observation (divided by the step gap); 0 with only one.
+    """
+    t = obs.shape[1]
+    cur = obs[:, -1]
+    idx = np.arange(t - 1)
+    earlier = np.where(ok[:, :-1], idx, -1).max(axis=1)  # latest observed step before the current one
+    has = earlier >= 0
+    prev = obs[np.arange(len(obs)), np.maximum(earlier, 0)]
+    gap = np.maximum((t - 1) - earlier, 1)[:, None]
+    vel = np.where(has[:, None], (cur - prev) / gap, 0.0)
+    return cur, vel
+
+
+@dataclass
+class ConstantVelocity:
+    """p̂^(T_obs + k) = p^(T_obs) + k v, v the last observed displacement per step."""
+
+    pred_len: int = 12
+    name: str = "constant_velocity"
+
+    def predict(self, samples: Sequence[SceneSample], num_modes: int, seed: int) -> list[NDArrayFloat]:
+        """Deterministic: the forecast repeated ``num_modes`` times."""
+        del seed
+        steps = np.arange(1, self.pred_len + 1, dtype=np.float64)[None, :, None]
+        out = []
+        for s in samples:
+            cur, vel = _last_velocity(*_observed(s))
+            fut = cur[:, None] + vel[:, None] * steps
+            out.append(np.repeat(fut[:, None], num_modes, axis=1))
+        return out
+
+
+@dataclass
+class LinearFit:
+    """The paper's Linear row: least-squares line p(t) = a + b t through the observed steps, extrapolated.
+
+    Attributes:
+        history: fit on the last this many observed steps (None = all).
+    """
+
+    pred_len: int = 12
+    history: int | None = None
+    name: str = "linear"
+
+    def predict(self, samples: Sequence[SceneSample], num_modes: int, seed: int) -> list[NDArrayFloat]:
+        """Deterministic: the forecast repeated ``num_modes`` times."""
+        del seed
+        out = []
+        for s in samples:
+            obs, ok = _observed(s)
+            t_obs = obs.shape[1]
+            t = np.arange(t_obs, dtype=np.float64)
+            if self.history is not None:
+                ok = ok & (t >= t_obs - self.history)[None]
+            w = ok.astype(np.float64)
+            n = np.maximum(w.sum(axis=1), 1.0)
+            t_mean = (w * t).sum(axis=1) / n
+            p = np.nan_to_num(obs)
+            p_mean = (w[..., None] * p).sum(axis=1) / n[:, None]
+            dt = (t[None] - t_mean[:, None]) * w
+            var = (dt**2).sum(axis=1)
+            cov = (dt[..., None] * (p - p_mean[:, None])).sum(axis=1)
+            slope = np.where(var[:, None] > 0, cov / np.where(var > 0, var, 1.0)[:, None], 0.0)
+            t_fut = np.arange(t_obs, t_obs + self.pred_len, dtype=np.float64)
+            fut = p_mean[:, None] + slope[:, None] * (t_fut[None, :, None] - t_mean[:, None, None])
+            out.append(np.repeat(fut[:, None], num_modes, axis=1))
+        return out
+
+
+@dataclass
+class KalmanCV:
+    """The paper's KF row: a constant-velocity Kalman filter (state x, y, vx, vy per step) run over the
+    observed steps, then propagated without updates.
+
+    Attributes:
+        accel_std: process noise, white acceleration std (m / step^2).
+        meas_std: measurement noise std (m).
+        init_vel_std: prior std of the initial velocity (m / step).
+    """
+
+    pred_len: int = 12
+    accel_std: float = 0.1
+    meas_std: float = 0.05
+    init_vel_std: float = 2.0
+    name: str = "kalman_cv"
+
+    def predict(self, samples: Sequence[SceneSample], num_modes: int, seed: int) -> list[NDArrayFloat]:
+        """Deterministic: the filter's mean forecast repeated ``num_modes`` times."""
+        del seed
+        f = np.array([[1, 0, 1, 0], [0, 1, 0, 1], [0, 0, 1, 0], [0, 0, 0, 1]], np.float64)
+        g = np.array([[0.5, 0], [0, 0.5], [1, 0], [0, 1]])
+        q = self.accel_std**2 * g @ g.T
+        h = np.eye(2, 4)
+        r = self.meas_std**2 * np.eye(2)
+        out = []
+        for s in samples:
+            obs, ok = _observed(s)
+            n, t_obs = ok.shape
+            first = np.argmax(ok, axis=1)
+            x = np.zeros((n, 4))
+            x[:, :2] = np.nan_to_num(obs[np.arange(n), first])
+            p = np.tile(np.diag([self.meas_std**2] * 2 + [self.init_vel_std**2] * 2), (n, 1, 1))
+            for t in range(t_obs):
+                upd = ok[:, t] & (t > first)
+                pred_x = x @ f.T
+                pred_p = f @ p @ f.T + q
+                started = (t > first)[:, None]
+                x = np.where(started, pred_x, x)
+                p = np.where(started[..., None], pred_p, p)
+                innov = np.nan_to_num(obs[:, t]) - x[:, :2]
+                s_mat = h @ p @ h.T + r
+                gain = p @ h.T @ np.linalg.inv(s_mat)
+                x = np.where(upd[:, None], x + np.einsum("nij,nj->ni", gain, innov), x)
+                p = np.where(upd[:, None, None], (np.eye(4) - gain @ h) @ p, p)
+            fut = np.empty((n, self.pred_len, 2))
+            for k in range(self.pred_len):
+                x = x @ f.T
+                fut[:, k] = x[:, :2]
+            out.append(np.repeat(fut[:, None], num_modes, axis=1))
+        return out
+
+
+@dataclass
+class ConstantVelocitySampler:
+    """K constant-velocity forecasts with the last velocity's heading and speed perturbed by Gaussian noise:
+    heading + N(0, heading_std_rad), speed x (1 + N(0, speed_std_frac)) (clipped at 0).
+
+    Attributes:
+        heading_std_rad: heading noise std (radians).
+        speed_std_frac: relative speed noise std.
+        include_unperturbed: make mode 0 the plain constant-velocity forecast.
+    """
+
+    pred_len: int = 12
+    heading_std_rad: float = 0.25
+    speed_std_frac: float = 0.1
+    include_unperturbed: bool = False
+    name: str = "cv_sampler"
+
+    def predict(self, samples: Sequence[SceneSample], num_modes: int, seed: int) -> list[NDArrayFloat]:
+        """Random per (sample, target, mode), reproducible from ``seed``."""
+        rng = np.random.default_rng(seed)
+        steps = np.arange(1, self.pred_len + 1, dtype=np.float64)[None, None, :, None]
+        out = []
+        for s in samples:
+            cur, vel = _last_velocity(*_observed(s))
+            n = len(cur)
+            dtheta = rng.normal(0.0, self.heading_std_rad, size=(n, num_modes))
+            scale = np.maximum(1.0 + rng.normal(0.0, self.speed_std_frac, size=(n, num_modes)), 0.0)
+            if self.include_unperturbed and num_modes:
+                dtheta[:, 0], scale[:, 0] = 0.0, 1.0
+            c, sn = np.cos(dtheta), np.sin(dtheta)
+            vx = (c * vel[:, None, 0] - sn * vel[:, None, 1]) * scale
+            vy = (sn * vel[:, None, 0] + c * vel[:, None, 1]) * scale
+            v = np.stack((vx, vy), axis=-1)[:, :, None, :]  # (N, K, 1, 2)
+            out.append(cur[:, None, None, :] + v * steps)
+        return out
+
+
+CLASSICAL: dict[str, type[ConstantVelocity | LinearFit | KalmanCV | ConstantVelocitySampler]] = {
+    "constant_velocity": ConstantVelocity,
+    "linear": LinearFit,
+    "kalman_cv": KalmanCV,
+    "cv_sampler": ConstantVelocitySampler,
+}
+"""Non-learned predictors by name; construct with ``CLASSICAL[name](pred_len=...)``."""

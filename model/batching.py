@@ -1,0 +1,231 @@
+"""Turn ``SceneSample`` lists into padded tensors in the model frame, with masks.
+
+Layout: agents of all scenes are flattened into N rows with scene offsets, so the LSTMs never run on
+padding. The per-scene max-pools (eqs. 2, 4) scatter rows into a (B, A_max) grid whose empty cells and
+unobserved agents are -inf, so padding never reaches an output (tested by adding padded agents).
+
+Normalisation (recorded in checkpoints through ``ModelConfig``): model-frame positions are
+``p = R (p_world - origin)`` in metres, where
+
+* ``frame="world"``: ``origin`` is the mean current (step ``obs_len - 1``) position of the scene's targets
+  that are observed then (else of all agents observed then) and ``R`` is the identity, i.e. world axes;
+* ``frame="ego"``: ``origin`` is the ego's current position and ``R`` rotates the ego's last observed
+  heading onto +x (the paper's ego-perspective "relative coordinate"). Scenes without an ego use their
+  first target instead.
+
+Rotation augmentation multiplies ``R`` by a further rotation. Scaling (``pos_scale_m``, ``disp_scale_m``)
+happens inside the network so that ``Batch`` stays in metres.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from logpipe.errors import LogpipeError
+from logpipe.types import NDArrayBool, NDArrayFloat, NDArrayInt, SceneSample
+
+from .config import ModelConfig
+
+
+class SampleError(LogpipeError):
+    """A SceneSample does not fit the model (wrong obs_len, raster channels, no current position)."""
+
+
+@dataclass
+class Batch:
+    """B scenes with N agents in total, flattened ("agents with scene offsets"), T = obs_len + pred_len.
+
+    Per-agent tensors have N rows, scene by scene in sample order; ``scene``/``slot`` place a row in a
+    (B, A_max) grid for the per-scene max-pools, which mask everything that is not a real observed agent.
+
+    Attributes:
+        positions: (N, T, 2) float32 model-frame metres; 0 where ``valid`` is False.
+        valid: (N, T) bool, observed (finite) positions.
+        active: (N,) bool, observed at the current step ``obs_len - 1`` (only these are decoded).
+        target: (N,) bool, the samples' targets that are active.
+        ego: (N,) bool, the ego row of its scene (when it is active).
+        scene: (N,) int64 scene index of each row.
+        slot: (N,) int64 row index within its scene.
+        max_agents: A_max, the largest agent count of a scene.
+        raster: (B, C, H, W) float32 in [0, 1], or None when no scene has one / the model does not use it.
+        has_raster: (B,) bool, whether the scene came with a raster (else its environment feature is 0).
+        frame_to_px: (B, 2, 3) float32 affine from model-frame metres to raster pixels (col, row).
+        px_per_m: (B,) float32 raster resolution.
+        origin: (B, 2) float64 world metres of the model-frame origin.
+        rotation: (B, 2, 2) float64, model = rotation @ (world - origin).
+        offsets: (B + 1,) row offsets of the scenes.
+        obs_len: T_obs.
+    """
+
+    positions: Tensor
+    valid: Tensor
+    active: Tensor
+    target: Tensor
+    ego: Tensor
+    scene: Tensor
+    slot: Tensor
+    max_agents: int
+    raster: Tensor | None
+    has_raster: Tensor
+    frame_to_px: Tensor
+    px_per_m: Tensor
+    origin: NDArrayFloat
+    rotation: NDArrayFloat
+    offsets: NDArrayInt
+    obs_len: int
+
+    @property
+    def size(self) -> int:
+        """B."""
+        return len(self.offsets) - 1
+
+    def to_world(self, points: Tensor, scene: Tensor) -> NDArrayFloat:
+        """Model-frame points (N, ..., 2) of rows in scenes ``scene`` (N,) -> world metres (float64)."""
+        p = points.detach().double().cpu().numpy()
+        sc = scene.cpu().numpy()
+        flat = p.reshape(p.shape[0], -1, 2)
+        world: NDArrayFloat = np.einsum("nji,nkj->nki", self.rotation[sc], flat) + self.origin[sc][:, None, :]
+        return world.reshape(p.shape)
+
+
+def _rot(theta: float) -> NDArrayFloat:
+    c, s = np.cos(theta), np.sin(theta)
+    return np.array([[c, -s], [s, c]])
+
+
+def _frame(sample: SceneSample, pos: NDArrayFloat, config: ModelConfig) -> tuple[NDArrayFloat, NDArrayFloat]:
+    """(origin, R) of the model frame for one sample (see the module docstring)."""
+    cur = sample.obs_len - 1
+    now = pos[:, cur]
+    seen: NDArrayBool = np.all(np.isfinite(now), axis=1)
+    if config.frame == "world":
+        pick = seen & sample.target_mask.astype(bool)
+        if not pick.any():
+            pick = seen
+        origin = now[pick].mean(axis=0) if pick.any() else np.zeros(2)
+        return origin, np.eye(2)
+    anchor = sample.ego_index
+    if anchor < 0 or not seen[anchor]:
+        targets = np.flatnonzero(sample.target_mask.astype(bool) & seen)
+        anchor = int(targets[0]) if targets.size else int(np.argmax(seen))
+    if not seen[anchor]:
+        return np.zeros(2), np.eye(2)
+    track = pos[anchor, : cur + 1]
+    heading = 0.0
+    for k in range(cur - 1, -1, -1):  # latest earlier observation that moved (> 1 cm) defines heading
+        d = track[cur] - track[k]
+        if np.isfinite(d).all() and np.hypot(d[0], d[1]) > 1e-2:
+            heading = float(np.arctan2(d[1], d[0]))
+            break
+    return now[anchor].copy(), _rot(-heading)
+
+
+def collate(
+    samples: Sequence[SceneSample],
+    config: ModelConfig,
+    *,
+    rotations: Sequence[float] | None = None,
+    with_raster: bool | None = None,
+) -> Batch:
+    """Pad and normalise ``samples`` into one ``Batch``.
+
+    Args:
+        samples: scenes with ``obs_len == config.obs_len``; positions beyond ``obs_len + pred_len`` steps
+            are cut, missing steps are padded as unobserved.
+        config: supplies obs/pred lengths, frame and raster channels.
+        rotations: optional extra rotation (radians, counter-clockwise) per scene (augmentation).
+        with_raster: build the raster tensor (default: when the environment feature is on).
+    """
+    if not samples:
+        raise SampleError("cannot build a batch from zero samples")
+    t_total = config.obs_len + config.pred_len
+    b = len(samples)
+    counts = np.array([len(s.positions) for s in samples], np.int64)
+    offsets = np.concatenate(([0], np.cumsum(counts)))
+    n = int(offsets[-1])
+    use_raster = config.features.environment if with_raster is None else with_raster
+    positions = np.zeros((n, t_total, 2), np.float32)
+    valid = np.zeros((n, t_total), bool)
+    target = np.zeros(n, bool)
+    ego = np.zeros(n, bool)
+    has_raster = np.zeros(b, bool)
+    frame_to_px = np.zeros((b, 2, 3), np.float32)
+    px_per_m = np.ones(b, np.float32)
+    origin = np.zeros((b, 2))
+    rotation = np.zeros((b, 2, 2))
+    raster = (
+        np.zeros((b, config.raster_channels, *_raster_hw(samples)), np.float32) if use_raster else None
+    )
+    for i, s in enumerate(samples):
+        if s.obs_len != config.obs_len:
+            raise SampleError(f"{s.sample_id}: obs_len {s.obs_len} but the model expects {config.obs_len}")
+        lo, hi = int(offsets[i]), int(offsets[i + 1])
+        pos = np.full((hi - lo, t_total, 2), np.nan)
+        steps = min(t_total, s.positions.shape[1])
+        pos[:, :steps] = s.positions[:, :steps]
+        org, rot = _frame(s, pos, config)
+        if rotations is not None:
+            rot = _rot(rotations[i]) @ rot
+        ok = np.isfinite(pos).all(axis=2)
+        local = np.einsum("ij,atj->ati", rot, np.nan_to_num(pos - org))
+        positions[lo:hi] = np.where(ok[..., None], local, 0.0)
+        valid[lo:hi] = ok
+        target[lo:hi] = s.target_mask.astype(bool)
+        if 0 <= s.ego_index < hi - lo:
+            ego[lo + s.ego_index] = True
+        origin[i], rotation[i] = org, rot
+        if s.world_to_raster is not None:
+            w2r = np.asarray(s.world_to_raster, np.float64)
+            lin = w2r[:, :2]
+            # px = lin (R^T p + origin) + offset
+            frame_to_px[i, :, :2] = lin @ rot.T
+            frame_to_px[i, :, 2] = lin @ org + w2r[:, 2]
+            px_per_m[i] = np.sqrt(abs(np.linalg.det(lin)))
+        if raster is not None and s.raster is not None:
+            if s.raster.shape[0] != config.raster_channels:
+                raise SampleError(
+                    f"{s.sample_id}: raster has {s.raster.shape[0]} channels, model expects "
+                    f"{config.raster_channels}"
+                )
+            if s.world_to_raster is None:
+                raise SampleError(f"{s.sample_id}: raster without world_to_raster")
+            raster[i] = s.raster.astype(np.float32) * (1.0 / 255.0)
+            has_raster[i] = True
+    active = valid[:, config.obs_len - 1]
+    if raster is not None and not has_raster.any():
+        raster = None  # no scene has a map: skip the backbone, the environment feature is zero
+    scene = np.repeat(np.arange(b), counts)
+    slot = np.arange(n) - offsets[scene]
+    return Batch(
+        positions=torch.from_numpy(positions),
+        valid=torch.from_numpy(valid),
+        active=torch.from_numpy(active),
+        target=torch.from_numpy(target & active),
+        ego=torch.from_numpy(ego & active),
+        scene=torch.from_numpy(scene),
+        slot=torch.from_numpy(slot),
+        max_agents=int(counts.max()),
+        raster=None if raster is None else torch.from_numpy(raster),
+        has_raster=torch.from_numpy(has_raster),
+        frame_to_px=torch.from_numpy(frame_to_px),
+        px_per_m=torch.from_numpy(px_per_m),
+        origin=origin,
+        rotation=rotation,
+        offsets=offsets,
+        obs_len=config.obs_len,
+    )
+
+
+def _raster_hw(samples: Sequence[SceneSample]) -> tuple[int, int]:
+    shapes = {tuple(s.raster.shape[1:]) for s in samples if s.raster is not None}
+    if len(shapes) > 1:
+        raise SampleError(f"rasters of different sizes in one batch: {sorted(shapes)}")
+    if not shapes:
+        return (1, 1)  # no scene has a map; collate drops the raster
+    h, w = shapes.pop()
+    return int(h), int(w)

@@ -1,0 +1,288 @@
+"""Checkpoints: a folder with weights (safetensors) and JSON metadata; never a pickle.
+
+Layout of a checkpoint folder::
+
+    weights.safetensors   model parameters and buffers
+    meta.json             format, full TrainConfig, normalisation, dataset kind, dataset manifest hash,
+                          logpipe version, step, metrics, sha256 of weights.safetensors
+    optimizer.safetensors (resumable "last" checkpoints only) Adam moments + torch RNG state
+    train_state.json      (resumable only) optimiser param groups, loop counters, numpy RNG state
+
+``meta.json`` is written last and names the weights' sha256, so a folder interrupted mid-write is
+detected on load instead of silently mixing old and new files.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import time
+from dataclasses import dataclass
+from importlib import metadata
+from pathlib import Path
+from typing import Any
+
+import torch
+from safetensors.torch import load_file, save_file
+
+from logpipe.errors import LogpipeError
+
+from .config import (
+    ConfigError,
+    ModelConfig,
+    TrainConfig,
+    config_to_dict,
+    train_config_from_dict,
+)
+from .nets import TrajectoryNet
+
+CHECKPOINT_FORMAT = "logpipe-model-checkpoint"
+FORMAT_VERSION = 1
+MODEL_KIND = "zhu2020"
+
+
+class CheckpointError(LogpipeError):
+    """A checkpoint folder is missing, corrupt or of another format."""
+
+
+class CheckpointMismatchError(CheckpointError):
+    """A checkpoint does not match what the caller expects (config, dataset kind, manifest)."""
+
+
+def logpipe_version() -> str:
+    """``logpipe.__version__`` if present, else the installed distribution's version, else "unknown"."""
+    import logpipe
+
+    version = getattr(logpipe, "__version__", None)
+    if isinstance(version, str):
+        return version
+    try:
+        return metadata.version("logpipe")
+    except metadata.PackageNotFoundError:
+        return "unknown"
+
+
+@dataclass
+class CheckpointMeta:
+    """Contents of ``meta.json``.
+
+    Attributes:
+        config: the full training config (its ``model`` rebuilds the network).
+        dataset_kind: dataset family the model was trained on (``ethucy``, ``argoverse``, ...).
+        manifest_hash: hash of the training dataset's manifest, as given by the caller.
+        logpipe_version: version of the code that wrote the checkpoint.
+        step: optimiser steps done.
+        metrics: e.g. ``val_ade``/``val_fde`` (metres) at this step.
+        weights_sha256: digest of ``weights.safetensors``.
+        created_unix: wall-clock seconds when written.
+    """
+
+    config: TrainConfig
+    dataset_kind: str
+    manifest_hash: str
+    logpipe_version: str
+    step: int
+    metrics: dict[str, float]
+    weights_sha256: str
+    created_unix: float
+
+    @property
+    def normalisation(self) -> dict[str, Any]:
+        """Frame and scales that define model-frame coordinates (see ``batching``)."""
+        m = self.config.model
+        return {"frame": m.frame, "pos_scale_m": m.pos_scale_m, "disp_scale_m": m.disp_scale_m}
+
+    def to_dict(self) -> dict[str, Any]:
+        """The JSON document written to ``meta.json``."""
+        return {
+            "format": CHECKPOINT_FORMAT,
+            "format_version": FORMAT_VERSION,
+            "model_kind": MODEL_KIND,
+            "config": config_to_dict(self.config),
+            "normalisation": self.normalisation,
+            "dataset_kind": self.dataset_kind,
+            "manifest_hash": self.manifest_hash,
+            "logpipe_version": self.logpipe_version,
+            "step": self.step,
+            "metrics": self.metrics,
+            "weights_sha256": self.weights_sha256,
+            "created_unix": self.created_unix,
+        }
+
+
+@dataclass
+class LoadedCheckpoint:
+    """A loaded checkpoint: the network (eval mode) and its metadata."""
+
+    net: TrajectoryNet
+    meta: CheckpointMeta
+    path: Path
+
+
+def _sha256(path: Path) -> str:
+    digest = hashlib.sha256()
+    with path.open("rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def _atomic_json(path: Path, data: dict[str, Any]) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(json.dumps(data, indent=2, sort_keys=True) + "\n", encoding="utf-8")
+    os.replace(tmp, path)
+
+
+def _atomic_tensors(path: Path, tensors: dict[str, torch.Tensor]) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    save_file({k: v.detach().contiguous().clone() for k, v in tensors.items()}, str(tmp))
+    os.replace(tmp, path)
+
+
+def save_checkpoint(
+    folder: Path,
+    net: TrajectoryNet,
+    config: TrainConfig,
+    *,
+    dataset_kind: str,
+    manifest_hash: str,
+    step: int,
+    metrics: dict[str, float] | None = None,
+    optimizer: torch.optim.Optimizer | None = None,
+    train_state: dict[str, Any] | None = None,
+) -> Path:
+    """Write a checkpoint folder (created if needed); with ``optimizer`` it is resumable."""
+    folder.mkdir(parents=True, exist_ok=True)
+    weights = folder / "weights.safetensors"
+    _atomic_tensors(weights, dict(net.state_dict()))
+    if optimizer is not None:
+        state = optimizer.state_dict()
+        tensors = {"rng.torch": torch.get_rng_state()}
+        for idx, per_param in state["state"].items():
+            for key, value in per_param.items():
+                tensors[f"state.{idx}.{key}"] = torch.as_tensor(value)
+        _atomic_tensors(folder / "optimizer.safetensors", tensors)
+        _atomic_json(folder / "train_state.json", {"param_groups": state["param_groups"], **(train_state or {})})
+    meta = CheckpointMeta(
+        config=config,
+        dataset_kind=dataset_kind,
+        manifest_hash=manifest_hash,
+        logpipe_version=logpipe_version(),
+        step=step,
+        metrics=dict(metrics or {}),
+        weights_sha256=_sha256(weights),
+        created_unix=time.time(),
+    )
+    _atomic_json(folder / "meta.json", meta.to_dict())
+    return folder
+
+
+def read_meta(folder: Path) -> CheckpointMeta:
+    """Parse and check ``meta.json`` of a checkpoint folder."""
+    path = folder / "meta.json"
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError) as exc:
+        raise CheckpointError(f"{path}: not a readable checkpoint: {exc}") from exc
+    if data.get("format") != CHECKPOINT_FORMAT or data.get("model_kind") != MODEL_KIND:
+        raise CheckpointError(f"{path}: not a {MODEL_KIND} {CHECKPOINT_FORMAT}")
+    if data.get("format_version") != FORMAT_VERSION:
+        raise CheckpointError(
+            f"{path}: checkpoint format version {data.get('format_version')} is not {FORMAT_VERSION}"
+        )
+    try:
+        config = train_config_from_dict(data["config"])
+        return CheckpointMeta(
+            config=config,
+            dataset_kind=str(data["dataset_kind"]),
+            manifest_hash=str(data["manifest_hash"]),
+            logpipe_version=str(data["logpipe_version"]),
+            step=int(data["step"]),
+            metrics={str(k): float(v) for k, v in data["metrics"].items()},
+            weights_sha256=str(data["weights_sha256"]),
+            created_unix=float(data["created_unix"]),
+        )
+    except (KeyError, TypeError, ValueError, ConfigError) as exc:
+        raise CheckpointError(f"{path}: malformed checkpoint metadata: {exc}") from exc
+
+
+def _diff(expected: dict[str, Any], found: dict[str, Any], prefix: str = "") -> list[str]:
+    out = []
+    for key in sorted(set(expected) | set(found)):
+        a, b = expected.get(key), found.get(key)
+        if isinstance(a, dict) and isinstance(b, dict):
+            out += _diff(a, b, f"{prefix}{key}.")
+        elif a != b:
+            out.append(f"{prefix}{key}: expected {a!r}, checkpoint has {b!r}")
+    return out
+
+
+def check_meta(
+    meta: CheckpointMeta,
+    where: Path,
+    *,
+    expect_kind: str | None = None,
+    expect_config: ModelConfig | TrainConfig | None = None,
+    expect_manifest_hash: str | None = None,
+) -> None:
+    """Raise ``CheckpointMismatchError`` naming every difference from what the caller expects."""
+    problems = []
+    if expect_kind is not None and meta.dataset_kind != expect_kind:
+        problems.append(f"dataset kind: expected {expect_kind!r}, checkpoint has {meta.dataset_kind!r}")
+    if expect_manifest_hash is not None and meta.manifest_hash != expect_manifest_hash:
+        problems.append(
+            f"dataset manifest hash: expected {expect_manifest_hash!r}, checkpoint has {meta.manifest_hash!r}"
+        )
+    if isinstance(expect_config, TrainConfig):
+        problems += _diff(config_to_dict(expect_config), config_to_dict(meta.config), "train.")
+    elif isinstance(expect_config, ModelConfig):
+        problems += _diff(config_to_dict(expect_config), config_to_dict(meta.config.model), "model.")
+    if problems:
+        raise CheckpointMismatchError(f"{where}: checkpoint does not match: " + "; ".join(problems))
+
+
+def load_checkpoint(
+    path: Path,
+    *,
+    expect_kind: str | None = None,
+    expect_config: ModelConfig | TrainConfig | None = None,
+    expect_manifest_hash: str | None = None,
+) -> LoadedCheckpoint:
+    """Load a checkpoint folder (or its ``meta.json``) into a ``TrajectoryNet`` in eval mode.
+
+    Raises:
+        CheckpointError: missing/corrupt files, weights that do not fit the stored config.
+        CheckpointMismatchError: dataset kind, manifest hash or config differ from the expected ones.
+    """
+    folder = path.parent if path.name == "meta.json" else path
+    meta = read_meta(folder)
+    check_meta(
+        meta, folder, expect_kind=expect_kind, expect_config=expect_config, expect_manifest_hash=expect_manifest_hash
+    )
+    weights = folder / "weights.safetensors"
+    if not weights.is_file() or _sha256(weights) != meta.weights_sha256:
+        raise CheckpointError(f"{weights}: missing or does not match the sha256 in meta.json")
+    net = TrajectoryNet(meta.config.model, load_backbone=False)
+    try:
+        net.load_state_dict(load_file(str(weights)), strict=True)
+    except RuntimeError as exc:
+        raise CheckpointError(f"{weights}: weights do not fit the stored config: {exc}") from exc
+    return LoadedCheckpoint(net.eval(), meta, folder)
+
+
+def load_training_state(folder: Path, optimizer: torch.optim.Optimizer) -> dict[str, Any]:
+    """Restore Adam moments and the torch RNG from a resumable checkpoint; returns ``train_state.json``."""
+    try:
+        tensors = load_file(str(folder / "optimizer.safetensors"))
+        extra = json.loads((folder / "train_state.json").read_text(encoding="utf-8"))
+    except (OSError, ValueError) as exc:
+        raise CheckpointError(f"{folder}: not a resumable checkpoint: {exc}") from exc
+    state: dict[int, dict[str, torch.Tensor]] = {}
+    for name, value in tensors.items():
+        if name.startswith("state."):
+            _, idx, key = name.split(".", 2)
+            state.setdefault(int(idx), {})[key] = value
+    optimizer.load_state_dict({"state": state, "param_groups": extra.pop("param_groups")})
+    torch.set_rng_state(tensors["rng.torch"])
+    return dict(extra)

@@ -1,0 +1,317 @@
+"""Every hyper-parameter of the predictor and its training, in two frozen dataclasses.
+
+Defaults are the paper's (Zhu et al., IJCAI 2020, "Implementation Details"): embeddings 64 wide, GRU with
+128 cells (eq. 6), LSTM encoder/decoder with 64 cells (eqs. 16, 18), ROIAlign pool K=3 over R_s=20 m
+(eqs. 11-12), Adam with lr 5e-4, batch 8, 20,000 steps, H=20 modes (eq. 23).
+
+A config file is JSON (``.json``) or TOML (``.toml``) with two tables, ``model`` (with a nested
+``features`` table) and ``train``; unknown keys are an error so a typo never silently falls back to a
+default.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import tomllib
+from dataclasses import dataclass, field, fields, replace
+from pathlib import Path
+from typing import Any, Literal, TypeVar
+
+from logpipe.errors import LogpipeError
+
+Frame = Literal["world", "ego"]
+LossReduction = Literal["scene", "agent"]
+
+
+class ConfigError(LogpipeError):
+    """A model/training config is malformed or inconsistent."""
+
+
+@dataclass(frozen=True)
+class Features:
+    """Switches for the five components of the ablation (paper Table 4).
+
+    Attributes:
+        position: PF, global position feature o^(t) (eqs. 1-2).
+        tracking: TF, global tracking feature r^(t) from the LSTM hidden states (eqs. 3-4).
+        ego_motion: EMF, ego displacement embedding m^(t) (eq. 5); needs an ego in the sample.
+        ego_trajectory: ETF, future ego-trajectory feature f^(t) (eqs. 8-9); needs the ego's future
+            (its planned/actual trajectory) in the sample.
+        environment: EF, raster feature v_i^(t) from ResNet18 stages 1-2 + ROIAlign (eqs. 11-12); needs a
+            raster in the sample.
+    """
+
+    position: bool = True
+    tracking: bool = True
+    ego_motion: bool = True
+    ego_trajectory: bool = True
+    environment: bool = True
+
+    @property
+    def uses_gru(self) -> bool:
+        """Whether the AIN's GRU (eqs. 6-7) has any input, i.e. st^(t) exists."""
+        return self.position or self.tracking or self.ego_motion
+
+    @property
+    def uses_ego_plan(self) -> bool:
+        """Whether the ego's future positions are a model input (EMF during decoding, or ETF)."""
+        return self.ego_motion or self.ego_trajectory
+
+
+@dataclass(frozen=True)
+class ModelConfig:
+    """Architecture, input frame and normalisation of the trajectory network.
+
+    Attributes:
+        features: component switches (Table 4).
+        obs_len: T_obs, observed steps including the current one.
+        pred_len: T_pred - T_obs, predicted steps.
+        embed_dim: width of every embedding layer (d_o, d_r, d_m, d_f, d_p, d_v and st), 64 in the paper.
+        gru_dim: GRU cells of the AIN (eq. 6), 128 in the paper.
+        lstm_dim: cells of LSTM_E and LSTM_D (eqs. 16, 18), 64 in the paper.
+        noise_dim: size of the Gaussian noise z of eq. 21 (not given in the paper; 0 disables noise).
+        raster_channels: C of the input raster (semantic layers), taken from the rasteriser's output.
+        roi_pool: K, ROIAlign output size per side (eq. 11).
+        roi_half_size_m: R_s in metres; the ROI is the square of side 2 R_s centred on the agent, which is
+            the paper's window of H R_s / (4h) feature cells at stride 8.
+        roi_sampling: bilinear samples per ROI bin per side (ROIAlign's sampling ratio).
+        backbone_weights: optional path of a torchvision-layout ResNet18 state dict (safetensors or a
+            ``torch.save`` file read with ``weights_only=True``) for the "pre-trained" backbone.
+        freeze_backbone: keep the backbone's weights fixed (and in eval mode) during training.
+        backbone_bf16: run the backbone in bf16 autocast with channels_last (CPU AMX): ~4x the fp32 images/s
+            here for a 0.6% relative L2 error of the feature map and 0.3% of the pooled feature v (measured
+            by ``benchmarks/bench_model.py``). Turn off on CPUs without native bf16.
+        frame: ``world`` (world axes, origin at the targets' mean current position) or ``ego`` (origin at
+            the ego's current position, +x along the ego's last observed heading); Table 3 reports both.
+        pos_scale_m: positions are divided by this (metres) before the position/attention/ETF layers.
+        disp_scale_m: displacements are divided by this (metres per step) before eqs. 5, 15, 17 and the
+            output of eq. 19 is multiplied by it.
+    """
+
+    features: Features = field(default_factory=Features)
+    obs_len: int = 8
+    pred_len: int = 12
+    embed_dim: int = 64
+    gru_dim: int = 128
+    lstm_dim: int = 64
+    noise_dim: int = 16
+    raster_channels: int = 4
+    roi_pool: int = 3
+    roi_half_size_m: float = 20.0
+    roi_sampling: int = 2
+    backbone_weights: str | None = None
+    freeze_backbone: bool = False
+    backbone_bf16: bool = True
+    frame: Frame = "world"
+    pos_scale_m: float = 10.0
+    disp_scale_m: float = 1.0
+
+    def __post_init__(self) -> None:
+        if self.obs_len < 2 or self.pred_len < 1:
+            raise ConfigError(f"obs_len must be >= 2 and pred_len >= 1, got {self.obs_len}, {self.pred_len}")
+        for name in ("embed_dim", "gru_dim", "lstm_dim", "raster_channels", "roi_pool", "roi_sampling"):
+            if getattr(self, name) < 1:
+                raise ConfigError(f"model.{name} must be >= 1, got {getattr(self, name)}")
+        if self.noise_dim < 0:
+            raise ConfigError(f"model.noise_dim must be >= 0, got {self.noise_dim}")
+        if self.frame not in ("world", "ego"):
+            raise ConfigError(f"model.frame must be 'world' or 'ego', got {self.frame!r}")
+        for name in ("pos_scale_m", "disp_scale_m", "roi_half_size_m"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value > 0):
+                raise ConfigError(f"model.{name} must be a positive number, got {value}")
+
+    def resolved(self, *, has_ego: bool, has_map: bool) -> ModelConfig:
+        """This config with the features the data cannot feed switched off (paper: no EMF/ETF/EF on
+        ETH/UCY and ApolloScape, which have no ego and no HD map)."""
+        feats = self.features
+        if not has_ego:
+            feats = replace(feats, ego_motion=False, ego_trajectory=False)
+        if not has_map:
+            feats = replace(feats, environment=False)
+        return replace(self, features=feats)
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """Optimisation, evaluation and bookkeeping of one training run.
+
+    Attributes:
+        model: the architecture being trained.
+        seed: seeds torch and numpy; the run is deterministic for a fixed seed and thread count.
+        steps: optimiser steps (paper: 20,000).
+        batch_size: scenes per step (paper: 8).
+        lr: Adam learning rate (paper: 5e-4).
+        lr_decay: multiplicative learning-rate decay applied every ``lr_decay_every`` steps (1.0 = none).
+        lr_decay_every: steps between decays.
+        weight_decay: Adam L2 penalty.
+        grad_clip: max global gradient norm (0 disables).
+        num_modes: H, decoder samples per scene in the best-of-H loss (eq. 23; paper: 20 on ETH/UCY).
+        loss_min_over: ``scene`` takes eq. 23's min over modes of the error summed over a scene's targets
+            (the paper); ``agent`` takes the min per target.
+        select_then_backprop: decode the H modes without autograd, then re-decode only each scene's best
+            mode with autograd (same gradient as eq. 23, ~2-3x cheaper; only with ``loss_min_over="scene"``).
+        augment_rotate: rotate each training scene by a uniform random angle about its origin.
+        eval_every: steps between validation passes (and checkpoints).
+        val_modes: K for the validation best-of-K ADE/FDE.
+        val_max_samples: validate on the first this many validation samples (None = all).
+        early_stop_patience: stop after this many validations without a better val ADE (0 = never).
+        log_every: steps between training-log lines.
+        num_threads: ``torch.set_num_threads`` value (0 leaves torch's default).
+        shuffle_buffer: buffer size for shuffling a training stream that is not a Sequence.
+    """
+
+    model: ModelConfig = field(default_factory=ModelConfig)
+    seed: int = 0
+    steps: int = 20_000
+    batch_size: int = 8
+    lr: float = 5e-4
+    lr_decay: float = 1.0
+    lr_decay_every: int = 1000
+    weight_decay: float = 0.0
+    grad_clip: float = 1.5
+    num_modes: int = 20
+    loss_min_over: LossReduction = "scene"
+    select_then_backprop: bool = True
+    augment_rotate: bool = False
+    eval_every: int = 500
+    val_modes: int = 20
+    val_max_samples: int | None = None
+    early_stop_patience: int = 10
+    log_every: int = 50
+    num_threads: int = 2
+    shuffle_buffer: int = 1024
+
+    def __post_init__(self) -> None:
+        for name in ("steps", "batch_size", "num_modes", "eval_every", "val_modes", "log_every", "lr_decay_every"):
+            if getattr(self, name) < 1:
+                raise ConfigError(f"train.{name} must be >= 1, got {getattr(self, name)}")
+        if not (self.lr > 0 and 0 < self.lr_decay <= 1):
+            raise ConfigError(f"train.lr must be > 0 and lr_decay in (0, 1], got {self.lr}, {self.lr_decay}")
+        if self.loss_min_over not in ("scene", "agent"):
+            raise ConfigError(f"train.loss_min_over must be 'scene' or 'agent', got {self.loss_min_over!r}")
+        if self.val_max_samples is not None and self.val_max_samples < 1:
+            raise ConfigError(f"train.val_max_samples must be >= 1 or unset, got {self.val_max_samples}")
+
+
+# ---------------------------------------------------------------------------------------------------------
+# Presets: the rows of the paper's tables, one config away.
+
+ALL_OFF = Features(False, False, False, False, False)
+
+PRESETS: dict[str, Features] = {
+    # Table 4 rows.
+    "baseline": ALL_OFF,  # Noise-LSTM (with noise_dim > 0 and H > 1)
+    "v1": Features(True, False, False, False, False),
+    "v2": Features(True, True, False, False, False),
+    "v3": Features(True, True, True, False, False),
+    "v4": Features(True, True, True, True, False),
+    "full": Features(),
+}
+
+
+def preset(name: str, **model_overrides: Any) -> ModelConfig:
+    """ModelConfig for a named row: ``full``, ``v1``..``v4``, ``baseline`` (Noise-LSTM) or ``lstm``
+    (vanilla LSTM encoder-decoder: no features, no noise)."""
+    if name == "lstm":
+        return ModelConfig(features=ALL_OFF, noise_dim=0, **model_overrides)
+    if name not in PRESETS:
+        raise ConfigError(f"unknown preset {name!r}; known: {[*PRESETS, 'lstm']}")
+    return ModelConfig(features=PRESETS[name], **model_overrides)
+
+
+# ---------------------------------------------------------------------------------------------------------
+# (De)serialisation.
+
+_T = TypeVar("_T")
+
+
+def _from_dict(cls: type[_T], data: dict[str, Any], where: str) -> _T:
+    if not isinstance(data, dict):
+        raise ConfigError(f"{where}: expected a table, got {type(data).__name__}")
+    known = {f.name: f for f in fields(cls)}  # type: ignore[arg-type]
+    unknown = sorted(set(data) - set(known))
+    if unknown:
+        raise ConfigError(f"{where}: unknown keys {unknown}; known: {sorted(known)}")
+    kwargs: dict[str, Any] = {}
+    for key, value in data.items():
+        if key == "features":
+            kwargs[key] = _from_dict(Features, value, f"{where}.features")
+        elif key == "model":
+            kwargs[key] = _from_dict(ModelConfig, value, f"{where}.model")
+        else:
+            kwargs[key] = value
+    try:
+        return cls(**kwargs)
+    except TypeError as exc:
+        raise ConfigError(f"{where}: {exc}") from exc
+
+
+def config_to_dict(config: TrainConfig | ModelConfig) -> dict[str, Any]:
+    """Plain nested dict (JSON-able) of a config."""
+    return dataclasses.asdict(config)
+
+
+def train_config_from_dict(data: dict[str, Any]) -> TrainConfig:
+    """Inverse of ``config_to_dict`` for a TrainConfig; unknown keys raise ``ConfigError``."""
+    return _from_dict(TrainConfig, data, "train")
+
+
+def model_config_from_dict(data: dict[str, Any]) -> ModelConfig:
+    """Inverse of ``config_to_dict`` for a ModelConfig; unknown keys raise ``ConfigError``."""
+    return _from_dict(ModelConfig, data, "model")
+
+
+def _toml_value(value: Any) -> str:
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, int | float):
+        return repr(value)
+    if isinstance(value, str):
+        return json.dumps(value)  # a JSON string literal is a valid TOML basic string
+    raise ConfigError(f"cannot write {value!r} to TOML")
+
+
+def _toml_lines(table: dict[str, Any], prefix: str) -> list[str]:
+    lines = [f"[{prefix}]"]
+    nested = []
+    for key, value in table.items():
+        if isinstance(value, dict):
+            nested.append((key, value))
+        elif value is not None:  # TOML has no null: an absent key loads as the default (None)
+            lines.append(f"{key} = {_toml_value(value)}")
+    for key, value in nested:
+        lines += ["", *_toml_lines(value, f"{prefix}.{key}")]
+    return lines
+
+
+def save_config(config: TrainConfig, path: Path) -> None:
+    """Write ``config`` as JSON or TOML according to the suffix of ``path``."""
+    data = config_to_dict(config)
+    model = data.pop("model")
+    if path.suffix == ".toml":
+        text = "\n".join([*_toml_lines(model, "model"), "", *_toml_lines(data, "train")]) + "\n"
+    elif path.suffix == ".json":
+        text = json.dumps({"model": model, "train": data}, indent=2) + "\n"
+    else:
+        raise ConfigError(f"{path}: config files are .json or .toml")
+    path.write_text(text, encoding="utf-8")
+
+
+def load_config(path: Path) -> TrainConfig:
+    """Read a JSON or TOML config file (tables ``model`` and ``train``, both optional)."""
+    try:
+        raw = path.read_bytes()
+        data: Any = tomllib.loads(raw.decode()) if path.suffix == ".toml" else json.loads(raw)
+    except (OSError, ValueError) as exc:
+        raise ConfigError(f"{path}: cannot read config: {exc}") from exc
+    if not isinstance(data, dict):
+        raise ConfigError(f"{path}: expected a table at the top level")
+    unknown = sorted(set(data) - {"model", "train"})
+    if unknown:
+        raise ConfigError(f"{path}: unknown top-level keys {unknown}; expected 'model' and 'train'")
+    train = dict(data.get("train", {}))
+    train["model"] = data.get("model", {})
+    return train_config_from_dict(train)

@@ -1,0 +1,92 @@
+"""The one prediction interface every method implements, and the wrapper around ``TrajectoryNet``."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Protocol, runtime_checkable
+
+import numpy as np
+import torch
+
+from logpipe.types import NDArrayFloat, SceneSample
+
+from .batching import collate
+from .checkpoints import load_checkpoint
+from .config import ModelConfig
+from .nets import TrajectoryNet
+
+
+@runtime_checkable
+class Predictor(Protocol):
+    """Anything that forecasts the targets of scenes.
+
+    ``predict`` returns, per sample, an array (N_targets, K, T_pred - T_obs, 2) of world-frame metres:
+    the K candidate futures of each target (rows of ``target_mask`` in order), steps ``obs_len`` ..
+    ``obs_len + pred_len - 1``. Deterministic methods repeat their one forecast K times. A target not
+    observed at the current step gets NaN.
+    """
+
+    name: str
+
+    def predict(self, samples: Sequence[SceneSample], num_modes: int, seed: int) -> list[NDArrayFloat]:
+        """Forecasts for ``samples`` (see the class docstring); ``seed`` fixes any sampling."""
+        ...
+
+
+def split_by_sample(
+    samples: Sequence[SceneSample], offsets: Sequence[int], world: NDArrayFloat
+) -> list[NDArrayFloat]:
+    """Cut (N_rows, K, T, 2) per-row forecasts into per-sample target arrays."""
+    out = []
+    for i, s in enumerate(samples):
+        rows = world[offsets[i] : offsets[i + 1]]
+        out.append(np.ascontiguousarray(rows[np.asarray(s.target_mask, bool)]))
+    return out
+
+
+class NetPredictor:
+    """``TrajectoryNet`` behind the ``Predictor`` interface (the paper's method, Noise-LSTM and LSTM).
+
+    Attributes:
+        net: the network (put in eval mode).
+        config: its architecture, frame and normalisation.
+        batch_size: scenes per forward pass.
+        name: label for reports.
+    """
+
+    @classmethod
+    def from_checkpoint(
+        cls,
+        path: Path,
+        *,
+        expect_kind: str | None = None,
+        expect_config: ModelConfig | None = None,
+        batch_size: int = 32,
+    ) -> NetPredictor:
+        """Load a checkpoint folder (see ``checkpoints.load_checkpoint`` for the checks and errors)."""
+        loaded = load_checkpoint(path, expect_kind=expect_kind, expect_config=expect_config)
+        return cls(loaded.net, batch_size=batch_size)
+
+    def __init__(self, net: TrajectoryNet, batch_size: int = 32, name: str = "zhu2020") -> None:
+        self.net = net.eval()
+        self.config: ModelConfig = net.config
+        self.batch_size = batch_size
+        self.name = name
+
+    @torch.no_grad()
+    def predict(self, samples: Sequence[SceneSample], num_modes: int, seed: int) -> list[NDArrayFloat]:
+        """Batched inference; noise z is drawn from a generator seeded with ``seed``."""
+        gen = torch.Generator().manual_seed(seed)
+        out: list[NDArrayFloat] = []
+        t_pred = self.config.pred_len
+        for lo in range(0, len(samples), self.batch_size):
+            chunk = samples[lo : lo + self.batch_size]
+            batch = collate(chunk, self.config)
+            pred = self.net(batch, num_modes, gen)
+            n = batch.positions.shape[0]
+            world = np.full((n, num_modes, t_pred, 2), np.nan)
+            rows = pred.rows
+            world[rows.numpy()] = batch.to_world(pred.positions.transpose(0, 1), batch.scene[rows])
+            out += split_by_sample(chunk, batch.offsets.tolist(), world)
+        return out
