@@ -12,6 +12,7 @@ import re
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import ClassVar
 
 import numpy as np
 import pyarrow as pa
@@ -19,6 +20,7 @@ import pyarrow.compute as pc
 import pyarrow.csv as pacsv
 
 from logpipe.errors import SourceError
+from logpipe.formats.base import files_with_suffix
 from logpipe.io import as_numpy
 from logpipe.types import NDArrayBool, NDArrayInt, SourceFile
 
@@ -354,3 +356,29 @@ def log_ids_column(batch: TextBatch, sources: Sequence[SourceFile]) -> pa.Array:
     """(rows,) log id of each row: the stem of its file."""
     stems = pa.array([Path(s.relpath).stem for s in sources], pa.string())
     return pc.take(stems, pa.array(batch.file_index))
+
+
+class NumericTextFormat:
+    """Shared discovery and sniffing of header-less, all-numeric ``.txt`` formats (ETH/UCY, ApolloScape).
+
+    Subclasses set ``columns`` and ``delimiter`` (``" "`` means runs of spaces, as ApolloScape writes them).
+    """
+
+    columns: ClassVar[list[str]]
+    delimiter: ClassVar[str]
+
+    def discover(self, root: Path) -> list[Path]:
+        """``*.txt`` files under ``root`` (or ``root`` itself)."""
+        return files_with_suffix(root, (".txt",))
+
+    def sniff(self, path: Path) -> bool:
+        """True for a ``.txt`` whose first line has exactly ``len(columns)`` numbers split by ``delimiter``."""
+        if path.suffix.lower() != ".txt" or not path.is_file():
+            return False
+        with path.open("rb") as fh:
+            line = fh.readline()
+        fields = line.split() if self.delimiter == " " else line.split(self.delimiter.encode())
+        try:
+            return len(fields) == len(self.columns) and all(float(f) == float(f) for f in fields)
+        except ValueError:
+            return False

@@ -17,6 +17,7 @@ import pyarrow.compute as pc
 
 from logpipe.errors import SourceError
 from logpipe.formats._text import (
+    NumericTextFormat,
     TextBatch,
     check_finite,
     check_time_and_duplicates,
@@ -25,7 +26,7 @@ from logpipe.formats._text import (
     row_error,
     steps_from_sorted_times,
 )
-from logpipe.formats.base import ParsedLogs, files_with_suffix
+from logpipe.formats.base import ParsedLogs
 from logpipe.io import as_numpy
 from logpipe.types import PROTOCOLS, LogMeta, ObjectType, Role, SampleProtocol, SourceFile
 
@@ -41,32 +42,19 @@ TYPE_CODES: dict[int, str] = {
 }
 
 
-class ApolloScapeAdapter:
+class ApolloScapeAdapter(NumericTextFormat):
     """Reads ApolloScape ``result_*_frame.txt`` files (10 space-separated numeric columns)."""
 
     name: ClassVar[str] = "apolloscape"
     default_protocol: ClassVar[SampleProtocol] = PROTOCOLS["apolloscape"]
     batch_files: ClassVar[int] = 64
-
-    def discover(self, root: Path) -> list[Path]:
-        """``*.txt`` files under ``root`` (or ``root`` itself)."""
-        return files_with_suffix(root, (".txt",))
-
-    def sniff(self, path: Path) -> bool:
-        """True for a ``.txt`` whose first line has 10 space-separated numbers."""
-        if path.suffix.lower() != ".txt" or not path.is_file():
-            return False
-        with path.open("rb") as fh:
-            fields = fh.readline().split()
-        try:
-            return len(fields) == 10 and all(float(f) == float(f) for f in fields)
-        except ValueError:
-            return False
+    columns: ClassVar[list[str]] = COLUMNS
+    delimiter: ClassVar[str] = " "
 
     def read(self, sources: Sequence[SourceFile], *, keep_going: bool) -> ParsedLogs:
         """Parse a batch of files; bad files raise (or, with ``keep_going``, are returned as failures)."""
         table, batch, good, failures = parse_files(
-            sources, keep_going=keep_going, names=COLUMNS, types=_TYPES, delimiter=" ", header_lines=0,
+            sources, keep_going=keep_going, names=COLUMNS, types=_TYPES, delimiter=self.delimiter, header_lines=0,
             validate=_validate,
         )
         ts = (as_numpy(table.column("frame_id")).astype(np.int64)) * FRAME_PERIOD_NS

@@ -19,6 +19,7 @@ import pyarrow.compute as pc
 
 from logpipe.errors import SourceError
 from logpipe.formats._text import (
+    NumericTextFormat,
     TextBatch,
     check_finite,
     check_time_and_duplicates,
@@ -27,7 +28,7 @@ from logpipe.formats._text import (
     row_error,
     steps_from_sorted_times,
 )
-from logpipe.formats.base import ParsedLogs, files_with_suffix
+from logpipe.formats.base import ParsedLogs
 from logpipe.io import as_numpy
 from logpipe.types import PROTOCOLS, LogMeta, ObjectType, Role, SampleProtocol, SourceFile
 
@@ -36,32 +37,19 @@ _TYPES = {name: pa.float64() for name in COLUMNS}
 FRAME_PERIOD_NS = 40_000_000  # 25 fps video; annotations every 10 frames = 0.4 s (2.5 Hz)
 
 
-class EthUcyAdapter:
+class EthUcyAdapter(NumericTextFormat):
     """Reads ETH/UCY ``*.txt`` files (4 tab-separated numeric columns, no header)."""
 
     name: ClassVar[str] = "ethucy"
     default_protocol: ClassVar[SampleProtocol] = PROTOCOLS["ethucy"]
     batch_files: ClassVar[int] = 64
-
-    def discover(self, root: Path) -> list[Path]:
-        """``*.txt`` files under ``root`` (or ``root`` itself)."""
-        return files_with_suffix(root, (".txt",))
-
-    def sniff(self, path: Path) -> bool:
-        """True for a ``.txt`` whose first line has 4 tab-separated numbers."""
-        if path.suffix.lower() != ".txt" or not path.is_file():
-            return False
-        with path.open("rb") as fh:
-            fields = fh.readline().split(b"\t")
-        try:
-            return len(fields) == 4 and all(float(f) == float(f) for f in fields)
-        except ValueError:
-            return False
+    columns: ClassVar[list[str]] = COLUMNS
+    delimiter: ClassVar[str] = "\t"
 
     def read(self, sources: Sequence[SourceFile], *, keep_going: bool) -> ParsedLogs:
         """Parse a batch of files; bad files raise (or, with ``keep_going``, are returned as failures)."""
         table, batch, good, failures = parse_files(
-            sources, keep_going=keep_going, names=COLUMNS, types=_TYPES, delimiter="\t", header_lines=0,
+            sources, keep_going=keep_going, names=COLUMNS, types=_TYPES, delimiter=self.delimiter, header_lines=0,
             validate=_validate,
         )
         frames = as_numpy(table.column("frame_id"))
