@@ -8,7 +8,7 @@ OUT ?= out
 SHARED ?= ../shared/data
 ETHUCY_SCENES := eth hotel univ zara1 zara2
 
-.PHONY: setup demo test bench lint clean train-ethucy
+.PHONY: setup demo test bench lint clean train-ethucy reproduce-ethucy reproduce-apolloscape reproduce-argoverse
 
 # torch first and pinned: a looser pin would pull a multi-GB CUDA build; 2.13.0 is a local CPU wheel here.
 $(STAMP): pyproject.toml
@@ -33,8 +33,20 @@ bench: setup
 	$(PY) -m benchmarks.run --out $(OUT)/bench.json
 
 lint: setup
-	$(VENV)/bin/ruff check logpipe stages model tests benchmarks
-	$(VENV)/bin/mypy logpipe stages model
+	$(VENV)/bin/ruff check logpipe stages model tests benchmarks scripts
+	$(VENV)/bin/mypy logpipe stages model scripts
+
+# Results files in docs/results/ (tables with the protocol beside every number; see docs/results/README.md).
+reproduce-ethucy: setup
+	$(PY) scripts/reproduce_ethucy.py
+
+reproduce-apolloscape: setup
+	$(PY) scripts/reproduce_apolloscape.py
+
+DATA ?= $(SHARED)/argoverse1/data
+MAPS ?= $(SHARED)/argoverse1/maps
+reproduce-argoverse: setup
+	$(PY) scripts/reproduce_argoverse.py --data $(DATA) --maps $(MAPS)
 
 clean:
 	rm -rf $(OUT) .pytest_cache .mypy_cache .ruff_cache

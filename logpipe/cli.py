@@ -304,6 +304,73 @@ def train(
 
 
 @app.command()
+def score(
+    predictions: Annotated[list[Path], typer.Argument(help="Predictions tables (schemas/predictions.json).",
+                                                      show_default=False)],
+    truth: Annotated[Path, typer.Option("--truth", help="Dataset folder the predictions were made on.")],
+    out: Annotated[Path, typer.Option("--out", "-o", help="Report folder.")] = Path("out/score"),
+    split: Annotated[str | None, typer.Option(
+        "--split", help="Score exactly this split's samples (eth/test, hash/test); every counted agent must "
+                        "be predicted. Default: the predicted samples.")] = None,
+    agents: Annotated[str, typer.Option("--agents", help="all: every protocol target | focal: the focal track.")
+                      ] = "all",
+    min_agents: Annotated[int, typer.Option(
+        "--min-agents", help="Only samples with at least this many targets (Social-GAN's loader: 2).")] = 1,
+    k: Annotated[list[int] | None, typer.Option(
+        "--k", help="K values to report, repeatable (default: 1 and each method's own K).")] = None,
+    miss_threshold: Annotated[float, typer.Option("--miss-threshold", help="Argoverse miss threshold, metres.")
+                              ] = 2.0,
+    fail_above: Annotated[list[str] | None, typer.Option(
+        "--fail-above", help="Gate kN.METRIC=VALUE, repeatable (k1.ade=0.6, k6.miss_rate=0.2): exit 1 when any "
+                             "method's overall value is above.")] = None,
+    label: Annotated[list[str] | None, typer.Option(
+        "--label", help="Method names in file order, repeatable (default: the predictor column).")] = None,
+    allow_missing: Annotated[bool, typer.Option(
+        "--allow-missing", help="Score what is there when counted agents lack a forecast.")] = False,
+    plots: Annotated[bool, typer.Option("--plots/--no-plots", help="Write horizon.png and scenes_*.png.")] = True,
+    plot_samples: Annotated[int, typer.Option("--plot-samples", help="Samples per scene grid.")] = 6,
+    as_json: JsonOpt = False,
+) -> None:
+    """Score predictions against a dataset: report.json, report.md and PNG plots; exit 1 when a --fail-above
+    threshold is crossed.
+
+    Example: logpipe score out/pred/cv.parquet out/pred/zhu.parquet --truth out/ethucy --split eth/test --min-agents 2
+    """
+    from logpipe.stages.score import score as run_score
+
+    thresholds: dict[str, float] = {}
+    for item in fail_above or []:
+        key, sep, value = item.partition("=")
+        try:
+            thresholds[key.strip()] = float(value)
+        except ValueError:
+            raise typer.BadParameter(f"--fail-above {item!r}: expected kN.METRIC=NUMBER") from None
+        if not sep:
+            raise typer.BadParameter(f"--fail-above {item!r}: expected kN.METRIC=NUMBER")
+    if agents not in ("all", "focal"):
+        raise typer.BadParameter("--agents must be all or focal")
+    with _user_errors():
+        report = run_score(predictions, truth, out, agents=agents, min_agents=min_agents,
+                           split=split, ks=k or None, miss_threshold_m=miss_threshold, fail_above=thresholds,
+                           labels=label or None, allow_missing=allow_missing, plots=plots,
+                           plot_samples=plot_samples)
+    if as_json:
+        typer.echo(json.dumps(report, indent=2, sort_keys=True))
+    else:
+        for name, e in report["methods"].items():
+            o = e["overall"]
+            cells = ", ".join(f"K={kk} {o[f'k{kk}']['ade']:.3f}/{o[f'k{kk}']['fde']:.3f}" for kk in e["ks"]
+                              if o.get(f"k{kk}"))
+            print(f"{name}: {o['samples']} samples, {o['agents']} agents, ADE/FDE {cells}", file=sys.stderr)
+        print(f"report: {out / 'report.md'}", file=sys.stderr)
+        for v in report["gate"]["violations"]:
+            print(f"FAILED: {v['method']} {v['metric']} = {v['value']:.4f} > {v['limit']}", file=sys.stderr)
+    if report["gate"]["failed"]:
+        raise typer.Exit(code=1)
+
+
+
+@app.command()
 def inspect(
     paths: Annotated[list[Path], typer.Argument(help="Bags (ROS1 .bag, ROS2 folders), MCAP files, AV2 logs.")],
     as_json: JsonOpt = False,
