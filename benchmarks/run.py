@@ -14,7 +14,7 @@ import sys
 import time
 from pathlib import Path
 
-BENCHMARKS = ["bench_ingest", "bench_rosbag", "bench_raster", "bench_model"]
+BENCHMARKS = ["bench_ingest", "bench_rosbag", "bench_raster", "bench_model", "bench_predict"]
 
 
 def main() -> int:

@@ -304,6 +304,48 @@ def train(
 
 
 @app.command()
+def predict(
+    dataset: Annotated[Path, typer.Argument(help="Dataset folder written by `logpipe ingest`.")],
+    out: Annotated[Path, typer.Option("--out", "-o", help="Output folder; rerunning resumes.")],
+    checkpoint: Annotated[Path | None, typer.Option(
+        "--checkpoint", help="Checkpoint folder (default: the shipped one for the dataset kind).")] = None,
+    predictor: Annotated[str | None, typer.Option(
+        "--predictor", help="Baseline instead of a checkpoint: cv | linear | kalman | cv_sampler.")] = None,
+    modes: Annotated[int | None, typer.Option(
+        "--modes", "-k", help="K futures per agent (default 20 for pedestrians, 6 for vehicles).")] = None,
+    seed: Annotated[int, typer.Option("--seed", help="Seed of the sampled futures.")] = 0,
+    filters: Annotated[list[str] | None, typer.Option(
+        "--filter", help="log=ID[,ID] | split=eth/test | time=START_NS:END_NS | type=pedestrian[,..]; repeatable.")
+    ] = None,
+    inputs: Annotated[list[Path] | None, typer.Option(
+        "--inputs", help="Root(s) the bags/MCAP files were ingested from (their channels are copied through).")
+    ] = None,
+    raster_run: Annotated[str | None, typer.Option("--raster-run", help="Folder under DATASET/rasters/.")] = None,
+    raster_images: Annotated[bool, typer.Option(
+        "--raster-images/--no-raster-images", help="Add each sample's raster to the MCAP as an image.")] = True,
+    mcap: Annotated[bool, typer.Option("--mcap/--no-mcap", help="Write one MCAP per log.")] = True,
+    batch_size: Annotated[int, typer.Option("--batch-size", help="Samples per forward pass.")] = 64,
+    threads: Annotated[int, typer.Option("--threads", help="torch threads (0 = all cores).")] = 0,
+    as_json: JsonOpt = False,
+) -> None:
+    """Run a checkpoint (or a baseline) on every sample and write predictions as Parquet and, per log, an MCAP
+    with all original channels plus prediction channels (logpipe.Predictions and foxglove.SceneUpdate).
+
+    Example: logpipe predict out/ethucy --filter split=eth/test --out out/pred/eth
+    """
+    from logpipe.stages.predict import parse_filter, predict_dataset
+
+    with _user_errors(), _progress(0, "predict", enabled=not as_json and sys.stderr.isatty()) as advance:
+        summary = predict_dataset(
+            dataset, out, checkpoint=checkpoint, predictor=predictor, modes=modes, seed=seed,
+            sample_filter=parse_filter(filters or []), inputs=inputs or [], raster_run=raster_run,
+            raster_images=raster_images, write_mcap=mcap, batch_size=batch_size, threads=threads,
+            progress=advance,
+        )
+    _emit(summary, as_json, lambda s: err.print(json.dumps(s, indent=2, default=str), highlight=False))
+
+
+@app.command()
 def score(
     predictions: Annotated[list[Path], typer.Argument(help="Predictions tables (schemas/predictions.json).",
                                                       show_default=False)],

@@ -106,6 +106,11 @@ def ingest(roots: Sequence[Path], options: IngestOptions,
     out = options.out
     manifest = _load_compatible_manifest(out, fmt, protocol)
     sources = collect_sources(roots, adapter)
+    # Where the inputs were, so later stages (predict copies bag channels through) can find the originals.
+    known_roots = manifest.setdefault("input_roots", [])
+    for root in roots:
+        if str(root.resolve()) not in known_roots:
+            known_roots.append(str(root.resolve()))
     known = {i["sha256"] for i in manifest["inputs"]} | {q["sha256"] for q in manifest["quarantined"]}
     new = [s for s in sources if s.sha256 not in known]
     summary: dict[str, Any] = {
@@ -289,6 +294,7 @@ def _empty_manifest(fmt: str, protocol: SampleProtocol) -> dict[str, Any]:
         "schemas": {name: schema_version(name) for name in SCHEMAS},
         "format": fmt,
         "protocol": protocol.to_dict(),
+        "input_roots": [],
         "inputs": [],
         "quarantined": [],
         "shards": [],

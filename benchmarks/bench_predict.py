@@ -1,0 +1,126 @@
+"""Throughput of ``logpipe predict`` end to end (read shards → model → write Parquet + MCAP), on real data.
+
+Measures, in one run (the machine is shared: compare figures of the same run only):
+
+* **with the environment net** on Argoverse 1 (../shared/data, rasterised with its maps): an untrained
+  ``TrajectoryNet`` with every feature on (weights do not change speed), K = 6; against the ResNet18
+  stages 1-2 backbone alone on the same rasters (the target: end to end >= 70% of it, >= 50 samples/s);
+* **without the environment net** on ETH/UCY scenes (PF + TF, K = 20), and the constant-velocity baseline
+  (IO-bound: the cost of the outputs themselves);
+* for each, the share of the time spent in the model and in output/shard IO (``model_seconds`` /
+  ``io_seconds`` of the stage summary; the rest is cutting samples and attaching rasters).
+
+Run: ``.venv/bin/python benchmarks/bench_predict.py [--quick]`` (prints JSON).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+SHARED = REPO.parent / "shared" / "data"
+
+
+def _predict(dataset: Path, out: Path, repeats: int, **kwargs: Any) -> dict[str, Any]:
+    """Median over ``repeats`` fresh runs of samples/s and the model / IO shares."""
+    from logpipe.stages.predict import predict_dataset
+
+    runs = []
+    for i in range(repeats):
+        started = time.perf_counter()
+        s = predict_dataset(dataset, out / f"run{i}", **kwargs)
+        wall = time.perf_counter() - started
+        runs.append((s["samples"] / wall, s["model_seconds"] / wall, s["io_seconds"] / wall, s))
+    rate, model, io, s = sorted(runs, key=lambda r: r[0])[len(runs) // 2]
+    return {"samples": s["samples"], "rows": s["rows"], "samples_per_s": round(rate, 1),
+            "model_share": round(model, 3), "io_share": round(io, 3),
+            "other_share": round(max(0.0, 1 - model - io), 3)}
+
+
+def _backbone_rate(dataset: Path, spec: Any, repeats: int) -> float:
+    """Images/s of the backbone alone (same config, batch 32) on the dataset's rasters."""
+    import torch
+
+    from logpipe.model.config import ModelConfig
+    from logpipe.model.nets import TrajectoryNet
+    from logpipe.rasters import RasterShards
+
+    shards = RasterShards.open(dataset, spec, "ego")
+    ids = shards.index.column("sample_id").to_pylist()
+    images = np.stack([shards.get(i)[0] for i in ids]).astype(np.float32) / 255.0
+    net = TrajectoryNet(ModelConfig(obs_len=20, pred_len=30, raster_channels=len(spec.channels))).eval()
+    assert net.env is not None
+    batch = torch.from_numpy(images[:32])
+    rates = []
+    with torch.inference_mode():
+        net.env.feature_map(batch)
+        for _ in range(repeats):
+            t0 = time.perf_counter()
+            for lo in range(0, len(images), 32):
+                net.env.feature_map(torch.from_numpy(images[lo : lo + 32]))
+            rates.append(len(images) / (time.perf_counter() - t0))
+    return statistics.median(rates)
+
+
+def run(quick: bool = False) -> dict[str, Any]:
+    """Every figure as a dict (``benchmarks/run.py`` collects it)."""
+    import torch
+
+    from logpipe.executor import default_workers
+    from logpipe.maps import MapSource
+    from logpipe.model.checkpoints import save_checkpoint
+    from logpipe.model.config import ModelConfig, TrainConfig
+    from logpipe.model.nets import TrajectoryNet
+    from logpipe.raster import RasterSpec
+    from logpipe.stages.ingest import IngestOptions, ingest
+    from logpipe.stages.predict import parse_filter
+    from logpipe.stages.rasterise import rasterise_dataset
+
+    if not SHARED.is_dir():
+        return {"skipped": f"{SHARED} absent"}
+    torch.set_num_threads(default_workers())
+    repeats = 1 if quick else 3
+    result: dict[str, Any] = {"cores": default_workers(), "load_avg_1m": round(os.getloadavg()[0], 2),
+                              "repeats": repeats}
+    with tempfile.TemporaryDirectory() as tmp_name:
+        tmp = Path(tmp_name)
+        # --- with the environment net: Argoverse 1, rasters from its maps.
+        av1 = tmp / "av1"
+        ingest([SHARED / "argoverse1" / "data"], IngestOptions(out=av1))
+        spec = RasterSpec(rotate=True)
+        rasterise_dataset(av1, MapSource(roots=(SHARED / "argoverse1" / "maps",)), rotate=True, spec=spec)
+        cfg = ModelConfig(obs_len=20, pred_len=30, raster_channels=len(spec.channels))
+        env_ckpt = save_checkpoint(tmp / "env_ckpt", TrajectoryNet(cfg), TrainConfig(model=cfg),
+                                   dataset_kind="argoverse1", manifest_hash="bench", step=0)
+        backbone = _backbone_rate(av1, spec, repeats)
+        env = _predict(av1, tmp / "env_out", repeats, checkpoint=env_ckpt, batch_size=32)
+        env["backbone_alone_samples_per_s"] = round(backbone, 1)
+        env["ratio_to_backbone"] = round(env["samples_per_s"] / backbone, 3)
+        result["env_net_argoverse1"] = env
+        result["cv_argoverse1"] = _predict(av1, tmp / "cv_av1", repeats, predictor="cv")
+        # --- without the environment net: ETH/UCY (PF + TF, the paper's setting there), K = 20.
+        eth = tmp / "eth"
+        ingest([SHARED / "ethucy"], IngestOptions(out=eth))
+        plain = ModelConfig().resolved(has_ego=False, has_map=False)
+        plain_ckpt = save_checkpoint(tmp / "plain_ckpt", TrajectoryNet(plain), TrainConfig(model=plain),
+                                     dataset_kind="ethucy", manifest_hash="bench", step=0)
+        chosen = parse_filter(["split=eth/test"] if quick else ["split=hotel/test"])
+        result["no_env_net_ethucy"] = _predict(eth, tmp / "plain_out", repeats, checkpoint=plain_ckpt,
+                                               sample_filter=chosen, batch_size=128)
+        result["cv_ethucy"] = _predict(eth, tmp / "cv_eth", repeats, predictor="cv", sample_filter=chosen)
+        result["cv_ethucy_no_mcap"] = _predict(eth, tmp / "cv_eth_nomcap", repeats, predictor="cv",
+                                               sample_filter=chosen, write_mcap=False)
+    return result
+
+
+if __name__ == "__main__":
+    print(json.dumps(run(quick="--quick" in sys.argv), indent=2))

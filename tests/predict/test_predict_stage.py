@@ -1,0 +1,182 @@
+"""``predict_dataset`` on small datasets: exact constant-velocity output, the table contract, filters,
+determinism, resuming, and checkpoint/dataset mismatches reported before any work."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pyarrow.parquet as pq
+import pytest
+
+from logpipe.contracts import arrow_schema
+from logpipe.errors import LogpipeError
+from logpipe.model.checkpoints import save_checkpoint
+from logpipe.model.config import Features, ModelConfig, TrainConfig
+from logpipe.model.nets import TrajectoryNet
+from logpipe.stages.ingest import IngestOptions, ingest
+from logpipe.stages.predict import SampleFilter, parse_filter, predict_dataset
+
+FRAME_STEP = 10  # ETH/UCY frame numbers advance by 10 per 0.4 s step
+
+
+def _straight_walkers(folder: Path) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """An ETH/UCY text file with three pedestrians on straight lines at constant speed (30 steps)."""
+    walkers = {
+        "1": (np.array([1.5, -2.25]), np.array([0.5, 0.25])),
+        "2": (np.array([-3.0, 4.0]), np.array([-0.3, 0.0])),
+        "3": (np.array([10.0, 10.0]), np.array([0.0, -0.75])),
+    }
+    lines = []
+    for step in range(30):
+        for ped, (start, vel) in walkers.items():
+            x, y = start + step * vel
+            lines.append(f"{step * FRAME_STEP}\t{ped}.0\t{x:.2f}\t{y:.2f}")
+    path = folder / "lines" / "test" / "lines.txt"
+    path.parent.mkdir(parents=True)
+    path.write_text("\n".join(lines) + "\n")
+    return walkers
+
+
+@pytest.fixture(scope="module")
+def lines_dataset(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    root = tmp_path_factory.mktemp("lines")
+    _straight_walkers(root / "in")
+    ingest([root / "in"], IngestOptions(out=root / "ds"))
+    return root / "ds"
+
+
+def test_constant_velocity_predictions_of_straight_tracks_are_exact(lines_dataset: Path, tmp_path: Path) -> None:
+    summary = predict_dataset(lines_dataset, tmp_path / "out", predictor="cv", write_mcap=False)
+    assert summary["samples"] == 11 and summary["num_modes"] == 20  # 30 steps, windows of 8 + 12
+    table = pq.read_table(tmp_path / "out" / "predictions" / "part-00000.parquet")
+    assert table.schema.equals(arrow_schema("predictions"))  # the contract exactly (metadata aside)
+    assert table.num_rows == 11 * 3 * 20 * 12 == summary["rows"]
+    meta = table.schema.metadata
+    assert json.loads(meta[b"logpipe.protocol"]) == {"name": "ethucy", "obs_len": 8, "pred_len": 12, "num_modes": 20}
+    rows = table.to_pydict()
+    # Positions were written with 2 decimals: the expected line is through those exact observed values.
+    for i in range(0, table.num_rows, 97):
+        start_step = int(rows["sample_id"][i].split(":")[1])
+        ped = rows["track_id"][i]
+        start, vel = {"1": ([1.5, -2.25], [0.5, 0.25]), "2": ([-3.0, 4.0], [-0.3, 0.0]),
+                      "3": ([10.0, 10.0], [0.0, -0.75])}[ped]
+        now = start_step + 7
+        cur = np.round(np.array(start) + now * np.array(vel), 2)
+        prev = np.round(np.array(start) + (now - 1) * np.array(vel), 2)
+        expected = cur + (cur - prev) * rows["step"][i]
+        assert rows["x"][i] == pytest.approx(expected[0], abs=1e-9)
+        assert rows["y"][i] == pytest.approx(expected[1], abs=1e-9)
+        assert rows["timestamp_ns"][i] == (now + rows["step"][i]) * 400_000_000  # true step times
+        assert rows["score"][i] == pytest.approx(1 / 20)
+        assert rows["predictor"][i] == "cv" and rows["checkpoint_id"][i].startswith("cv:")
+    assert sorted(set(rows["mode"])) == list(range(20)) and sorted(set(rows["step"])) == list(range(1, 13))
+
+
+def test_rerun_resumes_and_other_settings_are_refused(lines_dataset: Path, tmp_path: Path) -> None:
+    out = tmp_path / "out"
+    first = predict_dataset(lines_dataset, out, predictor="cv_sampler", seed=3, modes=4)
+    part = out / "predictions" / "part-00000.parquet"
+    before = part.read_bytes()
+    again = predict_dataset(lines_dataset, out, predictor="cv_sampler", seed=3, modes=4)
+    assert again["shards_skipped_done"] == 1 and again["samples"] == 0 and again["rows_total"] == first["rows"]
+    assert part.read_bytes() == before
+    with pytest.raises(LogpipeError, match="other settings"):
+        predict_dataset(lines_dataset, out, predictor="cv_sampler", seed=4, modes=4)
+    assert not list(out.glob(".staging-*"))
+
+
+def test_same_seed_same_output_other_seed_differs(lines_dataset: Path, tmp_path: Path) -> None:
+    tables = []
+    for name, seed in (("a", 7), ("b", 7), ("c", 8)):
+        predict_dataset(lines_dataset, tmp_path / name, predictor="cv_sampler", seed=seed, write_mcap=False)
+        tables.append(pq.read_table(tmp_path / name / "predictions" / "part-00000.parquet"))
+    assert tables[0].equals(tables[1])
+    assert not np.array_equal(tables[0].column("x").to_numpy(), tables[2].column("x").to_numpy())
+
+
+def test_filters_select_logs_times_and_types(lines_dataset: Path, tmp_path: Path) -> None:
+    f = parse_filter(["log=lines", "time=4400000000:6000000000", "type=pedestrian"])
+    assert f == SampleFilter(("lines",), None, 4_400_000_000, 6_000_000_000, ("pedestrian",))
+    summary = predict_dataset(lines_dataset, tmp_path / "a", predictor="linear", sample_filter=f, write_mcap=False)
+    assert summary["samples"] == 5  # current steps 11..15 (times 4.4 s .. 6.0 s)
+    none = predict_dataset(lines_dataset, tmp_path / "b", predictor="cv", write_mcap=False,
+                           sample_filter=parse_filter(["type=vehicle"]))
+    assert none["samples"] == 0 and none["samples_without_targets"] == 11
+    for bad in (["time=abc"], ["type=robot"], ["colour=red"], ["log"]):
+        with pytest.raises(LogpipeError):
+            parse_filter(bad)
+    with pytest.raises(LogpipeError, match="no logs"):
+        predict_dataset(lines_dataset, tmp_path / "c", predictor="cv", sample_filter=SampleFilter(("nope",)))
+
+
+def _small_net_config(**overrides: object) -> ModelConfig:
+    base: dict[str, object] = {"embed_dim": 16, "gru_dim": 16, "lstm_dim": 16, "noise_dim": 4,
+                               "features": Features(True, True, False, False, False)}
+    base.update(overrides)
+    return ModelConfig(**base)  # type: ignore[arg-type]
+
+
+def _checkpoint(folder: Path, cfg: ModelConfig, kind: str) -> Path:
+    net = TrajectoryNet(cfg)
+    return save_checkpoint(folder, net, TrainConfig(model=cfg), dataset_kind=kind, manifest_hash="x", step=0)
+
+
+def test_checkpoint_runs_and_mismatches_fail_before_any_output(lines_dataset: Path, tmp_path: Path) -> None:
+    good = _checkpoint(tmp_path / "good", _small_net_config(), "ethucy")
+    summary = predict_dataset(lines_dataset, tmp_path / "out", checkpoint=good, modes=3, write_mcap=False)
+    table = pq.read_table(tmp_path / "out" / "predictions" / "part-00000.parquet")
+    assert summary["predictor"] == "zhu2020" and table.num_rows == 11 * 3 * 3 * 12
+    assert set(table.column("checkpoint_id").to_pylist()) == {json.loads((good / "meta.json").read_text())[
+        "weights_sha256"]}
+    assert np.isfinite(table.column("x").to_numpy()).all()
+
+    wrong = _checkpoint(tmp_path / "wrong", _small_net_config(obs_len=20, pred_len=30), "argoverse1")
+    with pytest.raises(LogpipeError, match=r"dataset kind.*obs/pred lengths"):
+        predict_dataset(lines_dataset, tmp_path / "never", checkpoint=wrong)
+    env = _checkpoint(tmp_path / "env", _small_net_config(features=Features(True, True, False, False, True)),
+                      "ethucy")
+    with pytest.raises(LogpipeError, match="environment net"):
+        predict_dataset(lines_dataset, tmp_path / "never", checkpoint=env)
+    import logpipe.stages.predict as stage
+
+    shipped: list[Path] = []
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(stage, "shipped_checkpoints", lambda kind: shipped)
+        with pytest.raises(LogpipeError, match=r"no shipped checkpoint.*--predictor"):
+            predict_dataset(lines_dataset, tmp_path / "never")
+        shipped += [tmp_path / "eth", good.rename(tmp_path / "lines")]
+        with pytest.raises(LogpipeError, match="several shipped checkpoints"):
+            predict_dataset(lines_dataset, tmp_path / "never")
+        picked = predict_dataset(lines_dataset, tmp_path / "by_split", sample_filter=parse_filter(["split=lines/test"]),
+                                 modes=2, write_mcap=False)
+        assert picked["predictor"] == "zhu2020" and picked["samples"] == 11
+    with pytest.raises(LogpipeError, match="unknown --predictor"):
+        predict_dataset(lines_dataset, tmp_path / "never", predictor="oracle")
+    assert not (tmp_path / "never").exists()
+
+
+def test_log_windows_cut_the_same_samples_as_the_dataset(tmp_path: Path) -> None:
+    from logpipe.dataset import Dataset, scene_sample
+    from logpipe.stages.predict import LogWindows
+
+    bundled = Path(__file__).resolve().parents[2] / "tests" / "data"
+    ingest([bundled / "ethucy"], IngestOptions(out=tmp_path / "eth"))
+    ingest([bundled / "argoverse1"], IngestOptions(out=tmp_path / "av1"))
+    checked = 0
+    for name in ("eth", "av1"):
+        dataset = Dataset.open(tmp_path / name)
+        rows = dataset.samples().to_pylist()
+        for log_id, tracks in dataset.iter_logs():
+            windows = LogWindows(tracks, dataset.protocol.obs_len)
+            for row in [r for r in rows if r["log_id"] == log_id][::5]:
+                want, got = scene_sample(tracks, row, dataset.protocol), windows.sample(row)
+                assert got.track_ids == want.track_ids and got.sample_id == want.sample_id
+                np.testing.assert_array_equal(got.positions, want.positions)
+                np.testing.assert_array_equal(got.timestamps_ns, want.timestamps_ns)
+                np.testing.assert_array_equal(got.object_types, want.object_types)
+                np.testing.assert_array_equal(got.target_mask, want.target_mask)
+                assert (got.ego_index, got.obs_len) == (want.ego_index, want.obs_len)
+                checked += 1
+    assert checked > 100
