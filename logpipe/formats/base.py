@@ -8,7 +8,7 @@ Adding a format is one new module in ``logpipe/formats/`` registered in ``logpip
 from __future__ import annotations
 
 import os
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import ClassVar, Protocol
@@ -50,6 +50,30 @@ class ParsedLogs:
     tracks: pa.Table
     logs: list[LogMeta]
     failures: list[SourceError]
+
+
+ReadOne = Callable[[SourceFile], tuple[pa.Table, LogMeta, list[SourceError]]]
+"""Reads one input: (rows, its LogMeta, problems kept when going on)."""
+
+
+def read_each(sources: Sequence[SourceFile], read_one: ReadOne, *, keep_going: bool, empty: pa.Table) -> ParsedLogs:
+    """``FormatAdapter.read`` for formats read one input at a time (bags, MCAP): a failing input raises, or with
+    ``keep_going`` becomes a failure while the others are kept."""
+    tables: list[pa.Table] = []
+    logs: list[LogMeta] = []
+    failures: list[SourceError] = []
+    for source in sources:
+        try:
+            table, meta, problems = read_one(source)
+        except SourceError as err:
+            if not keep_going:
+                raise
+            failures.append(err)
+            continue
+        failures += problems
+        tables.append(table)
+        logs.append(meta)
+    return ParsedLogs(tracks=pa.concat_tables(tables) if tables else empty, logs=logs, failures=failures)
 
 
 class FormatAdapter(Protocol):

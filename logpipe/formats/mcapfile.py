@@ -27,7 +27,7 @@ from mcap_ros1.decoder import DecoderFactory as Ros1DecoderFactory
 from mcap_ros2.decoder import DecoderFactory as Ros2DecoderFactory
 
 from logpipe.errors import SourceError
-from logpipe.formats.base import ParsedLogs
+from logpipe.formats.base import ParsedLogs, read_each
 from logpipe.formats.extract import ROSBAG_PROTOCOL, ExtractOptions, extract_log
 from logpipe.formats.mapping import Mapping, resolve_mapping
 from logpipe.formats.ros_messages import TopicSummary, empty_tracks, normalize_type
@@ -297,22 +297,8 @@ class McapAdapter:
 
     def read(self, sources: Sequence[SourceFile], *, keep_going: bool) -> ParsedLogs:
         """Parse MCAP files into track rows (see ``FormatAdapter.read``)."""
-        tables: list[pa.Table] = []
-        logs: list[LogMeta] = []
-        failures: list[SourceError] = []
-        for src in sources:
-            try:
-                table, meta, problems = self.read_one(src, keep_going=keep_going)
-            except SourceError as err:
-                if not keep_going:
-                    raise
-                failures.append(err)
-                continue
-            failures += problems
-            tables.append(table)
-            logs.append(meta)
-        tracks = pa.concat_tables(tables) if tables else empty_tracks()
-        return ParsedLogs(tracks=tracks, logs=logs, failures=failures)
+        return read_each(sources, lambda src: self.read_one(src, keep_going=keep_going), keep_going=keep_going,
+                         empty=empty_tracks())
 
     def read_one(
         self, src: SourceFile, *, keep_going: bool, log_id: str | None = None

@@ -23,7 +23,7 @@ from rosbags.typesys import Stores, get_typestore
 from rosbags.typesys.store import Typestore
 
 from logpipe.errors import SourceError
-from logpipe.formats.base import ParsedLogs
+from logpipe.formats.base import ParsedLogs, read_each
 from logpipe.formats.extract import ROSBAG_PROTOCOL, ExtractOptions, ReadStopped, extract_log
 from logpipe.formats.mapping import Mapping, resolve_mapping
 from logpipe.formats.mcapfile import McapAdapter
@@ -204,22 +204,8 @@ class RosbagAdapter:
 
     def read(self, sources: Sequence[SourceFile], *, keep_going: bool) -> ParsedLogs:
         """Parse bags into track rows (see ``FormatAdapter.read``)."""
-        tables: list[pa.Table] = []
-        logs: list[LogMeta] = []
-        failures: list[SourceError] = []
-        for src in sources:
-            try:
-                table, meta, problems = self.read_one(src, keep_going=keep_going)
-            except SourceError as err:
-                if not keep_going:
-                    raise
-                failures.append(err)
-                continue
-            failures += problems
-            tables.append(table)
-            logs.append(meta)
-        tracks = pa.concat_tables(tables) if tables else empty_tracks()
-        return ParsedLogs(tracks=tracks, logs=logs, failures=failures)
+        return read_each(sources, lambda src: self.read_one(src, keep_going=keep_going), keep_going=keep_going,
+                         empty=empty_tracks())
 
     def read_one(self, src: SourceFile, *, keep_going: bool) -> tuple[pa.Table, LogMeta, list[SourceError]]:
         """One bag → (rows, LogMeta, per-topic problems kept when ``keep_going``)."""
