@@ -20,11 +20,28 @@ $(STAMP): pyproject.toml
 
 setup: $(STAMP)
 
+LP := $(VENV)/bin/logpipe
+DEMO := $(OUT)/demo
+M := tests/data/maps
+
+# Every stage on the bundled samples (tests/data): Argoverse 1 with its map crops, ETH/UCY with the shipped
+# checkpoint for the held-out ETH scene, ApolloScape with a baseline.
 demo: setup
-	$(VENV)/bin/logpipe ingest tests/data/argoverse1 --out $(OUT)/demo/argoverse1
-	$(VENV)/bin/logpipe ingest tests/data/ethucy --out $(OUT)/demo/ethucy
-	$(VENV)/bin/logpipe ingest tests/data/apolloscape --out $(OUT)/demo/apolloscape
-	@echo "demo outputs in $(OUT)/demo (Parquet shards, samples.parquet, manifest.json, mcap/*.mcap)"
+	rm -rf $(DEMO)
+	$(LP) ingest $(M)/2645.csv $(M)/3861.csv --out $(DEMO)/argoverse1
+	$(LP) rasterise $(DEMO)/argoverse1 --map MIA=$(M)/MIA_lane_centerlines_crop_2645.npz \
+		--map PIT=$(M)/PIT_lane_centerlines_crop_3861.npz --rotate --preview 2
+	$(LP) predict $(DEMO)/argoverse1 --predictor cv --out $(DEMO)/predict-argoverse1
+	$(LP) score $(DEMO)/predict-argoverse1/predictions/*.parquet --truth $(DEMO)/argoverse1 --agents focal \
+		--out $(DEMO)/score-argoverse1
+	$(LP) ingest tests/data/ethucy --out $(DEMO)/ethucy
+	$(LP) predict $(DEMO)/ethucy --filter split=eth/test --out $(DEMO)/predict-ethucy
+	$(LP) score $(DEMO)/predict-ethucy/predictions/*.parquet --truth $(DEMO)/ethucy --split eth/test \
+		--out $(DEMO)/score-ethucy
+	$(LP) ingest tests/data/apolloscape --out $(DEMO)/apolloscape
+	$(LP) predict $(DEMO)/apolloscape --predictor kalman --out $(DEMO)/predict-apolloscape
+	@echo "demo outputs in $(DEMO): datasets (Parquet shards, samples, manifest, MCAP), rasters and previews,"
+	@echo "predictions (Parquet + MCAP with Foxglove channels) and score reports (report.md, plots)"
 
 test: setup
 	$(PY) -m pytest -q -p no:cacheprovider
