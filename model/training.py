@@ -19,9 +19,11 @@ for Sequence inputs (streams restart their current pass).
 
 from __future__ import annotations
 
+import hashlib
 import itertools
 import json
 import math
+import os
 import time
 from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass, replace
@@ -68,6 +70,8 @@ class TrainResult:
         stopped_early: whether early stopping ended the run.
         elapsed_s: wall time of this call.
         train_samples_per_s: scenes per second in optimiser steps (excluding validation).
+        weights_sha256: digest of the final weights (equal on every process of a data-parallel run).
+        processes: data-parallel processes (1 without torchrun).
     """
 
     out_dir: Path
@@ -82,6 +86,8 @@ class TrainResult:
     stopped_early: bool
     elapsed_s: float
     train_samples_per_s: float
+    weights_sha256: str = ""
+    processes: int = 1
 
 
 def _probe(samples: Iterable[SceneSample], limit: int = 256) -> tuple[bool, int | None, int, int]:
@@ -214,13 +220,71 @@ def _batches(
         skip = 0
 
 
-class _Log:
-    """Append-only JSON-lines log."""
+@dataclass(frozen=True)
+class _Ranks:
+    """Data-parallel training under ``torchrun`` (one process per core or machine).
 
-    def __init__(self, path: Path) -> None:
+    Each process takes its share (every ``world``-th scene) of the same shuffled global batch, gradients are
+    averaged with an all-reduce before clipping and the Adam step, so every process holds the same weights;
+    process 0 alone validates, writes checkpoints and the log, and tells the others when to stop. Without
+    ``torchrun`` (``WORLD_SIZE`` unset or 1) this is the single-process loop unchanged.
+
+    Attributes:
+        rank: this process (0 = the one that writes).
+        world: number of processes.
+    """
+
+    rank: int = 0
+    world: int = 1
+
+    @classmethod
+    def from_env(cls) -> _Ranks:
+        """Join the process group torchrun describes in the environment (gloo: CPU only)."""
+        world = int(os.environ.get("WORLD_SIZE", "1"))
+        if world <= 1:
+            return cls()
+        import torch.distributed as dist
+
+        if not dist.is_initialized():
+            dist.init_process_group("gloo")
+        return cls(rank=dist.get_rank(), world=dist.get_world_size())
+
+    @property
+    def main(self) -> bool:
+        return self.rank == 0
+
+    def average_gradients(self, net: torch.nn.Module) -> None:
+        if self.world == 1:
+            return
+        import torch.distributed as dist
+
+        for param in net.parameters():
+            if param.grad is None:
+                param.grad = torch.zeros_like(param)
+            dist.all_reduce(param.grad)
+            param.grad /= self.world
+
+    def agree(self, flag: bool) -> bool:
+        """Process 0's ``flag`` on every process."""
+        if self.world == 1:
+            return flag
+        import torch.distributed as dist
+
+        value = torch.tensor([1 if flag else 0])
+        dist.broadcast(value, src=0)
+        return bool(value.item())
+
+
+class _Log:
+    """Append-only JSON-lines log (written by process 0 only in a data-parallel run)."""
+
+    def __init__(self, path: Path, enabled: bool = True) -> None:
         self.path = path
+        self.enabled = enabled
 
     def write(self, event: str, **fields: Any) -> None:
+        if not self.enabled:
+            return
         with self.path.open("a", encoding="utf-8") as fh:
             fh.write(json.dumps({"event": event, "time": time.time(), **fields}) + "\n")
 
@@ -252,7 +316,10 @@ def fit(
         manifest_hash: hash of the dataset manifest, stored in checkpoints.
     """
     start_time = time.perf_counter()
+    ranks = _Ranks.from_env()
     cfg = config if isinstance(config, TrainConfig) else TrainConfig(model=config)
+    if cfg.batch_size < ranks.world:
+        raise ConfigError(f"train.batch_size {cfg.batch_size} must be >= the {ranks.world} torchrun processes")
     if not isinstance(train, Sequence) and iter(train) is train:
         # A one-shot iterator: probe its head, then put the head back in front of the rest.
         head = list(itertools.islice(train, 256))
@@ -266,7 +333,7 @@ def fit(
         torch.set_num_threads(cfg.num_threads)
     out_dir.mkdir(parents=True, exist_ok=True)
     last_dir, best_dir = out_dir / "last", out_dir / "best"
-    log = _Log(out_dir / "train_log.jsonl")
+    log = _Log(out_dir / "train_log.jsonl", enabled=ranks.main)
     torch.manual_seed(cfg.seed)
     net = TrajectoryNet(cfg.model)
     optimizer = torch.optim.Adam(net.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
@@ -291,10 +358,13 @@ def fit(
         best_ade, best_fde, best_step = state["best_ade"], state["best_fde"], state["best_step"]
         bad_evals = state["bad_evals"]
         log.write("resume", step=step)
-    save_config(cfg, out_dir / "config.json")
-    log.write("start", step=step, config=config_to_dict(cfg))
+    if ranks.main:
+        save_config(cfg, out_dir / "config.json")
+    log.write("start", step=step, config=config_to_dict(cfg), processes=ranks.world)
 
     def checkpoint(folder: Path, metrics: dict[str, float], resumable: bool) -> None:
+        if not ranks.main:
+            return
         save_checkpoint(
             folder,
             net,
@@ -317,7 +387,7 @@ def fit(
 
     def validate() -> dict[str, float]:
         nonlocal best_ade, best_fde, best_step, bad_evals
-        if val is None:
+        if val is None or not ranks.main:
             checkpoint(last_dir, {}, resumable=True)
             return {}
         err = evaluate(net, val, num_modes=cfg.val_modes, seed=cfg.seed, limit=cfg.val_max_samples)
@@ -341,7 +411,7 @@ def fit(
         MofNCompleteColumn(),
         TextColumn("loss {task.fields[loss]:.4f}  val ADE {task.fields[ade]:.3f} FDE {task.fields[fde]:.3f}"),
         TimeRemainingColumn(),
-        disable=not progress,
+        disable=not progress or not ranks.main,
     )
     task = bar.add_task("train", total=cfg.steps, completed=step, loss=math.nan, ade=best_ade, fde=best_fde)
     train_time, train_samples, stopped_early = 0.0, 0, False
@@ -356,16 +426,18 @@ def fit(
                 log.write("stream_end", step=step)
                 break
             t0 = time.perf_counter()
+            chunk = chunk[ranks.rank :: ranks.world]
             rotations = None
             if cfg.augment_rotate:
                 rotations = np.random.default_rng([cfg.seed, step, 1]).uniform(0, 2 * np.pi, len(chunk)).tolist()
             batch = collate(chunk, cfg.model, rotations=rotations)
-            gen = torch.Generator().manual_seed(cfg.seed * 1_000_003 + step)
+            gen = torch.Generator().manual_seed(cfg.seed * 1_000_003 + step + 7_919 * ranks.rank)
             for group in optimizer.param_groups:
                 group["lr"] = cfg.lr * cfg.lr_decay ** (step // cfg.lr_decay_every)
             loss = best_of_h_step_loss(net, batch, cfg.num_modes, gen, cfg.loss_min_over, cfg.select_then_backprop)
             optimizer.zero_grad(set_to_none=True)
             loss.backward()  # type: ignore[no-untyped-call]
+            ranks.average_gradients(net)
             if cfg.grad_clip > 0:
                 torch.nn.utils.clip_grad_norm_(net.parameters(), cfg.grad_clip)
             optimizer.step()
@@ -388,11 +460,11 @@ def fit(
                 metrics = validate()
                 if metrics:
                     bar.update(task, ade=best_ade, fde=best_fde)
-                if cfg.early_stop_patience and bad_evals >= cfg.early_stop_patience:
+                if ranks.agree(bool(cfg.early_stop_patience) and bad_evals >= cfg.early_stop_patience):
                     stopped_early = True
                     log.write("early_stop", step=step, best_step=best_step)
                     break
-    if not (last_dir / "meta.json").exists() or read_meta(last_dir).step != step:
+    if ranks.main and (not (last_dir / "meta.json").exists() or read_meta(last_dir).step != step):
         validate()
     elapsed = time.perf_counter() - start_time
     rate = train_samples / train_time if train_time > 0 else 0.0
@@ -410,4 +482,14 @@ def fit(
         stopped_early=stopped_early,
         elapsed_s=elapsed,
         train_samples_per_s=rate,
+        weights_sha256=_weights_digest(net),
+        processes=ranks.world,
     )
+
+
+def _weights_digest(net: torch.nn.Module) -> str:
+    digest = hashlib.sha256()
+    for name, tensor in sorted(net.state_dict().items()):
+        digest.update(name.encode())
+        digest.update(tensor.detach().contiguous().numpy().tobytes())
+    return digest.hexdigest()
