@@ -272,7 +272,7 @@ def train(
     scene: Annotated[str | None, typer.Option(
         "--scene", help="ETH/UCY leave-one-scene-out: train on SCENE/train, validate on SCENE/val.")] = None,
     train_split: Annotated[str | None, typer.Option(
-        "--train-split", help="Training logs: a folder split (eth/train) or hash/train (default).")] = None,
+        "--train-split", help="Training logs: a folder split (eth/train), hash/train (default) or all.")] = None,
     val_split: Annotated[str | None, typer.Option(
         "--val-split", help="Validation logs (default: the matching /val split); 'none' disables.")] = None,
     config: Annotated[Path | None, typer.Option(
@@ -281,6 +281,9 @@ def train(
     steps: Annotated[int | None, typer.Option("--steps", help="Override train.steps.")] = None,
     seed: Annotated[int | None, typer.Option("--seed", help="Override train.seed.")] = None,
     resume: Annotated[bool, typer.Option("--resume", help="Continue from OUT/last.")] = False,
+    raster_run: Annotated[str | None, typer.Option(
+        "--raster-run", help="Raster run under DATASET/rasters/ for the environment net (default: the only one).")
+    ] = None,
     as_json: JsonOpt = False,
 ) -> None:
     """Train the Zhu et al. predictor (or a Table 4 ablation / LSTM baseline via the config) on a dataset.
@@ -291,7 +294,7 @@ def train(
 
     with _user_errors():
         chosen_train = train_split or (f"{scene}/train" if scene else "hash/train")
-        chosen_val = val_split or chosen_train.rsplit("/", 1)[0] + "/val"
+        chosen_val = val_split or ("none" if chosen_train == "all" else chosen_train.rsplit("/", 1)[0] + "/val")
         overrides: dict[str, Any] = {}
         if steps is not None:
             overrides["steps"] = steps
@@ -299,7 +302,8 @@ def train(
             overrides["seed"] = seed
         summary = run_train(dataset, out, train_split=chosen_train,
                             val_split=None if chosen_val == "none" else chosen_val, config_path=config,
-                            overrides=overrides, resume=resume, progress=not as_json and sys.stderr.isatty())
+                            overrides=overrides, resume=resume, raster_run=raster_run,
+                            progress=not as_json and sys.stderr.isatty())
     _emit(summary, as_json, lambda s: err.print(json.dumps(s, indent=2), highlight=False))
 
 

@@ -95,15 +95,17 @@ class Dataset:
         return pq.read_table(self.root / LOGS_FILE)
 
     def logs_in_split(self, split: str) -> list[str]:
-        """Log ids of a split: a folder membership (``eth/train``, from the ETH/UCY layout) or ``hash/train``,
-        ``hash/val``, ``hash/test`` (70/15/15 by log, see ``HASH_SPLITS``).
+        """Log ids of a split: a folder membership (``eth/train``, from the ETH/UCY layout), ``hash/train``,
+        ``hash/val``, ``hash/test`` (70/15/15 by log, see ``HASH_SPLITS``), or ``all``.
 
         Raises:
             DatasetError: no log is in that split.
         """
         logs = self.logs()
         ids = logs.column("log_id").to_pylist()
-        if split.startswith("hash/") and split[5:] in HASH_SPLITS:
+        if split == "all":
+            chosen = list(ids)
+        elif split.startswith("hash/") and split[5:] in HASH_SPLITS:
             lo, hi = HASH_SPLITS[split[5:]]
             chosen = [i for i in ids if lo <= hash_fraction(i) < hi]
         else:

@@ -108,3 +108,28 @@ class RasterShards:
         if arr is None:
             arr = self._mmaps[shard] = np.load(self.run_dir / shard, mmap_mode="r", allow_pickle=False)
         return arr[row], np.asarray(self._affine[sample_id], dtype=np.float64).reshape(2, 3)
+
+
+def find_raster_run(dataset_dir: Path, run: str | None, channels: int | None) -> RasterShards | None:
+    """The raster run to read: ``run`` (a folder name under ``rasters/``), else the only finished run (with
+    ``channels`` channels when given); None when there is none.
+
+    Raises:
+        DatasetError: ``run`` does not exist, or several runs fit and none was named.
+    """
+    root = dataset_dir / RASTER_DIR
+    runs = sorted(p.parent for p in root.glob(f"*/{RUN_MANIFEST}")) if root.is_dir() else []
+    if run is not None:
+        runs = [r for r in runs if r.name == run]
+        if not runs:
+            raise DatasetError(f"{dataset_dir}: no finished raster run {run!r} in {root}")
+    settings = [read_json(r / RUN_MANIFEST)["settings"] for r in runs]
+    fitting = [(r, s) for r, s in zip(runs, settings, strict=True)
+               if channels is None or len(s["spec"]["channels"]) == channels]
+    if not fitting:
+        return None
+    if len(fitting) > 1 and channels is not None:
+        raise DatasetError(f"{dataset_dir}: several raster runs fit ({', '.join(r.name for r, _ in fitting)}); "
+                           "name one with --raster-run")
+    _, chosen = fitting[0]
+    return RasterShards.open(dataset_dir, RasterSpec.from_dict(chosen["spec"]), chosen["centre"])

@@ -47,7 +47,7 @@ from logpipe.executor import default_workers
 from logpipe.io import PARQUET_OPTIONS, as_numpy, read_json, sha256_file, sha256_tree, write_json
 from logpipe.mcap_merge import NewChannel, NewMessage, Source, write_merged
 from logpipe.mcapio import WORLD_FRAME
-from logpipe.rasters import RASTER_DIR, RUN_MANIFEST, RasterShards
+from logpipe.rasters import RasterShards, find_raster_run
 from logpipe.types import OBJECT_TYPES, NDArrayFloat, NDArrayInt, SceneSample
 
 try:  # orjson encodes numpy arrays ~30x faster than json; the output is the same compact JSON
@@ -266,33 +266,6 @@ def load_net(chosen: ChosenPredictor, dataset: Dataset, batch_size: int) -> None
     from logpipe.model.predictor import NetPredictor
 
     chosen.model = NetPredictor.from_checkpoint(chosen.checkpoint, expect_kind=dataset.kind, batch_size=batch_size)
-
-
-def find_raster_run(dataset_dir: Path, run: str | None, channels: int | None) -> RasterShards | None:
-    """The raster run to read: ``run`` (a folder name under ``rasters/``), else the only finished run (with
-    ``channels`` channels when given); None when there is none.
-
-    Raises:
-        DatasetError: ``run`` does not exist, or several runs fit and none was named.
-    """
-    from logpipe.raster import RasterSpec
-
-    root = dataset_dir / RASTER_DIR
-    runs = sorted(p.parent for p in root.glob(f"*/{RUN_MANIFEST}")) if root.is_dir() else []
-    if run is not None:
-        runs = [r for r in runs if r.name == run]
-        if not runs:
-            raise DatasetError(f"{dataset_dir}: no finished raster run {run!r} in {root}")
-    settings = [read_json(r / RUN_MANIFEST)["settings"] for r in runs]
-    fitting = [(r, s) for r, s in zip(runs, settings, strict=True)
-               if channels is None or len(s["spec"]["channels"]) == channels]
-    if not fitting:
-        return None
-    if len(fitting) > 1 and channels is not None:
-        raise DatasetError(f"{dataset_dir}: several raster runs fit ({', '.join(r.name for r, _ in fitting)}); "
-                           "name one with --raster-run")
-    _, chosen = fitting[0]
-    return RasterShards.open(dataset_dir, RasterSpec.from_dict(chosen["spec"]), chosen["centre"])
 
 
 def find_original(row: dict[str, Any], inputs: Sequence[Path], dataset: Dataset) -> Source:

@@ -18,15 +18,21 @@ import pyarrow.compute as pc
 from logpipe.dataset import Dataset
 from logpipe.errors import LogpipeError
 from logpipe.io import sha256_file
+from logpipe.rasters import RASTER_DIR, RUN_MANIFEST, RasterShards, find_raster_run
 from logpipe.types import SceneSample
 
 
-def scene_samples(dataset: Dataset, split: str, limit: int | None = None) -> list[SceneSample]:
-    """The ``SceneSample``s of every sample whose log is in ``split`` (at most ``limit``, in index order)."""
+def scene_samples(
+    dataset: Dataset, split: str, limit: int | None = None, rasters: RasterShards | None = None
+) -> list[SceneSample]:
+    """The ``SceneSample``s of every sample whose log is in ``split`` (at most ``limit``, in index order), with
+    their map rasters when a raster run is given."""
     logs = dataset.logs_in_split(split)
     keep = pc.is_in(pc.field("log_id"), value_set=pa.array(logs))
     samples: list[SceneSample] = []
     for sample in dataset.iter_scene_samples(keep):
+        if rasters is not None:
+            sample.raster, sample.world_to_raster = rasters.get(sample.sample_id)
         samples.append(sample)
         if limit is not None and len(samples) >= limit:
             break
@@ -43,6 +49,7 @@ def train(
     val_split: str | None,
     config_path: Path | None = None,
     overrides: dict[str, Any] | None = None,
+    raster_run: str | None = None,
     resume: bool = False,
     progress: bool = True,
 ) -> dict[str, Any]:
@@ -55,6 +62,8 @@ def train(
         val_split: e.g. ``eth/val``; None trains without validation (no early stopping).
         config_path: TOML/JSON with every hyper-parameter (defaults: the paper's).
         overrides: ``TrainConfig`` fields to replace (e.g. ``{"steps": 50}``).
+        raster_run: the raster run under ``DATASET/rasters/`` to train the environment net on (default: the only
+            one; none: the environment net is off).
         resume: continue from ``out_dir/last``.
         progress: show the progress bar.
     """
@@ -71,8 +80,9 @@ def train(
         config = dataclasses.replace(
             config, model=dataclasses.replace(config.model, obs_len=protocol.obs_len, pred_len=protocol.pred_len)
         )
-    train_samples = scene_samples(dataset, train_split)
-    val_samples = scene_samples(dataset, val_split) if val_split else None
+    rasters = _raster_run(dataset, raster_run)
+    train_samples = scene_samples(dataset, train_split, rasters=rasters)
+    val_samples = scene_samples(dataset, val_split, rasters=rasters) if val_split else None
     result = fit(
         train_samples,
         val_samples,
@@ -98,5 +108,16 @@ def train(
         "best_checkpoint": str(result.best_checkpoint) if result.best_checkpoint else None,
         "last_checkpoint": str(result.last_checkpoint),
         "train_samples_per_s": round(result.train_samples_per_s, 1),
+        "raster_run": rasters.run_dir.name if rasters is not None else None,
+        "environment_net": result.config.model.features.environment,
         "seconds": round(time.perf_counter() - started, 1),
     }
+
+
+def _raster_run(dataset: Dataset, name: str | None) -> RasterShards | None:
+    """The raster run to train on: ``name``, else the only finished one; several unnamed runs are an error."""
+    root = dataset.root / RASTER_DIR
+    runs = sorted(p.parent.name for p in root.glob(f"*/{RUN_MANIFEST}")) if root.is_dir() else []
+    if name is None and len(runs) > 1:
+        raise LogpipeError(f"{dataset.root}: several raster runs ({', '.join(runs)}); name one with --raster-run")
+    return find_raster_run(dataset.root, name, None)

@@ -101,3 +101,24 @@ def test_train_a_few_steps_writes_a_loadable_checkpoint(bundled: Path, tmp_path:
     again = runner.invoke(app, ["train", str(tmp_path / "e"), "--train-split", "eth/train", "--val-split", "none",
                                 "--config", str(config), "--out", str(tmp_path / "run")])
     assert again.exit_code == 2  # an existing run is not overwritten without --resume
+
+
+def test_train_uses_the_raster_run_for_the_environment_net(bundled: Path, tmp_path: Path) -> None:
+    maps = bundled / "maps"
+    runner.invoke(app, ["ingest", str(maps / "2645.csv"), str(maps / "3861.csv"), "--out", str(tmp_path / "a")])
+    raster = runner.invoke(app, ["rasterise", str(tmp_path / "a"), "--map",
+                                 f"MIA={maps / 'MIA_lane_centerlines_crop_2645.npz'}", "--map",
+                                 f"PIT={maps / 'PIT_lane_centerlines_crop_3861.npz'}", "--rotate"])
+    assert raster.exit_code == 0, raster.output
+    config = tmp_path / "c.toml"
+    config.write_text("[train]\nsteps = 2\nbatch_size = 2\nnum_modes = 2\nval_modes = 2\neval_every = 2\n"
+                      "num_threads = 1\n[model]\nobs_len = 20\npred_len = 30\n")
+    result = runner.invoke(app, ["train", str(tmp_path / "a"), "--train-split", "all", "--val-split", "all",
+                                 "--config", str(config), "--out", str(tmp_path / "run"), "--json"])
+    assert result.exit_code == 0, result.output
+    summary = json.loads(result.stdout)
+    assert summary["environment_net"] is True and summary["raster_run"]
+    from logpipe.model.checkpoints import load_checkpoint
+
+    net = load_checkpoint(Path(summary["best_checkpoint"]), expect_kind="argoverse1").net
+    assert net.config.features.environment and net.config.raster_channels == 7
