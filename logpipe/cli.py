@@ -284,6 +284,9 @@ def train(
     raster_run: Annotated[str | None, typer.Option(
         "--raster-run", help="Raster run under DATASET/rasters/ for the environment net (default: the only one).")
     ] = None,
+    loader_workers: Annotated[int, typer.Option(
+        "--loader-workers", help="Stream training samples from the shards with a DataLoader of N workers "
+        "(0: cut them all into memory first, exact resume).")] = 0,
     as_json: JsonOpt = False,
 ) -> None:
     """Train the Zhu et al. predictor (or a Table 4 ablation / LSTM baseline via the config) on a dataset.
@@ -303,6 +306,7 @@ def train(
         summary = run_train(dataset, out, train_split=chosen_train,
                             val_split=None if chosen_val == "none" else chosen_val, config_path=config,
                             overrides=overrides, resume=resume, raster_run=raster_run,
+                            loader_workers=loader_workers,
                             progress=not as_json and sys.stderr.isatty())
     _emit(summary, as_json, lambda s: err.print(json.dumps(s, indent=2), highlight=False))
 

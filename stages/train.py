@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
+from collections.abc import Iterable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -50,6 +51,7 @@ def train(
     config_path: Path | None = None,
     overrides: dict[str, Any] | None = None,
     raster_run: str | None = None,
+    loader_workers: int = 0,
     resume: bool = False,
     progress: bool = True,
 ) -> dict[str, Any]:
@@ -64,6 +66,9 @@ def train(
         overrides: ``TrainConfig`` fields to replace (e.g. ``{"steps": 50}``).
         raster_run: the raster run under ``DATASET/rasters/`` to train the environment net on (default: the only
             one; none: the environment net is off).
+        loader_workers: 0 cuts every training sample into memory first (exact resume); N > 0 streams them from
+            the shards through a torch DataLoader with N worker processes (memory bounded by a shard per worker,
+            shuffled through a buffer).
         resume: continue from ``out_dir/last``.
         progress: show the progress bar.
     """
@@ -81,7 +86,14 @@ def train(
             config, model=dataclasses.replace(config.model, obs_len=protocol.obs_len, pred_len=protocol.pred_len)
         )
     rasters = _raster_run(dataset, raster_run)
-    train_samples = scene_samples(dataset, train_split, rasters=rasters)
+    train_samples: Sequence[SceneSample] | Iterable[SceneSample]
+    if loader_workers > 0:
+        from logpipe.model.data import scene_loader
+
+        train_samples = scene_loader(dataset.root, dataset.logs_in_split(train_split), workers=loader_workers,
+                                     raster_run=rasters.run_dir.name if rasters is not None else None)
+    else:
+        train_samples = scene_samples(dataset, train_split, rasters=rasters)
     val_samples = scene_samples(dataset, val_split, rasters=rasters) if val_split else None
     result = fit(
         train_samples,
@@ -98,7 +110,7 @@ def train(
         "run": str(out_dir),
         "train_split": train_split,
         "val_split": val_split,
-        "train_samples": len(train_samples),
+        "train_samples": len(train_samples) if isinstance(train_samples, list) else "streamed",
         "val_samples": len(val_samples) if val_samples else 0,
         "steps": result.steps,
         "best_step": result.best_step,

@@ -122,3 +122,16 @@ def test_train_uses_the_raster_run_for_the_environment_net(bundled: Path, tmp_pa
 
     net = load_checkpoint(Path(summary["best_checkpoint"]), expect_kind="argoverse1").net
     assert net.config.features.environment and net.config.raster_channels == 7
+
+
+def test_train_streams_from_the_shards_with_loader_workers(bundled: Path, tmp_path: Path) -> None:
+    runner.invoke(app, ["ingest", str(bundled / "ethucy"), "--out", str(tmp_path / "e"), "--no-mcap"])
+    config = tmp_path / "c.toml"
+    config.write_text("[train]\nsteps = 3\neval_every = 3\nval_max_samples = 8\nnum_threads = 1\n")
+    result = runner.invoke(app, ["train", str(tmp_path / "e"), "--train-split", "eth/train", "--val-split",
+                                 "hotel/test", "--config", str(config), "--out", str(tmp_path / "run"),
+                                 "--loader-workers", "2", "--json"])
+    assert result.exit_code == 0, result.output
+    summary = json.loads(result.stdout)
+    assert summary["train_samples"] == "streamed" and summary["steps"] == 3
+    assert np.isfinite(summary["best_val_ade"])
