@@ -15,7 +15,7 @@ Only what the manifest lists is read, so a shard left behind by an interrupted r
 from __future__ import annotations
 
 import hashlib
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from functools import cached_property
 from pathlib import Path
@@ -147,16 +147,22 @@ class Dataset:
             raise DatasetError(f"{self.root}: no log {log_id!r}")
         return pq.read_table(self.root / shard, filters=[("log_id", "=", log_id)])
 
-    def iter_logs(self) -> Iterator[tuple[str, pa.Table]]:
-        """(log_id, rows) for every log, one shard in memory at a time."""
-        for path in self.shard_paths:
-            table = pq.read_table(path)
-            log_ids = as_numpy(table.column("log_id"))
-            bounds = np.flatnonzero(log_ids[1:] != log_ids[:-1]) + 1
+    def iter_logs(
+        self, shards: Sequence[Path] | None = None, log_ids: Sequence[str] | None = None
+    ) -> Iterator[tuple[str, pa.Table]]:
+        """(log_id, rows) for every log (of ``shards`` and among ``log_ids`` when given), one shard in memory
+        at a time."""
+        filters = [("log_id", "in", list(log_ids))] if log_ids is not None else None
+        for path in self.shard_paths if shards is None else shards:
+            table = pq.read_table(path, filters=filters)
+            if table.num_rows == 0:
+                continue
+            log_ids_np = as_numpy(table.column("log_id"))
+            bounds = np.flatnonzero(log_ids_np[1:] != log_ids_np[:-1]) + 1
             starts = np.concatenate([[0], bounds])
-            ends = np.concatenate([bounds, [len(log_ids)]])
+            ends = np.concatenate([bounds, [len(log_ids_np)]])
             for lo, hi in zip(starts.tolist(), ends.tolist(), strict=True):
-                yield str(log_ids[lo]), table.slice(lo, hi - lo)
+                yield str(log_ids_np[lo]), table.slice(lo, hi - lo)
 
     def iter_scene_samples(self, sample_filter: pa.compute.Expression | None = None) -> Iterator[SceneSample]:
         """``SceneSample``s for every sample (optionally filtered), grouped by log for one read per log."""

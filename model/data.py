@@ -11,14 +11,11 @@ from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import pyarrow as pa
 import pyarrow.compute as pc
-import pyarrow.parquet as pq
 from torch.utils.data import DataLoader, IterableDataset, get_worker_info
 
 from logpipe.dataset import Dataset, scene_sample
-from logpipe.io import as_numpy
 from logpipe.types import SceneSample
 
 
@@ -54,21 +51,12 @@ class ShardScenes(IterableDataset[SceneSample]):
         for row in samples.to_pylist():
             by_log.setdefault(row["log_id"], []).append(row)
         protocol = dataset.protocol
-        for shard in shards:
-            table = pq.read_table(shard, filters=[("log_id", "in", self.log_ids)])
-            if table.num_rows == 0:
-                continue
-            log_ids = as_numpy(table.column("log_id"))
-            bounds = np.flatnonzero(log_ids[1:] != log_ids[:-1]) + 1
-            starts = np.concatenate([[0], bounds]).tolist()
-            ends = np.concatenate([bounds, [len(log_ids)]]).tolist()
-            for lo, hi in zip(starts, ends, strict=True):
-                tracks = table.slice(lo, hi - lo)
-                for row in by_log.get(str(log_ids[lo]), []):
-                    sample = scene_sample(tracks, row, protocol)
-                    if rasters is not None:
-                        sample.raster, sample.world_to_raster = rasters.get(sample.sample_id)
-                    yield sample
+        for log_id, tracks in dataset.iter_logs(shards=shards, log_ids=self.log_ids):
+            for row in by_log.get(log_id, []):
+                sample = scene_sample(tracks, row, protocol)
+                if rasters is not None:
+                    sample.raster, sample.world_to_raster = rasters.get(sample.sample_id)
+                yield sample
 
 
 def _as_is(item: Any) -> Any:
