@@ -32,10 +32,10 @@ from reproduce_ethucy import (
     machine_note,
     pair,
     tune_sampler,
+    write_classical,
     write_predictions,
 )
 
-from logpipe.model.baselines import ConstantVelocity, ConstantVelocitySampler, KalmanCV, LinearFit
 from logpipe.stages.score import score
 from logpipe.stages.train import scene_samples
 
@@ -78,16 +78,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     test = scene_samples(ds, "hash/test")
     choice, grid = tune_sampler(val, pred_len, K_BEST, args.seed)
     pdir = args.work / "predictions"
-    files = [
-        write_predictions(ConstantVelocity(pred_len=pred_len), test, 1, args.seed, pred_len, "constant_velocity",
-                          pdir / "cv.parquet", "cv"),
-        write_predictions(LinearFit(pred_len=pred_len), test, 1, args.seed, pred_len, "linear",
-                          pdir / "linear.parquet", "linear"),
-        write_predictions(KalmanCV(pred_len=pred_len), test, 1, args.seed, pred_len,
-                          "kalman_cv accel_std=0.1 meas_std=0.05 init_vel_std=2.0", pdir / "kalman.parquet", "kalman"),
-        write_predictions(ConstantVelocitySampler(pred_len=pred_len, **choice), test, K_BEST, args.seed, pred_len,
-                          f"cv_sampler {choice} (chosen on hash/val)", pdir / "cv_sampler.parquet", "cv_sampler"),
-    ]
+    files = write_classical(test, pred_len, args.seed, choice, K_BEST, f"cv_sampler {choice} (chosen on hash/val)",
+                            pdir)
     skipped = []
     for method, (_, k) in LEARNED.items():
         ckpt = find_checkpoint(templates[method], "")

@@ -106,6 +106,21 @@ def write_predictions(predictor: Predictor, samples: Sequence[SceneSample], k: i
     return out
 
 
+def write_classical(samples: Sequence[SceneSample], pred_len: int, seed: int, sampler: dict[str, float],
+                    sampler_k: int, sampler_id: str, pdir: Path) -> list[Path]:
+    """Predictions of the non-learned methods: CV, Linear, Kalman (K=1) and the CV sampler (K=``sampler_k``)."""
+    return [
+        write_predictions(ConstantVelocity(pred_len=pred_len), samples, 1, seed, pred_len, "constant_velocity",
+                          pdir / "cv.parquet", "cv"),
+        write_predictions(LinearFit(pred_len=pred_len), samples, 1, seed, pred_len, "linear",
+                          pdir / "linear.parquet", "linear"),
+        write_predictions(KalmanCV(pred_len=pred_len), samples, 1, seed, pred_len,
+                          "kalman_cv accel_std=0.1 meas_std=0.05 init_vel_std=2.0", pdir / "kalman.parquet", "kalman"),
+        write_predictions(ConstantVelocitySampler(pred_len=pred_len, **sampler), samples, sampler_k, seed, pred_len,
+                          sampler_id, pdir / "cv_sampler.parquet", "cv_sampler"),
+    ]
+
+
 def find_checkpoint(template: str, scene: str) -> Path | None:
     """The checkpoint folder (``meta.json`` inside, or in its ``best/``) for ``scene``, or None."""
     base = (REPO / template.format(scene=scene)).resolve()
@@ -165,19 +180,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         results["sampler"][scene] = {"choice": choice, "val_agents": int(sum(s.target_mask.sum() for s in val)),
                                      "grid": grid}
         pdir = args.work / "predictions" / scene
-        files = [
-            write_predictions(ConstantVelocity(pred_len=pred_len), test, 1, args.seed, pred_len,
-                              "constant_velocity", pdir / "cv.parquet", "cv"),
-            write_predictions(LinearFit(pred_len=pred_len), test, 1, args.seed, pred_len, "linear",
-                              pdir / "linear.parquet", "linear"),
-            write_predictions(KalmanCV(pred_len=pred_len), test, 1, args.seed, pred_len,
-                              "kalman_cv accel_std=0.1 meas_std=0.05 init_vel_std=2.0", pdir / "kalman.parquet",
-                              "kalman"),
-            write_predictions(ConstantVelocitySampler(pred_len=pred_len, **choice), test, K_BEST, args.seed, pred_len,
-                              f"cv_sampler heading_std_rad={choice['heading_std_rad']} "
-                              f"speed_std_frac={choice['speed_std_frac']} (chosen on {scene}/val)",
-                              pdir / "cv_sampler.parquet", "cv_sampler"),
-        ]
+        sampler_id = (f"cv_sampler heading_std_rad={choice['heading_std_rad']} "
+                      f"speed_std_frac={choice['speed_std_frac']} (chosen on {scene}/val)")
+        files = write_classical(test, pred_len, args.seed, choice, K_BEST, sampler_id, pdir)
         for method, (_, k) in LEARNED.items():
             ckpt = find_checkpoint(templates[method], scene)
             if ckpt is None:
