@@ -120,6 +120,10 @@ def _empty_definition_topic(path: Path) -> str | None:
     return None
 
 
+_MAGIC = {".bag": b"#ROSBAG V2.0\n", ".db3": b"SQLite format 3\x00"}
+"""First bytes of a ROS1 bag and of a rosbag2 sqlite3 storage file."""
+
+
 class RosbagAdapter:
     """ROS1/ROS2 bags → tracks (see the module docstring).
 
@@ -167,19 +171,14 @@ class RosbagAdapter:
             path.name == "metadata.yaml" or path.suffix in _STORAGE_SUFFIXES
         ):
             return True
-        if path.suffix == ".bag":
-            try:
-                with path.open("rb") as f:
-                    return f.read(13) == b"#ROSBAG V2.0\n"
-            except OSError:
-                return False
-        if path.suffix == ".db3":
-            try:
-                with path.open("rb") as f:
-                    return f.read(16) == b"SQLite format 3\x00"
-            except OSError:
-                return False
-        return False
+        magic = _MAGIC.get(path.suffix)
+        if magic is None:
+            return False
+        try:
+            with path.open("rb") as f:
+                return f.read(len(magic)) == magic
+        except OSError:
+            return False
 
     def discover(self, root: Path) -> list[Path]:
         """Bags under ``root``: ``.bag`` files, rosbag2 folders (with metadata.yaml, or split parts), bare
