@@ -105,6 +105,12 @@ MinTargetsOpt = Annotated[int | None, typer.Option(
     "--min-targets", help="Keep windows with at least this many fully observed agents (Social-GAN: 2).")]
 TargetsOpt = Annotated[str | None, typer.Option("--targets", help="fully_observed | focal")]
 JsonOpt = Annotated[bool, typer.Option("--json", help="Print a JSON summary on stdout (for CI).")]
+DatasetArg = Annotated[Path, typer.Argument(help="Dataset folder written by `logpipe ingest`.")]
+
+
+def _print_summary(summary: dict[str, Any]) -> None:
+    """The human form of a summary that has no shorter one: indented JSON on stderr."""
+    err.print(json.dumps(summary, indent=2, default=str), highlight=False)
 
 
 @app.command()
@@ -194,7 +200,7 @@ def _print_ingest(s: dict[str, Any]) -> None:
 
 @app.command()
 def index(
-    dataset: Annotated[Path, typer.Argument(help="Dataset folder written by `logpipe ingest`.")],
+    dataset: DatasetArg,
     protocol: ProtocolOpt = None,
     obs: ObsOpt = None,
     pred: PredOpt = None,
@@ -222,7 +228,7 @@ def index(
 
 @app.command()
 def rasterise(
-    dataset: Annotated[Path, typer.Argument(help="Dataset folder written by `logpipe ingest`.")],
+    dataset: DatasetArg,
     maps: Annotated[list[Path] | None, typer.Option(
         "--maps", help="Folder(s) holding map files (AV1 *_lane_centerlines.npz, AV2 log_map_archive_*.json, "
         "Lanelet2 .osm, AV1 vector-map .xml); repeatable.")] = None,
@@ -262,12 +268,12 @@ def rasterise(
             summary = rasterise_dataset(dataset, MapSource(roots=tuple(maps or ()), files=files), centre=centre,
                                         rotate=rotate, preview=preview, spec=spec, shard_size=shard_size,
                                         force=force, progress=advance)
-    _emit(summary, as_json, lambda s: err.print(json.dumps(s, indent=2, default=str), highlight=False))
+    _emit(summary, as_json, _print_summary)
 
 
 @app.command()
 def train(
-    dataset: Annotated[Path, typer.Argument(help="Dataset folder written by `logpipe ingest`.")],
+    dataset: DatasetArg,
     out: Annotated[Path, typer.Option("--out", "-o", help="Run folder (checkpoints best/ and last/, log).")],
     scene: Annotated[str | None, typer.Option(
         "--scene", help="ETH/UCY leave-one-scene-out: train on SCENE/train, validate on SCENE/val.")] = None,
@@ -308,12 +314,12 @@ def train(
                             overrides=overrides, resume=resume, raster_run=raster_run,
                             loader_workers=loader_workers,
                             progress=not as_json and sys.stderr.isatty())
-    _emit(summary, as_json, lambda s: err.print(json.dumps(s, indent=2), highlight=False))
+    _emit(summary, as_json, _print_summary)
 
 
 @app.command()
 def predict(
-    dataset: Annotated[Path, typer.Argument(help="Dataset folder written by `logpipe ingest`.")],
+    dataset: DatasetArg,
     out: Annotated[Path, typer.Option("--out", "-o", help="Output folder; rerunning resumes.")],
     checkpoint: Annotated[Path | None, typer.Option(
         "--checkpoint", help="Checkpoint folder (default: the shipped one for the dataset kind).")] = None,
@@ -350,7 +356,7 @@ def predict(
             raster_images=raster_images, write_mcap=mcap, batch_size=batch_size, threads=threads,
             progress=advance,
         )
-    _emit(summary, as_json, lambda s: err.print(json.dumps(s, indent=2, default=str), highlight=False))
+    _emit(summary, as_json, _print_summary)
 
 
 @app.command()
