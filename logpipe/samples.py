@@ -215,3 +215,20 @@ def _first_windows(
         out["target_track_ids"].append(names)
         out["regular"].append(regular)
     return out
+
+
+def steps_from_sorted_times(ts_ns: NDArrayInt, group: NDArrayInt) -> NDArrayInt:
+    """Step (rank of the distinct timestamp within its group: a file or a log) for rows sorted by time in each
+    group and with each group contiguous."""
+    n = len(ts_ns)
+    if n == 0:
+        return np.zeros(0, dtype=np.int64)
+    new_group = np.ones(n, dtype=bool)
+    new_group[1:] = group[1:] != group[:-1]
+    new_time = new_group.copy()
+    new_time[1:] |= ts_ns[1:] != ts_ns[:-1]
+    counter = np.cumsum(new_time) - 1
+    first_of_group = counter[np.flatnonzero(new_group)]
+    group_starts = np.repeat(first_of_group, np.diff(np.append(np.flatnonzero(new_group), n)))
+    result: NDArrayInt = counter - group_starts
+    return result

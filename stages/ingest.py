@@ -31,7 +31,7 @@ from logpipe.formats import detect, get_adapter
 from logpipe.inputs import collect_sources
 from logpipe.io import as_numpy, read_json, sha256_file, write_json, write_parquet
 from logpipe.mcapio import write_log_mcap
-from logpipe.samples import TrackCodes, build_samples
+from logpipe.samples import TrackCodes, build_samples, steps_from_sorted_times
 from logpipe.types import LogMeta, NDArrayInt, SampleProtocol, SourceFile
 
 OnError = Literal["fail", "skip"]
@@ -195,7 +195,6 @@ def _canonical_order(tracks: pa.Table) -> pa.Table:
         tracks = tracks.sort_by([("log_id", "ascending"), ("timestamp_ns", "ascending"),
                                  ("track_id", "ascending")])
         log_ids = pc.dictionary_encode(tracks.column("log_id")).combine_chunks().indices.to_numpy()
-        from logpipe.formats._text import steps_from_sorted_times
 
         steps = steps_from_sorted_times(as_numpy(tracks.column("timestamp_ns")), log_ids.astype(np.int64))
         tracks = tracks.append_column("step", pa.array(steps.astype(np.int32)))

@@ -213,22 +213,6 @@ def check_time_and_duplicates(
     return [errors[f] for f in sorted(errors)]
 
 
-def steps_from_sorted_times(ts_ns: NDArrayInt, file_index: NDArrayInt) -> NDArrayInt:
-    """Step (rank of the distinct timestamp within its file) for rows sorted by time within each file."""
-    n = len(ts_ns)
-    if n == 0:
-        return np.zeros(0, dtype=np.int64)
-    new_file = np.ones(n, dtype=bool)
-    new_file[1:] = file_index[1:] != file_index[:-1]
-    new_time = new_file.copy()
-    new_time[1:] |= ts_ns[1:] != ts_ns[:-1]
-    counter = np.cumsum(new_time) - 1
-    first_of_file = counter[np.flatnonzero(new_file)]
-    file_starts = np.repeat(first_of_file, np.diff(np.append(np.flatnonzero(new_file), n)))
-    result: NDArrayInt = counter - file_starts
-    return result
-
-
 def decimal_seconds_to_ns(values: pa.Array, scale_ns: int = 1_000_000_000) -> tuple[pa.Array, pa.Array]:
     """Exact conversion of decimal strings (``"315968203.70296454"``) to int64 nanoseconds.
 

@@ -26,10 +26,10 @@ from logpipe.formats._text import (
     log_ids_column,
     parse_files,
     row_error,
-    steps_from_sorted_times,
 )
 from logpipe.formats.base import ParsedLogs
 from logpipe.io import as_numpy
+from logpipe.samples import steps_from_sorted_times
 from logpipe.types import PROTOCOLS, LogMeta, ObjectType, Role, SampleProtocol, SourceFile
 
 COLUMNS = ["frame_id", "ped_id", "x", "y"]
