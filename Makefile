@@ -8,7 +8,7 @@ OUT ?= out
 SHARED ?= ../shared/data
 ETHUCY_SCENES := eth hotel univ zara1 zara2
 
-.PHONY: setup demo test bench lint clean train-ethucy reproduce-ethucy reproduce-apolloscape reproduce-argoverse
+.PHONY: setup demo test bench lint clean train-ethucy train-apolloscape reproduce-ethucy reproduce-apolloscape reproduce-argoverse
 
 # torch first and pinned: a looser pin would pull a multi-GB CUDA build; 2.13.0 is a local CPU wheel here.
 $(STAMP): pyproject.toml
@@ -68,17 +68,37 @@ reproduce-argoverse: setup
 clean:
 	rm -rf $(OUT) .pytest_cache .mypy_cache .ruff_cache
 
-# The five ETH/UCY leave-one-scene-out models shipped in model/checkpoints/ethucy/<scene>/ (two at a time).
+# Shipped checkpoints, two trainings at a time: the paper's method (zhu2020) and the LSTM / Noise-LSTM baselines,
+# trained with the same config (`--preset` swaps only the features and noise). ETH/UCY: one per left-out scene in
+# model/checkpoints/ethucy/<scene>/ (baselines in its lstm/ and noise_lstm/); ApolloScape: model/checkpoints/apolloscape/<method>.
+LEARNED_METHODS := zhu2020 noise_lstm lstm
+preset_flag = $(if $(filter noise_lstm,$(1)),--preset baseline,$(if $(filter lstm,$(1)),--preset lstm,))
+# copy_best(run, dest): replace only the files of the checkpoint in dest, so baselines nested in it survive.
+copy_best = mkdir -p $(2) && find $(2) -maxdepth 1 -type f -delete && cp $(1)/best/* $(1)/train_log.jsonl $(2)/ \
+	&& cp $(1).json $(2)/train_summary.json
+
 train-ethucy: setup
 	$(VENV)/bin/logpipe ingest $(SHARED)/ethucy --out $(OUT)/ethucy --no-mcap
-	$(MAKE) -j2 $(addprefix train-ethucy-,$(ETHUCY_SCENES))
+	$(MAKE) -j2 $(foreach m,$(LEARNED_METHODS),$(addprefix train-ethucy/$(m)/,$(ETHUCY_SCENES)))
 
-train-ethucy-%:
+train-ethucy/%:
+	$(eval method := $(word 1,$(subst /, ,$*)))
+	$(eval scene := $(word 2,$(subst /, ,$*)))
 	rm -rf $(OUT)/runs/ethucy/$*
-	mkdir -p $(OUT)/runs/ethucy
-	$(VENV)/bin/logpipe train $(OUT)/ethucy --scene $* --config configs/ethucy.toml --out $(OUT)/runs/ethucy/$* \
-		--json > $(OUT)/runs/ethucy/$*.json
-	rm -rf model/checkpoints/ethucy/$*
-	mkdir -p model/checkpoints/ethucy
-	cp -r $(OUT)/runs/ethucy/$*/best model/checkpoints/ethucy/$*
-	cp $(OUT)/runs/ethucy/$*.json $(OUT)/runs/ethucy/$*/train_log.jsonl model/checkpoints/ethucy/$*/
+	mkdir -p $(OUT)/runs/ethucy/$(method)
+	$(VENV)/bin/logpipe train $(OUT)/ethucy --scene $(scene) --config configs/ethucy.toml $(call preset_flag,$(method)) \
+		--out $(OUT)/runs/ethucy/$* --json > $(OUT)/runs/ethucy/$*.json
+	$(call copy_best,$(OUT)/runs/ethucy/$*,model/checkpoints/ethucy/$(scene)$(if $(filter zhu2020,$(method)),,/$(method)))
+
+train-apolloscape: setup
+	$(VENV)/bin/logpipe ingest $(SHARED)/apolloscape/prediction_train --format apolloscape \
+		--out $(OUT)/reproduce/apolloscape/dataset --no-mcap
+	$(MAKE) -j2 $(addprefix train-apolloscape/,$(LEARNED_METHODS))
+
+train-apolloscape/%:
+	rm -rf $(OUT)/runs/apolloscape/$*
+	mkdir -p $(OUT)/runs/apolloscape
+	$(VENV)/bin/logpipe train $(OUT)/reproduce/apolloscape/dataset --train-split hash/train --val-split hash/val \
+		--config configs/apolloscape.toml $(call preset_flag,$*) --out $(OUT)/runs/apolloscape/$* \
+		--json > $(OUT)/runs/apolloscape/$*.json
+	$(call copy_best,$(OUT)/runs/apolloscape/$*,model/checkpoints/apolloscape/$*)

@@ -286,6 +286,9 @@ def train(
     ] = None,
     steps: Annotated[int | None, typer.Option("--steps", help="Override train.steps.")] = None,
     seed: Annotated[int | None, typer.Option("--seed", help="Override train.seed.")] = None,
+    preset: Annotated[str | None, typer.Option(
+        "--preset", help="Train a row of the paper's tables instead: full, v1..v4, baseline (Noise-LSTM) or lstm.")
+    ] = None,
     resume: Annotated[bool, typer.Option("--resume", help="Continue from OUT/last.")] = False,
     raster_run: Annotated[str | None, typer.Option(
         "--raster-run", help="Raster run under DATASET/rasters/ for the environment net (default: the only one).")
@@ -311,7 +314,7 @@ def train(
             overrides["seed"] = seed
         summary = run_train(dataset, out, train_split=chosen_train,
                             val_split=None if chosen_val == "none" else chosen_val, config_path=config,
-                            overrides=overrides, resume=resume, raster_run=raster_run,
+                            overrides=overrides, preset=preset, resume=resume, raster_run=raster_run,
                             loader_workers=loader_workers,
                             progress=not as_json and sys.stderr.isatty())
     _emit(summary, as_json, _print_summary)

@@ -11,7 +11,7 @@ import dataclasses
 import time
 from collections.abc import Iterable, Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import pyarrow as pa
 import pyarrow.compute as pc
@@ -21,6 +21,9 @@ from logpipe.errors import LogpipeError
 from logpipe.io import sha256_file
 from logpipe.rasters import RASTER_DIR, RUN_MANIFEST, RasterShards, find_raster_run
 from logpipe.types import SceneSample
+
+if TYPE_CHECKING:
+    from logpipe.model.config import TrainConfig
 
 
 def scene_samples(
@@ -50,6 +53,7 @@ def train(
     val_split: str | None,
     config_path: Path | None = None,
     overrides: dict[str, Any] | None = None,
+    preset: str | None = None,
     raster_run: str | None = None,
     loader_workers: int = 0,
     resume: bool = False,
@@ -64,6 +68,8 @@ def train(
         val_split: e.g. ``eth/val``; None trains without validation (no early stopping).
         config_path: TOML/JSON with every hyper-parameter (defaults: the paper's).
         overrides: ``TrainConfig`` fields to replace (e.g. ``{"steps": 50}``).
+        preset: a row of the paper's tables applied over the config's model (``full``, ``v1``..``v4``,
+            ``baseline`` = Noise-LSTM, ``lstm``); ``lstm`` has no noise, so it trains and validates with one mode.
         raster_run: the raster run under ``DATASET/rasters/`` to train the environment net on (default: the only
             one; none: the environment net is off).
         loader_workers: 0 cuts every training sample into memory first (exact resume); N > 0 streams them from
@@ -80,6 +86,8 @@ def train(
     config = load_config(config_path) if config_path else TrainConfig()
     if overrides:
         config = dataclasses.replace(config, **overrides)
+    if preset is not None:
+        config = with_preset(config, preset)
     protocol = dataset.protocol
     if (config.model.obs_len, config.model.pred_len) != (protocol.obs_len, protocol.pred_len):
         config = dataclasses.replace(
@@ -124,6 +132,18 @@ def train(
         "environment_net": result.config.model.features.environment,
         "seconds": round(time.perf_counter() - started, 1),
     }
+
+
+def with_preset(config: TrainConfig, name: str) -> TrainConfig:
+    """``config`` with the features (and noise) of preset ``name``; every other setting is kept, so a baseline
+    trains with the same schedule, data and augmentation as the method it is compared with."""
+    from logpipe.model.config import preset
+
+    row = preset(name)
+    if row.noise_dim:
+        return dataclasses.replace(config, model=dataclasses.replace(config.model, features=row.features))
+    model = dataclasses.replace(config.model, features=row.features, noise_dim=0)
+    return dataclasses.replace(config, model=model, num_modes=1, val_modes=1)  # without noise all modes are equal
 
 
 def _raster_run(dataset: Dataset, name: str | None) -> RasterShards | None:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
@@ -101,6 +102,25 @@ def test_train_a_few_steps_writes_a_loadable_checkpoint(bundled: Path, tmp_path:
     again = runner.invoke(app, ["train", str(tmp_path / "e"), "--train-split", "eth/train", "--val-split", "none",
                                 "--config", str(config), "--out", str(tmp_path / "run")])
     assert again.exit_code == 2  # an existing run is not overwritten without --resume
+
+
+@pytest.mark.parametrize(("preset", "noise", "modes"), [("lstm", 0, 1), ("baseline", 16, 20)])
+def test_train_preset_trains_a_baseline_with_the_same_schedule(bundled: Path, tmp_path: Path, preset: str, noise: int,
+                                                                modes: int) -> None:
+    runner.invoke(app, ["ingest", str(bundled / "ethucy"), "--out", str(tmp_path / "e"), "--no-mcap"])
+    config = tmp_path / "c.toml"
+    config.write_text("[train]\nsteps = 2\neval_every = 2\nval_max_samples = 8\nnum_threads = 1\n"
+                      "augment_rotate = true\n")
+    result = runner.invoke(app, ["train", str(tmp_path / "e"), "--train-split", "eth/train", "--val-split",
+                                 "hotel/test", "--config", str(config), "--preset", preset, "--out",
+                                 str(tmp_path / "run"), "--json"])
+    assert result.exit_code == 0, result.output
+    from logpipe.model.checkpoints import read_meta
+
+    meta = read_meta(Path(json.loads(result.stdout)["best_checkpoint"]))
+    assert not any(dataclasses.asdict(meta.config.model.features).values())  # no AIN, no environment net
+    assert meta.config.model.noise_dim == noise and meta.config.num_modes == modes
+    assert meta.config.augment_rotate and meta.config.steps == 2  # everything else as configured
 
 
 def test_train_uses_the_raster_run_for_the_environment_net(bundled: Path, tmp_path: Path) -> None:
