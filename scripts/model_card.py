@@ -1,0 +1,111 @@
+"""Write model/checkpoints/<kind>/MODEL_CARD.md from the shipped checkpoints' training summaries.
+
+Reads only what `make train-ethucy` / `make train-apolloscape` copy next to each checkpoint (``meta.json``,
+``train_summary.json``), so the card can be rebuilt from a clean clone.
+
+Usage: ``python scripts/model_card.py [ethucy|apolloscape ...]`` (default: both).
+"""
+
+from __future__ import annotations
+
+import json
+import platform
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+REPO = Path(__file__).resolve().parents[1]
+CHECKPOINTS = REPO / "model" / "checkpoints"
+METHODS = {"zhu2020": "the paper's method", "noise_lstm": "Noise-LSTM (preset `baseline`)",
+           "lstm": "LSTM (preset `lstm`, no noise, K=1)"}
+
+ABOUT = {
+    "ethucy": """Leave-one-scene-out models, one per held-out scene, trained with `make train-ethucy` (`logpipe train
+out/ethucy --scene SCENE --config configs/ethucy.toml [--preset baseline|lstm]`). The paper's method is in
+`ethucy/<scene>/`, the baselines in `ethucy/<scene>/noise_lstm/` and `ethucy/<scene>/lstm/`.
+
+- **Data:** `logpipe ingest ../shared/data/ethucy` (Social-GAN split files). Training logs: memberships
+  `SCENE/train`; validation: `SCENE/val` (the held-out scene is never seen). Samples: 8 observed + 12 predicted steps
+  at 2.5 Hz, every window whose agents are present at all 20 steps.
+- **Features:** position (eqs. 1-2) and tracking (eqs. 3-4) features, GRU (eqs. 6-7), attention (13-14),
+  LSTM encoder-decoder with noise (15-22), best-of-H loss (23) with H = 20. ETH/UCY has no ego vehicle and no map,
+  so the ego-motion, ego-trajectory and environment features are off, as in the paper.""",
+    "apolloscape": """Models trained with `make train-apolloscape` (`logpipe train out/reproduce/apolloscape/dataset
+--train-split hash/train --val-split hash/val --config configs/apolloscape.toml [--preset baseline|lstm]`), in
+`apolloscape/<method>/`.
+
+- **Data:** `logpipe ingest ../shared/data/apolloscape/prediction_train --format apolloscape`; the files are split
+  70/15/15 by the sha256 of their log id (`hash/train`, `hash/val`, `hash/test`). 6 observed + 6 predicted steps at
+  2 Hz; every agent present in all 12 steps of a window is a target, whatever its type.
+- **Features:** position and tracking features, GRU, attention, LSTM encoder-decoder with noise, best-of-H loss
+  with H = 20. The logs have no ego vehicle and no map here, so the ego and environment features are off.""",
+}
+
+
+def _row(name: str, folder: Path) -> str:
+    meta_path, summary_path = folder / "meta.json", folder / "train_summary.json"
+    if not meta_path.is_file():
+        return f"| {name} | not trained | | | | | |"
+    meta: dict[str, Any] = json.loads(meta_path.read_text())
+    s: dict[str, Any] = json.loads(summary_path.read_text()) if summary_path.is_file() else {}
+    minutes = f"{s['seconds'] / 60:.1f}" if "seconds" in s else "?"
+    metrics = meta.get("metrics", {})
+    k = meta["config"]["val_modes"]
+    return (f"| {name} | {s.get('train_samples', '?')} / {s.get('val_samples', '?')} | {s.get('steps', '?')} | "
+            f"{meta['step']} | {metrics.get('val_ade', float('nan')):.3f} / {metrics.get('val_fde', float('nan')):.3f}"
+            f" (K={k}) | {s.get('train_samples_per_s', '?')} | {minutes} |")
+
+
+def card(kind: str) -> str:
+    """The Markdown card of ``model/checkpoints/<kind>``."""
+    root = CHECKPOINTS / kind
+    config = (REPO / "configs" / f"{kind}.toml").read_text()
+    if kind == "ethucy":
+        scenes = ("eth", "hotel", "univ", "zara1", "zara2")
+        folders = [(f"{s} ({m})", root / s if m == "zhu2020" else root / s / m) for m in METHODS for s in scenes]
+        label = "held-out scene (method)"
+    else:
+        folders = [(m, root / m) for m in METHODS]
+        label = "method"
+    rows = "\n".join(_row(name, folder) for name, folder in folders)
+    methods = "; ".join(f"`{k}`: {v}" for k, v in METHODS.items())
+    return f"""# {kind} checkpoints
+
+{ABOUT[kind]}
+- **Methods:** {methods}. The baselines train with the same config; `--preset` only switches the features off
+  (and, for LSTM, the noise), so the schedule, data and augmentation match.
+- **Seed:** 0, one torch thread per run, two runs at a time on a 2-core CPU shared with other jobs. Card written
+  {time.strftime('%Y-%m-%d', time.gmtime())} on Python {platform.python_version()}.
+- **Schedule:** much shorter than the paper's 20,000 steps, so a model trains in minutes here; early stopping on
+  the validation ADE (first 300 validation samples). See the config below.
+- **Validation errors** are per-agent best-of-K ADE/FDE in metres (mean Euclidean distance) on the validation
+  split at the best step; test scores are in `docs/results/{kind}.md`.
+
+Each folder holds `weights.safetensors` (safetensors, no pickle), `meta.json` (full config, normalisation, dataset
+manifest hash, logpipe version), `train_summary.json` and `train_log.jsonl`. Load with
+`logpipe.model.checkpoints.load_checkpoint(path, expect_kind="{kind}")`.
+
+| {label} | train / val samples | steps run | best step | val ADE / FDE (m) | train samples/s | minutes |
+|---|---|---|---|---|---|---|
+{rows}
+
+## Config (`configs/{kind}.toml`)
+
+```toml
+{config.strip()}
+```
+"""
+
+
+def main(argv: list[str]) -> int:
+    for kind in argv or ["ethucy", "apolloscape"]:
+        path = CHECKPOINTS / kind / "MODEL_CARD.md"
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(card(kind))
+        print(path)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))
