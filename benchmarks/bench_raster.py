@@ -3,9 +3,11 @@
 Samples: the 69 AV1 CSVs; centre = the AV at step 19 (the last observed step), heading from its own motion
 (``heading_from_motion``). Maps: the whole-city lane-centerline npz files (every city lane indexed).
 
-Ours: ``Rasteriser.render`` (grid index → contiguous slices → one fixed-point transform → one
-``cv2.polylines`` per channel / direction sector). Baseline: ``render_baseline``, a per-sample Python loop
-over a linear scan of all of the city's lane chunks, one OpenCV call per lane, same geometry and primitives.
+Ours: ``Rasteriser.render`` (grid bands → ~2 contiguous vertex slices transformed in place into a reused
+fixed-point buffer → one product culls chunks outside the image → precomputed chunk views, one
+``cv2.polylines`` per channel / direction sector), allocating a fresh image per raster. Baseline:
+``render_baseline``, a per-sample Python loop over a linear scan of all of the city's lane chunks, one OpenCV
+call per lane, same geometry and primitives.
 
 Rates are rasters per second of *CPU time of this single-threaded process* (``time.process_time``; OpenCV
 set to one thread), i.e. per core; wall-clock rates are reported beside them. On a shared machine other
@@ -141,17 +143,7 @@ def run(quick: bool = False) -> dict[str, Any]:
             }
             for i, name in enumerate(spec.channels)
         }
-        layer_bytes = sum(
-            ly.points.nbytes
-            + ly.offsets.nbytes
-            + ly.lo.nbytes
-            + ly.hi.nbytes
-            + ly.features.nbytes
-            + ly.chord_angle.nbytes
-            + 8 * len(ly.keys)
-            for r in fast.values()
-            for ly in r._layers.values()
-        )
+        layer_bytes = sum(r.memory_bytes() for r in fast.values())
         result[label] = {
             "channels": list(spec.channels),
             "ours_rasters_per_s_per_core": round(n / ours_cpu, 1),

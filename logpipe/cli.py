@@ -244,6 +244,11 @@ def rasterise(
         "--channels", help="Comma-separated channel names (default: all drawn layers).")] = None,
     shard_size: Annotated[int, typer.Option("--shard-size", help="Samples per .npy shard.")] = 256,
     force: Annotated[bool, typer.Option("--force", help="Replace a run made from other data or maps.")] = False,
+    workers: Annotated[int | None, typer.Option(
+        "--workers", "-j", help="Shards rendered at once (0 = all cores; default 1 locally, all with ray); "
+        "each worker loads the maps it needs.")] = None,
+    backend: Annotated[str, typer.Option(
+        "--backend", help="local | ray (ray: DATASET must be on a file system every node shares)")] = "local",
     as_json: JsonOpt = False,
 ) -> None:
     """Draw one ego-centred map raster per prediction sample (224x224 over 100 m by default) into
@@ -255,6 +260,8 @@ def rasterise(
     from logpipe.raster import DEFAULT_CHANNELS, RasterSpec
     from logpipe.stages.rasterise import rasterise_dataset
 
+    if backend not in ("local", "ray"):
+        raise typer.BadParameter("--backend must be local or ray")
     with _user_errors():
         files = {}
         for item in map_file or []:
@@ -267,7 +274,9 @@ def rasterise(
         with _progress(0, "rasterise", enabled=not as_json and sys.stderr.isatty()) as advance:
             summary = rasterise_dataset(dataset, MapSource(roots=tuple(maps or ()), files=files), centre=centre,
                                         rotate=rotate, preview=preview, spec=spec, shard_size=shard_size,
-                                        force=force, progress=advance)
+                                        force=force, progress=advance,
+                                        workers=workers if workers is not None else (0 if backend == "ray" else 1),
+                                        backend="ray" if backend == "ray" else "local")
     _emit(summary, as_json, _print_summary)
 
 

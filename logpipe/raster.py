@@ -31,12 +31,15 @@ Default channels: ``DEFAULT_CHANNELS`` (drivable area, the four direction quadra
 crossings): one anti-aliased pass over the lanes encodes both where they are and where they go, which is
 about twice as fast as ``lane_centerline`` + ``lane_direction``.
 
-Speed: per kind, the store's grid index (``MapStore.render_layer``: lanes chained with their unique
-successors, then cut into cell-sized chunks) yields a few contiguous slices of vertices; all of them are
-transformed in one matrix product into int32 fixed point (``shift`` fractional bits, OpenCV's sub-pixel
-drawing) and drawn with one ``cv2.polylines`` call per channel (per direction sector for
-``lane_direction``). Polygons are filled one call each because ``fillPoly`` with several contours fills by
-the even-odd rule, which would punch holes where areas overlap.
+Speed (per raster, the cost is Python and NumPy call overhead plus OpenCV's per-polyline work, not
+arithmetic): per kind, a ``Rasteriser`` keeps the layer's vertices (``MapStore.render_layer``: lanes chained
+with their unique successors, then cut into cell-sized chunks) in grid-band order, so a window is ~2
+contiguous slices, each transformed in place into a reused int32 fixed-point buffer (``shift`` fractional
+bits, OpenCV's sub-pixel drawing) by one matrix product; one more product culls every chunk whose box
+misses the image; the survivors, as ready-made views of that buffer, are drawn in layer order with one
+``cv2.polylines`` call per channel (per direction sector for ``lane_direction``). Polygons are filled one
+call each because ``fillPoly`` with several contours fills by the even-odd rule, which would punch holes
+where areas overlap. Layers without features (AV1 has only centerlines) cost nothing per raster.
 """
 
 from __future__ import annotations
@@ -44,6 +47,7 @@ from __future__ import annotations
 import hashlib
 import json
 import math
+import sys
 import warnings
 from dataclasses import dataclass
 from typing import Any
@@ -51,7 +55,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from logpipe.maps.store import FeatureKind, Layer, MapStore
+from logpipe.maps.store import BandOrder, FeatureKind, Layer, MapStore
 from logpipe.types import NDArrayByte, NDArrayFloat, NDArrayInt, NDArrayInt32
 
 QUADRANT_CHANNELS: tuple[str, ...] = ("lane_right", "lane_up", "lane_left", "lane_down")
@@ -248,29 +252,53 @@ class RasterResult:
         return self.n_features == 0
 
 
-@dataclass
-class _Projected:
-    """One layer's window in fixed-point pixel coordinates.
+class _Scratch:
+    """One layer prepared for drawing by one rasteriser. Memory is of the order of the layer's own (vertex
+    buffers, one view object per chunk); no pixels are cached, so it stays small for city-sized maps.
+
+    Vertices are stored in ``BandOrder`` (a window is ~2 contiguous slices, each transformed in place by
+    one product) while chunks are still drawn in layer order, the reference's: ``views[i]`` is layer
+    chunk ``i`` wherever it sits in the buffer.
 
     Attributes:
-        layer: the layer queried.
-        pts: (n, 2) int32 pixel coordinates x 2**shift.
-        offsets: (k + 1,) chunk bounds into ``pts``.
-        chunks: (k,) layer chunk index of each gathered chunk.
-        keep: indices (into the k gathered chunks) of those whose pixel box touches the image.
-        polys: the kept chunks as a list of (m, 2) int32 arrays, in ``keep`` order.
+        band: the band order of the layer's chunks.
+        pix: (N, 2) int32 fixed-point pixel coordinates of the vertices, band order; only the chunks of
+            the window being drawn are valid (every render rewrites them).
+        homog: (N, 3) the vertices as (x, y, 1), band order.
+        offsets: (F + 1,) vertex offset of each band position, a Python list (indexed per slice).
+        boxes: (F, 4) bounding-box centre (x, y) and half-size (x, y) of each band position, metres.
+        views: layer chunk ``i`` as its slice of ``pix``, made once: slicing per chunk and render costs
+            more than the rest of the per-chunk work.
     """
 
-    layer: Layer
-    pts: NDArrayInt32
-    offsets: NDArrayInt
-    chunks: NDArrayInt
-    keep: NDArrayInt
-    polys: list[NDArrayInt32]
+    def __init__(self, layer: Layer, band_rows: int) -> None:
+        self.band = BandOrder(layer, band_rows)
+        order = self.band.order
+        counts = layer.counts[order]
+        offsets = np.zeros(len(order) + 1, dtype=np.int64)
+        np.cumsum(counts, out=offsets[1:])
+        n = int(offsets[-1])
+        # Vertex j of position p comes from layer vertex layer.offsets[order[p]] + (j - offsets[p]).
+        src = np.repeat(layer.offsets[order] - offsets[:-1], counts) + np.arange(n, dtype=np.int64)
+        self.homog: NDArrayFloat = np.concatenate([layer.points[src], np.ones((n, 1))], axis=1)
+        self.pix: NDArrayInt32 = np.zeros((n, 2), dtype=np.int32)
+        self.offsets: list[int] = offsets.tolist()
+        lo, hi = layer.lo[order], layer.hi[order]
+        self.boxes: NDArrayFloat = np.concatenate([(lo + hi) / 2.0, (hi - lo) / 2.0], axis=1)
+        pix, o = self.pix, self.offsets
+        self.views: list[NDArrayInt32] = [pix[o[p] : o[p + 1]] for p in self.band.position.tolist()]
+
+
+BAND_ROWS = 8
+"""Grid rows (32 m) per band of the vertex order: a 100 m window, rotated, spans ~6 rows, so it reads ~1.5
+slices; taller bands read more vertices in vain, shorter ones more slices."""
+_NO_CHUNKS: NDArrayInt = np.zeros(0, dtype=np.int64)
 
 
 class Rasteriser:
     """Draws rasters of one map with one spec; build once per (map, spec), call ``render`` per sample.
+
+    Not thread-safe: renders share per-layer scratch buffers (use one rasteriser per thread).
 
     Attributes:
         store: the map (None draws empty rasters, e.g. a log without a map).
@@ -281,112 +309,188 @@ class Rasteriser:
         self.store = store
         self.spec = spec
         self._scale = float(1 << spec.shift)
-        self._lim = (spec.size_px + 1) * self._scale
+        # Chunks whose pixel box misses [-2, size + 1] px are not drawn (anti-aliasing reaches ~1 px out).
+        self._cull_lo = -2.0 * self._scale
+        self._cull_hi = (spec.size_px + 1) * self._scale
         self._values = direction_values(spec.direction_bins).tolist()
-        self._layers: dict[FeatureKind, Layer] = {}
+        self._band_rows = BAND_ROWS
+        self._scratch: dict[FeatureKind, _Scratch] = {}
         self._plan: list[tuple[int, str, FeatureKind]] = []
         # Chunk direction in sector units, offset by 0.5 (round to nearest) and by a whole number of turns
         # so that adding the heading term stays positive and int truncation equals floor.
         self._chord_units: NDArrayFloat = np.zeros(0)
         self._quad_units: NDArrayFloat = np.zeros(0)
-        self._quadrant_plane: dict[int, int] = {}  # quadrant -> channel index
+        self._quadrant_plane: list[tuple[int, int]] = []  # (quadrant, channel index)
         if store is not None:
             for ci, name in enumerate(spec.channels):
                 layer = store.render_layer(_CHANNEL_KIND[name])
-                if len(layer):  # e.g. AV1 maps have no areas or boundaries: skip the empty queries
-                    self._layers[layer.kind] = layer
-                    self._plan.append((ci, name, layer.kind))
-                    if name == "lane_direction":
-                        k = spec.direction_bins
-                        self._chord_units = layer.chord_angle * (k / (2.0 * math.pi)) + 0.5 + 4.0 * k
-                    if name in QUADRANT_CHANNELS:
-                        self._quadrant_plane[QUADRANT_CHANNELS.index(name)] = ci
-                        self._quad_units = layer.chord_angle * (4.0 / (2.0 * math.pi)) + 0.5 + 16.0
+                if not len(layer):  # e.g. AV1 maps have no areas or boundaries: skip the empty queries
+                    continue
+                if layer.kind not in self._scratch:
+                    self._scratch[layer.kind] = _Scratch(layer, self._band_rows)
+                self._plan.append((ci, name, layer.kind))
+                if name == "lane_direction":
+                    k = spec.direction_bins
+                    self._chord_units = layer.chord_angle * (k / (2.0 * math.pi)) + 0.5 + 4.0 * k
+                if name in QUADRANT_CHANNELS:
+                    self._quadrant_plane.append((QUADRANT_CHANNELS.index(name), ci))
+                    self._quad_units = layer.chord_angle * (4.0 / (2.0 * math.pi)) + 0.5 + 16.0
 
-    def render(self, cx: float, cy: float, heading: float | None = None, *, warn: bool = True) -> RasterResult:
+    def memory_bytes(self) -> int:
+        """Bytes held for drawing: the layers' geometry and index plus this rasteriser's scratch (vertex
+        buffers and chunk views); proportional to the map's vertices, independent of the raster size."""
+        total = 0
+        for s in self._scratch.values():
+            ly, band = s.band.layer, s.band
+            total += sum(x.nbytes for x in (ly.points, ly.offsets, ly.lo, ly.hi, ly.features, ly.chord_angle))
+            total += 8 * (len(ly.keys) + len(band.keys) + len(s.offsets))
+            total += 8 * sum(len(t) for t in (ly.cell_start, band.start) if t is not None)
+            total += band.order.nbytes + band.position.nbytes + s.pix.nbytes + s.homog.nbytes + s.boxes.nbytes
+            total += len(s.views) * sys.getsizeof(s.pix[:1])
+        return total
+
+    def render(
+        self,
+        cx: float,
+        cy: float,
+        heading: float | None = None,
+        *,
+        warn: bool = True,
+        out: NDArrayByte | None = None,
+    ) -> RasterResult:
         """Rasterise the window centred on (cx, cy) (metres, world frame).
 
         Args:
             cx, cy: centre, metres, world frame.
             heading: rad CCW from world +x; used only when ``spec.rotate`` (None → north up).
             warn: emit ``OffMapWarning`` when the window holds no map feature.
+            out: a zero-filled (C, H, W) uint8 array to draw into (e.g. a row of a shard allocated with
+                ``np.zeros``), returned as the result's image; saves an allocation and a copy per raster.
         """
         spec = self.spec
-        img = np.zeros(spec.shape, dtype=np.uint8)
+        if out is None:
+            img = np.zeros(spec.shape, dtype=np.uint8)
+        elif out.shape != spec.shape or out.dtype != np.uint8:
+            raise ValueError(f"out must be uint8 {spec.shape}, got {out.dtype} {out.shape}")
+        else:
+            img = out
         a, b, tx, c, d, ty, t = _affine_terms(spec, cx, cy, heading)
-        affine = np.array([[a, b, tx], [c, d, ty]])
-        box = query_box(spec, cx, cy, heading)
         sc = self._scale
-        # Fixed-point transform of all vertices of a kind: one (n,2)@(2,2) product scaled by 2**shift.
-        lin = np.array([[a * sc, c * sc], [b * sc, d * sc]])
-        off = np.array([tx * sc, ty * sc])
-        cache: dict[FeatureKind, _Projected] = {}
+        fa, fb, fc, fd, ftx, fty = a * sc, b * sc, c * sc, d * sc, tx * sc, ty * sc
+        aa, ab, ac, ad = abs(fa), abs(fb), abs(fc), abs(fd)
+        lo, hi = self._cull_lo, self._cull_hi
+        # Every per-raster matrix from one array (one NumPy call instead of four):
+        # * affine (2, 3): world → pixel, returned with the raster;
+        # * lin (3, 2): fixed-point transform ``[u, v] = [x, y, 1] @ lin``, the product of ``to_fixed_point``;
+        # * cull (4, 4) and thr (4,): chunk bounding box (centre x, centre y, half x, half y) @ cull gives
+        #   (-lo_u, -lo_v, hi_u, hi_v) of its pixel box minus the offset; drawn when all four are <= thr
+        #   (the box meets the image). Exact for the chunk's box north up, its rotated box otherwise (a
+        #   superset: chunks drawn in vain draw nothing).
+        # fmt: off
+        k = np.array([
+            a, b, tx, c, d, ty,
+            fa, fc, fb, fd, ftx, fty,
+            -fa, -fc, fa, fc, -fb, -fd, fb, fd, -aa, -ac, -aa, -ac, -ab, -ad, -ab, -ad,
+            ftx - lo, fty - lo, hi - ftx, hi - fty,
+        ])
+        # fmt: on
+        affine = k[:6].reshape(2, 3)
         drawn = 0
-        quadrants_done = False
-        for ci, name, kind in self._plan:
-            proj = cache.get(kind)
-            if proj is None:
-                proj = cache[kind] = self._project(self._layers[kind], box, lin, off)
-                drawn += len(proj.polys)
-            if not proj.polys:
-                continue
-            plane = img[ci]
-            if name == "lane_direction":
-                self._draw_direction(plane, proj, t)
-            elif name in QUADRANT_CHANNELS:
-                if not quadrants_done:  # all four in one pass over the chunks
-                    self._draw_quadrants(img, proj, t)
-                    quadrants_done = True
-            elif kind is FeatureKind.DRIVABLE_AREA or kind is FeatureKind.CROSSING:
-                for poly in proj.polys:  # one call each: fillPoly fills several contours even-odd
-                    cv2.fillPoly(plane, [poly], 255, cv2.LINE_AA, spec.shift)
-            else:
-                cv2.polylines(plane, proj.polys, False, 255, 1, cv2.LINE_AA, spec.shift)
+        if self._plan:
+            box = query_box(spec, cx, cy, heading)
+            drawn = self._draw(img, k[6:12].reshape(3, 2), k[12:28].reshape(4, 4), k[28:], t, box)
         if drawn == 0 and warn:
             warnings.warn(
                 OffMapWarning(f"no map feature within {spec.extent_m} m of ({cx:.1f}, {cy:.1f})"), stacklevel=2
             )
         return RasterResult(img, affine, t, drawn)
 
-    def _project(
-        self, layer: Layer, box: tuple[float, float, float, float], lin: NDArrayFloat, off: NDArrayFloat
-    ) -> _Projected:
-        """Window query + fixed-point transform + "touches the image" test for one layer."""
-        w = layer.window(*box)
-        if not len(w):
-            e = np.zeros(0, np.int64)
-            return _Projected(layer, np.zeros((0, 2), np.int32), w.offsets, e, e, [])
-        p = w.points @ lin
-        p += off
-        pts = p.astype(np.int32)  # truncation, as to_fixed_point
-        o = w.offsets
-        starts = o[:-1]
-        lo = np.minimum.reduceat(pts, starts, axis=0)
-        hi = np.maximum.reduceat(pts, starts, axis=0)
-        # Keep chunks whose pixel box touches the image (anti-aliasing reaches one pixel out).
-        keep = np.flatnonzero(((hi >= -self._scale) & (lo <= self._lim)).all(axis=1))
-        ol = o.tolist()
-        polys = [pts[ol[i] : ol[i + 1]] for i in keep.tolist()]
-        return _Projected(layer, pts, o, w.chunks, keep, polys)
+    def _draw(
+        self,
+        img: NDArrayByte,
+        lin: NDArrayFloat,
+        cull: NDArrayFloat,
+        thr: NDArrayFloat,
+        t: float,
+        box: tuple[float, float, float, float],
+    ) -> int:
+        """Draw every planned channel; returns the number of chunks drawn (over kinds)."""
+        shift = self.spec.shift
+        selected: dict[FeatureKind, NDArrayInt] = {}
+        drawn = 0
+        quadrants_done = False
+        for ci, name, kind in self._plan:
+            scratch = self._scratch[kind]
+            sel = selected.get(kind)
+            if sel is None:
+                sel = selected[kind] = self._select(scratch, box, lin, cull, thr)
+                drawn += len(sel)
+            if not len(sel):
+                continue
+            views = scratch.views
+            if name in QUADRANT_CHANNELS:
+                if not quadrants_done:  # all four in one pass over the chunks
+                    self._draw_quadrants(img, views, sel, t)
+                    quadrants_done = True
+            elif name == "lane_direction":
+                self._draw_direction(img[ci], views, sel, t)
+            elif kind is FeatureKind.DRIVABLE_AREA or kind is FeatureKind.CROSSING:
+                plane = img[ci]
+                for i in sel.tolist():  # one call each: fillPoly fills several contours even-odd
+                    cv2.fillPoly(plane, [views[i]], 255, cv2.LINE_AA, shift)
+            else:
+                cv2.polylines(img[ci], [views[i] for i in sel.tolist()], False, 255, 1, cv2.LINE_AA, shift)
+        return drawn
 
-    def _draw_quadrants(self, img: NDArrayByte, proj: _Projected, heading: float) -> None:
+    def _select(
+        self,
+        scratch: _Scratch,
+        box: tuple[float, float, float, float],
+        lin: NDArrayFloat,
+        cull: NDArrayFloat,
+        thr: NDArrayFloat,
+    ) -> NDArrayInt:
+        """Layer chunks of the window to draw, ascending (the reference's order), their vertices
+        transformed into ``scratch.pix``: each band slice in place, not gathered into a new array."""
+        band = scratch.band
+        ranges = band.ranges(*box)
+        if not ranges:
+            return _NO_CHUNKS
+        o, homog, pix = scratch.offsets, scratch.homog, scratch.pix
+        for lo, hi in ranges:
+            # Assigning float to int32 truncates, as ``astype`` in ``to_fixed_point``.
+            pix[o[lo] : o[hi]] = homog[o[lo] : o[hi]].dot(lin)
+        order, boxes = band.order, scratch.boxes
+        if len(ranges) == 1:
+            lo, hi = ranges[0]
+            ids, g = order[lo:hi], boxes[lo:hi]
+        else:
+            ids = np.concatenate([order[lo:hi] for lo, hi in ranges])
+            g = np.concatenate([boxes[lo:hi] for lo, hi in ranges])
+        # (k, 4) booleans viewed as one uint32 per chunk: "all four true" without a slow axis reduction.
+        inside = g.dot(cull) <= thr
+        sel: NDArrayInt = ids[inside.view(np.uint32).ravel() == 0x01010101]
+        sel.sort()  # band order → layer order
+        return sel
+
+    def _draw_quadrants(self, img: NDArrayByte, views: list[NDArrayInt32], sel: NDArrayInt, heading: float) -> None:
         """Anti-aliased centerlines, each chunk into the channel of its travel-direction quadrant.
 
-        Chunks keep their window order within a quadrant, the order the reference draws them in, so the
+        Chunks keep their layer order within a quadrant, the order the reference draws them in, so the
         pixels are identical to drawing chunk by chunk.
         """
-        units = self._quad_units[proj.chunks[proj.keep]] + (math.pi / 2.0 - heading) * (4.0 / (2.0 * math.pi))
-        quad = (units.astype(np.int64) % 4).tolist()
-        # A plain loop beats argsort + fancy indexing for the ~50-100 chunks of a window.
+        units = self._quad_units[sel] + (math.pi / 2.0 - heading) * (4.0 / (2.0 * math.pi))
+        quad = (units.astype(np.int64) & 3).tolist()
+        # A plain loop beats argsort + fancy indexing or one mask per quadrant for the ~50 chunks drawn.
         groups: tuple[list[NDArrayInt32], ...] = ([], [], [], [])
-        for poly, q in zip(proj.polys, quad, strict=True):
-            groups[q].append(poly)
+        for i, q in zip(sel.tolist(), quad, strict=False):
+            groups[q].append(views[i])
         shift = self.spec.shift
-        for q, ci in self._quadrant_plane.items():
+        for q, ci in self._quadrant_plane:
             if groups[q]:
                 cv2.polylines(img[ci], groups[q], False, 255, 1, cv2.LINE_AA, shift)
 
-    def _draw_direction(self, plane: NDArrayByte, proj: _Projected, heading: float) -> None:
+    def _draw_direction(self, plane: NDArrayByte, views: list[NDArrayInt32], sel: NDArrayInt, heading: float) -> None:
         """Draw each centerline chunk with the value of its travel-direction sector in the image frame.
 
         A chunk's direction is its first-to-last vertex vector; centerline chunks turn by at most
@@ -395,16 +499,16 @@ class Rasteriser:
         """
         k = self.spec.direction_bins
         # Image-frame angle: phi = world angle - heading + pi/2 (north up: heading = pi/2, phi = world).
-        units = self._chord_units[proj.chunks[proj.keep]] + (math.pi / 2.0 - heading) * (k / (2.0 * math.pi))
+        units = self._chord_units[sel] + (math.pi / 2.0 - heading) * (k / (2.0 * math.pi))
         sector = (units.astype(np.int64) % k).tolist()
         groups: list[list[NDArrayInt32]] = [[] for _ in range(k)]
-        for poly, b in zip(proj.polys, sector, strict=True):
-            groups[b].append(poly)
+        for i, s in zip(sel.tolist(), sector, strict=True):
+            groups[s].append(views[i])
         values = self._values
         shift = self.spec.shift
-        for b, batch in enumerate(groups):  # ascending sectors: the higher value wins where lanes overlap
+        for s, batch in enumerate(groups):  # ascending sectors: the higher value wins where lanes overlap
             if batch:
-                cv2.polylines(plane, batch, False, values[b], 1, cv2.LINE_8, shift)
+                cv2.polylines(plane, batch, False, values[s], 1, cv2.LINE_8, shift)
 
 
 def render_baseline(

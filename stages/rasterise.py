@@ -30,6 +30,7 @@ import logging
 import math
 import re
 import time
+from collections import OrderedDict
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -44,8 +45,9 @@ from logpipe import __version__
 from logpipe.contracts import arrow_schema
 from logpipe.dataset import SAMPLES_FILE, Dataset
 from logpipe.errors import DatasetError
+from logpipe.executor import Backend, run_ordered
 from logpipe.io import as_numpy, atomic_path, read_json, sha256_file, write_json, write_parquet
-from logpipe.maps import MapSource, MapStore
+from logpipe.maps import MapSource, MapStore, load_map
 from logpipe.raster import Rasteriser, RasterSpec, direction_values, heading_from_motion
 from logpipe.rasters import (
     CENTRES,
@@ -141,6 +143,8 @@ def rasterise_dataset(
     shard_size: int = 256,
     force: bool = False,
     progress: Callable[[int], None] | None = None,
+    workers: int = 1,
+    backend: Backend = "local",
 ) -> dict[str, Any]:
     """Rasterise every sample of an ingested dataset.
 
@@ -155,6 +159,9 @@ def rasterise_dataset(
             (256 x 343 KiB with the default 7 channels).
         force: delete an existing run folder with the same settings that belongs to other data or maps.
         progress: called with the number of samples each finished shard covered.
+        workers: shards rendered at once (0 = all cores); each worker process loads the maps it needs.
+        backend: ``local`` (inline or a process pool) or ``ray`` (the run folder must be on a file system
+            every node shares). Shards are written by the workers and are the same bytes either way.
 
     Returns:
         A JSON-able summary (run folder, spec, counts, timings, previews).
@@ -200,12 +207,9 @@ def rasterise_dataset(
         "centre_role": {"ego": 0, "focal": 0},
         "previews": [],
     }
-    tracks = _TrackReader(ds.root, logs)
-    rasterisers: dict[Path, Rasteriser] = {}
-    empty_rasteriser = Rasteriser(None, spec)
-    view_cache: tuple[str, _LogView] | None = None
+    shard_of = dict(zip(logs.column("log_id").to_pylist(), logs.column("shard").to_pylist(), strict=True))
     shard_meta: list[dict[str, Any]] = []
-    render_seconds = 0.0
+    tasks: list[_ShardTask] = []
     for si in range(n_shards):
         chunk = rows[si * shard_size : (si + 1) * shard_size]
         npy, idx = out / shard_file(si), out / index_file(si)
@@ -216,64 +220,40 @@ def rasterise_dataset(
             if progress:
                 progress(len(chunk))
             continue
-        images = np.zeros((len(chunk), *spec.shape), dtype=np.uint8)
-        index_rows: list[dict[str, Any]] = []
-        t0 = time.perf_counter()
-        for row_i, sample in enumerate(chunk):
-            log_id = str(sample["log_id"])
-            if view_cache is None or view_cache[0] != log_id:
-                view_cache = (log_id, _LogView(tracks.get(log_id)))
-            view = view_cache[1]
-            map_path = map_files.get(log_id)
-            store = maps.get(log_map.get(log_id), log_id) if map_path is not None else None
-            ras = _rasteriser_for(rasterisers, map_path, store, spec) if store is not None else empty_rasteriser
-            c = view.centre(sample, centre, store)
-            if c is None:
-                summary["no_centre"] += 1
-                res = empty_rasteriser.render(0.0, 0.0, None, warn=False)
-                cx: float | None = None
-                cy: float | None = None
-                src = "none"
-            else:
-                res = ras.render(c.x, c.y, c.heading, warn=False)
-                cx, cy = c.x, c.y
-                src = c.heading_source if spec.rotate else "none"
-                summary["centre_role"][c.role or "focal"] += 1
-            images[row_i] = res.image
-            summary["heading_source"][src] += 1
-            if res.empty:
-                summary["empty"] += 1
-            index_rows.append(
-                {
-                    "sample_id": str(sample["sample_id"]),
-                    "log_id": log_id,
-                    "shard": npy.name,
-                    "row": row_i,
-                    "centre_track_id": c.track_id if c else None,
-                    "centre_role": c.role if c else None,
-                    "centre_x": cx,
-                    "centre_y": cy,
-                    "heading": res.heading,
-                    "heading_source": src,
-                    "affine": [float(v) for v in res.affine.reshape(-1)],
-                    "map_id": log_map.get(log_id),
-                    "map_file": str(map_path) if map_path is not None else None,
-                    "empty": res.empty,
-                }
+        shard_meta.append({})  # filled in order as the shard comes back
+        log_ids = sorted({str(r["log_id"]) for r in chunk})
+        tasks.append(
+            _ShardTask(
+                root=ds.root,
+                out=out,
+                shard=si,
+                first=si * shard_size,
+                samples=chunk,
+                spec=spec,
+                centre=centre,
+                preview=preview,
+                track_shards={lid: shard_of[lid] for lid in log_ids if lid in shard_of},
+                map_ids={lid: log_map.get(lid) for lid in log_ids},
+                map_files={lid: map_files.get(lid) for lid in log_ids},
+                map_hashes=map_hashes,
             )
-            k = si * shard_size + row_i
-            if k < preview and c is not None:
-                png = out / "previews" / f"{k:05d}_{_safe(str(sample['sample_id']))}.png"
-                _write_preview(png, res.image, res.affine, spec, view, sample, c)
-                summary["previews"].append(str(png))
-        render_seconds += time.perf_counter() - t0
-        summary["rendered"] += len(chunk)
-        with atomic_path(npy) as tmp, tmp.open("wb") as fh:
-            np.save(fh, images, allow_pickle=False)
-        write_parquet(pa.Table.from_pylist(index_rows, schema=arrow_schema("raster")), idx)
-        shard_meta.append(_shard_entry(npy, idx, len(chunk)))
-        if progress:
-            progress(len(chunk))
+        )
+    render_seconds = 0.0
+    try:
+        for res in run_ordered(_render_shard, tasks, workers=workers, backend=backend):
+            shard_meta[res["shard"]] = res["entry"]
+            render_seconds += res["render_seconds"]
+            summary["rendered"] += res["rendered"]
+            for key in ("empty", "no_centre"):
+                summary[key] += res[key]
+            for key in ("heading_source", "centre_role"):
+                for k, v in res[key].items():
+                    summary[key][k] += v
+            summary["previews"].extend(res["previews"])
+            if progress:
+                progress(res["rendered"])
+    finally:
+        _WORKER_RASTERISERS.clear()  # inline runs: do not keep city maps alive after the stage
     if summary["empty"]:
         logger.warning(
             "%d of %d rasters are empty (centre off the map or no map); see `empty` in %s",
@@ -299,13 +279,133 @@ def rasterise_dataset(
     return summary
 
 
+@dataclass(frozen=True)
+class _ShardTask:
+    """One raster shard to render and write (picklable: sent to a worker process or Ray task).
+
+    Attributes:
+        root: dataset folder; ``out``: the run folder the shard goes into.
+        shard: shard number; ``first``: sample number of its first row (previews are numbered by it).
+        samples: the shard's sample-index rows.
+        track_shards: track shard file of each of its logs; ``map_ids`` / ``map_files`` their map.
+        map_hashes: sha256 of every map file of the run (workers cache maps by content).
+    """
+
+    root: Path
+    out: Path
+    shard: int
+    first: int
+    samples: list[dict[str, Any]]
+    spec: RasterSpec
+    centre: str
+    preview: int
+    track_shards: dict[str, str]
+    map_ids: dict[str, str | None]
+    map_files: dict[str, Path | None]
+    map_hashes: dict[str, str]
+
+
+_WORKER_RASTERISERS: OrderedDict[tuple[str, str], Rasteriser] = OrderedDict()
+"""(map sha256, spec fingerprint) → rasteriser, kept by a worker process between shards (a city map takes
+seconds to load and index); keyed by content so a changed map file is reloaded. At most 4, like
+``MapSource``'s cache."""
+
+
+def _worker_rasteriser(path: Path, sha: str, spec: RasterSpec) -> Rasteriser:
+    key = (sha, spec.fingerprint())
+    ras = _WORKER_RASTERISERS.get(key)
+    if ras is None:
+        ras = Rasteriser(load_map(path), spec)
+        _WORKER_RASTERISERS[key] = ras
+        while len(_WORKER_RASTERISERS) > 4:
+            _WORKER_RASTERISERS.popitem(last=False)
+    else:
+        _WORKER_RASTERISERS.move_to_end(key)
+    return ras
+
+
+def _render_shard(task: _ShardTask) -> dict[str, Any]:
+    """Render one shard, write its ``.npy`` and index, return its counts and manifest entry."""
+    spec, out = task.spec, task.out
+    npy, idx = out / shard_file(task.shard), out / index_file(task.shard)
+    tracks = _TrackReader(task.root, task.track_shards)
+    empty_rasteriser = Rasteriser(None, spec)
+    counts: dict[str, Any] = {
+        "shard": task.shard,
+        "rendered": len(task.samples),
+        "empty": 0,
+        "no_centre": 0,
+        "heading_source": {"column": 0, "motion": 0, "lane": 0, "none": 0},
+        "centre_role": {"ego": 0, "focal": 0},
+        "previews": [],
+    }
+    view_cache: tuple[str, _LogView] | None = None
+    images = np.zeros((len(task.samples), *spec.shape), dtype=np.uint8)
+    index_rows: list[dict[str, Any]] = []
+    t0 = time.perf_counter()
+    for row_i, sample in enumerate(task.samples):
+        log_id = str(sample["log_id"])
+        if view_cache is None or view_cache[0] != log_id:
+            view_cache = (log_id, _LogView(tracks.get(log_id)))
+        view = view_cache[1]
+        map_path = task.map_files.get(log_id)
+        ras = empty_rasteriser
+        if map_path is not None:
+            ras = _worker_rasteriser(map_path, task.map_hashes[str(map_path)], spec)
+        c = view.centre(sample, task.centre, ras.store)
+        if c is None:
+            counts["no_centre"] += 1
+            res = empty_rasteriser.render(0.0, 0.0, None, warn=False, out=images[row_i])
+            cx: float | None = None
+            cy: float | None = None
+            src = "none"
+        else:
+            # Drawn straight into the shard row (zeroed by np.zeros): no per-raster allocation or copy.
+            res = ras.render(c.x, c.y, c.heading, warn=False, out=images[row_i])
+            cx, cy = c.x, c.y
+            src = c.heading_source if spec.rotate else "none"
+            counts["centre_role"][c.role or "focal"] += 1
+        counts["heading_source"][src] += 1
+        if res.empty:
+            counts["empty"] += 1
+        index_rows.append(
+            {
+                "sample_id": str(sample["sample_id"]),
+                "log_id": log_id,
+                "shard": npy.name,
+                "row": row_i,
+                "centre_track_id": c.track_id if c else None,
+                "centre_role": c.role if c else None,
+                "centre_x": cx,
+                "centre_y": cy,
+                "heading": res.heading,
+                "heading_source": src,
+                "affine": [float(v) for v in res.affine.reshape(-1)],
+                "map_id": task.map_ids.get(log_id),
+                "map_file": str(map_path) if map_path is not None else None,
+                "empty": res.empty,
+            }
+        )
+        k = task.first + row_i
+        if k < task.preview and c is not None:
+            png = out / "previews" / f"{k:05d}_{_safe(str(sample['sample_id']))}.png"
+            _write_preview(png, res.image, res.affine, spec, view, sample, c)
+            counts["previews"].append(str(png))
+    counts["render_seconds"] = time.perf_counter() - t0
+    with atomic_path(npy) as tmp, tmp.open("wb") as fh:
+        np.save(fh, images, allow_pickle=False)
+    write_parquet(pa.Table.from_pylist(index_rows, schema=arrow_schema("raster")), idx)
+    counts["entry"] = _shard_entry(npy, idx, len(task.samples))
+    return counts
+
+
 class _TrackReader:
     """A log's track rows, reading each track shard once (shards hold whole logs sorted by log id), instead
     of one filtered Parquet read per log."""
 
-    def __init__(self, root: Path, logs: pa.Table) -> None:
+    def __init__(self, root: Path, shard_of: dict[str, str]) -> None:
         self.root = root
-        self.shard_of = dict(zip(logs.column("log_id").to_pylist(), logs.column("shard").to_pylist(), strict=True))
+        self.shard_of = shard_of
         self._shard: str | None = None
         self._table: pa.Table | None = None
         self._slices: dict[str, tuple[int, int]] = {}
@@ -355,16 +455,6 @@ def _spec_kwargs(spec: RasterSpec) -> dict[str, Any]:
         "direction_bins": spec.direction_bins,
         "shift": spec.shift,
     }
-
-
-def _rasteriser_for(cache: dict[Path, Rasteriser], path: Path | None, store: MapStore, spec: RasterSpec) -> Rasteriser:
-    assert path is not None
-    ras = cache.get(path)
-    if ras is None or ras.store is not store:
-        if len(cache) >= 4:  # bounded, like the MapSource's store cache
-            cache.pop(next(iter(cache)))
-        ras = cache[path] = Rasteriser(store, spec)
-    return ras
 
 
 def _prepare_folder(out: Path, spec: RasterSpec, centre: str, identity: dict[str, Any], force: bool) -> None:

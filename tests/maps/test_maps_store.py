@@ -72,6 +72,48 @@ def test_grid_query_equals_linear_scan(mia_crop: MapStore) -> None:
         assert got == _brute_chunks(mia_crop, FeatureKind.LANE_CENTERLINE, box)
 
 
+def test_dense_cell_table_equals_bisect_fallback(mia_crop: MapStore, monkeypatch: pytest.MonkeyPatch) -> None:
+    import logpipe.maps.store as store_mod
+
+    dense = mia_crop.render_layer(FeatureKind.LANE_CENTERLINE)
+    assert dense.cell_start is not None
+    monkeypatch.setattr(store_mod, "MAX_DENSE_CELLS", 0)  # as for a huge, sparse map
+    sparse = MapStore(mia_crop.table).render_layer(FeatureKind.LANE_CENTERLINE)
+    assert sparse.cell_start is None
+    rng = np.random.default_rng(1)
+    xmin, ymin, xmax, ymax = mia_crop.bounds
+    for _ in range(300):
+        cx, cy = rng.uniform(xmin - 200, xmax + 200), rng.uniform(ymin - 200, ymax + 200)
+        half = rng.uniform(1, 120)
+        box = (cx - half, cy - half, cx + half, cy + half)
+        assert dense.candidate_ranges(*box) == sparse.candidate_ranges(*box)
+
+
+@pytest.mark.parametrize("rows", [1, 3, 8])
+def test_band_order_ranges_cover_every_overlapping_chunk(
+    mia_crop: MapStore, monkeypatch: pytest.MonkeyPatch, rows: int
+) -> None:
+    import logpipe.maps.store as store_mod
+
+    layer = mia_crop.render_layer(FeatureKind.LANE_CENTERLINE)
+    dense = store_mod.BandOrder(layer, rows)
+    monkeypatch.setattr(store_mod, "MAX_DENSE_CELLS", 0)
+    sparse = store_mod.BandOrder(layer, rows)
+    assert dense.start is not None and sparse.start is None
+    assert sorted(dense.order.tolist()) == list(range(len(layer)))
+    assert (dense.order[dense.position] == np.arange(len(layer))).all()
+    rng = np.random.default_rng(2)
+    xmin, ymin, xmax, ymax = mia_crop.bounds
+    for _ in range(300):
+        cx, cy = rng.uniform(xmin - 200, xmax + 200), rng.uniform(ymin - 200, ymax + 200)
+        half = rng.uniform(1, 120)
+        box = (cx - half, cy - half, cx + half, cy + half)
+        ranges = dense.ranges(*box)
+        assert ranges == sparse.ranges(*box)
+        got = {int(dense.order[p]) for a, b in ranges for p in range(a, b)}
+        assert set(layer.overlapping(*box).tolist()) <= got
+
+
 def test_window_is_superset_and_preserves_segments(mia_crop: MapStore) -> None:
     layer = mia_crop.layer(FeatureKind.LANE_CENTERLINE)
     # Every chunk is at most one cell wide or listed as oversize.

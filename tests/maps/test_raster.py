@@ -159,6 +159,30 @@ def test_matches_reference_on_av2_map_all_channels() -> None:
         assert all(res.image[c].max() > 0 for c in range(5))
 
 
+@pytest.mark.parametrize("channels", [DEFAULT_CHANNELS, ("lane_centerline", "lane_up", "lane_down")])
+def test_reused_rasteriser_matches_reference_on_random_windows(channels: tuple[str, ...]) -> None:
+    # One rasteriser for many windows: its per-layer scratch buffers are rewritten by every render, so
+    # windows in, at the edge of and off the map, in any order and heading, must each match the reference.
+    store = load_map(DATA / "MIA_lane_centerlines_crop_2645.npz")
+    xmin, ymin, xmax, ymax = store.bounds
+    rng = np.random.default_rng(3)
+    for rotate in (False, True):
+        spec = RasterSpec(rotate=rotate, channels=channels)
+        ras = Rasteriser(store, spec)
+        out = np.zeros(spec.shape, np.uint8)
+        for _ in range(40):
+            cx, cy = rng.uniform(xmin - 60, xmax + 60), rng.uniform(ymin - 60, ymax + 60)
+            h = float(rng.uniform(-math.pi, math.pi))
+            res = ras.render(cx, cy, h, warn=False)
+            assert np.array_equal(res.image, render_baseline(store, spec, cx, cy, h))
+            out[:] = 0
+            into = ras.render(cx, cy, h, warn=False, out=out)
+            assert into.image is out and np.array_equal(out, res.image)
+            assert into.n_features == res.n_features and np.array_equal(into.affine, res.affine)
+    with pytest.raises(ValueError, match="out must be"):
+        ras.render(0.0, 0.0, out=np.zeros((1, 224, 224), np.uint8))
+
+
 def test_rendering_is_deterministic_and_spec_fingerprinted() -> None:
     store = load_map(DATA / "MIA_lane_centerlines_crop_2645.npz")
     a = Rasteriser(store, S(rotate=True)).render(419.35, 1125.93, 0.3).image
