@@ -10,6 +10,7 @@ from __future__ import annotations
 import importlib.util
 import multiprocessing
 import os
+import sys
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from typing import Any, Literal, TypeVar
@@ -34,6 +35,33 @@ def _init_worker() -> None:
     pa.set_io_thread_count(1)
 
 
+def _context(fn: Callable[..., Any]) -> multiprocessing.context.BaseContext:
+    context = multiprocessing.get_context("forkserver")
+    # Workers fork from a server that already imported the work function's module (and pandas, which pyarrow
+    # imports lazily): each worker then starts in milliseconds instead of re-importing for ~1 s. Under the
+    # ``logpipe`` console script every worker also re-imports that script (spawn semantics), i.e. the CLI:
+    # preloaded too, that costs nothing per worker.
+    preload = [fn.__module__] + [m for m in ("pandas",) if importlib.util.find_spec(m) is not None]
+    preload += [m for m in ("logpipe.cli",) if m in sys.modules]
+    context.set_forkserver_preload(preload)
+    return context
+
+
+def warm_up(fn: Callable[..., Any], *, workers: int = 0, backend: Backend = "local") -> None:
+    """Start the local worker server for ``fn`` now, in the background.
+
+    Its imports take ~1-2 s of one core; started before the caller's own serial work (finding and hashing
+    inputs) they overlap it instead of delaying the first batch. A no-op when ``run_ordered`` would not use
+    a pool.
+    """
+    if backend != "local" or (workers or default_workers()) <= 1:
+        return
+    from multiprocessing import forkserver
+
+    _context(fn)
+    forkserver.ensure_running()
+
+
 def run_ordered(
     fn: Callable[[T], R], items: Sequence[T], *, workers: int = 0, backend: Backend = "local"
 ) -> Iterator[R]:
@@ -46,11 +74,7 @@ def run_ordered(
         for item in items:
             yield fn(item)
         return
-    context = multiprocessing.get_context("forkserver")
-    # Workers fork from a server that already imported the work function's module (and pandas, which pyarrow
-    # imports lazily): each worker then starts in milliseconds instead of re-importing for ~1 s.
-    preload = [fn.__module__] + [m for m in ("pandas",) if importlib.util.find_spec(m) is not None]
-    context.set_forkserver_preload(preload)
+    context = _context(fn)
     with ProcessPoolExecutor(max_workers=min(workers, len(items)), mp_context=context,
                              initializer=_init_worker) as pool:
         # Bounded look-ahead keeps memory at ~2 batches per worker however many items there are.

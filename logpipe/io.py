@@ -6,7 +6,7 @@ import hashlib
 import json
 import os
 import tempfile
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
 from typing import IO, Any
@@ -27,13 +27,56 @@ def _current_umask() -> int:
 _FILE_MODE = 0o666 & ~_current_umask()
 
 # Fixed writer settings so that the same table always gives the same bytes (reruns are byte-identical).
+# zstd level 1: on real Argoverse shards ~3x less CPU than level 3 with dictionaries on every column, and
+# (with the per-column encodings of ``parquet_options``) ~25% smaller files.
 PARQUET_OPTIONS: dict[str, Any] = {
     "compression": "zstd",
-    "compression_level": 3,
-    "use_dictionary": True,
+    "compression_level": 1,
     "write_statistics": True,
     "row_group_size": 256 * 1024,
 }
+
+
+def _leaf_paths(field: pa.Field, prefix: str = "") -> Iterator[tuple[str, pa.DataType]]:
+    """Parquet leaf column paths of ``field`` (the names ``use_dictionary``/``column_encoding`` match)."""
+    path = prefix + field.name
+    kind = field.type
+    if pa.types.is_list(kind) or pa.types.is_large_list(kind) or pa.types.is_fixed_size_list(kind):
+        yield from _leaf_paths(pa.field("element", kind.value_type), path + ".list.")
+    elif pa.types.is_struct(kind):
+        for i in range(kind.num_fields):
+            yield from _leaf_paths(kind.field(i), path + ".")
+    elif pa.types.is_map(kind):
+        yield from _leaf_paths(pa.field("key", kind.key_type), path + ".key_value.")
+        yield from _leaf_paths(pa.field("value", kind.item_type), path + ".key_value.")
+    else:
+        yield path, kind
+
+
+def parquet_options(schema: pa.Schema, string_statistics: Sequence[str] | None = None) -> dict[str, Any]:
+    """``PARQUET_OPTIONS`` plus per-column encodings for ``schema``: dictionaries for ids, labels and times
+    (few distinct values), byte-stream-split for floats (coordinates are nearly all distinct, so a
+    dictionary is built and then abandoned; split bytes compress better and cost less).
+
+    Args:
+        schema: the table's schema.
+        string_statistics: top-level string columns that get min/max statistics (those readers filter on);
+            None = all. Numbers always get them; string min/max is ~20% of writing a track shard.
+    """
+    leaves = [(f.name, path, kind) for f in schema for path, kind in _leaf_paths(f)]
+    floats = [path for _, path, kind in leaves if pa.types.is_floating(kind)]
+    options = {
+        **PARQUET_OPTIONS,
+        "use_dictionary": [path for _, path, kind in leaves if not pa.types.is_floating(kind)],
+        "column_encoding": dict.fromkeys(floats, "BYTE_STREAM_SPLIT"),
+    }
+    if string_statistics is not None:
+        wanted = set(string_statistics)
+        options["write_statistics"] = [
+            path for top, path, kind in leaves
+            if top in wanted or not (pa.types.is_string(kind) or pa.types.is_large_string(kind))
+        ]
+    return options
 
 
 def sha256_bytes(data: bytes) -> str:
@@ -91,7 +134,7 @@ def atomic_open(target: Path, mode: str = "wb") -> Iterator[IO[Any]]:
 def write_parquet(table: pa.Table, target: Path, options: dict[str, Any] | None = None) -> None:
     """Write ``table`` to ``target`` atomically with fixed, reproducible writer settings."""
     with atomic_path(target) as tmp:
-        pq.write_table(table, tmp, **(options or PARQUET_OPTIONS))
+        pq.write_table(table, tmp, **(options or parquet_options(table.schema)))
 
 
 def write_json(data: Any, target: Path, *, indent: int | None = 2) -> None:

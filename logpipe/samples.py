@@ -192,28 +192,36 @@ def _first_windows(
     new_step = (steps[1:] != steps[:-1]) | (log_code[1:] != log_code[:-1])
     first_of_step = np.flatnonzero(np.concatenate([[True], new_step]))
     step_start = np.searchsorted(first_of_step, starts)
+    # Every per-log quantity as one array op over the logs long enough for a window; the loop below only
+    # gathers the (few) target names of each log.
+    eligible = np.flatnonzero(n_steps >= seq)
+    step_rows = first_of_step[step_start[eligible][:, None] + np.arange(seq)]  # (logs, seq) first row per step
+    step_ts = ts[step_rows]
+    names_of = [log_names[c] for c in log_code[starts[eligible]].tolist()]
+    period = np.array([1e9 / rate[n] if rate.get(n) else 0.0 for n in names_of], dtype=np.float64)
+    off = np.abs(np.diff(step_ts, axis=1) - period[:, None]) > REGULAR_TOLERANCE * period[:, None]
+    regular = (period == 0) | ~off.any(axis=1)
     out: dict[str, list[object]] = {name: [] for name in ("sample_id", "log_id", "start_step", "current_step",
                                                             "end_step", "start_ns", "current_ns", "end_ns",
                                                             "focal_track_id", "target_track_ids", "regular")}
-    for i in np.flatnonzero(n_steps >= seq).tolist():
+    starts_ns, current_ns, end_ns = (step_ts[:, k].tolist() for k in (0, protocol.obs_len - 1, seq - 1))
+    regular_list, focal_list = regular.tolist(), first_focal[eligible].tolist()
+    for j, i in enumerate(eligible.tolist()):
         names = sorted(str(t) for t in target_names[split_at[i]:split_at[i + 1]])
         if len(names) < protocol.min_targets:
             continue
-        log_id = log_names[log_code[starts[i]]]
-        step_ts = ts[first_of_step[step_start[i]:step_start[i] + seq]]
-        period = 1e9 / rate[log_id] if rate.get(log_id) else 0.0
-        regular = bool(period == 0 or np.all(np.abs(np.diff(step_ts) - period) <= REGULAR_TOLERANCE * period))
+        log_id = names_of[j]
         out["sample_id"].append(f"{log_id}:0")
         out["log_id"].append(log_id)
         out["start_step"].append(0)
         out["current_step"].append(protocol.obs_len - 1)
         out["end_step"].append(seq - 1)
-        out["start_ns"].append(int(step_ts[0]))
-        out["current_ns"].append(int(step_ts[protocol.obs_len - 1]))
-        out["end_ns"].append(int(step_ts[-1]))
-        out["focal_track_id"].append(str(track_names[track_code[first_focal[i]]]) if first_focal[i] >= 0 else None)
+        out["start_ns"].append(starts_ns[j])
+        out["current_ns"].append(current_ns[j])
+        out["end_ns"].append(end_ns[j])
+        out["focal_track_id"].append(str(track_names[track_code[focal_list[j]]]) if focal_list[j] >= 0 else None)
         out["target_track_ids"].append(names)
-        out["regular"].append(regular)
+        out["regular"].append(bool(regular_list[j]))
     return out
 
 

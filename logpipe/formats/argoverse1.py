@@ -14,7 +14,7 @@ from __future__ import annotations
 import re
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any, ClassVar
+from typing import ClassVar
 
 import numpy as np
 import pyarrow as pa
@@ -26,23 +26,28 @@ from logpipe.formats._text import (
     check_finite,
     check_time_and_duplicates,
     decimal_seconds_to_ns,
+    dictionary_column,
     first_true,
     log_ids_column,
     parse_files,
     row_error,
+    stem,
+    times_sorted_and_unique,
 )
 from logpipe.formats.base import ParsedLogs, files_with_suffix
 from logpipe.io import as_numpy
-from logpipe.samples import steps_from_sorted_times
+from logpipe.samples import TrackCodes, steps_from_sorted_times
 from logpipe.types import PROTOCOLS, LogMeta, ObjectType, Role, SampleProtocol, SourceFile
 
 _NON_SPACE = re.compile(rb"\S")
 COLUMNS = ["TIMESTAMP", "TRACK_ID", "OBJECT_TYPE", "X", "Y", "CITY_NAME"]
 HEADER = ",".join(COLUMNS).encode()
+# Dictionary-encoded while parsing: ~50 distinct timestamps and tracks per file, and every later step
+# (exact time conversion, duplicate check, track codes) wants the codes anyway.
 _TYPES = {
-    "TIMESTAMP": pa.string(),
-    "TRACK_ID": pa.string(),
-    "OBJECT_TYPE": pa.dictionary(pa.int32(), pa.string()),  # 3 values: encode while parsing
+    "TIMESTAMP": pa.dictionary(pa.int32(), pa.string()),
+    "TRACK_ID": pa.dictionary(pa.int32(), pa.string()),
+    "OBJECT_TYPE": pa.dictionary(pa.int32(), pa.string()),
     "X": pa.float64(),
     "Y": pa.float64(),
     "CITY_NAME": pa.dictionary(pa.int32(), pa.string()),
@@ -75,8 +80,8 @@ class Argoverse1Adapter:
             sources, keep_going=keep_going, names=COLUMNS, types=_TYPES, delimiter=",", header_lines=1,
             validate=_validate, check_header=_check_header,
         )
-        tracks, logs = _to_canonical(table, batch, good)
-        return ParsedLogs(tracks=tracks, logs=logs, failures=failures)
+        tracks, logs, codes = _to_canonical(table, batch, good)
+        return ParsedLogs(tracks=tracks, logs=logs, failures=failures, codes=codes if tracks.num_rows else None)
 
 
 def _check_header(source: SourceFile, blob: bytes) -> SourceError | None:
@@ -102,88 +107,88 @@ def _check_header(source: SourceFile, blob: bytes) -> SourceError | None:
 
 
 def _validate(table: pa.Table, batch: TextBatch, sources: Sequence[SourceFile]) -> tuple[pa.Table, list[SourceError]]:
-    """Checks, plus the exact nanosecond timestamps (column ``_ns``) that the checks need anyway."""
+    """Checks, plus the exact nanosecond timestamps (column ``_ns``) that the checks need anyway.
+
+    Every check is one vectorised pass over the batch; line-level detail is worked out only for a batch
+    that fails one.
+    """
     errors = check_finite(table, ["X", "Y"], batch, sources)
     files = batch.file_index
-    ns, valid = decimal_seconds_to_ns(table.column("TIMESTAMP"))
+    stamps = dictionary_column(table.column("TIMESTAMP"))
+    ns, valid = decimal_seconds_to_ns(stamps)
     valid_np = valid.to_numpy(zero_copy_only=False)
     if not valid_np.all():
         row = first_true(~valid_np)
-        value = table.column("TIMESTAMP")[row].as_py()
+        value = stamps[row].as_py()
         errors.append(row_error(batch, sources, row, f"not a decimal number of seconds: {value!r}", "TIMESTAMP"))
-    kinds = table.column("OBJECT_TYPE")
-    known = as_numpy(pc.is_in(kinds, value_set=pa.array(list(_ROLE))))
-    if not known.all():
-        row = first_true(~known)
+    kinds = dictionary_column(table.column("OBJECT_TYPE"))
+    unknown = [i for i, v in enumerate(kinds.dictionary.to_pylist()) if v not in _ROLE]
+    if unknown:
+        row = first_true(np.isin(kinds.indices.to_numpy(), unknown))
         reason = f"unknown OBJECT_TYPE {kinds[row].as_py()!r} (AV, AGENT, OTHERS)"
         errors.append(row_error(batch, sources, row, reason, "OBJECT_TYPE"))
-    city = _codes(table.column("CITY_NAME"))
+    city = dictionary_column(table.column("CITY_NAME")).indices.to_numpy()
     changes = np.flatnonzero((city[1:] != city[:-1]) & (files[1:] == files[:-1])) + 1
     if len(changes):
         errors.append(row_error(batch, sources, int(changes[0]), "CITY_NAME changes inside the file", "CITY_NAME"))
+    tracks = dictionary_column(table.column("TRACK_ID"))
+    ns_np = ns.to_numpy()
     if not errors:
-        tracks = pc.dictionary_encode(table.column("TRACK_ID")).combine_chunks().indices.to_numpy()
-        errors.extend(
-            check_time_and_duplicates(ns.to_numpy(), tracks.astype(np.int64), batch, sources,
-                                      "TIMESTAMP", "TRACK_ID")
-        )
-    return table.append_column("_ns", ns), errors
+        track_codes = tracks.indices.to_numpy().astype(np.int64)
+        if not times_sorted_and_unique(ns_np, track_codes, files):  # then find which file and line
+            errors.extend(
+                check_time_and_duplicates(ns_np, track_codes, batch, sources, "TIMESTAMP", "TRACK_ID")
+            )
+    combined = {"TRACK_ID": tracks, "OBJECT_TYPE": kinds}
+    columns = [combined.get(n, table.column(n)) for n in table.column_names]
+    return pa.table([*columns, ns], names=[*table.column_names, "_ns"]), errors
 
 
 def _to_canonical(
     table: pa.Table, batch: TextBatch, sources: Sequence[SourceFile]
-) -> tuple[pa.Table, list[LogMeta]]:
+) -> tuple[pa.Table, list[LogMeta], TrackCodes]:
     files = batch.file_index
-    ns = table.column("_ns")
-    ns_np = as_numpy(ns)
-    kinds = table.column("OBJECT_TYPE")
-    roles = _map_values(kinds, _ROLE)
-    object_types = _map_values(kinds, _OBJECT_TYPE)
-    tracks = pa.table(
+    ns_np = as_numpy(table.column("_ns"))
+    kinds = dictionary_column(table.column("OBJECT_TYPE"))
+    tracks = dictionary_column(table.column("TRACK_ID"))
+    kind_names = kinds.dictionary.to_pylist()
+    roles = pc.take(pa.array([_ROLE[k] for k in kind_names], pa.string()), kinds.indices)
+    object_types = pc.take(pa.array([_OBJECT_TYPE[k] for k in kind_names], pa.string()), kinds.indices)
+    stems = [stem(s.relpath) for s in sources]
+    table_out = pa.table(
         {
             "log_id": log_ids_column(batch, sources),
-            "timestamp_ns": ns,
+            "timestamp_ns": table.column("_ns"),
             "step": pa.array(steps_from_sorted_times(ns_np, files).astype(np.int32)),
-            "track_id": table.column("TRACK_ID"),
+            "track_id": tracks.cast(pa.string()),
             "object_type": object_types,
             "role": roles,
             "x": table.column("X"),
             "y": table.column("Y"),
-            "source_type": _dictionary(kinds).cast(pa.string()),
+            "source_type": kinds.cast(pa.string()),
         }
     )
+    # Rows are in file order and every file has rows, so the file index is the log code (first-seen order).
+    codes = TrackCodes(log_code=files, log_names=stems, track_code=tracks.indices.to_numpy().astype(np.int64),
+                       track_names=np.array(tracks.dictionary.to_pylist(), dtype=object))
+    cities = dictionary_column(table.column("CITY_NAME"))
+    city_names = cities.dictionary.to_pylist()
+    city_codes = cities.indices.to_numpy()
     starts = batch.row_starts
-    cities = table.column("CITY_NAME")
     logs = []
     for i, source in enumerate(sources):
-        city = cities[int(starts[i])].as_py() if batch.rows_per_file[i] else None
+        city = city_names[city_codes[starts[i]]] if batch.rows_per_file[i] else None
         logs.append(
             LogMeta(
-                log_id=Path(source.relpath).stem,
+                log_id=stems[i],
                 source_format=Argoverse1Adapter.name,
                 source_file=source.relpath,
                 source_sha256=source.sha256,
                 map_id=city,
                 frame_rate_hz=10.0,
                 memberships=source.memberships,
-                attributes={"sequence_id": Path(source.relpath).stem},
+                attributes={"sequence_id": stems[i]},
             )
         )
-    return tracks, logs
+    return table_out, logs, codes
 
-
-def _dictionary(values: pa.ChunkedArray) -> pa.DictionaryArray:
-    """One dictionary array for a column parsed as dictionary (chunks may carry different dictionaries)."""
-    combined: pa.DictionaryArray = values.unify_dictionaries().combine_chunks()
-    return combined
-
-
-def _codes(values: pa.ChunkedArray) -> Any:
-    return _dictionary(values).indices.to_numpy()
-
-
-def _map_values(values: pa.ChunkedArray, mapping: dict[str, str]) -> pa.Array:
-    """Map each value through ``mapping`` via the dictionary (one lookup per distinct value)."""
-    encoded = _dictionary(values)
-    mapped = pa.array([mapping[v] for v in encoded.dictionary.to_pylist()], pa.string())
-    return pc.take(mapped, encoded.indices)

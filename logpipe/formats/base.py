@@ -16,6 +16,7 @@ from typing import ClassVar, Protocol
 import pyarrow as pa
 
 from logpipe.errors import SourceError
+from logpipe.samples import TrackCodes
 from logpipe.types import LogMeta, SampleProtocol, SourceFile
 
 
@@ -45,11 +46,14 @@ class ParsedLogs:
         logs: one ``LogMeta`` per log present in ``tracks``.
         failures: inputs that could not be read, one ``SourceError`` each (only when the caller asked the
             adapter to keep going; otherwise the first error is raised).
+        codes: integer codes of ``tracks``' log and track ids, when the adapter has them for free (parsed
+            as dictionaries) and ``tracks`` is already in canonical order with ``step``; saves re-hashing.
     """
 
     tracks: pa.Table
     logs: list[LogMeta]
     failures: list[SourceError]
+    codes: TrackCodes | None = None
 
 
 ReadOne = Callable[[SourceFile], tuple[pa.Table, LogMeta, list[SourceError]]]
