@@ -39,7 +39,7 @@ demo: setup
 	$(LP) score $(DEMO)/predict-ethucy/predictions/*.parquet --truth $(DEMO)/ethucy --split eth/test \
 		--out $(DEMO)/score-ethucy
 	$(LP) ingest tests/data/apolloscape --out $(DEMO)/apolloscape
-	$(LP) predict $(DEMO)/apolloscape --predictor kalman --out $(DEMO)/predict-apolloscape
+	$(LP) predict $(DEMO)/apolloscape --out $(DEMO)/predict-apolloscape
 	@echo "demo outputs in $(DEMO): datasets (Parquet shards, samples, manifest, MCAP), rasters and previews,"
 	@echo "predictions (Parquet + MCAP with Foxglove channels) and score reports (report.md, plots)"
 

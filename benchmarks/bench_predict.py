@@ -41,9 +41,76 @@ def _predict(dataset: Path, out: Path, repeats: int, **kwargs: Any) -> dict[str,
         wall = time.perf_counter() - started
         runs.append((s["samples"] / wall, s["model_seconds"] / wall, s["io_seconds"] / wall, s))
     rate, model, io, s = sorted(runs, key=lambda r: r[0])[len(runs) // 2]
+    wait = s.get("io_wait_seconds", 0.0) / (s["samples"] / rate)
+    # IO runs on a writer thread beside the model: io_share is its busy time (it overlaps the model), and
+    # io_blocking_share the time the pipeline waited for it (shard read + waiting for the writer).
+    blocking = (s["io_seconds"] - s.get("io_busy_seconds", 0.0)) / (s["samples"] / rate) + wait
     return {"samples": s["samples"], "rows": s["rows"], "samples_per_s": round(rate, 1),
-            "model_share": round(model, 3), "io_share": round(io, 3),
-            "other_share": round(max(0.0, 1 - model - io), 3)}
+            "model_share": round(model, 3), "io_share": round(io, 3), "io_blocking_share": round(blocking, 3),
+            "other_share": round(max(0.0, 1 - model - blocking), 3)}
+
+
+def _macs_per_sample(dataset: Path, checkpoint: Path, modes: int, **kwargs: Any) -> dict[str, float]:
+    """Multiply-accumulates per sample of the network's matmuls (encoder + decoder, not the backbone) and the
+    environment-lookup gathers, counted from the dataset's real agent counts and the checkpoint's config."""
+    from logpipe.model.checkpoints import read_meta
+    from logpipe.stages import predict as stage
+
+    cfg = read_meta(checkpoint).config.model
+    counts: list[tuple[int, int]] = []  # (agents, decoded agents) per sample
+    original = stage._run_batch
+
+    def spy(run: Any, batch: Any, *args: Any) -> None:
+        for _, _, s in batch:
+            counts.append((len(s.positions), int(np.isfinite(s.positions[:, s.obs_len - 1]).all(axis=1).sum())))
+        original(run, batch, *args)
+
+    with tempfile.TemporaryDirectory() as tmp:
+        stage._run_batch = spy  # type: ignore[assignment]
+        try:
+            stage.predict_dataset(dataset, Path(tmp) / "out", checkpoint=checkpoint, write_mcap=False, **kwargs)
+        finally:
+            stage._run_batch = original  # type: ignore[assignment]
+    f, d, hid, g = cfg.features, cfg.embed_dim, cfg.lstm_dim, cfg.gru_dim
+    d_fst = d * (int(f.ego_trajectory) + int(f.uses_gru))
+    env = d if f.environment else 0
+    gru_in = d * (int(f.position) + int(f.tracking) + int(f.ego_motion))
+    gru = (gru_in + g) * 3 * g + g * d if f.uses_gru else 0  # eqs. 6-7 per scene and step
+    n = np.array([c[0] for c in counts], float)
+    r = np.array([c[1] for c in counts], float)
+    steps = cfg.pred_len - 1
+    enc = n * cfg.obs_len * ((d + env + d_fst + hid) * 4 * hid) + cfg.obs_len * gru
+    dec_rows = r * modes * steps
+    dec = (dec_rows * ((2 + env + d_fst + hid + 1) * 4 * hid + (hid * d if f.tracking else 0) + hid * 2)
+           + modes * steps * gru + r * modes * (hid + cfg.noise_dim) * hid)
+    bag = (n * cfg.obs_len + dec_rows) * cfg.roi_pool**2 * cfg.roi_sampling**2 * 4 * d if f.environment else 0 * n
+    return {"matmul_macs": float((enc + dec).mean()), "gather_macs": float(np.mean(bag)),
+            "lstm_width": float(2 + env + d_fst + hid + 1), "gates": float(4 * hid)}
+
+
+def _matmul_rate(k: int, n: int, repeats: int) -> float:
+    """MAC/s of fp32 matmuls of the decoder's LSTM-step shape (2048-row blocks), on the threads torch uses."""
+    import torch
+
+    a, b = torch.randn(2048, k), torch.randn(k, n)
+    torch.mm(a, b)
+    rates = []
+    for _ in range(max(repeats, 3)):
+        t0 = time.perf_counter()
+        for _ in range(20):
+            torch.mm(a, b)
+        rates.append(20 * 2048 * k * n / (time.perf_counter() - t0))
+    return statistics.median(rates)
+
+
+def _bound(macs: dict[str, float], repeats: int, backbone: float | None = None) -> dict[str, Any]:
+    """Upper bound on samples/s if the network's matmuls ran at the measured fp32 rate with nothing else (no
+    elementwise ops, gathers, IO), plus one backbone pass per sample when the environment net is on."""
+    rate = _matmul_rate(int(macs["lstm_width"]), int(macs["gates"]), repeats)
+    per_sample = macs["matmul_macs"] / rate + (1.0 / backbone if backbone else 0.0)
+    return {"matmul_macs_per_sample": round(macs["matmul_macs"] / 1e6, 1), "gather_macs_per_sample":
+            round(macs["gather_macs"] / 1e6, 1), "measured_fp32_gmac_per_s": round(rate / 1e9, 1),
+            "bound_samples_per_s": round(1.0 / per_sample, 1)}
 
 
 def _backbone_rate(dataset: Path, spec: Any, repeats: int) -> float:
@@ -105,6 +172,7 @@ def run(quick: bool = False) -> dict[str, Any]:
         env = _predict(av1, tmp / "env_out", repeats, checkpoint=env_ckpt, batch_size=32)
         env["backbone_alone_samples_per_s"] = round(backbone, 1)
         env["ratio_to_backbone"] = round(env["samples_per_s"] / backbone, 3)
+        env["floor"] = _bound(_macs_per_sample(av1, env_ckpt, 6, batch_size=32), repeats, backbone)
         result["env_net_argoverse1"] = env
         result["cv_argoverse1"] = _predict(av1, tmp / "cv_av1", repeats, predictor="cv")
         # --- without the environment net: ETH/UCY (PF + TF, the paper's setting there), K = 20.
@@ -116,6 +184,8 @@ def run(quick: bool = False) -> dict[str, Any]:
         chosen = parse_filter(["split=eth/test"] if quick else ["split=hotel/test"])
         result["no_env_net_ethucy"] = _predict(eth, tmp / "plain_out", repeats, checkpoint=plain_ckpt,
                                                sample_filter=chosen, batch_size=128)
+        result["no_env_net_ethucy"]["floor"] = _bound(
+            _macs_per_sample(eth, plain_ckpt, 20, sample_filter=chosen, batch_size=128), repeats)
         result["cv_ethucy"] = _predict(eth, tmp / "cv_eth", repeats, predictor="cv", sample_filter=chosen)
         result["cv_ethucy_no_mcap"] = _predict(eth, tmp / "cv_eth_nomcap", repeats, predictor="cv",
                                                sample_filter=chosen, write_mcap=False)

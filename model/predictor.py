@@ -83,7 +83,7 @@ class NetPredictor:
         for lo in range(0, len(samples), self.batch_size):
             chunk = samples[lo : lo + self.batch_size]
             batch = collate(chunk, self.config)
-            pred = self.net(batch, num_modes, gen)
+            pred = self.net(batch, num_modes, gen, fast=True)
             n = batch.positions.shape[0]
             world = np.full((n, num_modes, t_pred, 2), np.nan)
             rows = pred.rows

@@ -26,10 +26,14 @@ from __future__ import annotations
 import base64
 import dataclasses
 import json
+import queue
 import shutil
+import sys
+import threading
 import time
 import uuid
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -168,12 +172,18 @@ class ChosenPredictor:
     raster_channels: int | None = None
 
 
+# Shipped baselines live in folders named after their method (``ethucy/eth/lstm``, ``apolloscape/noise_lstm``);
+# they are there for the reproduction tables, never the default model.
+BASELINE_FOLDERS = frozenset({"lstm", "noise_lstm"})
+
+
 def shipped_checkpoints(kind: str) -> list[Path]:
-    """Checkpoint folders (with a ``meta.json``) shipped under ``model/checkpoints/<kind>/``, by path."""
+    """Folders (with a ``meta.json``) of the paper's method shipped under ``model/checkpoints/<kind>/``, by path."""
     import logpipe.model
 
     root = Path(logpipe.model.__file__).parent / "checkpoints" / kind
-    return sorted(p.parent for p in root.glob("**/meta.json")) if root.is_dir() else []
+    found = sorted(p.parent for p in root.glob("**/meta.json")) if root.is_dir() else []
+    return [p for p in found if p.name not in BASELINE_FOLDERS]
 
 
 def default_checkpoint(kind: str, split: str | None) -> Path:
@@ -412,10 +422,15 @@ def predict_dataset(
         "protocol": dataset.protocol.to_dict(), "logs_selected": len(logs),
         "samples_selected": sum(len(v) for v in samples_by_log.values()), "shards_skipped_done": 0,
         "samples": 0, "targets": 0, "rows": 0, "targets_unobserved": 0, "samples_without_targets": 0,
-        "mcap_files": 0, "original_messages": 0, "model_seconds": 0.0, "io_seconds": 0.0,
+        "mcap_files": 0, "original_messages": 0, "model_seconds": 0.0, "io_seconds": 0.0, "io_wait_seconds": 0.0,
+        "io_busy_seconds": 0.0,
     }
     previous_threads = torch.get_num_threads()
     torch.set_num_threads(threads or default_workers())
+    # The writer thread (``_ShardWriter``) holds the GIL for long stretches of JSON encoding; with the default
+    # 5 ms switch interval every small torch op of the model thread could wait that long for it.
+    previous_switch = sys.getswitchinterval()
+    sys.setswitchinterval(_SWITCH_INTERVAL_S)
     try:
         for shard in dataset.manifest["shards"]:
             name = str(shard["file"])
@@ -427,12 +442,15 @@ def predict_dataset(
             write_json(state, out_dir / RUN_FILE)
     finally:
         torch.set_num_threads(previous_threads)
+        sys.setswitchinterval(previous_switch)
     summary["shards"] = len(state["shards"])
     summary["rows_total"] = sum(int(s["rows"]) for s in state["shards"])
     summary["seconds"] = round(time.perf_counter() - started, 3)
     summary["samples_per_s"] = round(summary["samples"] / summary["seconds"], 1) if summary["seconds"] else None
     summary["model_seconds"] = round(summary["model_seconds"], 3)
     summary["io_seconds"] = round(summary["io_seconds"], 3)
+    summary["io_wait_seconds"] = round(summary["io_wait_seconds"], 3)
+    summary["io_busy_seconds"] = round(summary["io_busy_seconds"], 3)
     return summary
 
 
@@ -533,8 +551,136 @@ class _SamplePrediction:
 @dataclass
 class _LogOutput:
     log_id: str
-    expected: int
-    done: list[_SamplePrediction]
+    expected: int = 0
+    finished: int = 0
+
+
+_SWITCH_INTERVAL_S = 1e-4
+"""GIL switch interval while predicting (see ``predict_dataset``)."""
+_QUEUED_BATCHES = 2
+"""Batches' worth of predicted samples waiting for the writer before the model waits for it (bounds memory)."""
+
+
+class _ShardWriter:
+    """Writes one shard's outputs on a background thread while the model runs (output encoding, compression and
+    file writes overlap the forward passes; numpy, zstd, pyarrow and torch release the GIL).
+
+    Logs are written one at a time, in shard order: a log's MCAP starts as soon as its first predictions arrive
+    (the original recording is copied first) and its prediction messages and Parquet rows are written as each
+    batch finishes, so one long log (ETH/UCY scenes) overlaps with the model too. Parquet row groups are exactly
+    ``_ROW_GROUP_ROWS`` rows (the last one shorter), whatever the batching.
+    """
+
+    def __init__(self, run: _Run, parquet: pq.ParquetWriter, mcap_dir: Path, entry: dict[str, Any]) -> None:
+        self._run, self._parquet, self._mcap_dir, self._entry = run, parquet, mcap_dir, entry
+        self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="logpipe-predict-write")
+        self._jobs: list[Future[None]] = []
+        self._feeds: dict[str, queue.Queue[list[_SamplePrediction] | None]] = {}
+        self._buffered: list[pa.Table] = []
+        self._buffered_rows = 0
+        self._queued = 0  # samples handed over and not yet taken by the writer
+        self._limit = _QUEUED_BATCHES * run.batch_size
+        self._taken = threading.Condition()
+        self.busy_seconds = 0.0  # writer-thread time spent writing (not waiting for input)
+        self.wait_seconds = 0.0  # main-thread time spent waiting for the writer
+        self.mcap_files = 0
+        self.original_messages = 0
+
+    def add(self, out: _LogOutput, predictions: list[_SamplePrediction]) -> None:
+        """Queue a batch's predictions of one log (starting the log's job at its first batch)."""
+        self._raise_failed()
+        if out.log_id not in self._feeds:
+            feed: queue.Queue[list[_SamplePrediction] | None] = queue.Queue()
+            self._feeds[out.log_id] = feed
+            self._jobs.append(self._pool.submit(self._write_log, out.log_id, feed))
+        with self._taken:
+            self._queued += max(len(predictions), 1)
+        self._feeds[out.log_id].put(predictions)
+
+    def throttle(self) -> None:
+        """Wait while more than ``_QUEUED_BATCHES`` batches' worth of samples are queued (bounded memory).
+
+        Only call it when every log before the oldest unfinished one has been ended: the writer can then take
+        every queued batch (it never waits for a log the caller has not finished).
+        """
+        t0 = time.perf_counter()
+        with self._taken:
+            while self._queued > self._limit:
+                self._taken.wait(timeout=0.05)
+                self._raise_failed()  # a failed writer no longer takes batches
+        self.wait_seconds += time.perf_counter() - t0
+
+    def end(self, out: _LogOutput) -> None:
+        """No more predictions for this log."""
+        if out.log_id not in self._feeds:  # a log without predictions still gets its MCAP
+            self.add(out, [])
+        self._feeds.pop(out.log_id).put(None)
+
+    def close(self) -> None:
+        """Wait for every log, write the last row group; re-raises a writer error."""
+        t0 = time.perf_counter()
+        for job in self._jobs:
+            job.result()
+        if self._buffered:
+            self._parquet.write_table(pa.concat_tables(self._buffered), row_group_size=_ROW_GROUP_ROWS)
+            self._buffered = []
+        self._pool.shutdown()
+        self.wait_seconds += time.perf_counter() - t0
+
+    def abort(self) -> None:
+        """Stop after an error elsewhere: end every open log and drop queued work."""
+        for feed in self._feeds.values():
+            feed.put(None)
+        self._feeds.clear()
+        self._pool.shutdown(wait=True, cancel_futures=True)
+
+    def _raise_failed(self) -> None:
+        while self._jobs and self._jobs[0].done():
+            self._jobs.pop(0).result()
+
+    def _write_log(self, log_id: str, feed: queue.Queue[list[_SamplePrediction] | None]) -> None:
+        run = self._run
+        started = time.perf_counter()
+        waited = 0.0
+
+        def predictions() -> Iterator[_SamplePrediction]:
+            nonlocal waited
+            while True:
+                t0 = time.perf_counter()
+                item = feed.get()
+                waited += time.perf_counter() - t0
+                if item is None:
+                    return
+                with self._taken:
+                    self._queued -= max(len(item), 1)
+                    self._taken.notify()
+                self._add_rows(_log_table(run, log_id, item))
+                self._entry["samples"] += len(item)
+                yield from item
+
+        try:
+            if run.write_mcap:
+                self.original_messages += _write_log_mcap(run, log_id, predictions(), self._mcap_dir / f"{log_id}.mcap")
+                self.mcap_files += 1
+            else:
+                for _ in predictions():
+                    pass
+        finally:
+            self.busy_seconds += time.perf_counter() - started - waited
+
+    def _add_rows(self, table: pa.Table) -> None:
+        if not table.num_rows:
+            return
+        self._entry["rows"] += table.num_rows
+        self._buffered.append(table)
+        self._buffered_rows += table.num_rows
+        if self._buffered_rows >= _ROW_GROUP_ROWS:
+            whole = pa.concat_tables(self._buffered)
+            cut = whole.num_rows // _ROW_GROUP_ROWS * _ROW_GROUP_ROWS
+            self._parquet.write_table(whole.slice(0, cut), row_group_size=_ROW_GROUP_ROWS)
+            rest = whole.slice(cut)
+            self._buffered = [rest] if rest.num_rows else []
+            self._buffered_rows = rest.num_rows
 
 
 def _predict_shard(run: _Run, shard: str, out_dir: Path, summary: dict[str, Any],
@@ -549,27 +695,26 @@ def _predict_shard(run: _Run, shard: str, out_dir: Path, summary: dict[str, Any]
     mcap_rel = mcap_folder(shard)  # mcap/part-NNNNN, as the dataset groups its MCAPs
     try:
         (staging / PREDICTIONS_DIR).mkdir(parents=True)
+        (staging / mcap_rel).mkdir(parents=True)
         t0 = time.perf_counter()
         tracks = pq.read_table(run.dataset.root / shard)
         summary["io_seconds"] += time.perf_counter() - t0
         options = {k: v for k, v in PARQUET_OPTIONS.items() if k != "row_group_size"}
-        with pq.ParquetWriter(staging / parquet_rel, run.schema, **options) as writer:
-            buffered: list[pa.Table] = []
-            for out in _predicted_logs(run, tracks, shard_logs, summary, progress):
-                t0 = time.perf_counter()
-                table = _log_table(run, out)
-                entry["samples"] += len(out.done)
-                entry["rows"] += table.num_rows
-                buffered.append(table)
-                if sum(t.num_rows for t in buffered) >= _ROW_GROUP_ROWS:
-                    writer.write_table(pa.concat_tables(buffered), row_group_size=_ROW_GROUP_ROWS)
-                    buffered = []
-                if run.write_mcap:
-                    _write_log_mcap(run, out, staging / mcap_rel / f"{out.log_id}.mcap", summary)
-                summary["io_seconds"] += time.perf_counter() - t0
-            t0 = time.perf_counter()
-            if buffered:
-                writer.write_table(pa.concat_tables(buffered), row_group_size=_ROW_GROUP_ROWS)
+        with pq.ParquetWriter(staging / parquet_rel, run.schema, **options) as parquet:
+            sink = _ShardWriter(run, parquet, staging / mcap_rel, entry)
+            try:
+                _predict_logs(run, tracks, shard_logs, summary, progress, sink)
+                sink.close()
+            except BaseException:
+                sink.abort()
+                raise
+            finally:
+                summary["io_seconds"] += sink.busy_seconds  # overlapped with the model (writer thread)
+                summary["io_busy_seconds"] += sink.busy_seconds
+                summary["io_wait_seconds"] += sink.wait_seconds
+                summary["mcap_files"] += sink.mcap_files
+                summary["original_messages"] += sink.original_messages
+        t0 = time.perf_counter()
         (out_dir / PREDICTIONS_DIR).mkdir(exist_ok=True)
         (staging / parquet_rel).replace(out_dir / parquet_rel)
         if run.write_mcap:
@@ -587,9 +732,10 @@ def _predict_shard(run: _Run, shard: str, out_dir: Path, summary: dict[str, Any]
     return entry
 
 
-def _predicted_logs(run: _Run, tracks: pa.Table, shard_logs: list[str], summary: dict[str, Any],
-                    progress: Callable[[int], None] | None) -> Iterator[_LogOutput]:
-    """Yield each log of the shard, in order, once all its samples are predicted.
+def _predict_logs(run: _Run, tracks: pa.Table, shard_logs: list[str], summary: dict[str, Any],
+                  progress: Callable[[int], None] | None, sink: _ShardWriter) -> None:
+    """Predict every selected sample of the shard's logs, handing results to ``sink`` batch by batch and ending
+    each log once all its samples are predicted.
 
     Batches span logs (Argoverse has one sample per log), so a log is finished when a batch has gone past it.
     """
@@ -602,7 +748,7 @@ def _predicted_logs(run: _Run, tracks: pa.Table, shard_logs: list[str], summary:
     batch: list[tuple[_LogOutput, dict[str, Any], SceneSample]] = []
     batch_index = 0
     for log_id in shard_logs:
-        out = _LogOutput(log_id, 0, [])
+        out = _LogOutput(log_id)
         pending.append(out)
         lo, hi = slices[log_id]
         windows = LogWindows(tracks.slice(lo, hi - lo), run.dataset.protocol.obs_len)
@@ -614,13 +760,21 @@ def _predicted_logs(run: _Run, tracks: pa.Table, shard_logs: list[str], summary:
             out.expected += 1
             batch.append((out, row, sample))
             if len(batch) >= run.batch_size:
-                _run_batch(run, batch, batch_index, summary, progress)
+                _run_batch(run, batch, batch_index, summary, progress, sink)
                 batch, batch_index = [], batch_index + 1
-        while pending and len(pending[0].done) == pending[0].expected and pending[0] is not out:
-            yield pending.pop(0)
+                _end_finished(pending, out, sink)
+                sink.throttle()
+        _end_finished(pending, out, sink)
     if batch:
-        _run_batch(run, batch, batch_index, summary, progress)
-    yield from pending
+        _run_batch(run, batch, batch_index, summary, progress, sink)
+    for out in pending:
+        sink.end(out)
+
+
+def _end_finished(pending: list[_LogOutput], current: _LogOutput, sink: _ShardWriter) -> None:
+    """End the oldest logs whose samples are all predicted (not ``current``: more of its samples may come)."""
+    while pending and pending[0].finished == pending[0].expected and pending[0] is not current:
+        sink.end(pending.pop(0))
 
 
 class LogWindows:
@@ -698,7 +852,7 @@ def _model_input(run: _Run, windows: LogWindows, row: dict[str, Any]) -> SceneSa
 
 
 def _run_batch(run: _Run, batch: list[tuple[_LogOutput, dict[str, Any], SceneSample]], index: int,
-               summary: dict[str, Any], progress: Callable[[int], None] | None) -> None:
+               summary: dict[str, Any], progress: Callable[[int], None] | None, sink: _ShardWriter) -> None:
     """Forecast one batch and hand each sample's result to its log."""
     import torch
 
@@ -709,6 +863,7 @@ def _run_batch(run: _Run, batch: list[tuple[_LogOutput, dict[str, Any], SceneSam
         futures = run.chosen.model.predict(samples, run.modes, run.seed * 1_000_003 + index)
     summary["model_seconds"] += time.perf_counter() - t0
     protocol = run.dataset.protocol
+    by_log: dict[str, tuple[_LogOutput, list[_SamplePrediction]]] = {}
     for (out, row, sample), forecast in zip(batch, futures, strict=True):
         targets = np.flatnonzero(sample.target_mask)
         fut = np.asarray(forecast, np.float64)[:, : run.modes, : protocol.pred_len]
@@ -716,8 +871,12 @@ def _run_batch(run: _Run, batch: list[tuple[_LogOutput, dict[str, Any], SceneSam
         summary["targets_unobserved"] += int((~ok).sum())
         scores = np.full((int(ok.sum()), run.modes), 1.0 / run.modes)
         step_ns = _future_times(sample, protocol.obs_len, protocol.pred_len, int(run.logs[out.log_id]["median_dt_ns"]))
-        out.done.append(_SamplePrediction(row, sample, targets[ok], fut[ok], scores, step_ns))
+        by_log.setdefault(out.log_id, (out, []))[1].append(
+            _SamplePrediction(row, sample, targets[ok], fut[ok], scores, step_ns))
+        out.finished += 1
         summary["targets"] += int(ok.sum())
+    for out, predictions in by_log.values():  # batch order is log order
+        sink.add(out, predictions)
     summary["samples"] += len(batch)
     if progress:
         progress(len(batch))
@@ -735,25 +894,25 @@ def _future_times(sample: SceneSample, obs_len: int, pred_len: int, dt_ns: int) 
     return result
 
 
-def _log_table(run: _Run, out: _LogOutput) -> pa.Table:
-    """The predictions rows of one log, built column-wise (no per-row Python)."""
+def _log_table(run: _Run, log_id: str, done: list[_SamplePrediction]) -> pa.Table:
+    """The predictions rows of samples of one log, built column-wise (no per-row Python)."""
     schema = run.schema
-    if not out.done:
+    if not done:
         return schema.empty_table()
     k, t = run.modes, run.dataset.protocol.pred_len
     per_target = k * t
-    n_targets = np.array([len(p.targets) for p in out.done])
-    sample_ids = pa.array([p.sample.sample_id for p in out.done], pa.string())
-    track_names = [p.sample.track_ids[i] for p in out.done for i in p.targets]
-    type_names = [OBJECT_TYPES[int(p.sample.object_types[i])] for p in out.done for i in p.targets]
+    n_targets = np.array([len(p.targets) for p in done])
+    sample_ids = pa.array([p.sample.sample_id for p in done], pa.string())
+    track_names = [p.sample.track_ids[i] for p in done for i in p.targets]
+    type_names = [OBJECT_TYPES[int(p.sample.object_types[i])] for p in done for i in p.targets]
     total = int(n_targets.sum()) * per_target
-    futures = np.concatenate([p.futures for p in out.done]).reshape(-1, 2) if total else np.zeros((0, 2))
-    step_ns = np.concatenate([np.tile(p.step_ns, len(p.targets) * k) for p in out.done]) if total else np.zeros(0)
-    scores = np.concatenate([np.repeat(p.scores.reshape(-1), t) for p in out.done]) if total else np.zeros(0)
+    futures = np.concatenate([p.futures for p in done]).reshape(-1, 2) if total else np.zeros((0, 2))
+    step_ns = np.concatenate([np.tile(p.step_ns, len(p.targets) * k) for p in done]) if total else np.zeros(0)
+    scores = np.concatenate([np.repeat(p.scores.reshape(-1), t) for p in done]) if total else np.zeros(0)
     target_index = pa.array(np.repeat(np.arange(len(track_names)), per_target))
     columns = {
-        "log_id": pa.repeat(out.log_id, total),
-        "sample_id": sample_ids.take(pa.array(np.repeat(np.arange(len(out.done)), n_targets * per_target))),
+        "log_id": pa.repeat(log_id, total),
+        "sample_id": sample_ids.take(pa.array(np.repeat(np.arange(len(done)), n_targets * per_target))),
         "track_id": pa.array(track_names, pa.string()).take(target_index),
         "object_type": pa.array(type_names, pa.string()).take(target_index),
         "mode": pa.array(np.tile(np.repeat(np.arange(k, dtype=np.int16), t), len(track_names))),
@@ -789,30 +948,30 @@ def _new_channels(with_raster: bool, frame: str) -> list[NewChannel]:
     return channels
 
 
-def _write_log_mcap(run: _Run, out: _LogOutput, target: Path, summary: dict[str, Any]) -> None:
-    """Original log + the prediction channels, one message per sample at its prediction time."""
-    row = run.logs[out.log_id]
+def _write_log_mcap(run: _Run, log_id: str, predictions: Iterable[_SamplePrediction], target: Path) -> int:
+    """Original log + the prediction channels, one message per sample at its prediction time; returns the number
+    of original messages copied."""
+    row = run.logs[log_id]
     frame = _world_frame(row)
     with_raster = run.raster_images and run.rasters is not None
     horizon_ns = int(row["median_dt_ns"]) * run.dataset.protocol.pred_len
 
     def messages() -> Iterator[NewMessage]:
-        for p in out.done:
+        for p in predictions:
             now = int(p.row["current_ns"])
-            yield NewMessage(0, now, now, _predictions_json(run, out.log_id, frame, p))
+            yield NewMessage(0, now, now, _predictions_json(run, log_id, frame, p))
             yield NewMessage(1, now, now, scene_update_json(frame, now, horizon_ns, p.sample, p.targets,
                                                             p.futures, p.scores))
             if with_raster and p.sample.raster is not None:
                 yield NewMessage(2, now, now, raw_image_json(now, p.sample.raster, run.rasters))
 
     stats = write_merged(
-        target, [run.originals[out.log_id]], _new_channels(with_raster, frame), messages(),
-        metadata={"logpipe.predictions": {"log_id": out.log_id, "frame_id": frame, "predictor": run.chosen.name,
+        target, [run.originals[log_id]], _new_channels(with_raster, frame), messages(),
+        metadata={"logpipe.predictions": {"log_id": log_id, "frame_id": frame, "predictor": run.chosen.name,
                                           "checkpoint_id": run.chosen.checkpoint_id, "num_modes": str(run.modes),
                                           "seed": str(run.seed), "logpipe_version": __version__}},
     )
-    summary["mcap_files"] += 1
-    summary["original_messages"] += stats.messages
+    return stats.messages
 
 
 def _world_frame(row: dict[str, Any]) -> str:

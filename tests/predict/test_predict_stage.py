@@ -180,3 +180,30 @@ def test_log_windows_cut_the_same_samples_as_the_dataset(tmp_path: Path) -> None
                 assert (got.ego_index, got.obs_len) == (want.ego_index, want.obs_len)
                 checked += 1
     assert checked > 100
+
+
+def test_background_writer_output_does_not_depend_on_batching(lines_dataset: Path, tmp_path: Path) -> None:
+    """Batches spanning logs, one sample per batch, or everything in one batch: the same table and MCAPs."""
+    import pyarrow.parquet as pq
+
+    tables, mcaps = [], []
+    for size in (1, 3, 1000):
+        out = tmp_path / f"b{size}"
+        predict_dataset(lines_dataset, out, predictor="cv", batch_size=size)
+        tables.append(pq.read_table(sorted((out / "predictions").glob("*.parquet"))[0]))
+        mcaps.append(sorted(p.relative_to(out) for p in (out / "mcap").rglob("*.mcap")))
+    assert tables[0].num_rows > 0 and mcaps[0]
+    for table, names in zip(tables[1:], mcaps[1:], strict=True):
+        assert table.equals(tables[0])
+        assert names == mcaps[0]
+
+
+def test_shipped_defaults_are_the_papers_method_never_a_baseline() -> None:
+    from logpipe.stages.predict import BASELINE_FOLDERS, default_checkpoint, shipped_checkpoints
+
+    eth = shipped_checkpoints("ethucy")
+    assert sorted(p.name for p in eth) == ["eth", "hotel", "univ", "zara1", "zara2"]
+    assert (eth[0] / "lstm" / "meta.json").is_file()  # the baselines are shipped beside, just not candidates
+    assert default_checkpoint("ethucy", "hotel/test").name == "hotel"
+    apollo = default_checkpoint("apolloscape", None)
+    assert apollo.name == "zhu2020" and not BASELINE_FOLDERS & set(apollo.parts)

@@ -1,0 +1,87 @@
+"""``TrajectoryNet.decode_fast`` (the inference path) equals ``decode`` (the reference) up to float rounding."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from logpipe.model.batching import collate
+from logpipe.model.config import Features, ModelConfig
+from logpipe.model.nets import TrajectoryNet
+from logpipe.model.synthetic import make_scene
+from logpipe.types import SceneSample
+
+SMALL = {"embed_dim": 8, "gru_dim": 12, "lstm_dim": 8, "obs_len": 4, "pred_len": 5, "raster_channels": 2}
+
+
+def _scenes() -> list[SceneSample]:
+    scenes = [make_scene(np.random.default_rng(i), n, 4, 5, channels=2, size=64, with_ego=i % 2 == 0,
+                         with_raster=i != 1) for i, n in enumerate((5, 2, 7, 1, 4))]
+    # A scene with nobody observed at the current step: nothing of it is decoded, its pools are empty.
+    gone = scenes[3]
+    gone.positions = gone.positions.copy()
+    gone.positions[:, 3] = np.nan
+    # An agent missing at the current step in a busy scene.
+    scenes[2].positions = scenes[2].positions.copy()
+    scenes[2].positions[4, 3] = np.nan
+    return scenes
+
+
+@pytest.mark.parametrize(
+    "features",
+    [
+        Features(),
+        Features(True, True, False, False, False),
+        Features(False, False, False, False, False),
+        Features(False, False, False, True, False),
+        Features(True, False, True, False, True),
+        Features(False, True, False, False, True),
+    ],
+)
+def test_decode_fast_equals_decode(features: Features) -> None:
+    torch.manual_seed(0)
+    cfg = ModelConfig(features=features, noise_dim=3, **SMALL)  # type: ignore[arg-type]
+    net = TrajectoryNet(cfg).eval()
+    batch = collate(_scenes(), cfg)
+    with torch.no_grad():
+        enc = net.encode(batch)
+        noise = torch.randn(4, int(batch.active.sum()), 3)
+        ref = net.decode(batch, enc, noise)
+        fast = net.decode_fast(batch, enc, noise)
+    assert torch.equal(ref.rows, fast.rows)
+    assert fast.positions.shape == ref.positions.shape
+    torch.testing.assert_close(fast.positions, ref.positions, rtol=1e-5, atol=1e-5)
+
+
+def test_decode_fast_row_blocks_do_not_change_results(monkeypatch: pytest.MonkeyPatch) -> None:
+    from logpipe.model import nets
+
+    torch.manual_seed(0)
+    cfg = ModelConfig(noise_dim=3, **SMALL)  # type: ignore[arg-type]
+    net = TrajectoryNet(cfg).eval()
+    batch = collate(_scenes(), cfg)
+    with torch.no_grad():
+        enc = net.encode(batch)
+        noise = torch.randn(3, int(batch.active.sum()), 3)
+        whole = net.decode_fast(batch, enc, noise).positions
+        monkeypatch.setattr(nets, "_LSTM_CHUNK_ROWS", 5)
+        blocks = net.decode_fast(batch, enc, noise).positions
+    torch.testing.assert_close(blocks, whole, rtol=1e-6, atol=1e-6)
+
+
+def test_environment_lookup_is_bag_order_independent() -> None:
+    """The agent-major bag order gives the same v as looking each mode up on its own."""
+    torch.manual_seed(0)
+    cfg = ModelConfig(**SMALL)  # type: ignore[arg-type]
+    net = TrajectoryNet(cfg).eval()
+    assert net.env is not None
+    batch = collate(_scenes(), cfg)
+    rows = batch.active.nonzero().squeeze(1)
+    with torch.no_grad():
+        enc = net.encode(batch)
+        assert enc.proj is not None
+        pos = batch.positions[rows, 3][None] + torch.randn(3, len(rows), 2) * 5
+        together = net.env(enc.proj, pos, batch, rows)
+        for m in range(3):
+            torch.testing.assert_close(together[m : m + 1], net.env(enc.proj, pos[m : m + 1], batch, rows))
