@@ -294,11 +294,7 @@ class Layer:
             # Plain Python per row: a window spans ~6 rows, far too few to pay for NumPy calls.
             for r in range(r0, r1 + 1):
                 base = r * ncols
-                if cs is not None:
-                    a, b = cs[base + c0], cs[base + c1 + 1]
-                else:
-                    a = bisect.bisect_left(keys, base + c0)
-                    b = bisect.bisect_right(keys, base + c1, lo=a)
+                a, b = _key_range(cs, keys, base + c0, base + c1)
                 if b > a:
                     if out and out[-1][1] == a:
                         out[-1] = (out[-1][0], b)
@@ -382,16 +378,21 @@ class BandOrder:
             ncols, start, keys = layer.ncols, self.start, self.keys
             for band in range(r0 // self.rows, r1 // self.rows + 1):
                 base = band * ncols
-                if start is not None:
-                    a, b = start[base + c0], start[base + c1 + 1]
-                else:
-                    a = bisect.bisect_left(keys, base + c0)
-                    b = bisect.bisect_right(keys, base + c1, lo=a)
+                a, b = _key_range(start, keys, base + c0, base + c1)
                 if b > a:
                     out.append((a, b))
         position = self.position
         out.extend((int(position[i]), int(position[i]) + 1) for i in layer.oversize_hits(xmin, ymin, xmax, ymax))
         return out
+
+
+def _key_range(start: Sequence[int] | None, keys: Sequence[int], first: int, last: int) -> tuple[int, int]:
+    """[a, b) of the chunks sorted by key whose key lies in [first, last]: from the dense start table when there
+    is one (``start[k]`` = first chunk with key >= k), else by bisecting the sorted keys."""
+    if start is not None:
+        return int(start[first]), int(start[last + 1])
+    a = bisect.bisect_left(keys, first)
+    return a, bisect.bisect_right(keys, last, lo=a)
 
 
 def _fits_one_chunk(geoms: Sequence[NDArrayFloat], cell: float, max_turn: float) -> NDArrayBool:
