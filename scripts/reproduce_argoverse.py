@@ -27,6 +27,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from reproduce_ethucy import (
     REPO,
+    checkpoint_paths,
     ensure_dataset,
     find_checkpoint,
     machine_note,
@@ -63,12 +64,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--seed", type=int, default=0)
     args = ap.parse_args(argv)
     t0 = time.perf_counter()
-    templates = dict(LEARNED)
-    for item in args.checkpoint:
-        method, _, path = item.partition("=")
-        if method not in LEARNED or not path:
-            ap.error(f"--checkpoint {item!r}: expected METHOD=DIR with METHOD in {sorted(LEARNED)}")
-        templates[method] = path
+    templates = checkpoint_paths(ap, args.checkpoint, LEARNED)
     ds = ensure_dataset(args.data, args.work / "dataset", "argoverse1")
     timings = {"ingest": time.perf_counter() - t0}
     if not args.no_maps:

@@ -68,6 +68,18 @@ LEARNED = {  # method -> (default checkpoint template, K): the lead trains these
 # ------------------------------------------------------------------ helpers shared with the other scripts
 
 
+def checkpoint_paths(ap: argparse.ArgumentParser, items: Sequence[str], defaults: dict[str, str]) -> dict[str, str]:
+    """``defaults`` (method -> checkpoint folder or template) updated by ``--checkpoint METHOD=PATH`` items; an
+    unknown method or an empty path is an argument error."""
+    paths = dict(defaults)
+    for item in items:
+        method, _, path = item.partition("=")
+        if method not in defaults or not path:
+            ap.error(f"--checkpoint {item!r}: expected METHOD=PATH with METHOD in {sorted(defaults)}")
+        paths[method] = path
+    return paths
+
+
 def ensure_dataset(data: Path, out: Path, fmt: str | None = None) -> Dataset:
     """``logpipe ingest data --out out --no-mcap`` (a no-op when already ingested: inputs are content-hashed)."""
     ingest([data], IngestOptions(out=out, format=fmt, write_mcap=False))
@@ -161,12 +173,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--seed", type=int, default=0)
     args = ap.parse_args(argv)
     t0 = time.perf_counter()
-    templates = {m: t for m, (t, _) in LEARNED.items()}
-    for item in args.checkpoint:
-        method, _, template = item.partition("=")
-        if method not in LEARNED or not template:
-            ap.error(f"--checkpoint {item!r}: expected METHOD=TEMPLATE with METHOD in {sorted(LEARNED)}")
-        templates[method] = template
+    templates = checkpoint_paths(ap, args.checkpoint, {m: t for m, (t, _) in LEARNED.items()})
     ds = ensure_dataset(args.data, args.work / "dataset", "ethucy")
     pred_len = ds.protocol.pred_len
     out_md = args.results / "ethucy.md"
@@ -286,24 +293,23 @@ def render(results: dict[str, Any], args: argparse.Namespace, seconds: float) ->
         "the one to compare the paper's numbers with.", "", head, sep,
     ]
     present = {m for r in results["scenes"].values() for m in r["min2"]["methods"]}
-    for label, method, k, a, f in ROWS:
-        if method in present:
-            lines.append(f"| {label} | " + " | ".join(_row(results, "min2", method, k, a, f)) + " |")
-    counts = [str(results["scenes"][s]["min2"]["methods"]["cv"]["overall"]["agents"])
-              if s in results["scenes"] else "—" for s in SCENES]
-    lines += [f"| agents scored | {' | '.join(counts)} | |", ""]
+
+    def table(proto: str) -> list[str]:
+        """The method rows and the agent counts of one window protocol (``min2`` or ``min1``)."""
+        rows = [f"| {label} | " + " | ".join(_row(results, proto, method, k, a, f)) + " |"
+                for label, method, k, a, f in ROWS if method in present]
+        counts = [str(results["scenes"][s][proto]["methods"]["cv"]["overall"]["agents"])
+                  if s in results["scenes"] else "—" for s in SCENES]
+        return [*rows, f"| agents scored | {' | '.join(counts)} | |", ""]
+
+    lines += table("min2")
     lines += ["## The paper's Table 1 (as printed)", "", head, sep]
     lines += [f"| {label} | " + " | ".join(v) + " |" for label, v in PAPER_TABLE1.items()]
     lines += ["", "The paper's Linear row is the Social-GAN paper's Linear baseline; its KF, Noise-LSTM and "
               "constant-velocity rows do not exist in Table 1. Its 'Our method' is evaluated best-of-N with N "
               "unstated; we report best-of-20 like the Social-GAN rows it is compared with.", ""]
     lines += ["## Every window (`min_agents=1`)", "", head, sep]
-    for label, method, k, a, f in ROWS:
-        if method in present:
-            lines.append(f"| {label} | " + " | ".join(_row(results, "min1", method, k, a, f)) + " |")
-    counts = [str(results["scenes"][s]["min1"]["methods"]["cv"]["overall"]["agents"])
-              if s in results["scenes"] else "—" for s in SCENES]
-    lines += [f"| agents scored | {' | '.join(counts)} | |", ""]
+    lines += table("min1")
     lines += ["## Constant-velocity sampler settings (chosen on validation)", "",
               "K=20 constant-velocity forecasts with the last observed displacement's heading perturbed by "
               "N(0, heading_std) and its speed scaled by 1 + N(0, speed_std). Grid: heading_std in "

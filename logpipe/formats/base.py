@@ -20,6 +20,16 @@ from logpipe.samples import TrackCodes
 from logpipe.types import LogMeta, SampleProtocol, SourceFile
 
 
+def read_head(path: Path, size: int) -> bytes | None:
+    """The first ``size`` bytes of ``path`` (fewer if it is shorter), or None when it cannot be read: what
+    ``sniff`` compares with a format's magic bytes."""
+    try:
+        with path.open("rb") as f:
+            return f.read(size)
+    except OSError:
+        return None
+
+
 def files_with_suffix(root: Path, suffixes: tuple[str, ...]) -> list[Path]:
     """Files under ``root`` (or ``root`` itself) whose lower-cased name ends in one of ``suffixes``, in path order.
 

@@ -7,14 +7,15 @@ resamples and reports per-topic problems as ``SourceError``s.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Collection, Iterator
+from collections.abc import Callable, Collection, Iterator, Sequence
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import pyarrow as pa
 
 from logpipe.errors import SourceError
-from logpipe.formats.mapping import EgoSpec, Mapping
+from logpipe.formats.mapping import EgoSpec, Mapping, resolve_mapping
 from logpipe.formats.ros_messages import (
     OBJECT_KINDS,
     AmbiguousMappingError,
@@ -64,6 +65,19 @@ class ExtractOptions:
     hz: float | None = 10.0
     gap_periods: float = 2.0
     allow_empty: bool = False
+
+    @classmethod
+    def from_settings(
+        cls,
+        mapping: Mapping | str | Path | None,
+        overrides: Sequence[str],
+        hz: float | None,
+        gap_periods: float,
+        allow_empty: bool,
+    ) -> ExtractOptions:
+        """The options of a log adapter's constructor: the mapping (object, file or None) with its CLI
+        ``key=value`` overrides resolved, and ``hz`` 0 meaning "keep the source timestamps"."""
+        return cls(resolve_mapping(mapping, overrides), hz or None, gap_periods, allow_empty)
 
 
 @dataclass

@@ -27,9 +27,9 @@ from mcap_ros1.decoder import DecoderFactory as Ros1DecoderFactory
 from mcap_ros2.decoder import DecoderFactory as Ros2DecoderFactory
 
 from logpipe.errors import SourceError
-from logpipe.formats.base import ParsedLogs, read_each
+from logpipe.formats.base import ParsedLogs, read_each, read_head
 from logpipe.formats.extract import ROSBAG_PROTOCOL, ExtractOptions, extract_log
-from logpipe.formats.mapping import Mapping, resolve_mapping
+from logpipe.formats.mapping import Mapping
 from logpipe.formats.ros_messages import TopicSummary, empty_tracks, normalize_type
 from logpipe.types import LogMeta, SampleProtocol, SourceFile
 
@@ -270,24 +270,15 @@ class McapAdapter:
         gap_periods: float = 2.0,
         mapping_overrides: Sequence[str] = (),
     ) -> None:
-        self.options = ExtractOptions(
-            mapping=resolve_mapping(mapping, mapping_overrides),
-            hz=hz or None,
-            gap_periods=gap_periods,
-            allow_empty=allow_empty,
-        )
+        self.options = ExtractOptions.from_settings(mapping, mapping_overrides, hz, gap_periods, allow_empty)
 
     def sniff(self, path: Path) -> bool:
         """A file that starts with the MCAP magic (or an ``.mcap`` name), unless it is the storage of a rosbag2
         folder (``metadata.yaml`` beside it: the rosbag adapter reads the folder)."""
         if not path.is_file() or (path.parent / "metadata.yaml").exists():
             return False
-        try:
-            with path.open("rb") as f:
-                head = f.read(8)
-        except OSError:
-            return False
-        return head == MCAP_MAGIC or path.suffix == ".mcap"
+        head = read_head(path, len(MCAP_MAGIC))
+        return head is not None and (head == MCAP_MAGIC or path.suffix == ".mcap")
 
     def discover(self, root: Path) -> list[Path]:
         """``.mcap`` files under ``root``, except the storage files of rosbag2 folders (metadata.yaml beside)."""

@@ -23,9 +23,9 @@ from rosbags.typesys import Stores, get_typestore
 from rosbags.typesys.store import Typestore
 
 from logpipe.errors import SourceError
-from logpipe.formats.base import ParsedLogs, read_each
+from logpipe.formats.base import ParsedLogs, read_each, read_head
 from logpipe.formats.extract import ROSBAG_PROTOCOL, ExtractOptions, ReadStopped, extract_log
-from logpipe.formats.mapping import Mapping, resolve_mapping
+from logpipe.formats.mapping import Mapping
 from logpipe.formats.mcapfile import McapAdapter
 from logpipe.formats.ros_messages import TopicSummary, empty_tracks, normalize_type
 from logpipe.types import LogMeta, SampleProtocol, SourceFile
@@ -150,12 +150,7 @@ class RosbagAdapter:
         typestore: str = "ros2_humble",
         mapping_overrides: Sequence[str] = (),
     ) -> None:
-        self.options = ExtractOptions(
-            mapping=resolve_mapping(mapping, mapping_overrides),
-            hz=hz or None,
-            gap_periods=gap_periods,
-            allow_empty=allow_empty,
-        )
+        self.options = ExtractOptions.from_settings(mapping, mapping_overrides, hz, gap_periods, allow_empty)
         if typestore.upper() not in Stores.__members__:
             raise ValueError(f"unknown typestore {typestore!r}; one of {[s.name.lower() for s in Stores]}")
         self.typestore_name = typestore  # built on first read: detect() constructs adapters just to sniff
@@ -174,11 +169,7 @@ class RosbagAdapter:
         magic = _MAGIC.get(path.suffix)
         if magic is None:
             return False
-        try:
-            with path.open("rb") as f:
-                return f.read(len(magic)) == magic
-        except OSError:
-            return False
+        return read_head(path, len(magic)) == magic
 
     def discover(self, root: Path) -> list[Path]:
         """Bags under ``root``: ``.bag`` files, rosbag2 folders (with metadata.yaml, or split parts), bare
