@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import importlib
 import json
-import os
 import shutil
 import threading
 import time
@@ -28,7 +27,7 @@ import pyarrow.parquet as pq
 from logpipe import __version__
 from logpipe.contracts import arrow_schema, conform, schema_version, tracks_schema
 from logpipe.dataset import LOGS_FILE, MANIFEST, MCAP_DIR, SAMPLES_FILE, mcap_folder, shard_name
-from logpipe.errors import DatasetError, LogpipeError, SourceError
+from logpipe.errors import DatasetError, SourceError
 from logpipe.executor import Backend, default_workers, run_ordered, warm_up
 from logpipe.formats import detect, get_adapter
 from logpipe.inputs import find_inputs, hash_inputs
@@ -103,7 +102,7 @@ def ingest(roots: Sequence[Path], options: IngestOptions,
         DatasetError: the output folder holds a dataset of another format/protocol/schema, or log ids clash.
     """
     started = time.perf_counter()
-    fmt = options.format or _detect(roots[0])
+    fmt = options.format or detect(roots[0])
     adapter = get_adapter(fmt, **options.adapter_options)
     protocol = options.protocol or adapter.default_protocol
     out = options.out
@@ -132,21 +131,6 @@ def ingest(roots: Sequence[Path], options: IngestOptions,
     summary["seconds"] = round(time.perf_counter() - started, 3)
     summary["totals"] = manifest["totals"]
     return summary
-
-
-def _detect(root: Path) -> str:
-    """``formats.detect``, judged by the folder's first file in path order as ``detect`` does, without a
-    ``Path`` and a stat per file of the whole tree (~0.4 s per 10,000 files); ``detect`` itself decides
-    when that first file is not recognised."""
-    if root.is_dir():
-        files = (os.path.join(folder, name) for folder, _, names in os.walk(root) for name in names)
-        first = min(files, key=lambda p: p.split(os.sep), default=None)
-        if first is not None and os.path.isfile(first):
-            try:
-                return detect(Path(first))
-            except LogpipeError:
-                pass  # unrecognised or ambiguous: the full ``detect`` gives the answer or the same error
-    return detect(root)
 
 
 def _ingest_new(

@@ -5,7 +5,9 @@
 
 from __future__ import annotations
 
+import heapq
 import inspect
+import os
 from pathlib import Path
 from typing import Any
 
@@ -48,7 +50,7 @@ def detect(path: Path) -> str:
     """
     if not path.exists():
         raise LogpipeError(f"{path}: no such file or folder")
-    candidates = [path] if path.is_file() else sorted(p for p in path.rglob("*") if p.is_file())[:200]
+    candidates = [path] if path.is_file() else _first_files(path, 200)
     for candidate in candidates:
         names = [name for name, cls in ADAPTERS.items() if cls().sniff(candidate)]
         if len(names) == 1:
@@ -56,6 +58,14 @@ def detect(path: Path) -> str:
         if len(names) > 1:
             raise LogpipeError(f"{candidate}: looks like several formats ({', '.join(names)}); pass --format")
     raise LogpipeError(f"{path}: no known format recognised; pass --format ({', '.join(sorted(ADAPTERS))})")
+
+
+def _first_files(root: Path, limit: int) -> list[Path]:
+    """The first ``limit`` files under ``root`` in path order, from one ``os.walk``: no ``Path`` and no stat per
+    file of the whole tree (a sorted ``rglob`` cost ~0.4 s per 10,000 files)."""
+    names = (os.path.join(folder, name) for folder, _, files in os.walk(root) for name in files)
+    first = heapq.nsmallest(limit, names, key=lambda name: name.split(os.sep))
+    return [Path(name) for name in first if os.path.isfile(name)]
 
 
 __all__ = ["ADAPTERS", "FormatAdapter", "ParsedLogs", "detect", "get_adapter"]
