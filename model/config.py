@@ -23,6 +23,7 @@ from logpipe.errors import LogpipeError
 
 Frame = Literal["world", "ego"]
 LossReduction = Literal["scene", "agent"]
+StepOutput = Literal["displacement", "velocity_change"]
 
 
 class ConfigError(LogpipeError):
@@ -88,6 +89,10 @@ class ModelConfig:
         pos_scale_m: positions are divided by this (metres) before the position/attention/ETF layers.
         disp_scale_m: displacements are divided by this (metres per step) before eqs. 5, 15, 17 and the
             output of eq. 19 is multiplied by it.
+        step_output: what eq. 19's output o_t means. ``displacement`` (the paper): p_t = p_(t-1) + o_t.
+            ``velocity_change``: p_t = p_(t-1) + (p_(t-1) - p_(t-2)) + o_t, i.e. the decoder corrects a
+            constant-velocity step (the last observed displacement carried on; zero where p_(t-2) of the
+            first predicted step was not observed). Same network and loss; only the output's reference moves.
     """
 
     features: Features = field(default_factory=Features)
@@ -107,6 +112,7 @@ class ModelConfig:
     frame: Frame = "world"
     pos_scale_m: float = 10.0
     disp_scale_m: float = 1.0
+    step_output: StepOutput = "displacement"
 
     def __post_init__(self) -> None:
         if self.obs_len < 2 or self.pred_len < 1:
@@ -116,6 +122,9 @@ class ModelConfig:
                 raise ConfigError(f"model.{name} must be >= 1, got {getattr(self, name)}")
         if self.noise_dim < 0:
             raise ConfigError(f"model.noise_dim must be >= 0, got {self.noise_dim}")
+        if self.step_output not in ("displacement", "velocity_change"):
+            raise ConfigError(
+                f"model.step_output must be 'displacement' or 'velocity_change', got {self.step_output!r}")
         if self.frame not in ("world", "ego"):
             raise ConfigError(f"model.frame must be 'world' or 'ego', got {self.frame!r}")
         for name in ("pos_scale_m", "disp_scale_m", "roi_half_size_m"):

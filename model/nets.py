@@ -475,6 +475,7 @@ class TrajectoryNet(nn.Module):
         ego_ok = (batch.ego[rows][:, None] & enc.ego_ok[scene]) if cfg.features.uses_ego_plan else None
         p_prev = batch.positions[rows, t_obs - 2][None].expand(mm, r, 2)
         p_cur = batch.positions[rows, t_obs - 1][None].expand(mm, r, 2)
+        carried = self._carried_first_step(batch, rows)
         outputs: list[Tensor] = []
         lstm_d = lstm_weights(self.decoder)
         for k in range(cfg.pred_len):
@@ -498,6 +499,8 @@ class TrajectoryNet(nn.Module):
                 h_flat, c = lstm_step(lstm_d, torch.cat(x, dim=-1).reshape(mm * r, -1), h.reshape(mm * r, hid), c)
                 h = h_flat.view(mm, r, hid)  # eq. 18
             p_next = p_cur + self.out(h) * ds  # eqs. 19-20
+            if carried is not None:  # step_output="velocity_change": o_t corrects a constant-velocity step
+                p_next = p_next + (carried[None] if k == 0 else p_cur - p_prev)
             if ego_ok is not None:  # the ego follows its given (planned) future
                 given = ego_ok[:, t_obs + k]
                 p_next = torch.where(given[None, :, None], enc.ego_pos[scene, t_obs + k][None], p_next)
@@ -563,6 +566,7 @@ class TrajectoryNet(nn.Module):
         all_raster = bool(raster_ok.all())
         p_prev = batch.positions[rows, t_obs - 2][:, None].expand(r, mm, 2)
         p_cur = batch.positions[rows, t_obs - 1][:, None].expand(r, mm, 2)
+        carried = self._carried_first_step(batch, rows)
         outputs = noise.new_empty(r, mm, cfg.pred_len, 2)
         for k in range(cfg.pred_len):
             if k > 0:  # one LSTM_D step at t = T_obs + k on the predicted positions
@@ -592,12 +596,23 @@ class TrajectoryNet(nn.Module):
                     c_blk.mul_(sig[:, hid : 2 * hid]).addcmul_(sig[:, :hid], torch.tanh(gates[:, 3 * hid :]))
                     torch.mul(sig[:, 2 * hid :], torch.tanh(c_blk), out=h[lo:hi])
             p_next = p_cur + self.out(h).view(r, mm, 2) * ds  # eqs. 19-20
+            if carried is not None:
+                p_next = p_next + (carried[:, None] if k == 0 else p_cur - p_prev)
             if ego_ok is not None:  # the ego follows its given (planned) future
                 given = ego_ok[:, t_obs + k]
                 p_next = torch.where(given[:, None, None], enc.ego_pos[scene, t_obs + k][:, None], p_next)
             outputs[:, :, k] = p_next
             p_prev, p_cur = p_cur, p_next
         return Prediction(outputs.transpose(0, 1), rows)
+
+    def _carried_first_step(self, batch: Batch, rows: Tensor) -> Tensor | None:
+        """(R, 2) last observed displacement p_(T_obs) - p_(T_obs - 1) that ``step_output="velocity_change"``
+        carries into the first predicted step (zero where p_(T_obs - 1) is unobserved); None otherwise."""
+        if self.config.step_output != "velocity_change":
+            return None
+        t_obs = batch.obs_len
+        step = batch.positions[rows, t_obs - 1] - batch.positions[rows, t_obs - 2]
+        return torch.where(batch.valid[rows, t_obs - 2][:, None], step, torch.zeros_like(step))
 
     def _env_fast(self, proj: Tensor | None, pos: Tensor, batch: Batch, rows: Tensor) -> Tensor:
         """v (R, M, d_v) at agent-major positions pos (R, M, 2); zero without maps."""

@@ -39,9 +39,10 @@ def _scenes() -> list[SceneSample]:
         Features(False, True, False, False, True),
     ],
 )
-def test_decode_fast_equals_decode(features: Features) -> None:
+@pytest.mark.parametrize("step_output", ["displacement", "velocity_change"])
+def test_decode_fast_equals_decode(features: Features, step_output: str) -> None:
     torch.manual_seed(0)
-    cfg = ModelConfig(features=features, noise_dim=3, **SMALL)  # type: ignore[arg-type]
+    cfg = ModelConfig(features=features, noise_dim=3, step_output=step_output, **SMALL)  # type: ignore[arg-type]
     net = TrajectoryNet(cfg).eval()
     batch = collate(_scenes(), cfg)
     with torch.no_grad():
@@ -52,6 +53,33 @@ def test_decode_fast_equals_decode(features: Features) -> None:
     assert torch.equal(ref.rows, fast.rows)
     assert fast.positions.shape == ref.positions.shape
     torch.testing.assert_close(fast.positions, ref.positions, rtol=1e-5, atol=1e-5)
+
+
+@pytest.mark.parametrize("fast", [False, True])
+def test_velocity_change_with_zero_output_is_constant_velocity(fast: bool) -> None:
+    """With o_t = 0 the decoder carries the last observed displacement on (and stands still where the step
+    before the current one is unobserved), whatever the noise."""
+    torch.manual_seed(0)
+    cfg = ModelConfig(noise_dim=3, step_output="velocity_change", **SMALL)  # type: ignore[arg-type]
+    net = TrajectoryNet(cfg).eval()
+    with torch.no_grad():
+        net.out.weight.zero_()
+        net.out.bias.zero_()
+    scenes = _scenes()
+    scenes[0].positions = scenes[0].positions.copy()
+    scenes[0].positions[1, 2] = np.nan  # agent 1 of scene 0: p_(T_obs - 1) unobserved
+    batch = collate(scenes, cfg)
+    with torch.no_grad():
+        pred = net(batch, 3, fast=fast)
+    pos = batch.positions[pred.rows]
+    last, before = pos[:, 3], pos[:, 2]
+    step = torch.where(batch.valid[pred.rows, 2][:, None], last - before, torch.zeros_like(last))
+    horizon = torch.arange(1, 6, dtype=last.dtype)
+    expected = last[:, None] + horizon[None, :, None] * step[:, None]
+    agents = ~batch.ego[pred.rows]  # the ego follows its given future instead
+    for mode in range(3):
+        torch.testing.assert_close(pred.positions[mode][agents], expected[agents], rtol=0, atol=1e-5)
+    assert bool((~batch.valid[pred.rows, 2] & agents).any())
 
 
 def test_decode_fast_row_blocks_do_not_change_results(monkeypatch: pytest.MonkeyPatch) -> None:
