@@ -66,8 +66,11 @@ def tracks_schema() -> pa.Schema:
     return arrow_schema("tracks")
 
 
-def conform(table: pa.Table, schema: pa.Schema) -> pa.Table:
+def conform(table: pa.Table, schema: pa.Schema, *, keep_dictionaries: bool = False) -> pa.Table:
     """``table`` with exactly ``schema``'s columns, order and types; missing nullable columns become nulls.
+
+    ``keep_dictionaries``: a dictionary-encoded column whose values have the schema's type stays encoded
+    (``write_parquet`` stores it as that type; a reader sees the schema's type).
 
     Raises:
         DatasetError: a non-nullable column is missing, or a column holds nulls it may not hold.
@@ -76,7 +79,8 @@ def conform(table: pa.Table, schema: pa.Schema) -> pa.Table:
     for f in schema:
         if f.name in table.column_names:
             col = table.column(f.name)
-            if col.type != f.type:
+            encoded = keep_dictionaries and pa.types.is_dictionary(col.type) and col.type.value_type == f.type
+            if col.type != f.type and not encoded:
                 col = col.cast(f.type)
             if not f.nullable and col.null_count:
                 raise DatasetError(f"column {f.name!r} has {col.null_count} nulls but may hold none")
@@ -85,7 +89,8 @@ def conform(table: pa.Table, schema: pa.Schema) -> pa.Table:
             columns.append(pa.nulls(table.num_rows, f.type))
         else:
             raise DatasetError(f"column {f.name!r} is required by schema {schema.metadata!r} but missing")
-    return pa.Table.from_arrays(columns, schema=schema)
+    fields = [f.with_type(c.type) for f, c in zip(schema, columns, strict=True)]
+    return pa.Table.from_arrays(columns, schema=pa.schema(fields, metadata=schema.metadata))
 
 
 def json_schema(name: str) -> dict[str, Any]:

@@ -49,6 +49,8 @@ def _leaf_paths(field: pa.Field, prefix: str = "") -> Iterator[tuple[str, pa.Dat
     elif pa.types.is_map(kind):
         yield from _leaf_paths(pa.field("key", kind.key_type), path + ".key_value.")
         yield from _leaf_paths(pa.field("value", kind.item_type), path + ".key_value.")
+    elif pa.types.is_dictionary(kind):  # stored as its values
+        yield path, kind.value_type
     else:
         yield path, kind
 
@@ -132,9 +134,26 @@ def atomic_open(target: Path, mode: str = "wb") -> Iterator[IO[Any]]:
 
 
 def write_parquet(table: pa.Table, target: Path, options: dict[str, Any] | None = None) -> None:
-    """Write ``table`` to ``target`` atomically with fixed, reproducible writer settings."""
+    """Write ``table`` to ``target`` atomically with fixed, reproducible writer settings.
+
+    Dictionary-encoded columns are written from their Arrow dictionary (no re-hashing of every row) and
+    read back as their value type: the Arrow schema is then not stored, and the schema's metadata goes
+    into the file's key-value metadata instead.
+    """
+    kwargs = options or parquet_options(table.schema)
     with atomic_path(target) as tmp:
-        pq.write_table(table, tmp, **(options or parquet_options(table.schema)))
+        if not any(pa.types.is_dictionary(f.type) for f in table.schema):
+            pq.write_table(table, tmp, **kwargs)
+            return
+        with pq.ParquetWriter(tmp, table.schema, store_schema=False, **_writer_kwargs(kwargs)) as writer:
+            writer.write_table(table, row_group_size=kwargs.get("row_group_size"))
+            if table.schema.metadata:
+                writer.add_key_value_metadata({k.decode(): v.decode() for k, v in table.schema.metadata.items()})
+
+
+def _writer_kwargs(options: dict[str, Any]) -> dict[str, Any]:
+    """``write_table`` options minus the one ``ParquetWriter`` takes per ``write_table`` call."""
+    return {k: v for k, v in options.items() if k != "row_group_size"}
 
 
 def write_json(data: Any, target: Path, *, indent: int | None = 2) -> None:

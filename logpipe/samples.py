@@ -45,9 +45,9 @@ class TrackCodes:
         log_col = pc.dictionary_encode(tracks.column("log_id")).combine_chunks()
         track_col = pc.dictionary_encode(tracks.column("track_id")).combine_chunks()
         return cls(
-            log_code=log_col.indices.to_numpy().astype(np.int64),
+            log_code=as_numpy(log_col.indices).astype(np.int64),
             log_names=log_col.dictionary.to_pylist(),
-            track_code=track_col.indices.to_numpy().astype(np.int64),
+            track_code=as_numpy(track_col.indices).astype(np.int64),
             track_names=np.array(track_col.dictionary.to_pylist(), dtype=object),
         )
 

@@ -206,11 +206,11 @@ def _canonical_order(tracks: pa.Table) -> pa.Table:
     if "step" not in tracks.column_names:
         tracks = tracks.sort_by([("log_id", "ascending"), ("timestamp_ns", "ascending"),
                                  ("track_id", "ascending")])
-        log_ids = pc.dictionary_encode(tracks.column("log_id")).combine_chunks().indices.to_numpy()
+        log_ids = as_numpy(pc.dictionary_encode(tracks.column("log_id")).combine_chunks().indices)
 
         steps = steps_from_sorted_times(as_numpy(tracks.column("timestamp_ns")), log_ids.astype(np.int64))
         tracks = tracks.append_column("step", pa.array(steps.astype(np.int32)))
-    return conform(tracks, tracks_schema())
+    return conform(tracks, tracks_schema(), keep_dictionaries=True)
 
 
 def _log_rows(

@@ -18,7 +18,6 @@ from typing import ClassVar
 
 import numpy as np
 import pyarrow as pa
-import pyarrow.compute as pc
 
 from logpipe.errors import SourceError
 from logpipe.formats._text import (
@@ -30,6 +29,7 @@ from logpipe.formats._text import (
     first_true,
     log_ids_column,
     parse_files,
+    relabel,
     row_error,
     stem,
     times_sorted_and_unique,
@@ -116,7 +116,7 @@ def _validate(table: pa.Table, batch: TextBatch, sources: Sequence[SourceFile]) 
     files = batch.file_index
     stamps = dictionary_column(table.column("TIMESTAMP"))
     ns, valid = decimal_seconds_to_ns(stamps)
-    valid_np = valid.to_numpy(zero_copy_only=False)
+    valid_np = as_numpy(valid)
     if not valid_np.all():
         row = first_true(~valid_np)
         value = stamps[row].as_py()
@@ -124,17 +124,17 @@ def _validate(table: pa.Table, batch: TextBatch, sources: Sequence[SourceFile]) 
     kinds = dictionary_column(table.column("OBJECT_TYPE"))
     unknown = [i for i, v in enumerate(kinds.dictionary.to_pylist()) if v not in _ROLE]
     if unknown:
-        row = first_true(np.isin(kinds.indices.to_numpy(), unknown))
+        row = first_true(np.isin(as_numpy(kinds.indices), unknown))
         reason = f"unknown OBJECT_TYPE {kinds[row].as_py()!r} (AV, AGENT, OTHERS)"
         errors.append(row_error(batch, sources, row, reason, "OBJECT_TYPE"))
-    city = dictionary_column(table.column("CITY_NAME")).indices.to_numpy()
+    city = as_numpy(dictionary_column(table.column("CITY_NAME")).indices)
     changes = np.flatnonzero((city[1:] != city[:-1]) & (files[1:] == files[:-1])) + 1
     if len(changes):
         errors.append(row_error(batch, sources, int(changes[0]), "CITY_NAME changes inside the file", "CITY_NAME"))
     tracks = dictionary_column(table.column("TRACK_ID"))
-    ns_np = ns.to_numpy()
+    ns_np = as_numpy(ns)
     if not errors:
-        track_codes = tracks.indices.to_numpy().astype(np.int64)
+        track_codes = as_numpy(tracks.indices).astype(np.int64)
         if not times_sorted_and_unique(ns_np, track_codes, files):  # then find which file and line
             errors.extend(
                 check_time_and_duplicates(ns_np, track_codes, batch, sources, "TIMESTAMP", "TRACK_ID")
@@ -151,29 +151,27 @@ def _to_canonical(
     ns_np = as_numpy(table.column("_ns"))
     kinds = dictionary_column(table.column("OBJECT_TYPE"))
     tracks = dictionary_column(table.column("TRACK_ID"))
-    kind_names = kinds.dictionary.to_pylist()
-    roles = pc.take(pa.array([_ROLE[k] for k in kind_names], pa.string()), kinds.indices)
-    object_types = pc.take(pa.array([_OBJECT_TYPE[k] for k in kind_names], pa.string()), kinds.indices)
     stems = [stem(s.relpath) for s in sources]
+    # String columns stay dictionary-encoded (the track-table contract allows it; readers see strings).
     table_out = pa.table(
         {
             "log_id": log_ids_column(batch, sources),
             "timestamp_ns": table.column("_ns"),
             "step": pa.array(steps_from_sorted_times(ns_np, files).astype(np.int32)),
-            "track_id": tracks.cast(pa.string()),
-            "object_type": object_types,
-            "role": roles,
+            "track_id": tracks,
+            "object_type": relabel(kinds, _OBJECT_TYPE),
+            "role": relabel(kinds, _ROLE),
             "x": table.column("X"),
             "y": table.column("Y"),
-            "source_type": kinds.cast(pa.string()),
+            "source_type": kinds,
         }
     )
     # Rows are in file order and every file has rows, so the file index is the log code (first-seen order).
-    codes = TrackCodes(log_code=files, log_names=stems, track_code=tracks.indices.to_numpy().astype(np.int64),
+    codes = TrackCodes(log_code=files, log_names=stems, track_code=as_numpy(tracks.indices).astype(np.int64),
                        track_names=np.array(tracks.dictionary.to_pylist(), dtype=object))
     cities = dictionary_column(table.column("CITY_NAME"))
     city_names = cities.dictionary.to_pylist()
-    city_codes = cities.indices.to_numpy()
+    city_codes = as_numpy(cities.indices)
     starts = batch.row_starts
     logs = []
     for i, source in enumerate(sources):
