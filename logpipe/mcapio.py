@@ -46,9 +46,7 @@ def _quaternion_z(yaw: float) -> dict[str, float]:
 def _python_list(column: pa.ChunkedArray) -> list[Any]:
     """A column as Python values (None for nulls). Through numpy when there are no nulls: ``to_pylist``
     builds an Arrow scalar per value, ~10x slower, and it was most of the cost of writing an MCAP."""
-    if column.null_count:
-        return column.to_pylist()
-    values: list[Any] = as_numpy(column).tolist()
+    values: list[Any] = column.to_pylist() if column.null_count else as_numpy(column).tolist()
     return values
 
 
