@@ -89,7 +89,8 @@ def conform(table: pa.Table, schema: pa.Schema, *, keep_dictionaries: bool = Fal
             columns.append(pa.nulls(table.num_rows, f.type))
         else:
             raise DatasetError(f"column {f.name!r} is required by schema {schema.metadata!r} but missing")
-    fields = [f.with_type(c.type) for f, c in zip(schema, columns, strict=True)]
+    fields = [f.with_type(c.type) if pa.types.is_dictionary(c.type) else f
+              for f, c in zip(schema, columns, strict=True)]
     return pa.Table.from_arrays(columns, schema=pa.schema(fields, metadata=schema.metadata))
 
 

@@ -133,16 +133,17 @@ def atomic_open(target: Path, mode: str = "wb") -> Iterator[IO[Any]]:
         yield fh
 
 
-def write_parquet(table: pa.Table, target: Path, options: dict[str, Any] | None = None) -> None:
+def write_parquet(table: pa.Table, target: Path, options: dict[str, Any] | None = None, *,
+                  dictionaries_as_values: bool = False) -> None:
     """Write ``table`` to ``target`` atomically with fixed, reproducible writer settings.
 
-    Dictionary-encoded columns are written from their Arrow dictionary (no re-hashing of every row) and
-    read back as their value type: the Arrow schema is then not stored, and the schema's metadata goes
-    into the file's key-value metadata instead.
+    ``dictionaries_as_values``: dictionary-encoded columns are written from their Arrow dictionary (no
+    re-hashing of every row) and read back as their value type: the Arrow schema is then not stored, and the
+    schema's metadata goes into the file's key-value metadata instead. Otherwise they read back encoded.
     """
     kwargs = options or parquet_options(table.schema)
     with atomic_path(target) as tmp:
-        if not any(pa.types.is_dictionary(f.type) for f in table.schema):
+        if not dictionaries_as_values or not any(pa.types.is_dictionary(f.type) for f in table.schema):
             pq.write_table(table, tmp, **kwargs)
             return
         with pq.ParquetWriter(tmp, table.schema, store_schema=False, **_writer_kwargs(kwargs)) as writer:

@@ -185,7 +185,8 @@ def _ingest_batch(job: _BatchJob) -> _BatchResult:
     if tracks.num_rows:
         path = staging / job.shard_file
         # Statistics on log_id (readers filter shards by log) but not on the other strings: cheaper writes.
-        write_parquet(tracks, path, parquet_options(tracks.schema, string_statistics=["log_id"]))
+        write_parquet(tracks, path, parquet_options(tracks.schema, string_statistics=["log_id"]),
+                      dictionaries_as_values=True)
         shard = {"file": job.shard_file, "rows": tracks.num_rows, "sha256": sha256_file(path),
                  "logs": logs.num_rows}
         kept = [m for m in parsed.logs if m not in empty]

@@ -27,12 +27,17 @@ def _tracks(encoded: bool) -> pa.Table:
 def test_dictionary_columns_read_back_as_the_schema_types(tmp_path: Path) -> None:
     encoded, plain = _tracks(True), _tracks(False)
     assert pa.types.is_dictionary(encoded.schema.field("track_id").type)
-    write_parquet(encoded, tmp_path / "encoded.parquet")
+    write_parquet(encoded, tmp_path / "encoded.parquet", dictionaries_as_values=True)
     write_parquet(plain, tmp_path / "plain.parquet")
     back = pq.read_table(tmp_path / "encoded.parquet")
     assert back.schema == tracks_schema()
     assert back.schema.metadata == tracks_schema().metadata
     assert back.equals(pq.read_table(tmp_path / "plain.parquet"))
+
+
+def test_dictionary_columns_stay_encoded_by_default(tmp_path: Path) -> None:
+    write_parquet(_tracks(True), tmp_path / "kept.parquet")
+    assert pa.types.is_dictionary(pq.read_table(tmp_path / "kept.parquet").schema.field("track_id").type)
 
 
 def test_conform_decodes_dictionaries_unless_asked_to_keep_them() -> None:
