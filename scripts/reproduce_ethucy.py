@@ -331,9 +331,10 @@ def render(results: dict[str, Any], args: argparse.Namespace, seconds: float) ->
     else:
         lines.append("All learned methods had checkpoints: `model/checkpoints/ethucy/` (MODEL_CARD.md there), "
                      "trained by `make train-ethucy` with `configs/ethucy.toml` (at most 1,200 steps, early stopping "
-                     "on `S/val`, batch 8, Adam 5e-4, H = 20, each training scene rotated by a random angle, the decoder's "
-                     "output correcting a constant-velocity step: `step_output = \"velocity_change\"`, chosen on "
-                     "`S/val`); the LSTM and Noise-LSTM with the same config through `--preset lstm|baseline`.")
+                     "on `S/val`, batch 8, Adam 5e-4, H = 20, each training scene rotated by a random angle, the "
+                     "decoder's output correcting a constant-velocity step: `step_output = \"velocity_change\"`, "
+                     "chosen on `S/val`); the LSTM and Noise-LSTM with the same config through "
+                     "`--preset lstm|baseline`.")
     lines += ["", "## Notes and caveats", "",
               "- `biwi_eth` in this (Social-GAN) version has frame steps of 10 and a mean walking speed of 2.3 m/s at "
               "0.4 s/step, about twice the other scenes (see the data's SOURCE.md); ETH errors are correspondingly "
