@@ -40,6 +40,19 @@ def _brute_chunks(store: MapStore, kind: FeatureKind, box: tuple[float, float, f
     return set(layer.features[hit].tolist())
 
 
+def _random_boxes(bounds: tuple[float, float, float, float], seed: int,
+                  n: int = 300) -> list[tuple[float, float, float, float]]:
+    """Square query windows (half-size 1-120 m) centred anywhere up to 200 m outside ``bounds``."""
+    rng = np.random.default_rng(seed)
+    xmin, ymin, xmax, ymax = bounds
+    boxes = []
+    for _ in range(n):
+        cx, cy = rng.uniform(xmin - 200, xmax + 200), rng.uniform(ymin - 200, ymax + 200)
+        half = rng.uniform(1, 120)
+        boxes.append((cx - half, cy - half, cx + half, cy + half))
+    return boxes
+
+
 def test_schema_matches_contract(mia_crop: MapStore) -> None:
     assert mia_crop.table.schema.equals(arrow_schema("map"), check_metadata=False)
     assert mia_crop.table.schema.metadata[b"logpipe.schema"] == b"map"
@@ -80,12 +93,7 @@ def test_dense_cell_table_equals_bisect_fallback(mia_crop: MapStore, monkeypatch
     monkeypatch.setattr(store_mod, "MAX_DENSE_CELLS", 0)  # as for a huge, sparse map
     sparse = MapStore(mia_crop.table).render_layer(FeatureKind.LANE_CENTERLINE)
     assert sparse.cell_start is None
-    rng = np.random.default_rng(1)
-    xmin, ymin, xmax, ymax = mia_crop.bounds
-    for _ in range(300):
-        cx, cy = rng.uniform(xmin - 200, xmax + 200), rng.uniform(ymin - 200, ymax + 200)
-        half = rng.uniform(1, 120)
-        box = (cx - half, cy - half, cx + half, cy + half)
+    for box in _random_boxes(mia_crop.bounds, seed=1):
         assert dense.candidate_ranges(*box) == sparse.candidate_ranges(*box)
 
 
@@ -102,12 +110,7 @@ def test_band_order_ranges_cover_every_overlapping_chunk(
     assert dense.start is not None and sparse.start is None
     assert sorted(dense.order.tolist()) == list(range(len(layer)))
     assert (dense.order[dense.position] == np.arange(len(layer))).all()
-    rng = np.random.default_rng(2)
-    xmin, ymin, xmax, ymax = mia_crop.bounds
-    for _ in range(300):
-        cx, cy = rng.uniform(xmin - 200, xmax + 200), rng.uniform(ymin - 200, ymax + 200)
-        half = rng.uniform(1, 120)
-        box = (cx - half, cy - half, cx + half, cy + half)
+    for box in _random_boxes(mia_crop.bounds, seed=2):
         ranges = dense.ranges(*box)
         assert ranges == sparse.ranges(*box)
         got = {int(dense.order[p]) for a, b in ranges for p in range(a, b)}
