@@ -141,20 +141,17 @@ def write_parquet(table: pa.Table, target: Path, options: dict[str, Any] | None 
     re-hashing of every row) and read back as their value type: the Arrow schema is then not stored, and the
     schema's metadata goes into the file's key-value metadata instead. Otherwise they read back encoded.
     """
-    kwargs = options or parquet_options(table.schema)
+    kwargs = dict(options or parquet_options(table.schema))
     with atomic_path(target) as tmp:
         if not dictionaries_as_values or not any(pa.types.is_dictionary(f.type) for f in table.schema):
             pq.write_table(table, tmp, **kwargs)
             return
-        with pq.ParquetWriter(tmp, table.schema, store_schema=False, **_writer_kwargs(kwargs)) as writer:
-            writer.write_table(table, row_group_size=kwargs.get("row_group_size"))
+        row_group_size = kwargs.pop("row_group_size", None)  # a write_table argument for ParquetWriter
+        with pq.ParquetWriter(tmp, table.schema, store_schema=False, **kwargs) as writer:
+            writer.write_table(table, row_group_size=row_group_size)
             if table.schema.metadata:
                 writer.add_key_value_metadata({k.decode(): v.decode() for k, v in table.schema.metadata.items()})
 
-
-def _writer_kwargs(options: dict[str, Any]) -> dict[str, Any]:
-    """``write_table`` options minus the one ``ParquetWriter`` takes per ``write_table`` call."""
-    return {k: v for k, v in options.items() if k != "row_group_size"}
 
 
 def write_json(data: Any, target: Path, *, indent: int | None = 2) -> None:

@@ -39,10 +39,6 @@ def _register(writer: Writer, topic: str, schema_name: str) -> int:
     return writer.register_channel(topic=topic, message_encoding="json", schema_id=schema_id)
 
 
-def _quaternion_z(yaw: float) -> dict[str, float]:
-    return {"x": 0.0, "y": 0.0, "z": math.sin(yaw / 2.0), "w": math.cos(yaw / 2.0)}
-
-
 def _python_list(column: pa.ChunkedArray) -> list[Any]:
     """A column as Python values (None for nulls). Through numpy when there are no nulls: ``to_pylist``
     builds an Arrow scalar per value, ~10x slower, and it was most of the cost of writing an MCAP."""
@@ -133,8 +129,8 @@ def _write_ego(
         yaw = np.arctan2(dy, dx)
     # json.dumps of {"timestamp", "frame_id", "pose": {"position", "orientation"}} written as a template.
     px, py = _json_floats(ex), _json_floats(ey)
-    quaternions = [_quaternion_z(a) for a in yaw.tolist()]
-    qz, qw = [json.dumps(q["z"]) for q in quaternions], [json.dumps(q["w"]) for q in quaternions]
+    halves = [a / 2.0 for a in yaw.tolist()]  # a rotation about z: (0, 0, sin(yaw/2), cos(yaw/2))
+    qz, qw = [json.dumps(math.sin(a)) for a in halves], [json.dumps(math.cos(a)) for a in halves]
     frame = json.dumps(WORLD_FRAME)
     for i, row in enumerate(rows):
         t = int(ts[row])
