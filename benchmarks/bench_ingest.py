@@ -90,8 +90,21 @@ def _measure(mode: str, src: Path, work: Path) -> dict[str, Any]:
     return result
 
 
+def _interleaved(modes: list[str], src: Path, work: Path, repeats: int) -> dict[str, dict[str, Any]]:
+    """``repeats`` rounds of one run per mode, alternating (A B A B ...): the host's speed drifts by tens of
+    percent over minutes, and alternating spreads the drift over every mode instead of biasing a ratio."""
+    runs: dict[str, list[dict[str, Any]]] = {mode: [] for mode in modes}
+    for _ in range(repeats):
+        for mode in modes:
+            runs[mode].append(_measure(mode, src, work))
+    return {mode: _summary(mode, mode_runs) for mode, mode_runs in runs.items()}
+
+
 def _median_run(mode: str, src: Path, work: Path, repeats: int) -> dict[str, Any]:
-    runs = [_measure(mode, src, work) for _ in range(repeats)]
+    return _summary(mode, [_measure(mode, src, work) for _ in range(repeats)])
+
+
+def _summary(mode: str, runs: list[dict[str, Any]]) -> dict[str, Any]:
     seconds = statistics.median(r["seconds"] for r in runs)
     cpu = statistics.median(r["cpu_seconds"] for r in runs)
     return {"mode": mode, "files": runs[0]["files"], "rows": runs[0]["rows"], "median_seconds": round(seconds, 3),
@@ -144,14 +157,14 @@ def floor_cpu(folder: Path, n_files: int = 1000) -> dict[str, float]:
 
 def run(quick: bool = False) -> dict[str, Any]:
     """Measure and return the figures (JSON-able)."""
-    n_large, n_small, repeats = (1_000, 250, 1) if quick else (10_000, 2_500, 3)
+    n_large, n_small, repeats = (1_000, 250, 1) if quick else (10_000, 2_500, 5)
     load_before = os.getloadavg()
     with tempfile.TemporaryDirectory(prefix="logpipe-bench-") as tmp:
         work = Path(tmp)
         nbytes = make_corpus(work / "large", n_large)
         make_corpus(work / "small", n_small)
-        baseline = _median_run("pandas", work / "large", work, repeats)
-        ours = _median_run("logpipe", work / "large", work, repeats)
+        paired = _interleaved(["pandas", "logpipe"], work / "large", work, repeats)
+        baseline, ours = paired["pandas"], paired["logpipe"]
         ours_mcap = _median_run("logpipe+mcap", work / "large", work, 1)
         ours_small = _median_run("logpipe", work / "small", work, 1)
         floor = floor_cpu(work / "large")
@@ -165,6 +178,9 @@ def run(quick: bool = False) -> dict[str, Any]:
         "logpipe_ingest_parquet_and_mcap": ours_mcap,
         "logpipe_ingest_parquet_small_corpus": ours_small,
         "speedup_vs_baseline": round(ours["files_per_s"] / baseline["files_per_s"], 2),
+        # Per round (each round ran the baseline and ours back to back): how much the ratio moves with the host.
+        "speedup_per_round": [round(b / o, 2) for b, o in zip(baseline["runs_seconds"], ours["runs_seconds"],
+                                                               strict=True)],
         # CPU work per file, baseline / ours: the wall-clock speed-up on two otherwise idle cores is at most
         # twice this (ours uses both, the baseline one).
         "cpu_ratio_baseline_vs_ours": round(baseline["cpu_s_per_1000_files"] / ours["cpu_s_per_1000_files"], 2),

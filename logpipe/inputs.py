@@ -4,16 +4,20 @@ from __future__ import annotations
 
 import hashlib
 import os
-from collections.abc import Sequence
+import stat
+from collections import Counter, defaultdict
+from collections.abc import Callable, Collection, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
+from typing import Any
 
 from logpipe.errors import LogpipeError
 from logpipe.formats.base import FormatAdapter
-from logpipe.io import sha256_tree
-from logpipe.types import SourceFile
+from logpipe.io import sha256_file, sha256_tree
+from logpipe.types import PENDING_SHA256, SourceFile
 
 SPLITS = ("train", "val", "test")
+_HEAD_BYTES = 4096
 
 
 def memberships_from_layout(relpath: str) -> tuple[str, ...]:
@@ -75,21 +79,81 @@ def find_inputs(roots: Sequence[Path], adapter: FormatAdapter) -> list[tuple[Pat
 
 def hash_inputs(found: Sequence[tuple[Path, str]], threads: int = 4) -> list[SourceFile]:
     """``SourceFile`` records for ``find_inputs``' result: hashed, identical contents merged, sorted by relpath."""
-    # hashlib and reads release the GIL: a few threads, each over a contiguous slice (one task per file costs
-    # more in executor overhead than hashing a 90 kB CSV).
-    slices = [found[i::threads] for i in range(threads)]
+    return _merge_identical(found, _hash_all([p for p, _ in found], threads))
+
+
+def fingerprint_inputs(
+    found: Sequence[tuple[Path, str]], known_sizes: Collection[int] | None, threads: int = 4
+) -> list[SourceFile]:
+    """As ``hash_inputs``, but hashing in the caller only the files that might equal another input.
+
+    Two files can have equal contents only if their sizes and first 4 KiB are equal. A file whose size and
+    head match no other input of this run, and whose size matches no input the dataset already holds
+    (``known_sizes``; None = unknown, hash everything), is unique by content whatever its digest: its
+    ``sha256`` is left ``PENDING_SHA256`` for the batch that reads the file anyway (``complete_hashes``, or
+    the adapter while reading). Inputs then reach the parallel workers without a serial pass over every byte.
+    """
+    if known_sizes is None:
+        return hash_inputs(found, threads)
+    paths = [p for p, _ in found]
+    stats = [os.stat(p) for p in paths]
+    sizes = [-1 if stat.S_ISDIR(st.st_mode) else st.st_size for st in stats]  # folders (bags): always hashed
+    same_size = Counter(sizes)
+    maybe_twin = [i for i, n in enumerate(sizes) if n >= 0 and same_size[n] > 1 and n not in known_sizes]
+    heads = _map_slices(lambda idx: [_head(paths[i]) for i in idx], maybe_twin, threads)
+    groups: dict[tuple[int, bytes], list[int]] = defaultdict(list)
+    for i, head in zip(maybe_twin, heads, strict=True):
+        groups[(sizes[i], head)].append(i)
+    unique = {group[0] for group in groups.values() if len(group) == 1}
+    unique |= {i for i, n in enumerate(sizes) if n >= 0 and same_size[n] == 1 and n not in known_sizes}
+    to_hash = [i for i in range(len(paths)) if i not in unique]
+    digests = dict(zip(to_hash, _hash_all([paths[i] for i in to_hash], threads), strict=True))
+    hashed = [digests.get(i, (PENDING_SHA256, sizes[i])) for i in range(len(paths))]
+    return _merge_identical(found, hashed)
+
+
+def complete_hashes(sources: Sequence[SourceFile]) -> list[SourceFile]:
+    """``sources`` with every ``PENDING_SHA256`` digest computed."""
+    return [s if s.sha256 != PENDING_SHA256 else
+            SourceFile(s.path, s.relpath, sha256_file(Path(s.path)), s.size, s.memberships) for s in sources]
+
+
+def _head(path: Path) -> bytes:
+    # One open and one read: a system call costs ~15 us on this kind of VM, more than reading 4 KiB.
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        return os.pread(fd, _HEAD_BYTES, 0)
+    finally:
+        os.close(fd)
+
+
+def _map_slices(fn: Callable[[list[int]], list[Any]], items: list[int], threads: int) -> list[Any]:
+    """``fn`` over ``threads`` interleaved slices of ``items`` on threads (file reads and hashlib release the
+    GIL; one task per 90 kB file would cost more in executor overhead than the work), results in item order."""
+    slices = [items[i::threads] for i in range(threads)]
     with ThreadPoolExecutor(max_workers=threads) as pool:
-        parts = list(pool.map(lambda part: [_digest_and_size(p) for p, _ in part], slices))
-    hashed: list[tuple[str, int]] = [("", 0)] * len(found)
+        parts = list(pool.map(fn, slices))
+    out: list[Any] = [None] * len(items)
     for i, part in enumerate(parts):
-        hashed[i::threads] = part
+        out[i::threads] = part
+    return out
+
+
+def _hash_all(paths: Sequence[Path], threads: int) -> list[tuple[str, int]]:
+    return _map_slices(lambda idx: [_digest_and_size(paths[i]) for i in idx], list(range(len(paths))), threads)
+
+
+def _merge_identical(found: Sequence[tuple[Path, str]], hashed: Sequence[tuple[str, int]]) -> list[SourceFile]:
     by_digest: dict[str, SourceFile] = {}
+    pending: list[SourceFile] = []
     for (path, relpath), (digest, size) in zip(found, hashed, strict=True):
         labels = memberships_from_layout(relpath)
-        if digest in by_digest:
+        if digest == PENDING_SHA256:
+            pending.append(SourceFile(str(path), relpath, digest, size, labels))
+        elif digest in by_digest:
             first = by_digest[digest]
             merged = tuple(sorted(set(first.memberships) | set(labels)))
             by_digest[digest] = SourceFile(first.path, first.relpath, digest, first.size, merged)
         else:
             by_digest[digest] = SourceFile(str(path), relpath, digest, size, labels)
-    return sorted(by_digest.values(), key=lambda s: s.relpath)
+    return sorted([*by_digest.values(), *pending], key=lambda s: s.relpath)

@@ -57,7 +57,8 @@ class SourceFile:
     Attributes:
         path: where it is on disk.
         relpath: path relative to the ingest root it was found under (POSIX separators); names it in errors.
-        sha256: hex digest of its bytes (for a folder: of its files' digests in name order).
+        sha256: hex digest of its bytes (for a folder: of its files' digests in name order); ``PENDING_SHA256``
+            until the batch that reads the file computes it (ingest leaves it so for inputs it knows unique).
         size: bytes.
         memberships: ``"<scene>/<split>"`` labels read from the folder layout (ETH/UCY), possibly empty.
     """
@@ -67,6 +68,10 @@ class SourceFile:
     sha256: str
     size: int
     memberships: tuple[str, ...] = ()
+
+
+PENDING_SHA256 = ""
+"""``SourceFile.sha256`` of an input whose digest is computed by the batch that reads it."""
 
 
 @dataclass

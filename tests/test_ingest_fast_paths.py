@@ -81,3 +81,100 @@ def test_adapter_codes_equal_recomputed_codes(bundled: Path) -> None:
     ours = parsed.codes.track_names[parsed.codes.track_code]
     assert np.array_equal(ours, fresh.track_names[fresh.track_code])
     assert tracks.column("track_id").to_pylist() == ours.tolist()
+
+
+def _write(folder: Path, name: str, data: bytes) -> Path:
+    path = folder / name
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_bytes(data)
+    return path
+
+
+def test_fingerprint_hashes_only_possible_twins(tmp_path: Path) -> None:
+    """Files that share size and head with another input, or whose size an ingested input had, are hashed and
+    merged; the rest are left pending, and their digests when completed are the files' true sha256."""
+    import hashlib
+
+    from logpipe.inputs import complete_hashes, fingerprint_inputs, hash_inputs
+    from logpipe.types import PENDING_SHA256
+
+    same = b"frame ped x y\n" * 400  # > 4 KiB
+    files = {
+        "eth/train/a.txt": same,
+        "univ/train/a.txt": same,  # identical: one input with both memberships
+        "zara/train/b.txt": same[:-1] + b"Z",  # same size and head, other bytes: hashed, kept apart
+        "zara/train/c.txt": b"1 2 3 4\n",  # unique size
+        "zara/train/d.txt": b"9" * 77,  # size of an input already in the dataset
+    }
+    found = [(_write(tmp_path, rel, data), rel) for rel, data in sorted(files.items())]
+    sources = {s.relpath: s for s in fingerprint_inputs(found, known_sizes={77}, threads=2)}
+    assert sorted(sources) == ["eth/train/a.txt", "zara/train/b.txt", "zara/train/c.txt", "zara/train/d.txt"]
+    assert sources["eth/train/a.txt"].memberships == ("eth/train", "univ/train")
+    assert sources["zara/train/c.txt"].sha256 == PENDING_SHA256
+    assert all(sources[r].sha256 != PENDING_SHA256 for r in ("eth/train/a.txt", "zara/train/b.txt", "zara/train/d.txt"))
+    completed = complete_hashes(list(sources.values()))
+    assert [s.sha256 for s in completed] == [hashlib.sha256(files[s.relpath]).hexdigest() for s in completed]
+    assert completed == hash_inputs(found, threads=2)
+    # Sizes unknown (a manifest from before sizes were recorded): everything is hashed, as hash_inputs does.
+    assert fingerprint_inputs(found, known_sizes=None, threads=2) == hash_inputs(found, threads=2)
+
+
+@pytest.mark.parametrize("header_lines", [0, 1])
+def test_read_bodies_equals_join_of_whole_files(tmp_path: Path, header_lines: int) -> None:
+    """Reading straight into the shared buffer gives the bytes, line counts and digests of read-then-join."""
+    import hashlib
+
+    from logpipe.formats._text import join_bodies, read_bodies
+    from logpipe.types import PENDING_SHA256, SourceFile
+
+    blobs = [b"h\na\nb", b"h\nc\r\n", b"h\nx\ny\n\n \t", b"h\r\nlast line without newline",
+             b"h\n" + b"row,1\n" * 3000]  # the last one is bigger than the 4 KiB head read
+    sources = [SourceFile(str(_write(tmp_path, f"{i}.txt", b)), f"{i}.txt", PENDING_SHA256, len(b)) for i, b in
+               enumerate(blobs)]
+    batch, good, failures = read_bodies(sources, header_lines, lambda s, head, rows: None, keep_going=False)
+    expected = join_bodies(blobs, header_lines)
+    assert bytes(batch.buffer) == expected.buffer and batch.rows_per_file == expected.rows_per_file
+    assert [s.sha256 for s in good] == [hashlib.sha256(b).hexdigest() for b in blobs] and not failures
+    kept = batch.keep([0, 3])  # dropping failed files (the keep_going retry)
+    assert bytes(kept.buffer) == join_bodies([blobs[0], blobs[3]], header_lines).buffer
+
+
+def test_read_bodies_passes_header_and_emptiness_to_the_check(tmp_path: Path) -> None:
+    from logpipe.formats._text import read_bodies
+    from logpipe.formats.argoverse1 import HEADER, _check_header
+    from logpipe.types import SourceFile
+
+    cases = {"empty.csv": b"", "spaces.csv": b"  \n\n", "header_only.csv": HEADER + b"\r\n  \n",
+             "bad.csv": b"TIMESTAMP,TRACK_ID,X,Y\n1,a,2,3\n", "ok.csv": HEADER + b"\n1.0,a,AV,1,2,MIA\n"}
+    sources = [SourceFile(str(_write(tmp_path, n, b)), n, "x", len(b)) for n, b in cases.items()]
+    _, good, failures = read_bodies(sources, 1, _check_header, keep_going=True)
+    assert [s.relpath for s in good] == ["ok.csv"]
+    assert {e.file: (e.line, e.reason.split(":")[0]) for e in failures} == {
+        "empty.csv": (1, "empty file (no header, no rows)"), "spaces.csv": (1, "empty file (no header, no rows)"),
+        "header_only.csv": (2, "no data rows after the header"), "bad.csv": (1, "bad header")}
+
+
+def test_pool_workers_and_parent_never_import_pandas(bundled: Path, tmp_path: Path) -> None:
+    """pyarrow would import pandas (~1 s of CPU a process) on its first conversion: the pool workers refuse it,
+    and a pooled Argoverse ingest in a fresh process leaves pandas unimported there too."""
+    import subprocess
+    import sys
+
+    script = """
+import sys
+from pathlib import Path
+from logpipe.executor import _init_worker
+from logpipe.stages.ingest import IngestOptions, ingest
+
+if __name__ == "__main__":
+    summary = ingest([Path(sys.argv[1])], IngestOptions(out=Path(sys.argv[2]), batch_files=2, workers=2))
+    assert summary["shards_written"] and summary["rows"] > 0, summary
+    parent_has_pandas = "pandas" in sys.modules
+    _init_worker()
+    import pyarrow as pa
+    assert pa.array([1.5]).to_pylist() == [1.5]  # pyarrow works with pandas refused
+    print(parent_has_pandas, "pandas" in sys.modules)
+"""
+    out = subprocess.run([sys.executable, "-c", script, str(bundled / "argoverse1"), str(tmp_path / "out")],
+                         capture_output=True, text=True, check=True)
+    assert out.stdout.split() == ["False", "False"], out.stderr

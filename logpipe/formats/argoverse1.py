@@ -11,7 +11,6 @@ in one pyarrow call, then mapped back to files by their line counts.
 
 from __future__ import annotations
 
-import re
 from collections.abc import Sequence
 from pathlib import Path
 from typing import ClassVar
@@ -39,7 +38,6 @@ from logpipe.io import as_numpy
 from logpipe.samples import TrackCodes, steps_from_sorted_times
 from logpipe.types import PROTOCOLS, LogMeta, ObjectType, Role, SampleProtocol, SourceFile
 
-_NON_SPACE = re.compile(rb"\S")
 COLUMNS = ["TIMESTAMP", "TRACK_ID", "OBJECT_TYPE", "X", "Y", "CITY_NAME"]
 HEADER = ",".join(COLUMNS).encode()
 # Dictionary-encoded while parsing: ~50 distinct timestamps and tracks per file, and every later step
@@ -62,6 +60,7 @@ class Argoverse1Adapter:
     name: ClassVar[str] = "argoverse1"
     default_protocol: ClassVar[SampleProtocol] = PROTOCOLS["argoverse"]
     batch_files: ClassVar[int] = 250  # ~220k rows per shard; enough batches to keep every core busy
+    hashes_while_reading: ClassVar[bool] = True  # parse_files hashes each blob it reads
 
     def discover(self, root: Path) -> list[Path]:
         """CSV files under ``root`` (or ``root`` itself)."""
@@ -84,11 +83,10 @@ class Argoverse1Adapter:
         return ParsedLogs(tracks=tracks, logs=logs, failures=failures, codes=codes if tracks.num_rows else None)
 
 
-def _check_header(source: SourceFile, blob: bytes) -> SourceError | None:
-    if not blob or blob.isspace():  # no copies: these files are ~90 kB and there may be millions
+def _check_header(source: SourceFile, header: bytes, has_rows: bool) -> SourceError | None:
+    first = header.strip()
+    if not first and not has_rows:
         return SourceError(source.relpath, "empty file (no header, no rows)", line=1)
-    newline = blob.find(b"\n")
-    first = (blob if newline < 0 else blob[:newline]).strip()
     if first != HEADER:
         found = first.decode("utf-8", "replace").split(",")
         missing = [c for c in COLUMNS if c not in found]
@@ -101,7 +99,7 @@ def _check_header(source: SourceFile, blob: bytes) -> SourceError | None:
         if not detail:
             detail.append(f"columns in order {found}, expected {COLUMNS}")
         return SourceError(source.relpath, "bad header: " + "; ".join(detail), line=1)
-    if newline < 0 or _NON_SPACE.search(blob, newline) is None:
+    if not has_rows:
         return SourceError(source.relpath, "no data rows after the header", line=2)
     return None
 

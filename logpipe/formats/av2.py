@@ -99,6 +99,7 @@ class Av2Adapter:
     name: ClassVar[str] = "argoverse2"
     default_protocol: ClassVar[SampleProtocol] = PROTOCOLS["argoverse2"]
     batch_files: ClassVar[int] = 64
+    hashes_while_reading: ClassVar[bool] = False
 
     def __init__(self, allow_empty: bool = False, include_static: bool = True) -> None:
         self.allow_empty = allow_empty

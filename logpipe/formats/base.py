@@ -97,11 +97,14 @@ class FormatAdapter(Protocol):
         name: short id used on the CLI (``--format``) and in ``logs.source_format``.
         default_protocol: the ``SampleProtocol`` preset this format's benchmark uses.
         batch_files: how many inputs to hand to ``read`` at once (large for many small files).
+        hashes_while_reading: ``read`` fills in every ``PENDING_SHA256`` digest of the sources it logs, from
+            its own read of each file (else the caller hashes them first, reading the files twice).
     """
 
     name: ClassVar[str]
     default_protocol: ClassVar[SampleProtocol]
     batch_files: ClassVar[int]
+    hashes_while_reading: ClassVar[bool]
 
     def discover(self, root: Path) -> list[Path]:
         """Input paths under ``root`` (a file or folder) that this adapter reads, sorted; [] if none."""

@@ -261,6 +261,7 @@ class McapAdapter:
     name: ClassVar[str] = "mcap"
     default_protocol: ClassVar[SampleProtocol] = ROSBAG_PROTOCOL
     batch_files: ClassVar[int] = 1
+    hashes_while_reading: ClassVar[bool] = False
 
     def __init__(
         self,

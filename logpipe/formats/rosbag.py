@@ -140,6 +140,7 @@ class RosbagAdapter:
     name: ClassVar[str] = "rosbag"
     default_protocol: ClassVar[SampleProtocol] = ROSBAG_PROTOCOL
     batch_files: ClassVar[int] = 1
+    hashes_while_reading: ClassVar[bool] = False
 
     def __init__(
         self,
