@@ -26,6 +26,7 @@ from typing import Any
 
 import torch
 
+from logpipe.model.backbone import native_bf16
 from logpipe.model.batching import collate
 from logpipe.model.config import Features, ModelConfig
 from logpipe.model.nets import TrajectoryNet
@@ -108,6 +109,8 @@ def _backbone(repeats: int) -> dict[str, float]:
         env.backbone.use_bf16 = True
         low = env.feature_map(raster)
         out["backbone_bf16_images_per_s"] = _median_rate(lambda: env.feature_map(raster).shape[0], repeats)
+        # Without native bf16 the model runs its backbone in fp32 whatever the config says (logpipe.model.backbone).
+        out["cpu_has_native_bf16"] = native_bf16()
         v_low = env(env.project(low), pos, batch, rows)
     out["bf16_feature_map_rel_l2_error"] = float((low - ref).norm() / ref.norm())
     out["bf16_feature_map_max_abs_error"] = float((low - ref).abs().max())

@@ -81,9 +81,10 @@ class ModelConfig:
         backbone_weights: optional path of a torchvision-layout ResNet18 state dict (safetensors or a
             ``torch.save`` file read with ``weights_only=True``) for the "pre-trained" backbone.
         freeze_backbone: keep the backbone's weights fixed (and in eval mode) during training.
-        backbone_bf16: run the backbone in bf16 autocast with channels_last (CPU AMX): ~4x the fp32 images/s
-            here for a 0.6% relative L2 error of the feature map and 0.3% of the pooled feature v (measured
-            by ``benchmarks/bench_model.py``). Turn off on CPUs without native bf16.
+        backbone_bf16: run the backbone in bf16 autocast with channels_last where the CPU has native bf16
+            (AMX / AVX512-BF16): ~4x the fp32 images/s there, for a 0.6% relative L2 error of the feature map
+            and 0.3% of the pooled feature v (``benchmarks/bench_model.py``). Other CPUs run fp32 whatever
+            this says (emulated bf16 was 4-5x slower than fp32 on an AVX2 EPYC).
         frame: ``world`` (world axes, origin at the targets' mean current position) or ``ego`` (origin at
             the ego's current position, +x along the ego's last observed heading); Table 3 reports both.
         pos_scale_m: positions are divided by this (metres) before the position/attention/ETF layers.

@@ -220,6 +220,7 @@ def test_backbone_bf16_stays_close_to_fp32() -> None:
     torch.manual_seed(0)
     fp32 = ResNet18Stages12(4).eval()
     bf16 = ResNet18Stages12(4, use_bf16=True).eval()
+    bf16.use_bf16 = True  # the bf16 path itself, also where this CPU would run fp32 (emulated: same numbers)
     bf16.load_state_dict(fp32.state_dict())
     x = torch.rand(2, 4, 64, 64) * 2 - 1
     with torch.no_grad():
@@ -227,6 +228,16 @@ def test_backbone_bf16_stays_close_to_fp32() -> None:
     assert b.dtype == torch.float32
     rel = float((a - b).norm() / a.norm())
     assert rel < 0.05
+
+
+def test_backbone_uses_bf16_only_where_the_cpu_has_it() -> None:
+    from logpipe.model.backbone import native_bf16
+
+    assert ResNet18Stages12(4, use_bf16=True).use_bf16 is native_bf16()
+    assert ResNet18Stages12(4, use_bf16=False).use_bf16 is False
+    capability = torch.backends.cpu.get_cpu_capability()
+    if capability in ("AVX2", "DEFAULT"):  # no AVX-512 at all: certainly no native bf16
+        assert not native_bf16()
 
 
 def test_fused_lstm_step_matches_lstm_cell_eqs_16_18() -> None:
