@@ -11,11 +11,13 @@ from __future__ import annotations
 
 import json
 import math
+from dataclasses import dataclass
 from functools import cache
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+import orjson
 import pyarrow as pa
 from mcap.writer import CompressionType, Writer
 
@@ -53,39 +55,90 @@ def _json_texts(values: list[Any]) -> list[str]:
 
 
 def _json_floats(values: np.ndarray) -> list[str]:
-    """JSON text of each float, as ``json.dumps`` writes it (``float.__repr__`` for finite values)."""
-    as_list = values.tolist()
-    if bool(np.isfinite(values).all()):
-        return list(map(float.__repr__, as_list))
-    return [json.dumps(v) for v in as_list]
+    """JSON text of each float, as ``json.dumps`` writes it (``float.__repr__`` for finite values).
+
+    orjson formats the array ~6x faster than one ``repr`` per value and writes the same shortest
+    round-trip digits; the two differ only in where they switch to exponent notation, so values in that
+    range (0 < |v| < 1e-4, |v| >= 1e16) are written by ``repr`` itself.
+    """
+    values = np.ascontiguousarray(values, dtype=np.float64)
+    if not bool(np.isfinite(values).all()):
+        return [json.dumps(v) for v in values.tolist()]
+    texts = orjson.dumps(values, option=orjson.OPT_SERIALIZE_NUMPY)[1:-1].decode().split(",") if len(values) else []
+    magnitude = np.abs(values)
+    for i in np.flatnonzero(((magnitude < 1e-4) & (magnitude > 0)) | (magnitude >= 1e16)).tolist():
+        texts[i] = repr(float(values[i]))
+    return texts
 
 
-def write_log_mcap(log_id: str, tracks: pa.Table, target: Path, map_id: str | None) -> int:
+@dataclass
+class LogRows:
+    """A track table's columns as the texts and arrays the MCAP writer needs, converted once per batch of
+    logs (per log, seven column conversions cost more than the log's messages) and sliced per log.
+
+    Attributes:
+        steps, ts, x, y: (rows,) step, timestamp (ns) and position (m, world frame) of each row.
+        heading: (rows,) heading in radians or None per row; None when the column is all null.
+        roles: (rows,) role of each row.
+        track_ids, object_types, role_texts, xs, ys: JSON texts of each row's values.
+    """
+
+    steps: np.ndarray
+    ts: np.ndarray
+    x: np.ndarray
+    y: np.ndarray
+    heading: list[Any] | None
+    roles: list[str]
+    track_ids: list[str]
+    object_types: list[str]
+    role_texts: list[str]
+    xs: list[str]
+    ys: list[str]
+
+    @classmethod
+    def of(cls, tracks: pa.Table) -> LogRows:
+        """The rows of ``tracks`` (canonical track-table columns)."""
+        heading_col = tracks.column("heading")
+        roles = _python_list(tracks.column("role"))
+        x, y = as_numpy(tracks.column("x")), as_numpy(tracks.column("y"))
+        return cls(
+            steps=as_numpy(tracks.column("step")), ts=as_numpy(tracks.column("timestamp_ns")), x=x, y=y,
+            heading=_python_list(heading_col) if heading_col.null_count < len(heading_col) else None,
+            roles=roles, track_ids=_json_texts(_python_list(tracks.column("track_id"))),
+            object_types=_json_texts(_python_list(tracks.column("object_type"))), role_texts=_json_texts(roles),
+            xs=_json_floats(x), ys=_json_floats(y),
+        )
+
+    def slice(self, lo: int, hi: int) -> LogRows:
+        """Rows ``lo:hi`` (views of the arrays, copies of the lists)."""
+        heading = None if self.heading is None else self.heading[lo:hi]
+        return LogRows(self.steps[lo:hi], self.ts[lo:hi], self.x[lo:hi], self.y[lo:hi], heading, self.roles[lo:hi],
+                       self.track_ids[lo:hi], self.object_types[lo:hi], self.role_texts[lo:hi], self.xs[lo:hi],
+                       self.ys[lo:hi])
+
+    def __len__(self) -> int:
+        return len(self.steps)
+
+
+def write_log_mcap(log_id: str, tracks: pa.Table | LogRows, target: Path, map_id: str | None) -> int:
     """Write one log's rows (sorted by step) to ``target``; returns the number of messages.
 
     ``target`` must be in a folder nobody reads yet (ingest's staging folder, renamed into place whole):
     per-file temp-and-rename would cost more than the MCAP itself at millions of small logs.
     """
-    steps = as_numpy(tracks.column("step"))
-    ts = as_numpy(tracks.column("timestamp_ns"))
-    x = as_numpy(tracks.column("x"))
-    y = as_numpy(tracks.column("y"))
-    heading_col = tracks.column("heading")
-    heading = _python_list(heading_col) if heading_col.null_count < len(heading_col) else None
-    roles = _python_list(tracks.column("role"))
+    rows = tracks if isinstance(tracks, LogRows) else LogRows.of(tracks)
+    steps, ts, headings = rows.steps, rows.ts, None
+    if rows.heading is not None:
+        headings = [json.dumps(v) for v in rows.heading]
     # Each row's values as JSON text once, joined per step: the same bytes as json.dumps of the message
     # dict (key order kept), at a fraction of the cost (JSON encoding was the largest part of ingest's MCAP).
-    track_ids = _json_texts(_python_list(tracks.column("track_id")))
-    object_types = _json_texts(_python_list(tracks.column("object_type")))
-    role_texts = _json_texts(roles)
-    xs, ys = _json_floats(x), _json_floats(y)
-    headings = None if heading is None else [json.dumps(v) for v in heading]
     bounds = np.flatnonzero(np.diff(steps)) + 1
     starts = np.concatenate([[0], bounds]).tolist()
     ends = np.concatenate([bounds, [len(steps)]]).tolist()
     ego_role = Role.EGO.value
-    ego_rows = [i for i, r in enumerate(roles) if r == ego_role]
+    ego_rows = [i for i, r in enumerate(rows.roles) if r == ego_role]
     log_text, frame_text = json.dumps(log_id), json.dumps(WORLD_FRAME)
+    track_ids, object_types, role_texts, xs, ys = rows.track_ids, rows.object_types, rows.role_texts, rows.xs, rows.ys
     count = 0
     target.parent.mkdir(parents=True, exist_ok=True)
     with target.open("wb") as fh:
@@ -108,7 +161,7 @@ def write_log_mcap(log_id: str, tracks: pa.Table, target: Path, map_id: str | No
             writer.add_message(agents, log_time=t, publish_time=t, data="".join(parts).encode(), sequence=count)
             count += 1
         if ego is not None:
-            count += _write_ego(writer, ego, ego_rows, ts, x, y, heading)
+            count += _write_ego(writer, ego, ego_rows, ts, rows.x, rows.y, rows.heading)
         writer.finish()  # type: ignore[no-untyped-call]
     return count
 
@@ -130,7 +183,8 @@ def _write_ego(
     # json.dumps of {"timestamp", "frame_id", "pose": {"position", "orientation"}} written as a template.
     px, py = _json_floats(ex), _json_floats(ey)
     halves = [a / 2.0 for a in yaw.tolist()]  # a rotation about z: (0, 0, sin(yaw/2), cos(yaw/2))
-    qz, qw = [json.dumps(math.sin(a)) for a in halves], [json.dumps(math.cos(a)) for a in halves]
+    qz = _json_floats(np.array([math.sin(a) for a in halves], dtype=np.float64))
+    qw = _json_floats(np.array([math.cos(a) for a in halves], dtype=np.float64))
     frame = json.dumps(WORLD_FRAME)
     for i, row in enumerate(rows):
         t = int(ts[row])

@@ -30,7 +30,7 @@ from logpipe.executor import Backend, default_workers, run_ordered, warm_up
 from logpipe.formats import detect, get_adapter
 from logpipe.inputs import complete_hashes, find_inputs, fingerprint_inputs
 from logpipe.io import as_numpy, parquet_options, read_json, sha256_file, write_json, write_parquet
-from logpipe.mcapio import write_log_mcap
+from logpipe.mcapio import LogRows, write_log_mcap
 from logpipe.samples import TrackCodes, build_samples, steps_from_sorted_times
 from logpipe.types import LogMeta, NDArrayBool, NDArrayInt, Role, SampleProtocol, SourceFile
 
@@ -320,14 +320,17 @@ def _median_step(step_logs: NDArrayInt, step_ts: NDArrayInt, n_logs: int) -> NDA
 
 
 def _write_mcaps(tracks: pa.Table, metas: list[LogMeta], folder: Path) -> int:
-    log_ids = as_numpy(tracks.column("log_id"))
-    bounds = np.flatnonzero(log_ids[1:] != log_ids[:-1]) + 1
+    # Log boundaries from the log codes (no string per row), every column converted once for the batch.
+    logs = pc.dictionary_encode(tracks.column("log_id")).combine_chunks()
+    codes, names = as_numpy(logs.indices), logs.dictionary.to_pylist()
+    bounds = np.flatnonzero(codes[1:] != codes[:-1]) + 1
     maps = {m.log_id: m.map_id for m in metas}
+    rows = LogRows.of(tracks)
     messages = 0
-    for lo, hi in zip(np.concatenate([[0], bounds]).tolist(), np.concatenate([bounds, [len(log_ids)]]).tolist(),
+    for lo, hi in zip(np.concatenate([[0], bounds]).tolist(), np.concatenate([bounds, [len(codes)]]).tolist(),
                       strict=True):
-        log_id = str(log_ids[lo])
-        messages += write_log_mcap(log_id, tracks.slice(lo, hi - lo), folder / f"{log_id}.mcap", maps.get(log_id))
+        log_id = names[codes[lo]]
+        messages += write_log_mcap(log_id, rows.slice(lo, hi), folder / f"{log_id}.mcap", maps.get(log_id))
     return messages
 
 

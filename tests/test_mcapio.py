@@ -59,3 +59,29 @@ def test_messages_equal_json_dumps_of_the_documented_dicts(tmp_path: Path) -> No
                                                           {"x": 2.5, "y": 0.5, "z": 0.0}]
         assert poses[0]["pose"]["orientation"]["z"] == math.sin(0.25)  # the source heading, halved
         assert got[EGO_TOPIC][0] == json.dumps(poses[0], separators=COMPACT).encode()
+
+
+def test_float_texts_equal_json_dumps_across_exponent_ranges() -> None:
+    import numpy as np
+
+    from logpipe.mcapio import _json_floats
+
+    rng = np.random.default_rng(0)
+    tricky = [0.0, -0.0, 1.0, -2.5, 1e-4, 9.999e-5, 1e-5, -3.7e-7, 5e-324, 0.1, 1 / 3, 123456.789, 2.0**53,
+              9.999999e15, 1e16, -1.5e16, 1e300, 1.7976931348623157e308]
+    values = np.concatenate([np.array(tricky), rng.uniform(-5000, 5000, 2000), rng.normal(0, 1e-4, 2000),
+                             10.0 ** rng.uniform(-12, 20, 2000)])
+    assert _json_floats(values) == [json.dumps(v) for v in values.tolist()]
+    assert _json_floats(np.array([1.0, float("nan"), float("inf")])) == ["1.0", "NaN", "Infinity"]
+    assert _json_floats(np.array([], dtype=np.float64)) == []
+
+
+def test_log_rows_slices_write_what_each_log_alone_writes(tmp_path: Path) -> None:
+    from logpipe.mcapio import LogRows
+
+    two = pa.concat_tables([_log(True), _log(True)])
+    rows = LogRows.of(two)
+    assert len(rows) == 10
+    write_log_mcap("L", rows.slice(5, 10), tmp_path / "sliced.mcap", "MIA")
+    write_log_mcap("L", _log(True), tmp_path / "alone.mcap", "MIA")
+    assert _messages(tmp_path / "sliced.mcap") == _messages(tmp_path / "alone.mcap")
