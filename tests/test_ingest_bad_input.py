@@ -31,6 +31,7 @@ AV1_CASES = {
     "backwards": (GOOD + "315968203.1,b,OTHERS,1.0,2.0,MIA\n", 8, "TIMESTAMP", "time goes backwards"),
     "bad_timestamp": (GOOD.replace("315968203.200000", "3.1e8", 1), 6, "TIMESTAMP", "not a decimal number"),
     "bad_type": (GOOD + "315968203.9,b,TRUCK,1.0,2.0,MIA\n", 8, "OBJECT_TYPE", "unknown OBJECT_TYPE 'TRUCK'"),
+    "not_utf8": (GOOD.encode() + b"315968203.9,b\xff\xfe,OTHERS,1.0,2.0,MIA\n", 8, "TRACK_ID", "not UTF-8 text"),
 }
 
 
@@ -40,7 +41,7 @@ def test_argoverse1_bad_file_fails_with_location_and_writes_nothing(case: str, t
     src = tmp_path / "in"
     src.mkdir()
     (src / "1.csv").write_text(GOOD)
-    (src / "2.csv").write_text(text)
+    (src / "2.csv").write_bytes(text if isinstance(text, bytes) else text.encode())
     out = tmp_path / "out"
     with pytest.raises(SourceError) as info:
         ingest([src], IngestOptions(out=out, format="argoverse1", write_mcap=True))
@@ -58,7 +59,7 @@ def test_argoverse1_skip_quarantines_bad_file_and_keeps_good(case: str, tmp_path
     src = tmp_path / "in"
     src.mkdir()
     (src / "1.csv").write_text(GOOD)
-    (src / "2.csv").write_text(text)
+    (src / "2.csv").write_bytes(text if isinstance(text, bytes) else text.encode())
     (src / "3.csv").write_text(GOOD.replace("a-1", "a-3"))
     out = tmp_path / "out"
     summary = ingest([src], IngestOptions(out=out, format="argoverse1", on_error="skip"))

@@ -181,15 +181,27 @@ def _strip_end(buffer: bytearray, lo: int, hi: int) -> int:
 def parse_batch(
     batch: TextBatch, names: list[str], types: dict[str, pa.DataType], delimiter: str
 ) -> pa.Table:
-    """Parse the joined buffer in one call (no quoting: none of these formats quote)."""
+    """Parse the joined buffer in one call (no quoting: none of these formats quote).
+
+    Dictionary-of-string columns are parsed as dictionary-of-binary and their dictionaries then cast to
+    string: UTF-8 is checked once per distinct value instead of once per row (~15% of the parse of an
+    Argoverse batch). Invalid UTF-8 raises ``pa.ArrowInvalid`` either way (the caller then finds the line).
+    """
     read = pacsv.ReadOptions(column_names=names, block_size=1 << 24, use_threads=False)
     parse = pacsv.ParseOptions(
         delimiter=delimiter, quote_char=False, double_quote=False, ignore_empty_lines=False
     )
+    as_binary = [n for n in names if pa.types.is_dictionary(types[n]) and pa.types.is_string(types[n].value_type)]
+    parsed_types = {n: pa.dictionary(types[n].index_type, pa.binary()) if n in as_binary else types[n] for n in names}
     convert = pacsv.ConvertOptions(
-        column_types=types, strings_can_be_null=False, quoted_strings_can_be_null=False
+        column_types=parsed_types, strings_can_be_null=False, quoted_strings_can_be_null=False
     )
-    return pacsv.read_csv(pa.py_buffer(batch.buffer), read, parse, convert)
+    table = pacsv.read_csv(pa.py_buffer(batch.buffer), read, parse, convert)
+    for name in as_binary:
+        column = table.column(name)
+        chunks = [pa.DictionaryArray.from_arrays(c.indices, c.dictionary.cast(pa.string())) for c in column.chunks]
+        table = table.set_column(table.schema.get_field_index(name), name, pa.chunked_array(chunks, types[name]))
+    return table
 
 
 def locate_bad_line(
@@ -213,7 +225,13 @@ def locate_bad_line(
     try:
         text = blob.decode("utf-8")
     except UnicodeDecodeError as exc:
-        return SourceError(source.relpath, f"not UTF-8 text ({exc.reason} at byte {exc.start})")
+        line_start = blob.rfind(b"\n", 0, exc.start) + 1
+        before = blob[line_start:exc.start]
+        column = len(before.split(splitter.encode()) if splitter else before.split()) - 1
+        column = column + 1 if not splitter and before[-1:].isspace() else column
+        return SourceError(source.relpath, f"not UTF-8 text ({exc.reason} at byte {exc.start})",
+                           line=blob.count(b"\n", 0, exc.start) + 1,
+                           field=names[column] if 0 <= column < len(names) else None)
     lines = text.splitlines()
     for number, raw in enumerate(lines[header_lines:], start=header_lines + 1):
         line = raw.strip()
