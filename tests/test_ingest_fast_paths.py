@@ -71,6 +71,22 @@ def test_fast_detect_agrees_with_detect(bundled: Path, tmp_path: Path) -> None:
     assert detect(mixed) == "argoverse1"
 
 
+def test_text_formats_claim_no_file_another_format_claims(bundled: Path) -> None:
+    """What lets detection stop at the text formats: over every bundled sample, a file a text format
+    claims is claimed by no other format, and detection agrees with asking every format."""
+    from logpipe.formats import FORMATS, TEXT_FORMATS, adapter_class
+
+    files = [p for p in sorted(bundled.rglob("*")) if p.is_file()]
+    claimed_by_text = 0
+    for path in files:
+        claims = [name for name in FORMATS if adapter_class(name)().sniff(path)]
+        if set(claims) & set(TEXT_FORMATS):
+            claimed_by_text += 1
+            assert len(claims) == 1, (path, claims)
+            assert detect(path) == claims[0]
+    assert claimed_by_text >= 10
+
+
 def test_adapter_codes_equal_recomputed_codes(bundled: Path) -> None:
     adapter = Argoverse1Adapter()
     parsed = adapter.read(collect_sources([bundled / "argoverse1"], adapter), keep_going=False)

@@ -26,6 +26,10 @@ _CLASSES: dict[str, tuple[str, str]] = {  # CLI name -> (module, class)
     "mcap": ("logpipe.formats.mcapfile", "McapAdapter"),
 }
 FORMATS: tuple[str, ...] = tuple(_CLASSES)
+TEXT_FORMATS = ("argoverse1", "ethucy", "apolloscape")
+"""Formats of delimited text (``.csv``/``.txt`` with a header or numeric first line). The other sniffs claim
+only other names or magic bytes (``scenario_*.parquet``, ``*.feather``, ``.bag``/``.db3`` magic, files of a
+rosbag2 folder, the MCAP magic or ``.mcap``), so a file a text format claims is never theirs."""
 
 
 def adapter_class(name: str) -> type[FormatAdapter]:
@@ -58,7 +62,11 @@ def detect(path: Path) -> str:
         raise LogpipeError(f"{path}: no such file or folder")
     candidates = [path] if path.is_file() else _first_files(path, 200)
     for candidate in candidates:
-        names = [name for name in FORMATS if adapter_class(name)().sniff(candidate)]
+        # Text formats first: when one claims the file the others cannot (see TEXT_FORMATS), and their
+        # modules (rosbags, mcap, YAML: ~0.2 s) need not be imported.
+        names = [name for name in TEXT_FORMATS if adapter_class(name)().sniff(candidate)]
+        if not names:
+            names = [name for name in FORMATS if name not in TEXT_FORMATS and adapter_class(name)().sniff(candidate)]
         if len(names) == 1:
             return names[0]
         if len(names) > 1:
@@ -74,4 +82,4 @@ def _first_files(root: Path, limit: int) -> list[Path]:
     return [Path(name) for name in first if os.path.isfile(name)]
 
 
-__all__ = ["FORMATS", "FormatAdapter", "ParsedLogs", "adapter_class", "detect", "get_adapter"]
+__all__ = ["FORMATS", "TEXT_FORMATS", "FormatAdapter", "ParsedLogs", "adapter_class", "detect", "get_adapter"]

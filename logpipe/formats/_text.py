@@ -26,7 +26,7 @@ import pyarrow.csv as pacsv
 from logpipe.errors import SourceError
 from logpipe.formats.base import files_with_suffix
 from logpipe.io import as_numpy
-from logpipe.types import PENDING_SHA256, NDArrayBool, NDArrayInt, SourceFile
+from logpipe.types import PENDING_SHA256, NDArrayBool, NDArrayByte, NDArrayInt, SourceFile
 
 _DECIMAL = re.compile(r"^[+-]?(\d+\.?\d*|\.\d+)$")
 
@@ -105,7 +105,8 @@ def read_bodies(
     digests are computed from those same bytes. Returns the batch, the sources that passed ``check_header``
     (digests filled in), and the failures (raised instead unless ``keep_going``).
     """
-    buffer = bytearray(sum(s.size for s in sources) + len(sources))
+    # Uninitialised (np.empty): zero-filling a bytearray would write the whole batch once more.
+    buffer = np.empty(sum(s.size for s in sources) + len(sources), dtype=np.uint8)
     pos = 0
     spans: list[tuple[int, int]] = []
     counts: list[int] = []
@@ -118,12 +119,12 @@ def read_bodies(
             head = _read_head(fd, size, header_lines)
             start = _header_end(head, header_lines)
             if len(buffer) < pos + size - start + 1:  # the file grew since it was listed
-                buffer = buffer + bytearray(pos + size - start + 1 - len(buffer))
-            with memoryview(buffer) as view:
-                got = os.preadv(fd, [view[pos:pos + size - start]], start) if size > start else 0
-                source = listed if listed.sha256 != PENDING_SHA256 else SourceFile(
-                    listed.path, listed.relpath, _digest(head[:start], view[pos:pos + got]), listed.size,
-                    listed.memberships)
+                buffer = np.concatenate([buffer, np.empty(pos + size - start + 1 - len(buffer), np.uint8)])
+            view = buffer.data
+            got = os.preadv(fd, [view[pos:pos + size - start]], start) if size > start else 0
+            source = listed if listed.sha256 != PENDING_SHA256 else SourceFile(
+                listed.path, listed.relpath, _digest(head[:start], view[pos:pos + got]), listed.size,
+                listed.memberships)
         finally:
             os.close(fd)
         end = _strip_end(buffer, pos, pos + got)
@@ -136,14 +137,13 @@ def read_bodies(
         good.append(source)
         if end > pos:
             buffer[end] = 10  # exactly one newline after each file's last line
-            body = np.frombuffer(buffer, np.uint8, count=end - pos, offset=pos)
-            counts.append(int(np.count_nonzero(body == 10)) + 1)
+            counts.append(int(np.count_nonzero(buffer[pos:end] == 10)) + 1)
             spans.append((pos, end + 1))
             pos = end + 1
         else:
             counts.append(0)
             spans.append((pos, pos))
-    return TextBatch(memoryview(buffer)[:pos], counts, header_lines, spans), good, failures
+    return TextBatch(buffer.data[:pos], counts, header_lines, spans), good, failures
 
 
 def _read_head(fd: int, size: int, header_lines: int) -> bytes:
@@ -171,9 +171,9 @@ def _digest(header: bytes, body: memoryview) -> str:
     return digest.hexdigest()
 
 
-def _strip_end(buffer: bytearray, lo: int, hi: int) -> int:
+def _strip_end(buffer: NDArrayByte, lo: int, hi: int) -> int:
     """``hi`` moved back over trailing whitespace (never below ``lo``)."""
-    while hi > lo and buffer[hi - 1] in _TRAILING_SPACE:
+    while hi > lo and int(buffer[hi - 1]) in _TRAILING_SPACE:
         hi -= 1
     return hi
 
