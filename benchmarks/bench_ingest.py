@@ -188,6 +188,9 @@ def run(quick: bool = False) -> dict[str, Any]:
         "speedup_with_mcap_vs_baseline": round(ours_mcap["files_per_s"] / baseline["files_per_s"], 2),
         "peak_rss_ratio_large_vs_small_corpus": round(ours["peak_rss_mb"] / ours_small["peak_rss_mb"], 2),
         "floor_cpu_s_per_1000_files": floor,
-        "best_possible_2_core_speedup_at_floor": round(2 * floor["pandas_read_csv"] / floor["total"], 2),
+        # Both cores doing only the floor's steps, against the baseline's whole run (its CPU per file: import,
+        # read_csv, concat). An earlier version divided by read_csv alone in this process, which left out the
+        # baseline's concat and import and so understated the bound (ours has measured above it).
+        "best_possible_2_core_speedup_at_floor": round(2 * baseline["cpu_s_per_1000_files"] / floor["total"], 2),
         "target": ">= 4x baseline files/s (aim 10x); peak memory independent of file count",
     }
