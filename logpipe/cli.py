@@ -340,6 +340,9 @@ def predict(
     modes: Annotated[int | None, typer.Option(
         "--modes", "-k", help="K futures per agent (default 20 for pedestrians, 6 for vehicles).")] = None,
     seed: Annotated[int, typer.Option("--seed", help="Seed of the sampled futures.")] = 0,
+    noise_scale: Annotated[float, typer.Option(
+        "--noise-scale", help="Std of the network's noise z (1 = as trained); the spread of the K futures. "
+        "Choose it on a validation split (make reproduce-ethucy does).")] = 1.0,
     filters: Annotated[list[str] | None, typer.Option(
         "--filter", help="log=ID[,ID] | split=eth/test | time=START_NS:END_NS | type=pedestrian[,..]; repeatable.")
     ] = None,
@@ -363,7 +366,7 @@ def predict(
 
     with _user_errors(), _progress(0, "predict", enabled=not as_json and sys.stderr.isatty()) as advance:
         summary = predict_dataset(
-            dataset, out, checkpoint=checkpoint, predictor=predictor, modes=modes, seed=seed,
+            dataset, out, checkpoint=checkpoint, predictor=predictor, modes=modes, seed=seed, noise_scale=noise_scale,
             sample_filter=parse_filter(filters or []), inputs=inputs or [], raster_run=raster_run,
             raster_images=raster_images, write_mcap=mcap, batch_size=batch_size, threads=threads,
             progress=advance,

@@ -622,11 +622,15 @@ class TrajectoryNet(nn.Module):
         return v
 
     def forward(
-        self, batch: Batch, num_modes: int, generator: torch.Generator | None = None, *, fast: bool = False
+        self, batch: Batch, num_modes: int, generator: torch.Generator | None = None, *, fast: bool = False,
+        noise_scale: float = 1.0,
     ) -> Prediction:
         """Predictions for ``num_modes`` noise draws z (one per mode and agent); ``fast``: ``decode_fast``
-        (inference only)."""
+        (inference only). ``noise_scale``: z ~ N(0, noise_scale^2 I) instead of eq. 21's N(0, I), a sampling
+        setting (spread of the K futures) for inference, chosen on validation data like a sampler's."""
         r = int(batch.active.sum())
         noise = torch.randn(num_modes, r, self.config.noise_dim, generator=generator)
+        if noise_scale != 1.0:
+            noise = noise * noise_scale
         enc = self.encode(batch)
         return self.decode_fast(batch, enc, noise) if fast else self.decode(batch, enc, noise)

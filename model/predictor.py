@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Protocol, runtime_checkable
@@ -9,6 +10,7 @@ from typing import Protocol, runtime_checkable
 import numpy as np
 import torch
 
+from logpipe.errors import LogpipeError
 from logpipe.types import NDArrayFloat, SceneSample
 
 from .batching import collate
@@ -53,6 +55,7 @@ class NetPredictor:
         config: its architecture, frame and normalisation.
         batch_size: scenes per forward pass.
         name: label for reports.
+        noise_scale: standard deviation of the noise z at inference (1 = eq. 21, what training drew).
     """
 
     @classmethod
@@ -63,16 +66,21 @@ class NetPredictor:
         expect_kind: str | None = None,
         expect_config: ModelConfig | None = None,
         batch_size: int = 32,
+        noise_scale: float = 1.0,
     ) -> NetPredictor:
         """Load a checkpoint folder (see ``checkpoints.load_checkpoint`` for the checks and errors)."""
         loaded = load_checkpoint(path, expect_kind=expect_kind, expect_config=expect_config)
-        return cls(loaded.net, batch_size=batch_size)
+        return cls(loaded.net, batch_size=batch_size, noise_scale=noise_scale)
 
-    def __init__(self, net: TrajectoryNet, batch_size: int = 32, name: str = "zhu2020") -> None:
+    def __init__(self, net: TrajectoryNet, batch_size: int = 32, name: str = "zhu2020",
+                 noise_scale: float = 1.0) -> None:
+        if not (math.isfinite(noise_scale) and noise_scale > 0):
+            raise LogpipeError(f"noise scale must be a positive number, got {noise_scale}")
         self.net = net.eval()
         self.config: ModelConfig = net.config
         self.batch_size = batch_size
         self.name = name
+        self.noise_scale = noise_scale
 
     @torch.no_grad()
     def predict(self, samples: Sequence[SceneSample], num_modes: int, seed: int) -> list[NDArrayFloat]:
@@ -83,7 +91,7 @@ class NetPredictor:
         for lo in range(0, len(samples), self.batch_size):
             chunk = samples[lo : lo + self.batch_size]
             batch = collate(chunk, self.config)
-            pred = self.net(batch, num_modes, gen, fast=True)
+            pred = self.net(batch, num_modes, gen, fast=True, noise_scale=self.noise_scale)
             n = batch.positions.shape[0]
             world = np.full((n, num_modes, t_pred, 2), np.nan)
             rows = pred.rows

@@ -26,6 +26,8 @@ from typing import Any
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from reproduce_ethucy import (
+    AS_TRAINED,
+    NOISE_SCALE_GRID,
     REPO,
     checkpoint_paths,
     ensure_dataset,
@@ -34,7 +36,7 @@ from reproduce_ethucy import (
     pair,
     tune_sampler,
     write_classical,
-    write_predictions,
+    write_learned,
 )
 
 from logpipe.stages.score import score
@@ -51,9 +53,10 @@ ROWS = (("Constant velocity (K=1)", "cv", 1, "ade", "fde"), ("Linear (K=1)", "li
         ("CV sampler, best-of-20 per agent", "cv_sampler", 20, "ade", "fde"),
         ("CV sampler, best-of-20 joint", "cv_sampler", 20, "ade_joint", "fde_joint"),
         ("CV sampler, K=1", "cv_sampler", 1, "ade", "fde"), ("LSTM (K=1)", "lstm", 1, "ade", "fde"),
-        ("Noise-LSTM, best-of-20", "noise_lstm", 20, "ade", "fde"),
-        ("Our method (zhu2020), best-of-20", "zhu2020", 20, "ade", "fde"),
-        ("Our method (zhu2020), K=1", "zhu2020", 1, "ade", "fde"))
+        ("Noise-LSTM, best-of-20 (noise scale chosen on val)", "noise_lstm", 20, "ade", "fde"),
+        ("Our method (zhu2020), best-of-20 (noise scale chosen on val)", "zhu2020", 20, "ade", "fde"),
+        ("Our method (zhu2020), best-of-20, z as trained (scale 1)", AS_TRAINED, 20, "ade", "fde"),
+        ("Our method (zhu2020), K=1, z as trained (scale 1)", AS_TRAINED, 1, "ade", "fde"))
 TYPES = ("vehicle", "bus_truck", "pedestrian", "cyclist", "unknown")
 
 
@@ -77,17 +80,17 @@ def main(argv: Sequence[str] | None = None) -> int:
     files = write_classical(test, pred_len, args.seed, choice, K_BEST, f"cv_sampler {choice} (chosen on hash/val)",
                             pdir)
     skipped = []
+    noise: dict[str, Any] = {}
     for method, (_, k) in LEARNED.items():
         ckpt = find_checkpoint(templates[method], "")
         if ckpt is None:
             skipped.append(f"{method}: no checkpoint at {templates[method]}")
             continue
-        from logpipe.model.checkpoints import read_meta
-        from logpipe.model.predictor import NetPredictor
-
-        net = NetPredictor.from_checkpoint(ckpt, expect_kind=ds.kind)
-        files.append(write_predictions(net, test, k, args.seed, pred_len, read_meta(ckpt).weights_sha256,
-                                       pdir / f"{method}.parquet", method))
+        written, chosen = write_learned(ckpt, ds.kind, val, test, k, args.seed, pred_len, pdir, method,
+                                        AS_TRAINED if method == "zhu2020" else None)
+        files += written
+        if chosen is not None:
+            noise[method] = chosen
     report = score(files, ds.root, args.results / "apolloscape", split="hash/test", min_agents=1, plots=True,
                    title="ApolloScape hash/test (6 + 6 steps at 2 Hz, all agent types)")
     seconds = time.perf_counter() - t0
@@ -95,15 +98,16 @@ def main(argv: Sequence[str] | None = None) -> int:
     (args.results / "apolloscape.json").write_text(json.dumps(
         {"overall": {m: e["overall"] for m, e in report["methods"].items()},
          "by_type": {m: e["by_type"] for m, e in report["methods"].items()},
-         "sampler": choice, "split_logs": n_logs, "skipped": skipped, "seconds": round(seconds, 1)},
+         "sampler": choice, "noise_scale": {m: c["noise_scale"] for m, c in noise.items()}, "split_logs": n_logs,
+         "skipped": skipped, "seconds": round(seconds, 1)},
         indent=1, sort_keys=True))
-    (args.results / "apolloscape.md").write_text(render(report, choice, grid, n_logs, skipped, seconds, args))
+    (args.results / "apolloscape.md").write_text(render(report, choice, grid, noise, n_logs, skipped, seconds, args))
     print(f"wrote {args.results / 'apolloscape.md'} in {seconds:.1f} s", file=sys.stderr)
     return 0
 
 
-def render(report: dict[str, Any], choice: dict[str, float], grid: list[Any], n_logs: dict[str, int],
-           skipped: list[str], seconds: float, args: argparse.Namespace) -> str:
+def render(report: dict[str, Any], choice: dict[str, float], grid: list[Any], noise: dict[str, Any],
+           n_logs: dict[str, int], skipped: list[str], seconds: float, args: argparse.Namespace) -> str:
     """``docs/results/apolloscape.md``."""
     methods = report["methods"]
     any_m = next(iter(methods.values()))
@@ -145,7 +149,14 @@ def render(report: dict[str, Any], choice: dict[str, float], grid: list[Any], n_
               f"by per-agent best-of-20 ADE (val ADE/FDE "
               + next(f"{g[2]:.2f}/{g[3]:.2f}" for g in grid if g[0] == choice["heading_std_rad"]
                      and g[1] == choice["speed_std_frac"]) + ").", "",
-              "## Learned methods", ""]
+              "## Noise scale of the learned methods", "",
+              "The noise z of eq. 21 is drawn from N(0, s² I) at inference (s = 1: as trained), s chosen on hash/val "
+              f"from {list(NOISE_SCALE_GRID)} by per-agent best-of-20 ADE, like the sampler's settings:", ""]
+    for method, c in noise.items():
+        at = {g[0]: g for g in c["grid"]}
+        lines.append(f"- {method}: s = {c['noise_scale']:g} (val {at[c['noise_scale']][1]:.2f}/"
+                     f"{at[c['noise_scale']][2]:.2f}; at s = 1 {at[1.0][1]:.2f}/{at[1.0][2]:.2f})")
+    lines += ["", "## Learned methods", ""]
     lines += [f"- not run: {s}" for s in skipped] or ["All learned methods had checkpoints."]
     lines += ["", "## Notes", "",
               "- Positions are a shifted local frame per file (see the data's SOURCE.md); a few tracks disappear and "

@@ -46,6 +46,8 @@ HEADING_GRID = (0.02, 0.05, 0.1, 0.15, 0.2, 0.25, 0.3, 0.4, 0.5, 0.7)
 """Sampler heading noise std candidates, radians."""
 SPEED_GRID = (0.0, 0.1, 0.2, 0.3, 0.4, 0.6, 0.8)
 """Sampler relative speed noise std candidates."""
+NOISE_SCALE_GRID = (1.0, 1.5, 2.0, 2.5, 3.0)
+"""Candidates for the std of a learned method's noise z at inference (1 = eq. 21, what training drew)."""
 
 PAPER_TABLE1 = {  # Zhu et al. (IJCAI 2020) Table 1, ADE/FDE in metres, columns as SCENES + AVG
     "Linear (Single)": ("1.33/2.94", "0.39/0.72", "0.82/1.59", "0.62/1.21", "0.79/1.59", "0.79/1.59"),
@@ -57,6 +59,9 @@ PAPER_TABLE1 = {  # Zhu et al. (IJCAI 2020) Table 1, ADE/FDE in metres, columns 
     "Sophie": ("0.70/1.43", "0.76/1.67", "0.54/1.24", "0.30/0.63", "0.38/0.78", "0.54/1.15"),
     "Our method (paper)": ("0.39/0.79", "0.51/1.05", "0.25/0.56", "0.30/0.61", "0.36/0.73", "0.36/0.75"),
 }
+
+AS_TRAINED = "zhu2020_scale1"
+"""Method name of the paper's network run with its noise z as trained (scale 1), beside the tuned run."""
 
 LEARNED = {  # method -> (default checkpoint template, K): the lead trains these with `logpipe train`
     "zhu2020": ("model/checkpoints/ethucy/{scene}", K_BEST),
@@ -106,6 +111,49 @@ def tune_sampler(val: Sequence[SceneSample], pred_len: int, k: int, seed: int) -
         grid.append((h, sp, float(best.ade.mean()), float(best.fde.mean())))
     h, sp, _, _ = min(grid, key=lambda g: (g[2], g[3]))
     return {"heading_std_rad": h, "speed_std_frac": sp}, grid
+
+
+def best_of_k(pred: NDArrayFloat, truth: NDArrayFloat) -> tuple[float, float]:
+    """Mean per-agent best-of-K ADE and FDE of (N, K, T, 2) forecasts over the agents with a full future."""
+    ok = np.all(np.isfinite(truth), axis=(1, 2))
+    best = metrics.best_of_k_per_agent(metrics.displacement_errors(pred[ok], truth[ok]))
+    return float(best.ade.mean()), float(best.fde.mean())
+
+
+def tune_noise_scale(checkpoint: Path, kind: str, val: Sequence[SceneSample], pred_len: int, k: int,
+                     seed: int) -> tuple[float, list[tuple[float, float, float]]]:
+    """Pick a learned method's noise scale with the lowest per-agent best-of-k ADE (+FDE as a tie-break) on
+    ``val``, the sampler's criterion. Returns the choice and every candidate's (scale, ade, fde)."""
+    from logpipe.model.predictor import NetPredictor
+
+    truth = truth_of(val, pred_len)
+    grid = []
+    for scale in NOISE_SCALE_GRID:
+        net = NetPredictor.from_checkpoint(checkpoint, expect_kind=kind, noise_scale=scale)
+        grid.append((scale, *best_of_k(np.concatenate(net.predict(val, k, seed)), truth)))
+    return min(grid, key=lambda g: (g[1], g[2]))[0], grid
+
+
+def write_learned(checkpoint: Path, kind: str, val: Sequence[SceneSample], test: Sequence[SceneSample], k: int,
+                  seed: int, pred_len: int, pdir: Path, method: str,
+                  as_trained: str | None = None) -> tuple[list[Path], dict[str, Any] | None]:
+    """Test predictions of a learned method: with K > 1 at the noise scale chosen on ``val`` (and, named
+    ``as_trained``, at scale 1 too); with K = 1 as it is. Returns the files and the choice (None for K = 1)."""
+    from logpipe.model.checkpoints import read_meta
+    from logpipe.model.predictor import NetPredictor
+
+    sha = read_meta(checkpoint).weights_sha256
+    if k == 1:
+        net = NetPredictor.from_checkpoint(checkpoint, expect_kind=kind)
+        return [write_predictions(net, test, k, seed, pred_len, sha, pdir / f"{method}.parquet", method)], None
+    scale, grid = tune_noise_scale(checkpoint, kind, val, pred_len, k, seed)
+    tuned = NetPredictor.from_checkpoint(checkpoint, expect_kind=kind, noise_scale=scale)
+    files = [write_predictions(tuned, test, k, seed, pred_len, f"{sha} noise_scale={scale:g}",
+                               pdir / f"{method}.parquet", method)]
+    if as_trained is not None:
+        net = NetPredictor.from_checkpoint(checkpoint, expect_kind=kind)
+        files.append(write_predictions(net, test, k, seed, pred_len, sha, pdir / f"{as_trained}.parquet", as_trained))
+    return files, {"noise_scale": scale, "grid": grid}
 
 
 def write_predictions(predictor: Predictor, samples: Sequence[SceneSample], k: int, seed: int, pred_len: int,
@@ -178,7 +226,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     pred_len = ds.protocol.pred_len
     out_md = args.results / "ethucy.md"
     detail = args.results / "ethucy"
-    results: dict[str, Any] = {"scenes": {}, "skipped": [], "sampler": {}}
+    results: dict[str, Any] = {"scenes": {}, "skipped": [], "sampler": {}, "noise": {}}
     for scene in args.scenes:
         ts = time.perf_counter()
         val = scene_samples(ds, f"{scene}/val")
@@ -196,12 +244,11 @@ def main(argv: Sequence[str] | None = None) -> int:
                 results["skipped"].append({"scene": scene, "method": method,
                                            "reason": f"no checkpoint at {templates[method].format(scene=scene)}"})
                 continue
-            from logpipe.model.checkpoints import read_meta
-            from logpipe.model.predictor import NetPredictor
-
-            net = NetPredictor.from_checkpoint(ckpt, expect_kind=ds.kind)
-            files.append(write_predictions(net, test, k, args.seed, pred_len, read_meta(ckpt).weights_sha256,
-                                           pdir / f"{method}.parquet", method))
+            written, noise = write_learned(ckpt, ds.kind, val, test, k, args.seed, pred_len, pdir, method,
+                                           AS_TRAINED if method == "zhu2020" else None)
+            files += written
+            if noise is not None:
+                results["noise"].setdefault(scene, {})[method] = noise
         literal = score(files, ds.root, detail / scene, split=f"{scene}/test", min_agents=2, plots=True,
                         title=f"ETH/UCY {scene} (leave-one-out test), Social-GAN literal windows (>= 2 peds)")
         every = score(files, ds.root, detail / scene / "min1", split=f"{scene}/test", min_agents=1, plots=False,
@@ -224,7 +271,7 @@ def standing(results: dict[str, Any], proto: str) -> list[str]:
     """Per scene and on average, whether the paper's method (best-of-20 per agent) has a lower ADE and FDE than
     each baseline row (at the K of that row), and whether its average reaches the paper's."""
     rows = [(label, method, k, a, f) for label, method, k, a, f in ROWS
-            if method != "zhu2020" and a == "ade" and not (method == "cv_sampler" and k == 1)]
+            if not method.startswith("zhu2020") and a == "ade" and not (method == "cv_sampler" and k == 1)]
     ours = _row(results, proto, "zhu2020", K_BEST)
     if ours[-1] == "—":
         return ["The paper's method has not been scored on every scene yet."]
@@ -268,9 +315,10 @@ ROWS = (  # (label, method, k, ade key, fde key)
     ("CV sampler, best-of-20 joint (Social-GAN eval)", "cv_sampler", 20, "ade_joint", "fde_joint"),
     ("CV sampler, K=1 (first sample)", "cv_sampler", 1, "ade", "fde"),
     ("LSTM (K=1)", "lstm", 1, "ade", "fde"),
-    ("Noise-LSTM, best-of-20 per agent", "noise_lstm", 20, "ade", "fde"),
-    ("Our method (zhu2020), best-of-20 per agent", "zhu2020", 20, "ade", "fde"),
-    ("Our method (zhu2020), K=1", "zhu2020", 1, "ade", "fde"),
+    ("Noise-LSTM, best-of-20 per agent (noise scale chosen on val)", "noise_lstm", 20, "ade", "fde"),
+    ("Our method (zhu2020), best-of-20 per agent (noise scale chosen on val)", "zhu2020", 20, "ade", "fde"),
+    ("Our method (zhu2020), best-of-20 per agent, z as trained (scale 1)", AS_TRAINED, 20, "ade", "fde"),
+    ("Our method (zhu2020), K=1, z as trained (scale 1)", AS_TRAINED, 1, "ade", "fde"),
 )
 
 
@@ -322,6 +370,16 @@ def render(results: dict[str, Any], args: argparse.Namespace, seconds: float) ->
         g = next(g for g in s["grid"] if g[0] == c["heading_std_rad"] and g[1] == c["speed_std_frac"])
         lines.append(f"| {scene} | {c['heading_std_rad']} | {c['speed_std_frac']} | {s['val_agents']} | "
                      f"{g[2]:.2f}/{g[3]:.2f} |")
+    lines += ["", "## Noise scale of the learned methods (chosen on validation)", "",
+              "The noise z of eq. 21 is drawn from N(0, s² I) at inference; s = 1 is what training drew. Like the "
+              f"sampler's noise, s is chosen per scene and method on `S/val` from {list(NOISE_SCALE_GRID)} by "
+              "per-agent best-of-20 ADE (FDE breaks ties); the table above also shows our method at s = 1.", "",
+              "| scene | method | s | val best-of-20 ADE/FDE at s | at s = 1 |", "|---|---|---|---|---|"]
+    for scene, methods in results["noise"].items():
+        for method, c in methods.items():
+            at = {g[0]: g for g in c["grid"]}
+            lines.append(f"| {scene} | {method} | {c['noise_scale']:g} | {at[c['noise_scale']][1]:.2f}/"
+                         f"{at[c['noise_scale']][2]:.2f} | {at[1.0][1]:.2f}/{at[1.0][2]:.2f} |")
     lines += ["", "## Standing against the issue's targets (computed from the table above)", "",
               *standing(results, "min2"), "", "## Learned methods", ""]
     if results["skipped"]:

@@ -269,13 +269,14 @@ def check_fit(dataset: Dataset, chosen: ChosenPredictor, logs: pa.Table) -> list
     return problems
 
 
-def load_net(chosen: ChosenPredictor, dataset: Dataset, batch_size: int) -> None:
+def load_net(chosen: ChosenPredictor, dataset: Dataset, batch_size: int, noise_scale: float = 1.0) -> None:
     """Load the checkpoint's weights into ``chosen.model`` (after ``check_fit`` passed)."""
     if chosen.model is not None or chosen.checkpoint is None:
         return
     from logpipe.model.predictor import NetPredictor
 
-    chosen.model = NetPredictor.from_checkpoint(chosen.checkpoint, expect_kind=dataset.kind, batch_size=batch_size)
+    chosen.model = NetPredictor.from_checkpoint(chosen.checkpoint, expect_kind=dataset.kind, batch_size=batch_size,
+                                                noise_scale=noise_scale)
 
 
 def find_original(row: dict[str, Any], inputs: Sequence[Path], dataset: Dataset) -> Source:
@@ -349,6 +350,7 @@ def predict_dataset(
     predictor: str | None = None,
     modes: int | None = None,
     seed: int = 0,
+    noise_scale: float = 1.0,
     sample_filter: SampleFilter | None = None,
     inputs: Sequence[Path] = (),
     raster_run: str | None = None,
@@ -367,6 +369,8 @@ def predict_dataset(
         predictor: a baseline instead (``cv``, ``linear``, ``kalman``, ``cv_sampler``).
         modes: K futures per target (default ``default_modes``).
         seed: fixes every random draw (noise z, sampler); same seed and settings give the same output.
+        noise_scale: standard deviation of the network's noise z (1 = as trained, eq. 21); the spread of the
+            K futures, to be chosen on validation data. Recorded in ``checkpoint_id`` when not 1.
         sample_filter: which samples (default: all).
         inputs: the roots ROS bags / MCAP files were ingested from (their originals are copied into the output);
             default: the manifest's ``input_roots`` (absolute paths), when ingest records them.
@@ -390,6 +394,10 @@ def predict_dataset(
     if modes < 1 or batch_size < 1:
         raise LogpipeError(f"--modes and --batch-size must be >= 1, got {modes} and {batch_size}")
     chosen = choose_predictor(dataset, checkpoint, predictor, split=sample_filter.split)
+    if noise_scale != 1.0:
+        if chosen.checkpoint is None:
+            raise LogpipeError("--noise-scale applies to a checkpoint's noise z, not to a --predictor baseline")
+        chosen.checkpoint_id += f" noise_scale={noise_scale:g}"
     logs_table = _selected_logs(dataset, sample_filter)
     problems = check_fit(dataset, chosen, logs_table)
     samples_by_log = _selected_samples(dataset, logs_table, sample_filter)
@@ -403,7 +411,7 @@ def predict_dataset(
     # Where bags/MCAP inputs are: --inputs, else the roots ingest recorded (manifest "input_roots", if it does).
     roots = list(inputs) or [Path(p) for p in dataset.manifest.get("input_roots", [])]
     originals = {log_id: find_original(row, roots, dataset) for log_id, row in logs.items()} if write_mcap else {}
-    load_net(chosen, dataset, batch_size)
+    load_net(chosen, dataset, batch_size, noise_scale)
     manifest_sha = sha256_file(dataset.root / "manifest.json")
     settings = {
         "dataset_manifest_sha256": manifest_sha, "predictor": chosen.name, "checkpoint_id": chosen.checkpoint_id,

@@ -207,3 +207,41 @@ def test_shipped_defaults_are_the_papers_method_never_a_baseline() -> None:
     assert default_checkpoint("ethucy", "hotel/test").name == "hotel"
     apollo = default_checkpoint("apolloscape", None)
     assert apollo.name == "zhu2020" and not BASELINE_FOLDERS & set(apollo.parts)
+
+
+def test_noise_scale_widens_the_modes_and_is_recorded(lines_dataset: Path, tmp_path: Path) -> None:
+    """``noise_scale`` multiplies the noise z (scale 1 is the default draw); the spread of the K futures grows
+    with it, the predictions name it, and it cannot be given to a baseline or be non-positive."""
+    import torch
+
+    from logpipe.dataset import Dataset
+    from logpipe.model.batching import collate
+    from logpipe.model.predictor import NetPredictor
+    from logpipe.stages.train import scene_samples
+
+    good = _checkpoint(tmp_path / "good", _small_net_config(), "ethucy")
+    samples = scene_samples(Dataset.open(lines_dataset), "lines/test")
+    base = NetPredictor.from_checkpoint(good, expect_kind="ethucy")
+    wide = NetPredictor.from_checkpoint(good, expect_kind="ethucy", noise_scale=3.0)
+    one = NetPredictor.from_checkpoint(good, expect_kind="ethucy", noise_scale=1.0)
+    a, b, c = (np.concatenate(p.predict(samples, 8, 5)) for p in (base, wide, one))
+    assert np.array_equal(a, c)
+    with torch.no_grad():  # the same draw of z, tripled, through the network
+        batch = collate(samples, base.config)
+        gen = torch.Generator().manual_seed(5)
+        r = int(batch.active.sum())
+        z = torch.randn(8, r, base.config.noise_dim, generator=gen)
+        direct = base.net.decode_fast(batch, base.net.encode(batch), 3.0 * z)
+        gen = torch.Generator().manual_seed(5)
+        scaled = base.net(batch, 8, gen, fast=True, noise_scale=3.0)
+    assert torch.allclose(direct.positions, scaled.positions)
+    assert b.std(axis=1).mean() > a.std(axis=1).mean()
+    predict_dataset(lines_dataset, tmp_path / "out", checkpoint=good, modes=3, noise_scale=2.5, write_mcap=False)
+    ids = set(pq.read_table(tmp_path / "out" / "predictions" / "part-00000.parquet").column("checkpoint_id")
+              .to_pylist())
+    sha = json.loads((good / "meta.json").read_text())["weights_sha256"]
+    assert ids == {f"{sha} noise_scale=2.5"}
+    with pytest.raises(LogpipeError, match="noise-scale"):
+        predict_dataset(lines_dataset, tmp_path / "never", predictor="cv", noise_scale=2.0)
+    with pytest.raises(LogpipeError, match="positive"):
+        NetPredictor.from_checkpoint(good, expect_kind="ethucy", noise_scale=0.0)
