@@ -112,6 +112,23 @@ def fingerprint_inputs(
     return _merge_identical(found, hashed)
 
 
+def unhashed_inputs(found: Sequence[tuple[Path, str]]) -> list[SourceFile] | None:
+    """Every input ``PENDING_SHA256`` (sizes only), when all are files with distinct names; else None.
+
+    For a first ingest: identical contents under different paths are copies, which keep their names
+    (ETH/UCY's scene folders), so with distinct names twins are unlikely enough to leave every digest to the
+    batch that reads the file and check for twins afterwards (``ingest`` redoes the run with
+    ``fingerprint_inputs`` when it finds some).
+    """
+    if len({relpath.rsplit("/", 1)[-1] for _, relpath in found}) < len(found):
+        return None
+    stats = [os.stat(p) for p, _ in found]
+    if any(stat.S_ISDIR(st.st_mode) for st in stats):
+        return None
+    return [SourceFile(str(p), relpath, PENDING_SHA256, st.st_size, memberships_from_layout(relpath))
+            for (p, relpath), st in zip(found, stats, strict=True)]
+
+
 def complete_hashes(sources: Sequence[SourceFile]) -> list[SourceFile]:
     """``sources`` with every ``PENDING_SHA256`` digest computed."""
     return [s if s.sha256 != PENDING_SHA256 else

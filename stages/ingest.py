@@ -28,7 +28,7 @@ from logpipe.dataset import LOGS_FILE, MANIFEST, MCAP_DIR, SAMPLES_FILE, mcap_fo
 from logpipe.errors import DatasetError, SourceError
 from logpipe.executor import Backend, default_workers, run_ordered, warm_up
 from logpipe.formats import detect, get_adapter
-from logpipe.inputs import complete_hashes, find_inputs, fingerprint_inputs
+from logpipe.inputs import complete_hashes, find_inputs, fingerprint_inputs, unhashed_inputs
 from logpipe.io import as_numpy, parquet_options, read_json, sha256_file, write_json, write_parquet
 from logpipe.mcapio import LogRows, write_log_mcap
 from logpipe.samples import TrackCodes, build_samples, steps_from_sorted_times
@@ -111,7 +111,10 @@ def ingest(roots: Sequence[Path], options: IngestOptions,
     out = options.out
     manifest = _load_compatible_manifest(out, fmt, protocol)
     found = find_inputs(roots, adapter)
-    sources = fingerprint_inputs(found, _known_sizes(manifest), threads=default_workers())
+    known_sizes = _known_sizes(manifest)
+    # A first ingest hashes nothing up front when twins are unlikely; a run that finds some is redone below.
+    optimistic = unhashed_inputs(found) if known_sizes == set() else None
+    sources = optimistic or fingerprint_inputs(found, known_sizes, threads=default_workers())
     # Where the inputs were, so later stages (predict copies bag channels through) can find the originals.
     known_roots = manifest.setdefault("input_roots", [])
     for root in roots:
@@ -124,7 +127,10 @@ def ingest(roots: Sequence[Path], options: IngestOptions,
         "inputs_skipped_already_ingested": len(sources) - len(new), "inputs_ingested": 0, "quarantined": [],
         "logs": 0, "rows": 0, "samples": 0, "shards_written": [],
     }
-    if new:
+    if new and not _ingest_new(new, manifest, fmt, adapter.batch_files, protocol, options, summary, progress,
+                               reject_twins=optimistic is not None):
+        new = fingerprint_inputs(found, known_sizes, threads=default_workers())  # merges the twins found
+        summary["inputs_found"] = len(new)
         _ingest_new(new, manifest, fmt, adapter.batch_files, protocol, options, summary, progress)
     summary["seconds"] = round(time.perf_counter() - started, 3)
     summary["totals"] = manifest["totals"]
@@ -133,8 +139,11 @@ def ingest(roots: Sequence[Path], options: IngestOptions,
 
 def _ingest_new(
     new: list[SourceFile], manifest: dict[str, Any], fmt: str, default_batch: int, protocol: SampleProtocol,
-    options: IngestOptions, summary: dict[str, Any], progress: Callable[[int], None] | None,
-) -> None:
+    options: IngestOptions, summary: dict[str, Any], progress: Callable[[int], None] | None, *,
+    reject_twins: bool = False,
+) -> bool:
+    """Ingest ``new`` and commit; with ``reject_twins``, commit nothing and return False when two inputs turn
+    out to have equal contents (their digests were left to the workers)."""
     out = options.out
     created = not out.exists()
     out.mkdir(parents=True, exist_ok=True)
@@ -152,7 +161,11 @@ def _ingest_new(
             results.append(result)
             if progress:
                 progress(len(result.ingested) + len(result.failures))
+        digests = [s.sha256 for r in results for s in r.ingested] + [s.sha256 for r in results for s, _ in r.failures]
+        if reject_twins and len(set(digests)) < len(digests):
+            return False
         _commit(results, manifest, staging, out, summary)
+        return True
     finally:
         shutil.rmtree(staging, ignore_errors=True)
         if created and out.is_dir() and not any(out.iterdir()):

@@ -194,3 +194,29 @@ if __name__ == "__main__":
     out = subprocess.run([sys.executable, "-c", script, str(bundled / "argoverse1"), str(tmp_path / "out")],
                          capture_output=True, text=True, check=True)
     assert out.stdout.split() == ["False", "False"], out.stderr
+
+
+def test_first_ingest_with_unseen_twins_is_redone_merging_them(bundled: Path, tmp_path: Path) -> None:
+    """A first ingest of distinctly named files hashes nothing up front; when two of them turn out identical
+    the run is redone with fingerprinting, so the twins become one input exactly as a fingerprinted run makes."""
+    from logpipe.formats import get_adapter
+    from logpipe.inputs import find_inputs, unhashed_inputs
+    from logpipe.io import read_json
+    from logpipe.stages.ingest import IngestOptions, ingest
+
+    src = tmp_path / "in"
+    src.mkdir()
+    originals = sorted((bundled / "argoverse1").glob("*.csv"))[:3]
+    for p in originals:
+        (src / p.name).write_bytes(p.read_bytes())
+    (src / "copy_of_first.csv").write_bytes(originals[0].read_bytes())  # a twin under another name
+    adapter = Argoverse1Adapter()
+    assert unhashed_inputs(find_inputs([src], adapter)) is not None  # distinct names: the optimistic path
+    assert unhashed_inputs(find_inputs([bundled / "ethucy"], get_adapter("ethucy"))) is None  # same names: not
+    summary = ingest([src], IngestOptions(out=tmp_path / "out", batch_files=1, workers=2, write_mcap=False))
+    manifest = read_json(tmp_path / "out" / "manifest.json")
+    assert [i["path"] for i in manifest["inputs"]] == sorted(p.name for p in originals)
+    assert summary["inputs_found"] == 3 and summary["logs"] == 3 and manifest["totals"]["logs"] == 3
+    assert len({i["sha256"] for i in manifest["inputs"]}) == 3
+    rerun = ingest([src], IngestOptions(out=tmp_path / "out", write_mcap=False))
+    assert rerun["inputs_skipped_already_ingested"] == 3 and rerun["inputs_ingested"] == 0
