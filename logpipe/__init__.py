@@ -1,10 +1,7 @@
 """logpipe: an offline pipeline for multi-agent trajectory forecasting (ingest, rasterise, train, predict, score)."""
 
-from importlib.metadata import PackageNotFoundError, version
-
-try:
-    __version__ = version("logpipe")
-except PackageNotFoundError:  # running from a source tree without an install
-    __version__ = "0.0.0+local"
+# The one place the version is written (pyproject.toml reads it from here): importlib.metadata would cost
+# ~60 ms of start-up in every process, pool workers' server included.
+__version__ = "0.1.0"
 
 __all__ = ["__version__"]
