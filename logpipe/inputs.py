@@ -96,8 +96,7 @@ def fingerprint_inputs(
     if known_sizes is None:
         return hash_inputs(found, threads)
     paths = [p for p, _ in found]
-    stats = [os.stat(p) for p in paths]
-    sizes = [-1 if stat.S_ISDIR(st.st_mode) else st.st_size for st in stats]  # folders (bags): always hashed
+    sizes = _file_sizes(paths)  # folders (bags) are -1: always hashed
     same_size = Counter(sizes)
     maybe_twin = [i for i, n in enumerate(sizes) if n >= 0 and same_size[n] > 1 and n not in known_sizes]
     heads = _map_slices(lambda idx: [_head(paths[i]) for i in idx], maybe_twin, threads)
@@ -122,17 +121,23 @@ def unhashed_inputs(found: Sequence[tuple[Path, str]]) -> list[SourceFile] | Non
     """
     if len({relpath.rsplit("/", 1)[-1] for _, relpath in found}) < len(found):
         return None
-    stats = [os.stat(p) for p, _ in found]
-    if any(stat.S_ISDIR(st.st_mode) for st in stats):
+    sizes = _file_sizes([p for p, _ in found])
+    if min(sizes, default=0) < 0:  # a folder input (a bag): hashed up front
         return None
-    return [SourceFile(str(p), relpath, PENDING_SHA256, st.st_size, memberships_from_layout(relpath))
-            for (p, relpath), st in zip(found, stats, strict=True)]
+    return [SourceFile(str(p), relpath, PENDING_SHA256, size, memberships_from_layout(relpath))
+            for (p, relpath), size in zip(found, sizes, strict=True)]
 
 
 def complete_hashes(sources: Sequence[SourceFile]) -> list[SourceFile]:
     """``sources`` with every ``PENDING_SHA256`` digest computed."""
     return [s if s.sha256 != PENDING_SHA256 else
             SourceFile(s.path, s.relpath, sha256_file(Path(s.path)), s.size, s.memberships) for s in sources]
+
+
+def _file_sizes(paths: Sequence[Path]) -> list[int]:
+    """Bytes of each path, -1 for a folder."""
+    stats = [os.stat(p) for p in paths]
+    return [-1 if stat.S_ISDIR(st.st_mode) else st.st_size for st in stats]
 
 
 def _head(path: Path) -> bytes:

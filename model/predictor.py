@@ -47,6 +47,11 @@ def split_by_sample(
     return out
 
 
+def noise_scaled_id(weights_sha256: str, noise_scale: float) -> str:
+    """The ``checkpoint_id`` predictions record: the weights' digest, then the noise scale when it is not 1."""
+    return weights_sha256 if noise_scale == 1.0 else f"{weights_sha256} noise_scale={noise_scale:g}"
+
+
 class NetPredictor:
     """``TrajectoryNet`` behind the ``Predictor`` interface (the paper's method, Noise-LSTM and LSTM).
 

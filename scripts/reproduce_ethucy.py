@@ -33,7 +33,7 @@ from logpipe import metrics
 from logpipe.dataset import Dataset
 from logpipe.io import write_parquet
 from logpipe.model.baselines import ConstantVelocity, ConstantVelocitySampler, KalmanCV, LinearFit
-from logpipe.model.predictor import Predictor
+from logpipe.model.predictor import NetPredictor, Predictor, noise_scaled_id
 from logpipe.stages.ingest import IngestOptions, ingest
 from logpipe.stages.score import forecasts_to_table, score
 from logpipe.stages.train import scene_samples
@@ -120,17 +120,15 @@ def best_of_k(pred: NDArrayFloat, truth: NDArrayFloat) -> tuple[float, float]:
     return float(best.ade.mean()), float(best.fde.mean())
 
 
-def tune_noise_scale(checkpoint: Path, kind: str, val: Sequence[SceneSample], pred_len: int, k: int,
+def tune_noise_scale(net: NetPredictor, val: Sequence[SceneSample], pred_len: int, k: int,
                      seed: int) -> tuple[float, list[tuple[float, float, float]]]:
     """Pick a learned method's noise scale with the lowest per-agent best-of-k ADE (+FDE as a tie-break) on
     ``val``, the sampler's criterion. Returns the choice and every candidate's (scale, ade, fde)."""
-    from logpipe.model.predictor import NetPredictor
-
     truth = truth_of(val, pred_len)
     grid = []
     for scale in NOISE_SCALE_GRID:
-        net = NetPredictor.from_checkpoint(checkpoint, expect_kind=kind, noise_scale=scale)
-        grid.append((scale, *best_of_k(np.concatenate(net.predict(val, k, seed)), truth)))
+        scaled = NetPredictor(net.net, net.batch_size, net.name, noise_scale=scale)
+        grid.append((scale, *best_of_k(np.concatenate(scaled.predict(val, k, seed)), truth)))
     return min(grid, key=lambda g: (g[1], g[2]))[0], grid
 
 
@@ -140,18 +138,16 @@ def write_learned(checkpoint: Path, kind: str, val: Sequence[SceneSample], test:
     """Test predictions of a learned method: with K > 1 at the noise scale chosen on ``val`` (and, named
     ``as_trained``, at scale 1 too); with K = 1 as it is. Returns the files and the choice (None for K = 1)."""
     from logpipe.model.checkpoints import read_meta
-    from logpipe.model.predictor import NetPredictor
 
     sha = read_meta(checkpoint).weights_sha256
+    net = NetPredictor.from_checkpoint(checkpoint, expect_kind=kind)
     if k == 1:
-        net = NetPredictor.from_checkpoint(checkpoint, expect_kind=kind)
         return [write_predictions(net, test, k, seed, pred_len, sha, pdir / f"{method}.parquet", method)], None
-    scale, grid = tune_noise_scale(checkpoint, kind, val, pred_len, k, seed)
-    tuned = NetPredictor.from_checkpoint(checkpoint, expect_kind=kind, noise_scale=scale)
-    files = [write_predictions(tuned, test, k, seed, pred_len, f"{sha} noise_scale={scale:g}",
+    scale, grid = tune_noise_scale(net, val, pred_len, k, seed)
+    tuned = NetPredictor(net.net, net.batch_size, net.name, noise_scale=scale)
+    files = [write_predictions(tuned, test, k, seed, pred_len, noise_scaled_id(sha, scale),
                                pdir / f"{method}.parquet", method)]
     if as_trained is not None:
-        net = NetPredictor.from_checkpoint(checkpoint, expect_kind=kind)
         files.append(write_predictions(net, test, k, seed, pred_len, sha, pdir / f"{as_trained}.parquet", as_trained))
     return files, {"noise_scale": scale, "grid": grid}
 

@@ -161,9 +161,10 @@ def _ingest_new(
             results.append(result)
             if progress:
                 progress(len(result.ingested) + len(result.failures))
-        digests = [s.sha256 for r in results for s in r.ingested] + [s.sha256 for r in results for s, _ in r.failures]
-        if reject_twins and len(set(digests)) < len(digests):
-            return False
+        if reject_twins:
+            digests = [s.sha256 for r in results for s in [*r.ingested, *(f for f, _ in r.failures)]]
+            if len(set(digests)) < len(digests):
+                return False
         _commit(results, manifest, staging, out, summary)
         return True
     finally:

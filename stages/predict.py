@@ -397,7 +397,9 @@ def predict_dataset(
     if noise_scale != 1.0:
         if chosen.checkpoint is None:
             raise LogpipeError("--noise-scale applies to a checkpoint's noise z, not to a --predictor baseline")
-        chosen.checkpoint_id += f" noise_scale={noise_scale:g}"
+        from logpipe.model.predictor import noise_scaled_id
+
+        chosen.checkpoint_id = noise_scaled_id(chosen.checkpoint_id, noise_scale)
     logs_table = _selected_logs(dataset, sample_filter)
     problems = check_fit(dataset, chosen, logs_table)
     samples_by_log = _selected_samples(dataset, logs_table, sample_filter)

@@ -13,7 +13,7 @@ import math
 import os
 import re
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from functools import cached_property
 from pathlib import Path
 from typing import ClassVar
@@ -39,13 +39,13 @@ class TextBatch:
         buffer: the joined data lines (headers removed), each file ending in exactly one newline.
         rows_per_file: data lines of each file.
         header_lines: lines skipped at the top of each file (to turn a row index into a line number).
-        spans: (start, end) bytes of each file's lines in ``buffer``; empty when not recorded.
+        spans: (start, end) bytes of each file's lines in ``buffer``.
     """
 
-    buffer: bytes | bytearray | memoryview
+    buffer: bytes | memoryview
     rows_per_file: list[int]
     header_lines: int
-    spans: list[tuple[int, int]] = field(default_factory=list)
+    spans: list[tuple[int, int]]
 
     def keep(self, files: Sequence[int]) -> TextBatch:
         """The batch of only ``files`` (indices), their lines copied into a new buffer."""
@@ -71,23 +71,20 @@ def join_bodies(blobs: Sequence[bytes], header_lines: int) -> TextBatch:
     """Drop ``header_lines`` lines from each blob and join them, normalising the final newline."""
     parts: list[bytes | memoryview] = []
     counts: list[int] = []
+    spans: list[tuple[int, int]] = []
+    pos = 0
     for blob in blobs:
-        start = 0
-        for _ in range(header_lines):
-            nl = blob.find(b"\n", start)
-            start = len(blob) if nl < 0 else nl + 1
-        end = len(blob)
-        while end > start and blob[end - 1] in b"\r\n \t":
-            end -= 1
+        start = _header_end(blob, header_lines)
+        end = _strip_end(blob, start, len(blob))
         if end > start:
-            parts.append(memoryview(blob)[start:end])
-            parts.append(b"\n")
-            # A vectorised compare counts lines ~3x faster than bytes.count (~6% of an Argoverse ingest).
-            body = np.frombuffer(blob, np.uint8, count=end - start, offset=start)
-            counts.append(int(np.count_nonzero(body == 10)) + 1)
+            parts += [memoryview(blob)[start:end], b"\n"]
+            counts.append(_line_count(blob, start, end))
+            spans.append((pos, pos + end - start + 1))
+            pos += end - start + 1
         else:
             counts.append(0)
-    return TextBatch(b"".join(parts), counts, header_lines)
+            spans.append((pos, pos))
+    return TextBatch(b"".join(parts), counts, header_lines, spans)
 
 
 _HEAD_BYTES = 4096
@@ -137,7 +134,7 @@ def read_bodies(
         good.append(source)
         if end > pos:
             buffer[end] = 10  # exactly one newline after each file's last line
-            counts.append(int(np.count_nonzero(buffer[pos:end] == 10)) + 1)
+            counts.append(_line_count(buffer, pos, end))
             spans.append((pos, end + 1))
             pos = end + 1
         else:
@@ -171,11 +168,17 @@ def _digest(header: bytes, body: memoryview) -> str:
     return digest.hexdigest()
 
 
-def _strip_end(buffer: NDArrayByte, lo: int, hi: int) -> int:
+def _strip_end(buffer: bytes | NDArrayByte, lo: int, hi: int) -> int:
     """``hi`` moved back over trailing whitespace (never below ``lo``)."""
     while hi > lo and int(buffer[hi - 1]) in _TRAILING_SPACE:
         hi -= 1
     return hi
+
+
+def _line_count(buffer: bytes | NDArrayByte, lo: int, hi: int) -> int:
+    """Lines in ``buffer[lo:hi]`` (no trailing newline there). A vectorised compare counts them ~3x faster
+    than ``bytes.count`` (~6% of an Argoverse ingest)."""
+    return int(np.count_nonzero(np.frombuffer(buffer, np.uint8, count=hi - lo, offset=lo) == 10)) + 1
 
 
 def parse_batch(
