@@ -62,9 +62,16 @@ def _progress(total: int, label: str, enabled: bool) -> Iterator[Callable[[int],
         yield lambda _n: None
         return
     columns = (TextColumn(label), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn())
-    with Progress(*columns, console=err, transient=True) as bar:
+    # Redrawn on each advance instead of by rich's refresh thread: with no thread running, the stage's
+    # worker pool can fork from this process (see ``logpipe.executor``), ~0.4 s of a core less per run.
+    with Progress(*columns, console=err, transient=True, auto_refresh=False) as bar:
         task = bar.add_task(label, total=total or None)
-        yield lambda n: bar.advance(task, n)
+
+        def advance(n: int) -> None:
+            bar.advance(task, n)
+            bar.refresh()
+
+        yield advance
 
 
 def _emit(summary: dict[str, Any], as_json: bool, human: Callable[[dict[str, Any]], None]) -> None:

@@ -11,6 +11,7 @@ import importlib.abc
 import multiprocessing
 import os
 import sys
+import threading
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from typing import Any, Literal, TypeVar
@@ -51,7 +52,23 @@ class _NoPandas(importlib.abc.MetaPathFinder):
             raise ModuleNotFoundError("logpipe's pool workers do not load pandas", name=name)
 
 
+def _fork_is_safe() -> bool:
+    """Whether workers may be forked from this process directly.
+
+    Forking copies only the calling thread: a lock another thread held stays locked in the child. Safe
+    here when this process runs no Python threads besides the main one (a progress bar's refresh thread,
+    a thread pool) and has not loaded torch, whose OpenMP pool does not survive a fork. The native threads
+    numpy and pyarrow start at import (OpenBLAS workers, jemalloc's background thread) re-initialise in
+    the child through their fork handlers.
+    """
+    return sys.platform == "linux" and threading.active_count() == 1 and "torch" not in sys.modules
+
+
 def _context(fn: Callable[..., Any]) -> multiprocessing.context.BaseContext:
+    if _fork_is_safe():
+        # Workers start in milliseconds with every module this process imported; a worker server would
+        # first import them again (~0.4 s of a core, on a 2-core machine half a core-second per ingest).
+        return multiprocessing.get_context("fork")
     context = multiprocessing.get_context("forkserver")
     # Workers fork from a server that already imported the work function's module: each worker then starts
     # in milliseconds instead of re-importing for ~0.5 s. Under the ``logpipe`` console script every worker
@@ -66,9 +83,9 @@ def warm_up(fn: Callable[..., Any], *, workers: int = 0, backend: Backend = "loc
 
     Its imports take ~1-2 s of one core; started before the caller's own serial work (finding and hashing
     inputs) they overlap it instead of delaying the first batch. A no-op when ``run_ordered`` would not use
-    a pool.
+    a pool or would fork its workers from this process (nothing to start).
     """
-    if backend != "local" or (workers or default_workers()) <= 1:
+    if backend != "local" or (workers or default_workers()) <= 1 or _fork_is_safe():
         return
     from multiprocessing import forkserver
 
@@ -77,15 +94,25 @@ def warm_up(fn: Callable[..., Any], *, workers: int = 0, backend: Backend = "loc
 
 
 def run_ordered(
-    fn: Callable[[T], R], items: Sequence[T], *, workers: int = 0, backend: Backend = "local"
+    fn: Callable[[T], R], items: Sequence[T], *, workers: int = 0, backend: Backend = "local",
+    queued: Callable[[T], None] | None = None,
 ) -> Iterator[R]:
-    """Yield ``fn(item)`` for each item, in item order, computing up to ``workers`` at once."""
+    """Yield ``fn(item)`` for each item, in item order, computing up to ``workers`` at once.
+
+    ``queued(item)``, when given, runs in this process as each item is queued, a batch or two before a
+    worker starts it (e.g. to have the OS read the item's input files ahead); locally only.
+    """
     workers = workers or default_workers()
     if backend == "ray":
         yield from _run_ray(fn, items, workers)
         return
+    announce = queued or (lambda item: None)
     if workers <= 1 or len(items) <= 1:
-        for item in items:
+        for i, item in enumerate(items):
+            if i == 0:
+                announce(item)
+            if i + 1 < len(items):
+                announce(items[i + 1])
             yield fn(item)
         return
     context = _context(fn)
@@ -95,10 +122,12 @@ def run_ordered(
         pending = []
         iterator = iter(items)
         for item in iterator:
+            announce(item)
             pending.append(pool.submit(fn, item))
             if len(pending) >= 2 * workers:
                 break
         for item in iterator:
+            announce(item)
             yield pending.pop(0).result()
             pending.append(pool.submit(fn, item))
         for future in pending:

@@ -134,6 +134,30 @@ def complete_hashes(sources: Sequence[SourceFile]) -> list[SourceFile]:
             SourceFile(s.path, s.relpath, sha256_file(Path(s.path)), s.size, s.memberships) for s in sources]
 
 
+def read_ahead(sources: Sequence[SourceFile]) -> None:
+    """Ask the OS to start reading ``sources`` into its page cache now (``POSIX_FADV_WILLNEED``), so a later
+    read finds them there; returns at once. A file that went missing is left to the reader to report.
+
+    Why: files not in the page cache are read one request at a time by a sequential reader; with every
+    file of a batch requested ahead the device serves them together. Cold Argoverse files here: ~0.4 GB/s
+    read one by one, ~3.7 GB/s when requested 0.3 s ahead.
+    """
+    advise = getattr(os, "posix_fadvise", None)
+    if advise is None:
+        return
+    for source in sources:
+        try:
+            fd = os.open(source.path, os.O_RDONLY)
+        except OSError:
+            continue
+        try:
+            advise(fd, 0, 0, os.POSIX_FADV_WILLNEED)
+        except OSError:
+            pass
+        finally:
+            os.close(fd)
+
+
 def _file_sizes(paths: Sequence[Path]) -> list[int]:
     """Bytes of each path, -1 for a folder."""
     stats = [os.stat(p) for p in paths]

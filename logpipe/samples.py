@@ -16,7 +16,7 @@ import pyarrow.compute as pc
 
 from logpipe.contracts import arrow_schema, conform
 from logpipe.io import as_numpy
-from logpipe.types import LogMeta, NDArrayInt, Role, SampleProtocol
+from logpipe.types import LogMeta, NDArrayBool, NDArrayInt, Role, SampleProtocol
 
 REGULAR_TOLERANCE = 0.5
 """A step is regular within 50% of the nominal period 1 / frame_rate_hz: sensor jitter (AV1: ±15%) passes,
@@ -178,11 +178,8 @@ def _first_windows(
     # Rows per (log, track) inside the window; a target has one row at every one of the ``seq`` steps.
     n_tracks = int(track_code.max()) + 1
     key = log_of_row * n_tracks + track_code
-    keys, counts = np.unique(key[in_window], return_counts=True)
-    full_keys = keys[counts == seq]
-    if protocol.targets == "focal":
-        focal_keys = np.unique(key[focal])
-        full_keys = np.intersect1d(full_keys, focal_keys)
+    full_keys = _complete_keys(key, in_window, focal if protocol.targets == "focal" else None, n_logs * n_tracks,
+                               seq)
     target_log = full_keys // n_tracks
     target_names = track_names[full_keys % n_tracks]
     split_at = np.searchsorted(target_log, np.arange(n_logs + 1))
@@ -223,6 +220,32 @@ def _first_windows(
         out["target_track_ids"].append(names)
         out["regular"].append(bool(regular_list[j]))
     return out
+
+
+# Count (log, track) pairs in a dense array when it has at most this many slots per row, else by sorting.
+DENSE_KEYS_PER_ROW = 64
+
+
+def _complete_keys(key: NDArrayInt, in_window: NDArrayBool, focal: NDArrayBool | None, n_keys: int,
+                   seq: int) -> NDArrayInt:
+    """Sorted distinct keys (in ``[0, n_keys)``) with exactly ``seq`` rows in the window and, when ``focal``
+    is given, a focal row.
+
+    A bincount over the key range is ~8x faster than ``np.unique``'s sort (~10 ms a batch of 250 Argoverse
+    logs, most of the sample index's cost); the sort serves key ranges too sparse for an array.
+    """
+    if n_keys <= DENSE_KEYS_PER_ROW * max(len(key), 1):
+        complete = np.bincount(key[in_window], minlength=n_keys) == seq
+        if focal is not None:
+            has_focal = np.zeros(n_keys, dtype=bool)
+            has_focal[key[focal]] = True
+            complete &= has_focal
+        return np.flatnonzero(complete)
+    keys, counts = np.unique(key[in_window], return_counts=True)
+    full_keys: NDArrayInt = keys[counts == seq]
+    if focal is not None:
+        full_keys = np.intersect1d(full_keys, np.unique(key[focal]), assume_unique=True)
+    return full_keys
 
 
 def steps_from_sorted_times(ts_ns: NDArrayInt, group: NDArrayInt) -> NDArrayInt:

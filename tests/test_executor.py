@@ -30,3 +30,47 @@ def test_ray_backend_writes_the_same_shards_as_local(bundled: Path, tmp_path: Pa
     assert remote["shards_written"] == local["shards_written"]
     for shard in local["shards_written"]:
         assert (tmp_path / "ray" / shard).read_bytes() == (tmp_path / "local" / shard).read_bytes()
+
+
+@pytest.mark.parametrize("fork", [True, False])
+def test_forked_and_served_workers_give_the_same_results(fork: bool, monkeypatch: pytest.MonkeyPatch) -> None:
+    from logpipe import executor
+
+    monkeypatch.setattr(executor, "_fork_is_safe", lambda: fork)
+    assert executor._context(square).get_start_method() == ("fork" if fork else "forkserver")
+    assert list(run_ordered(square, list(range(7)), workers=2)) == [x * x for x in range(7)]
+
+
+def test_workers_fork_only_without_threads_or_torch(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A lock held by another thread would stay locked in a forked child, and torch's OpenMP pool does not
+    survive a fork: then the pool's workers come from the worker server instead."""
+    import sys
+    import threading
+
+    from logpipe.executor import _fork_is_safe
+
+    monkeypatch.delitem(sys.modules, "torch", raising=False)
+    if threading.active_count() > 1:
+        pytest.skip("another Python thread is running in this test process")
+    assert _fork_is_safe()
+    release = threading.Event()
+    thread = threading.Thread(target=release.wait)
+    thread.start()
+    try:
+        assert not _fork_is_safe()
+    finally:
+        release.set()
+        thread.join()
+    monkeypatch.setitem(sys.modules, "torch", sys)  # any module object stands for a loaded torch
+    assert not _fork_is_safe()
+
+
+@pytest.mark.parametrize("workers", [1, 2])
+def test_each_item_is_announced_before_its_result(workers: int) -> None:
+    events: list[tuple[str, int]] = []
+    for result in run_ordered(square, list(range(6)), workers=workers, queued=lambda x: events.append(("queued", x))):
+        events.append(("result", result))
+    announced = [x for kind, x in events if kind == "queued"]
+    assert announced == list(range(6))
+    for x in range(6):
+        assert events.index(("queued", x)) < events.index(("result", x * x))

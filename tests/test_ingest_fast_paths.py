@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import io
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -178,6 +179,7 @@ def test_pool_workers_and_parent_never_import_pandas(bundled: Path, tmp_path: Pa
 
     script = """
 import sys
+from dataclasses import replace
 from pathlib import Path
 from logpipe.executor import _init_worker
 from logpipe.stages.ingest import IngestOptions, ingest
@@ -220,3 +222,38 @@ def test_first_ingest_with_unseen_twins_is_redone_merging_them(bundled: Path, tm
     assert len({i["sha256"] for i in manifest["inputs"]}) == 3
     rerun = ingest([src], IngestOptions(out=tmp_path / "out", write_mcap=False))
     assert rerun["inputs_skipped_already_ingested"] == 3 and rerun["inputs_ingested"] == 0
+
+
+def test_read_ahead_leaves_files_unchanged_and_skips_missing_ones(bundled: Path, tmp_path: Path) -> None:
+    from logpipe.inputs import read_ahead
+    from logpipe.types import SourceFile
+
+    real = sorted((bundled / "argoverse1").glob("*.csv"))[:2]
+    before = [p.read_bytes() for p in real]
+    sources = [SourceFile(str(p), p.name, "", p.stat().st_size) for p in real]
+    read_ahead([*sources, SourceFile(str(tmp_path / "gone.csv"), "gone.csv", "", 1)])
+    assert [p.read_bytes() for p in real] == before
+
+
+@pytest.mark.parametrize("focal_only", [True, False])
+def test_sample_index_is_the_same_counted_densely_or_by_sorting(
+    bundled: Path, focal_only: bool, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The (log, track) counts behind the first-window index come from a bincount, or from a sort when the
+    key range is too sparse; both give the same samples on real Argoverse files."""
+    from logpipe import samples
+    from logpipe.inputs import find_inputs, unhashed_inputs
+    from logpipe.types import PROTOCOLS
+
+    adapter = Argoverse1Adapter()
+    sources = unhashed_inputs(find_inputs([bundled / "argoverse1"], adapter))
+    assert sources
+    parsed = adapter.read(sources, keep_going=False)
+    protocol = replace(PROTOCOLS["argoverse"], targets="focal" if focal_only else "fully_observed")
+    dense = samples.build_samples(parsed.tracks, parsed.logs, protocol, parsed.codes)
+    monkeypatch.setattr(samples, "DENSE_KEYS_PER_ROW", 0)
+    by_sort = samples.build_samples(parsed.tracks, parsed.logs, protocol, parsed.codes)
+    assert dense.num_rows == len(parsed.logs)
+    assert dense.equals(by_sort)
+    if not focal_only:
+        assert max(len(t) for t in dense.column("target_track_ids").to_pylist()) > 1
