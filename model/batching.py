@@ -14,7 +14,9 @@ Normalisation (recorded in checkpoints through ``ModelConfig``): model-frame pos
   first target instead.
 
 Rotation augmentation multiplies ``R`` by a further rotation. Scaling (``pos_scale_m``, ``disp_scale_m``)
-happens inside the network so that ``Batch`` stays in metres.
+happens inside the network so that ``Batch`` stays in metres, except with ``speed_unit_m``: then
+``p = scale R (p_world - origin)`` with one ``scale`` per scene (see ``ModelConfig``), and ``Batch.to_world``
+and ``Batch.metres`` undo it.
 """
 
 from __future__ import annotations
@@ -29,7 +31,7 @@ from torch import Tensor
 from logpipe.errors import LogpipeError
 from logpipe.types import NDArrayBool, NDArrayFloat, NDArrayInt, SceneSample
 
-from .config import ModelConfig
+from .config import SPEED_SCALE_MAX, SPEED_SCALE_MIN, ModelConfig
 
 
 class SampleError(LogpipeError):
@@ -44,7 +46,7 @@ class Batch:
     (B, A_max) grid for the per-scene max-pools, which mask everything that is not a real observed agent.
 
     Attributes:
-        positions: (N, T, 2) float32 model-frame metres; 0 where ``valid`` is False.
+        positions: (N, T, 2) float32 model-frame metres (times ``scale``); 0 where ``valid`` is False.
         valid: (N, T) bool, observed (finite) positions.
         active: (N,) bool, observed at the current step ``obs_len - 1`` (only these are decoded).
         target: (N,) bool, the samples' targets that are active.
@@ -54,10 +56,11 @@ class Batch:
         max_agents: A_max, the largest agent count of a scene.
         raster: (B, C, H, W) float32 in [0, 1], or None when no scene has one / the model does not use it.
         has_raster: (B,) bool, whether the scene came with a raster (else its environment feature is 0).
-        frame_to_px: (B, 2, 3) float32 affine from model-frame metres to raster pixels (col, row).
-        px_per_m: (B,) float32 raster resolution.
+        frame_to_px: (B, 2, 3) float32 affine from model-frame positions to raster pixels (col, row).
+        px_per_m: (B,) float32 raster resolution, pixels per world metre.
         origin: (B, 2) float64 world metres of the model-frame origin.
-        rotation: (B, 2, 2) float64, model = rotation @ (world - origin).
+        rotation: (B, 2, 2) float64, model = scale * rotation @ (world - origin).
+        scale: (B,) float64 model-frame units per world metre (1 unless ``speed_unit_m`` is set).
         offsets: (B + 1,) row offsets of the scenes.
         obs_len: T_obs.
     """
@@ -76,6 +79,7 @@ class Batch:
     px_per_m: Tensor
     origin: NDArrayFloat
     rotation: NDArrayFloat
+    scale: NDArrayFloat
     offsets: NDArrayInt
     obs_len: int
 
@@ -89,8 +93,15 @@ class Batch:
         p = points.detach().double().cpu().numpy()
         sc = scene.cpu().numpy()
         flat = p.reshape(p.shape[0], -1, 2)
+        flat = flat / self.scale[sc][:, None, None]
         world: NDArrayFloat = np.einsum("nji,nkj->nki", self.rotation[sc], flat) + self.origin[sc][:, None, :]
         return world.reshape(p.shape)
+
+    def metres(self, values: Tensor, scene: Tensor) -> Tensor:
+        """Model-frame lengths or positions (R, ...) of rows in scenes ``scene`` (R,) in metres (the frame's
+        axes and origin kept): what errors are measured in."""
+        per_row = torch.from_numpy(self.scale).to(values.dtype)[scene]
+        return values / per_row.view(-1, *([1] * (values.dim() - 1)))
 
 
 def _rot(theta: float) -> NDArrayFloat:
@@ -158,6 +169,7 @@ def collate(
     px_per_m = np.ones(b, np.float32)
     origin = np.zeros((b, 2))
     rotation = np.zeros((b, 2, 2))
+    scale = np.ones(b)
     raster = (
         np.zeros((b, config.raster_channels, *_raster_hw(samples)), np.float32) if use_raster else None
     )
@@ -172,18 +184,19 @@ def collate(
         if rotations is not None:
             rot = _rot(rotations[i]) @ rot
         ok = np.isfinite(pos).all(axis=2)
-        local = np.einsum("ij,atj->ati", rot, np.nan_to_num(pos - org))
+        k = _speed_scale(pos[:, : config.obs_len], config.speed_unit_m) if config.speed_unit_m else 1.0
+        local = k * np.einsum("ij,atj->ati", rot, np.nan_to_num(pos - org))
         positions[lo:hi] = np.where(ok[..., None], local, 0.0)
         valid[lo:hi] = ok
         target[lo:hi] = s.target_mask.astype(bool)
         if 0 <= s.ego_index < hi - lo:
             ego[lo + s.ego_index] = True
-        origin[i], rotation[i] = org, rot
+        origin[i], rotation[i], scale[i] = org, rot, k
         if s.world_to_raster is not None:
             w2r = np.asarray(s.world_to_raster, np.float64)
             lin = w2r[:, :2]
-            # px = lin (R^T p + origin) + offset
-            frame_to_px[i, :, :2] = lin @ rot.T
+            # px = lin (R^T p / k + origin) + offset
+            frame_to_px[i, :, :2] = lin @ rot.T / k
             frame_to_px[i, :, 2] = lin @ org + w2r[:, 2]
             px_per_m[i] = np.sqrt(abs(np.linalg.det(lin)))
         if raster is not None and s.raster is not None:
@@ -216,9 +229,19 @@ def collate(
         px_per_m=torch.from_numpy(px_per_m),
         origin=origin,
         rotation=rotation,
+        scale=scale,
         offsets=offsets,
         obs_len=config.obs_len,
     )
+
+
+def _speed_scale(observed: NDArrayFloat, unit_m: float) -> float:
+    """``clip(unit_m / u, SPEED_SCALE_MIN, SPEED_SCALE_MAX)``, u the mean length (metres) of the one-step
+    displacements in ``observed`` (A, T_obs, 2, NaN where unobserved); the largest scale without any."""
+    steps = np.linalg.norm(np.diff(observed, axis=1), axis=-1)
+    steps = steps[np.isfinite(steps)]
+    mean = float(steps.mean()) if steps.size else 0.0
+    return float(np.clip(unit_m / mean, SPEED_SCALE_MIN, SPEED_SCALE_MAX)) if mean > 0 else SPEED_SCALE_MAX
 
 
 def _raster_hw(samples: Sequence[SceneSample]) -> tuple[int, int]:

@@ -61,6 +61,12 @@ class Features:
         return self.ego_motion or self.ego_trajectory
 
 
+SPEED_SCALE_MIN = 0.25
+"""Smallest per-scene scale of ``ModelConfig.speed_unit_m`` (scenes moving 4x the unit or faster)."""
+SPEED_SCALE_MAX = 4.0
+"""Largest per-scene scale (scenes of people standing still or moving under a quarter of the unit)."""
+
+
 @dataclass(frozen=True)
 class ModelConfig:
     """Architecture, input frame and normalisation of the trajectory network.
@@ -94,6 +100,12 @@ class ModelConfig:
             ``velocity_change``: p_t = p_(t-1) + (p_(t-1) - p_(t-2)) + o_t, i.e. the decoder corrects a
             constant-velocity step (the last observed displacement carried on; zero where p_(t-2) of the
             first predicted step was not observed). Same network and loss; only the output's reference moves.
+        speed_unit_m: None (the paper: model frame in metres) or a length in metres. When set, each scene's
+            model frame is also scaled by ``clip(speed_unit_m / u, SPEED_SCALE_MIN, SPEED_SCALE_MAX)``, u
+            being the mean length of the scene's observed one-step displacements: a scene whose people
+            walk twice as fast is seen at half the size, so what the network learns about motion carries
+            over between scenes of different speeds (and frame rates), as the constant-velocity sampler's
+            relative speed noise does. Outputs and reported errors are mapped back to metres.
     """
 
     features: Features = field(default_factory=Features)
@@ -114,6 +126,7 @@ class ModelConfig:
     pos_scale_m: float = 10.0
     disp_scale_m: float = 1.0
     step_output: StepOutput = "displacement"
+    speed_unit_m: float | None = None
 
     def __post_init__(self) -> None:
         if self.obs_len < 2 or self.pred_len < 1:
@@ -128,6 +141,8 @@ class ModelConfig:
                 f"model.step_output must be 'displacement' or 'velocity_change', got {self.step_output!r}")
         if self.frame not in ("world", "ego"):
             raise ConfigError(f"model.frame must be 'world' or 'ego', got {self.frame!r}")
+        if self.speed_unit_m is not None and not (math.isfinite(self.speed_unit_m) and self.speed_unit_m > 0):
+            raise ConfigError(f"model.speed_unit_m must be a positive number or absent, got {self.speed_unit_m}")
         for name in ("pos_scale_m", "disp_scale_m", "roi_half_size_m"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0):
@@ -161,8 +176,9 @@ class TrainConfig:
         num_modes: H, decoder samples per scene in the best-of-H loss (eq. 23; paper: 20 on ETH/UCY).
         loss_min_over: ``scene`` takes eq. 23's min over modes of the error summed over a scene's targets
             (the paper); ``agent`` takes the min per target.
-        select_then_backprop: decode the H modes without autograd, then re-decode only each scene's best
-            mode with autograd (same gradient as eq. 23, ~2-3x cheaper; only with ``loss_min_over="scene"``).
+        select_then_backprop: decode the H modes without autograd, then re-decode only the picked modes
+            with autograd (same gradient as eq. 23; ~2-3x cheaper with the per-scene min, less with the
+            per-agent one, which re-decodes as many modes as a scene has distinct picks).
         augment_rotate: rotate each training scene by a uniform random angle about its origin.
         eval_every: steps between validation passes (and checkpoints).
         val_modes: K for the validation best-of-K ADE/FDE.

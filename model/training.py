@@ -131,11 +131,15 @@ def best_of_h_step_loss(
 ) -> torch.Tensor:
     """Eq. 23 for one batch, ready for ``backward``.
 
-    With ``select_first`` (and the paper's per-scene min) the H modes are decoded without autograd, the
-    best mode of each scene is picked, and only that mode is decoded again with autograd from the same
-    encoder state and the same noise z. Modes are independent copies of the scene, so the re-decoded
-    trajectories equal the picked ones and the gradient is exactly eq. 23's (which reaches only the best
-    mode), at the cost of one extra one-mode decode instead of back-propagating through all H.
+    With ``select_first`` the H modes are decoded without autograd, the best modes are picked, and only
+    those are decoded again with autograd from the same encoder state and the same noise z. Modes are
+    independent copies of the scene, so the re-decoded trajectories equal the picked ones and the gradient
+    is exactly eq. 23's (which reaches only the picked modes), at the cost of a small extra decode instead of
+    back-propagating through all H:
+
+    * per-scene min (the paper): one mode per scene, a one-mode decode;
+    * per-agent min: each scene's distinct picked modes, packed into as many decode slots as the scene
+      with the most of them needs (slot l holds a different mode in each scene; scenes never interact).
     """
     cfg = net.config
     enc = net.encode(batch)
@@ -144,13 +148,26 @@ def best_of_h_step_loss(
     truth = batch.positions[rows, cfg.obs_len :]
     mask = targets_with_future(batch.target, batch.valid, cfg.obs_len)[rows]
     scene = batch.scene[rows]
-    if select_first and reduce == "scene" and num_modes > 1:
-        with torch.no_grad():
-            pred = net.decode(batch, enc, noise)
-            _, best = best_of_h_loss(pred.positions, truth, mask, scene, batch.size, reduce)
-        noise = noise[best[scene], torch.arange(len(rows))][None]  # (1, R, noise_dim)
-    pred = net.decode(batch, enc, noise)
-    loss, _ = best_of_h_loss(pred.positions, truth, mask, scene, batch.size, reduce)
+    if not select_first or num_modes == 1:
+        pred = net.decode(batch, enc, noise)
+        return best_of_h_loss(pred.positions, truth, mask, scene, batch.size, reduce)[0]
+    with torch.no_grad():
+        pred = net.decode(batch, enc, noise)
+        _, best = best_of_h_loss(pred.positions, truth, mask, scene, batch.size, reduce)
+    every_row = torch.arange(len(rows))
+    if reduce == "scene":
+        pred = net.decode(batch, enc, noise[best[scene], every_row][None])  # (1, R, noise_dim)
+        return best_of_h_loss(pred.positions, truth, mask, scene, batch.size, reduce)[0]
+    picked = torch.zeros(batch.size, num_modes, dtype=torch.bool)
+    picked[scene[mask], best[mask]] = True
+    slot_of = picked.cumsum(dim=1) - 1  # (B, H): slot of each picked mode in its scene
+    slots = max(int(picked.sum(dim=1).max()), 1)
+    mode_in_slot = torch.zeros(batch.size, slots, dtype=torch.long)  # unused slots decode mode 0
+    pick_scene, pick_mode = picked.nonzero(as_tuple=True)
+    mode_in_slot[pick_scene, slot_of[pick_scene, pick_mode]] = pick_mode
+    pred = net.decode(batch, enc, noise[mode_in_slot[scene].t(), every_row])  # (slots, R, noise_dim)
+    mine = pred.positions[slot_of[scene, best].clamp(min=0), every_row]  # (R, T, 2): each row's picked mode
+    loss, _ = best_of_h_loss(mine[None], truth, mask, scene, batch.size, "agent")
     return loss
 
 
@@ -176,7 +193,9 @@ def evaluate(
         pred = net(batch, num_modes, gen)
         rows = pred.rows
         mask = targets_with_future(batch.target, batch.valid, cfg.obs_len)[rows]
-        errors.add(pred.positions, batch.positions[rows, cfg.obs_len :], mask)
+        scene = batch.scene[rows]  # errors in metres whatever the model frame's scale
+        errors.add(batch.metres(pred.positions.transpose(0, 1), scene).transpose(0, 1),
+                   batch.metres(batch.positions[rows, cfg.obs_len :], scene), mask)
     net.train(was_training)
     return errors
 

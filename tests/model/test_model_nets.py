@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 import torch
 
 from logpipe.model.batching import collate
@@ -157,3 +158,43 @@ def test_collate_masks() -> None:
     assert b.scene.tolist() == [0, 0, 0, 1, 1] and b.slot.tolist() == [0, 1, 2, 0, 1]
     assert b.raster is None
     assert float(b.positions[2, 3].abs().sum()) == 0.0
+
+
+def test_speed_unit_frame_sees_a_faster_scene_at_a_smaller_size() -> None:
+    """With ``speed_unit_m`` a scene and its copy at twice the size (twice the speeds) give the same
+    model-frame inputs and the same network output, mapped back to metres at twice the size; rasters keep
+    pointing at the same pixels."""
+    from dataclasses import replace
+
+    from logpipe.model.batching import _speed_scale
+
+    cfg = ModelConfig(speed_unit_m=0.5, **SMALL)  # type: ignore[arg-type]
+    s = _scene(21, 4, with_raster=True)
+    big = replace(s, positions=s.positions * 2.0, world_to_raster=s.world_to_raster @ np.diag([0.5, 0.5, 1.0]))
+    b, b2 = collate([s], cfg), collate([big], cfg)
+    assert b2.scale[0] == b.scale[0] / 2 and b.scale[0] != 1.0
+    torch.testing.assert_close(b.positions, b2.positions, rtol=1e-5, atol=1e-5)
+    torch.testing.assert_close(b.frame_to_px, b2.frame_to_px, rtol=1e-5, atol=1e-5)
+    world = b.to_world(b.positions[:, :, None], b.scene)[:, :, 0]
+    seen = np.isfinite(s.positions[:, : world.shape[1]])
+    np.testing.assert_allclose(world[seen], s.positions[:, : world.shape[1]][seen], atol=1e-4)
+    torch.testing.assert_close(b2.metres(b2.positions, b2.scene), 2 * b.metres(b.positions, b.scene))
+    torch.manual_seed(0)
+    net = TrajectoryNet(replace(cfg, features=Features(True, True, False, False, False))).eval()
+    out, out_big = _predict(net, [s])[0], _predict(net, [big])[0]
+    np.testing.assert_allclose(out_big, 2 * out, rtol=1e-4, atol=1e-4)
+    from logpipe.model.training import evaluate
+
+    errors, errors_big = (evaluate(net, [scene], num_modes=1) for scene in (s, big))
+    assert errors.count == errors_big.count > 0
+    assert errors_big.ade == pytest.approx(2 * errors.ade, rel=1e-4)  # validation reports metres
+    still = np.zeros((2, 4, 2))
+    assert _speed_scale(still, 0.5) == 4.0  # nobody moves: the largest scale, no division by zero
+    assert _speed_scale(np.full((1, 4, 2), np.nan), 0.5) == 4.0
+
+
+def test_speed_unit_must_be_positive() -> None:
+    from logpipe.model.config import ConfigError
+
+    with pytest.raises(ConfigError, match="speed_unit_m"):
+        ModelConfig(speed_unit_m=0.0)

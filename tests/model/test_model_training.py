@@ -180,7 +180,8 @@ def test_fit_streams_an_iterable(tmp_path: Path) -> None:
     assert len(vals) == 2 and all(v["targets"] > 0 for v in vals)  # a one-shot val stream is kept
 
 
-def test_select_then_backprop_gives_the_eq_23_gradient() -> None:
+@pytest.mark.parametrize("reduce", ["scene", "agent"])
+def test_select_then_backprop_gives_the_eq_23_gradient(reduce: str) -> None:
     from logpipe.model.batching import collate
     from logpipe.model.nets import TrajectoryNet
     from logpipe.model.training import best_of_h_step_loss
@@ -192,7 +193,7 @@ def test_select_then_backprop_gives_the_eq_23_gradient() -> None:
     grads = []
     for select in (False, True):
         net.zero_grad()
-        loss = best_of_h_step_loss(net, batch, 6, torch.Generator().manual_seed(1), "scene", select)
+        loss = best_of_h_step_loss(net, batch, 6, torch.Generator().manual_seed(1), reduce, select)
         loss.backward()
         grads.append((loss.detach(), [p.grad.clone() for p in net.parameters() if p.grad is not None]))
     torch.testing.assert_close(grads[0][0], grads[1][0])
