@@ -57,11 +57,15 @@ def _fork_is_safe() -> bool:
 
     Forking copies only the calling thread: a lock another thread held stays locked in the child. Safe
     here when this process runs no Python threads besides the main one (a progress bar's refresh thread,
-    a thread pool) and has not loaded torch, whose OpenMP pool does not survive a fork. The native threads
-    numpy and pyarrow start at import (OpenBLAS workers, jemalloc's background thread) re-initialise in
-    the child through their fork handlers.
+    a thread pool) and has not loaded torch or OpenCV, whose thread pools (OpenMP, OpenCV's own) do not
+    survive a fork. The native threads numpy and pyarrow start at import (OpenBLAS workers, jemalloc's
+    background thread) re-initialise in the child through their fork handlers.
     """
-    return sys.platform == "linux" and threading.active_count() == 1 and "torch" not in sys.modules
+    return (sys.platform == "linux" and threading.active_count() == 1
+            and not any(name in sys.modules for name in _FORK_UNSAFE_MODULES))
+
+
+_FORK_UNSAFE_MODULES = ("torch", "cv2")
 
 
 def _context(fn: Callable[..., Any]) -> multiprocessing.context.BaseContext:

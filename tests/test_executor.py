@@ -41,15 +41,16 @@ def test_forked_and_served_workers_give_the_same_results(fork: bool, monkeypatch
     assert list(run_ordered(square, list(range(7)), workers=2)) == [x * x for x in range(7)]
 
 
-def test_workers_fork_only_without_threads_or_torch(monkeypatch: pytest.MonkeyPatch) -> None:
-    """A lock held by another thread would stay locked in a forked child, and torch's OpenMP pool does not
-    survive a fork: then the pool's workers come from the worker server instead."""
+def test_workers_fork_only_without_threads_torch_or_opencv(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A lock held by another thread would stay locked in a forked child, and the thread pools of torch and
+    OpenCV do not survive a fork: then the pool's workers come from the worker server instead."""
     import sys
     import threading
 
     from logpipe.executor import _fork_is_safe
 
     monkeypatch.delitem(sys.modules, "torch", raising=False)
+    monkeypatch.delitem(sys.modules, "cv2", raising=False)
     if threading.active_count() > 1:
         pytest.skip("another Python thread is running in this test process")
     assert _fork_is_safe()
@@ -61,8 +62,11 @@ def test_workers_fork_only_without_threads_or_torch(monkeypatch: pytest.MonkeyPa
     finally:
         release.set()
         thread.join()
-    monkeypatch.setitem(sys.modules, "torch", sys)  # any module object stands for a loaded torch
-    assert not _fork_is_safe()
+    for unsafe in ("torch", "cv2"):  # any module object stands for the loaded library
+        with monkeypatch.context() as patched:
+            patched.setitem(sys.modules, unsafe, sys)
+            assert not _fork_is_safe()
+    assert _fork_is_safe()
 
 
 @pytest.mark.parametrize("workers", [1, 2])
