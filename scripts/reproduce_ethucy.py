@@ -384,8 +384,9 @@ def render(results: dict[str, Any], args: argparse.Namespace, seconds: float) ->
         lines += [f"- {s['scene']}: {s['method']} — {s['reason']}" for s in results["skipped"]]
     else:
         lines.append("All learned methods had checkpoints: `model/checkpoints/ethucy/` (MODEL_CARD.md there), "
-                     "trained by `make train-ethucy` with `configs/ethucy.toml` (at most 1,200 steps, early stopping "
-                     "on `S/val`, batch 8, Adam 5e-4, H = 20, each training scene rotated by a random angle, the "
+                     "trained by `make train-ethucy` with `configs/ethucy.toml` (at most 2,400 steps, learning rate "
+                     "halved every 600, early stopping on `S/val`, batch 8, Adam 5e-4, H = 20, each training "
+                     "scene rotated by a random angle, the "
                      "decoder's output correcting a constant-velocity step: `step_output = \"velocity_change\"`, "
                      "chosen on `S/val`); the LSTM and Noise-LSTM with the same config through "
                      "`--preset lstm|baseline`.")
