@@ -12,6 +12,7 @@ import json
 import platform
 import sys
 import time
+import tomllib
 from pathlib import Path
 from typing import Any
 
@@ -61,6 +62,8 @@ def card(kind: str) -> str:
     """The Markdown card of ``model/checkpoints/<kind>``."""
     root = CHECKPOINTS / kind
     config = (REPO / "configs" / f"{kind}.toml").read_text()
+    val_limit = tomllib.loads(config).get("train", {}).get("val_max_samples")
+    val_on = f"first {val_limit} validation samples" if val_limit else "the whole validation split"
     if kind == "ethucy":
         scenes = ("eth", "hotel", "univ", "zara1", "zara2")
         folders = [(f"{s} ({m})", root / s if m == "zhu2020" else root / s / m) for m in METHODS for s in scenes]
@@ -78,7 +81,7 @@ def card(kind: str) -> str:
 - **Seed:** 0, one torch thread per run, two runs at a time on a 2-core CPU shared with other jobs. Card written
   {time.strftime('%Y-%m-%d', time.gmtime())} on Python {platform.python_version()}.
 - **Schedule:** much shorter than the paper's 20,000 steps, so a model trains in minutes here; early stopping on
-  the validation ADE (first 300 validation samples). See the config below.
+  the validation ADE ({val_on}). See the config below.
 - **Validation errors** are per-agent best-of-K ADE/FDE in metres (mean Euclidean distance) on the validation
   split at the best step; test scores are in `docs/results/{kind}.md`.
 
