@@ -52,6 +52,10 @@ class _NoPandas(importlib.abc.MetaPathFinder):
             raise ModuleNotFoundError("logpipe's pool workers do not load pandas", name=name)
 
 
+_FORK_UNSAFE_MODULES = ("torch", "cv2")
+"""Libraries whose thread pools (OpenMP, OpenCV's own) do not survive a fork once loaded."""
+
+
 def _fork_is_safe() -> bool:
     """Whether workers may be forked from this process directly.
 
@@ -63,9 +67,6 @@ def _fork_is_safe() -> bool:
     """
     return (sys.platform == "linux" and threading.active_count() == 1
             and not any(name in sys.modules for name in _FORK_UNSAFE_MODULES))
-
-
-_FORK_UNSAFE_MODULES = ("torch", "cv2")
 
 
 def _context(fn: Callable[..., Any]) -> multiprocessing.context.BaseContext:
@@ -112,11 +113,11 @@ def run_ordered(
         return
     announce = queued or (lambda item: None)
     if workers <= 1 or len(items) <= 1:
+        if items:
+            announce(items[0])
         for i, item in enumerate(items):
-            if i == 0:
-                announce(item)
             if i + 1 < len(items):
-                announce(items[i + 1])
+                announce(items[i + 1])  # one item ahead, while this one runs
             yield fn(item)
         return
     context = _context(fn)

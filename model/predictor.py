@@ -87,6 +87,10 @@ class NetPredictor:
         self.name = name
         self.noise_scale = noise_scale
 
+    def with_noise_scale(self, noise_scale: float) -> NetPredictor:
+        """The same network and settings, sampling z with standard deviation ``noise_scale``."""
+        return NetPredictor(self.net, self.batch_size, self.name, noise_scale=noise_scale)
+
     @torch.no_grad()
     def predict(self, samples: Sequence[SceneSample], num_modes: int, seed: int) -> list[NDArrayFloat]:
         """Batched inference; noise z is drawn from a generator seeded with ``seed``."""

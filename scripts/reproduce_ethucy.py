@@ -127,8 +127,8 @@ def tune_noise_scale(net: NetPredictor, val: Sequence[SceneSample], pred_len: in
     truth = truth_of(val, pred_len)
     grid = []
     for scale in NOISE_SCALE_GRID:
-        scaled = NetPredictor(net.net, net.batch_size, net.name, noise_scale=scale)
-        grid.append((scale, *best_of_k(np.concatenate(scaled.predict(val, k, seed)), truth)))
+        forecasts = net.with_noise_scale(scale).predict(val, k, seed)
+        grid.append((scale, *best_of_k(np.concatenate(forecasts), truth)))
     return min(grid, key=lambda g: (g[1], g[2]))[0], grid
 
 
@@ -144,7 +144,7 @@ def write_learned(checkpoint: Path, kind: str, val: Sequence[SceneSample], test:
     if k == 1:
         return [write_predictions(net, test, k, seed, pred_len, sha, pdir / f"{method}.parquet", method)], None
     scale, grid = tune_noise_scale(net, val, pred_len, k, seed)
-    tuned = NetPredictor(net.net, net.batch_size, net.name, noise_scale=scale)
+    tuned = net.with_noise_scale(scale)
     files = [write_predictions(tuned, test, k, seed, pred_len, noise_scaled_id(sha, scale),
                                pdir / f"{method}.parquet", method)]
     if as_trained is not None:
