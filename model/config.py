@@ -23,7 +23,7 @@ from logpipe.errors import LogpipeError
 
 Frame = Literal["world", "ego"]
 LossReduction = Literal["scene", "agent"]
-StepOutput = Literal["displacement", "velocity_change"]
+StepOutput = Literal["displacement", "velocity_change", "agent_velocity_change"]
 
 
 class ConfigError(LogpipeError):
@@ -100,6 +100,14 @@ class ModelConfig:
             ``velocity_change``: p_t = p_(t-1) + (p_(t-1) - p_(t-2)) + o_t, i.e. the decoder corrects a
             constant-velocity step (the last observed displacement carried on; zero where p_(t-2) of the
             first predicted step was not observed). Same network and loss; only the output's reference moves.
+            ``agent_velocity_change``: as ``velocity_change``, with o_t read in each agent's own frame and
+            speed: o_t = (along, across) is multiplied by the last observed step's length (at least
+            ``agent_min_step_m``) along and across its direction, so o_t is a relative speed change and a
+            turn rate, the two quantities the constant-velocity sampler perturbs, and the same output means
+            the same manoeuvre for a slow and a fast walker heading anywhere (``disp_scale_m`` then scales
+            only the inputs).
+        agent_min_step_m: floor (metres per step) of the speed that scales ``agent_velocity_change``'s output,
+            so that agents standing still (whose last step is position noise) can still start to move.
         speed_unit_m: None (the paper: model frame in metres) or a length in metres. When set, each scene's
             model frame is also scaled by ``clip(speed_unit_m / u, SPEED_SCALE_MIN, SPEED_SCALE_MAX)``, u
             being the mean length of the scene's observed one-step displacements: a scene whose people
@@ -127,6 +135,7 @@ class ModelConfig:
     disp_scale_m: float = 1.0
     step_output: StepOutput = "displacement"
     speed_unit_m: float | None = None
+    agent_min_step_m: float = 0.1
 
     def __post_init__(self) -> None:
         if self.obs_len < 2 or self.pred_len < 1:
@@ -136,14 +145,14 @@ class ModelConfig:
                 raise ConfigError(f"model.{name} must be >= 1, got {getattr(self, name)}")
         if self.noise_dim < 0:
             raise ConfigError(f"model.noise_dim must be >= 0, got {self.noise_dim}")
-        if self.step_output not in ("displacement", "velocity_change"):
-            raise ConfigError(
-                f"model.step_output must be 'displacement' or 'velocity_change', got {self.step_output!r}")
+        if self.step_output not in ("displacement", "velocity_change", "agent_velocity_change"):
+            raise ConfigError("model.step_output must be 'displacement', 'velocity_change' or "
+                              f"'agent_velocity_change', got {self.step_output!r}")
         if self.frame not in ("world", "ego"):
             raise ConfigError(f"model.frame must be 'world' or 'ego', got {self.frame!r}")
         if self.speed_unit_m is not None and not (math.isfinite(self.speed_unit_m) and self.speed_unit_m > 0):
             raise ConfigError(f"model.speed_unit_m must be a positive number or absent, got {self.speed_unit_m}")
-        for name in ("pos_scale_m", "disp_scale_m", "roi_half_size_m"):
+        for name in ("pos_scale_m", "disp_scale_m", "roi_half_size_m", "agent_min_step_m"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0):
                 raise ConfigError(f"model.{name} must be a positive number, got {value}")

@@ -476,6 +476,7 @@ class TrajectoryNet(nn.Module):
         p_prev = batch.positions[rows, t_obs - 2][None].expand(mm, r, 2)
         p_cur = batch.positions[rows, t_obs - 1][None].expand(mm, r, 2)
         carried = self._carried_first_step(batch, rows)
+        basis = self._agent_output_basis(carried)
         outputs: list[Tensor] = []
         lstm_d = lstm_weights(self.decoder)
         for k in range(cfg.pred_len):
@@ -498,7 +499,9 @@ class TrajectoryNet(nn.Module):
                     x.append(q)
                 h_flat, c = lstm_step(lstm_d, torch.cat(x, dim=-1).reshape(mm * r, -1), h.reshape(mm * r, hid), c)
                 h = h_flat.view(mm, r, hid)  # eq. 18
-            p_next = p_cur + self.out(h) * ds  # eqs. 19-20
+            o = self.out(h)
+            # eqs. 19-20; agent_velocity_change reads o_t in the agent's frame and speed units
+            p_next = p_cur + (o * ds if basis is None else torch.einsum("mrj,rij->mri", o, basis))
             if carried is not None:  # step_output="velocity_change": o_t corrects a constant-velocity step
                 p_next = p_next + (carried[None] if k == 0 else p_cur - p_prev)
             if ego_ok is not None:  # the ego follows its given (planned) future
@@ -567,6 +570,7 @@ class TrajectoryNet(nn.Module):
         p_prev = batch.positions[rows, t_obs - 2][:, None].expand(r, mm, 2)
         p_cur = batch.positions[rows, t_obs - 1][:, None].expand(r, mm, 2)
         carried = self._carried_first_step(batch, rows)
+        basis = self._agent_output_basis(carried)
         outputs = noise.new_empty(r, mm, cfg.pred_len, 2)
         for k in range(cfg.pred_len):
             if k > 0:  # one LSTM_D step at t = T_obs + k on the predicted positions
@@ -595,7 +599,8 @@ class TrajectoryNet(nn.Module):
                     c_blk = c[lo:hi]
                     c_blk.mul_(sig[:, hid : 2 * hid]).addcmul_(sig[:, :hid], torch.tanh(gates[:, 3 * hid :]))
                     torch.mul(sig[:, 2 * hid :], torch.tanh(c_blk), out=h[lo:hi])
-            p_next = p_cur + self.out(h).view(r, mm, 2) * ds  # eqs. 19-20
+            o = self.out(h).view(r, mm, 2)
+            p_next = p_cur + (o * ds if basis is None else torch.einsum("rmj,rij->rmi", o, basis))  # eqs. 19-20
             if carried is not None:
                 p_next = p_next + (carried[:, None] if k == 0 else p_cur - p_prev)
             if ego_ok is not None:  # the ego follows its given (planned) future
@@ -606,13 +611,26 @@ class TrajectoryNet(nn.Module):
         return Prediction(outputs.transpose(0, 1), rows)
 
     def _carried_first_step(self, batch: Batch, rows: Tensor) -> Tensor | None:
-        """(R, 2) last observed displacement p_(T_obs) - p_(T_obs - 1) that ``step_output="velocity_change"``
-        carries into the first predicted step (zero where p_(T_obs - 1) is unobserved); None otherwise."""
-        if self.config.step_output != "velocity_change":
+        """(R, 2) last observed displacement p_(T_obs) - p_(T_obs - 1) that the velocity-change step outputs
+        carry into the first predicted step (zero where p_(T_obs - 1) is unobserved); None otherwise."""
+        if self.config.step_output == "displacement":
             return None
         t_obs = batch.obs_len
         step = batch.positions[rows, t_obs - 1] - batch.positions[rows, t_obs - 2]
         return torch.where(batch.valid[rows, t_obs - 2][:, None], step, torch.zeros_like(step))
+
+    def _agent_output_basis(self, carried: Tensor | None) -> Tensor | None:
+        """(R, 2, 2) map of ``agent_velocity_change``'s o_t = (along, across) to model-frame metres: columns
+        s e and s e_perp, e the direction of the last observed step (+x where it is zero) and s its length
+        floored at ``agent_min_step_m``; None for the other step outputs."""
+        if self.config.step_output != "agent_velocity_change" or carried is None:
+            return None
+        length = torch.linalg.vector_norm(carried, dim=-1, keepdim=True)
+        unit = torch.where(length > 1e-6, carried / length.clamp(min=1e-6), torch.tensor([1.0, 0.0]))
+        s = length.clamp(min=self.config.agent_min_step_m)
+        along = unit * s
+        across = torch.stack((-along[:, 1], along[:, 0]), dim=-1)
+        return torch.stack((along, across), dim=-1)
 
     def _env_fast(self, proj: Tensor | None, pos: Tensor, batch: Batch, rows: Tensor) -> Tensor:
         """v (R, M, d_v) at agent-major positions pos (R, M, 2); zero without maps."""

@@ -39,7 +39,7 @@ def _scenes() -> list[SceneSample]:
         Features(False, True, False, False, True),
     ],
 )
-@pytest.mark.parametrize("step_output", ["displacement", "velocity_change"])
+@pytest.mark.parametrize("step_output", ["displacement", "velocity_change", "agent_velocity_change"])
 def test_decode_fast_equals_decode(features: Features, step_output: str) -> None:
     torch.manual_seed(0)
     cfg = ModelConfig(features=features, noise_dim=3, step_output=step_output, **SMALL)  # type: ignore[arg-type]
@@ -55,12 +55,13 @@ def test_decode_fast_equals_decode(features: Features, step_output: str) -> None
     torch.testing.assert_close(fast.positions, ref.positions, rtol=1e-5, atol=1e-5)
 
 
+@pytest.mark.parametrize("step_output", ["velocity_change", "agent_velocity_change"])
 @pytest.mark.parametrize("fast", [False, True])
-def test_velocity_change_with_zero_output_is_constant_velocity(fast: bool) -> None:
+def test_velocity_change_with_zero_output_is_constant_velocity(fast: bool, step_output: str) -> None:
     """With o_t = 0 the decoder carries the last observed displacement on (and stands still where the step
     before the current one is unobserved), whatever the noise."""
     torch.manual_seed(0)
-    cfg = ModelConfig(noise_dim=3, step_output="velocity_change", **SMALL)  # type: ignore[arg-type]
+    cfg = ModelConfig(noise_dim=3, step_output=step_output, **SMALL)  # type: ignore[arg-type]
     net = TrajectoryNet(cfg).eval()
     with torch.no_grad():
         net.out.weight.zero_()
@@ -80,6 +81,35 @@ def test_velocity_change_with_zero_output_is_constant_velocity(fast: bool) -> No
     for mode in range(3):
         torch.testing.assert_close(pred.positions[mode][agents], expected[agents], rtol=0, atol=1e-5)
     assert bool((~batch.valid[pred.rows, 2] & agents).any())
+
+
+@pytest.mark.parametrize("fast", [False, True])
+def test_agent_velocity_change_reads_the_output_in_each_agents_frame(fast: bool) -> None:
+    """A constant o = (along, across) bends every agent's first step by that fraction of its own last step,
+    along and to the left of it, whatever its heading; an agent slower than the floor moves by the floor."""
+    torch.manual_seed(0)
+    cfg = ModelConfig(noise_dim=3, step_output="agent_velocity_change", agent_min_step_m=0.05, **SMALL)  # type: ignore[arg-type]
+    net = TrajectoryNet(cfg).eval()
+    along, across = -0.2, 0.3
+    with torch.no_grad():
+        net.out.weight.zero_()
+        net.out.bias.copy_(torch.tensor([along, across]))
+    scenes = _scenes()
+    scenes[0].positions = scenes[0].positions.copy()
+    scenes[0].positions[1, 3] = scenes[0].positions[1, 2] + np.array([0.0, 0.01])  # agent 1: 1 cm, below the floor
+    batch = collate(scenes, cfg)
+    with torch.no_grad():
+        pred = net(batch, 2, fast=fast)
+    pos = batch.positions[pred.rows]
+    step = pos[:, 3] - pos[:, 2]
+    agents = ~batch.ego[pred.rows] & batch.valid[pred.rows, 2]
+    length = torch.linalg.vector_norm(step, dim=-1, keepdim=True)
+    unit = step / length
+    left = torch.stack((-unit[:, 1], unit[:, 0]), dim=-1)
+    expected = pos[:, 3] + step + length.clamp(min=0.05) * (along * unit + across * left)
+    for mode in range(2):
+        torch.testing.assert_close(pred.positions[mode, :, 0][agents], expected[agents], rtol=0, atol=1e-5)
+    assert bool((length[:, 0] < 0.05)[agents].any()) and bool((length[:, 0] > 0.05)[agents].any())
 
 
 def test_decode_fast_row_blocks_do_not_change_results(monkeypatch: pytest.MonkeyPatch) -> None:
