@@ -387,8 +387,9 @@ def render(results: dict[str, Any], args: argparse.Namespace, seconds: float) ->
                      "trained by `make train-ethucy` with `configs/ethucy.toml` (at most 2,400 steps, learning rate "
                      "halved every 600, early stopping on `S/val`, batch 8, Adam 5e-4, H = 20, each training "
                      "scene rotated by a random angle, the "
-                     "decoder's output correcting a constant-velocity step: `step_output = \"velocity_change\"`, "
-                     "chosen on `S/val`); the LSTM and Noise-LSTM with the same config through "
+                     "decoder's output correcting a constant-velocity step in each pedestrian's own frame and "
+                     "speed: `step_output = \"agent_velocity_change\"`, chosen on `S/val`); the LSTM and "
+                     "Noise-LSTM with the same config through "
                      "`--preset lstm|baseline`.")
     lines += ["", "## Notes and caveats", "",
               "- `biwi_eth` in this (Social-GAN) version has frame steps of 10 and a mean walking speed of 2.3 m/s at "
