@@ -46,7 +46,7 @@ HEADING_GRID = (0.02, 0.05, 0.1, 0.15, 0.2, 0.25, 0.3, 0.4, 0.5, 0.7)
 """Sampler heading noise std candidates, radians."""
 SPEED_GRID = (0.0, 0.1, 0.2, 0.3, 0.4, 0.6, 0.8)
 """Sampler relative speed noise std candidates."""
-NOISE_SCALE_GRID = (1.0, 1.5, 2.0, 2.5, 3.0)
+NOISE_SCALE_GRID = (0.5, 0.75, 1.0, 1.5, 2.0, 2.5, 3.0)
 """Candidates for the std of a learned method's noise z at inference (1 = eq. 21, what training drew)."""
 
 PAPER_TABLE1 = {  # Zhu et al. (IJCAI 2020) Table 1, ADE/FDE in metres, columns as SCENES + AVG
