@@ -385,7 +385,8 @@ def render(results: dict[str, Any], args: argparse.Namespace, seconds: float) ->
     else:
         lines.append("All learned methods had checkpoints: `model/checkpoints/ethucy/` (MODEL_CARD.md there), "
                      "trained by `make train-ethucy` with `configs/ethucy.toml` (at most 2,400 steps, learning rate "
-                     "halved every 600, early stopping on `S/val`, batch 8, Adam 5e-4, H = 20, each training "
+                     "halved every 600, early stopping on `S/val`, batch 8, Adam 5e-4, H = 20 with the best mode "
+                     "taken per agent (`loss_min_over = \"agent\"`, chosen on `S/val`), each training "
                      "scene rotated by a random angle, the "
                      "decoder's output correcting a constant-velocity step in each pedestrian's own frame and "
                      "speed: `step_output = \"agent_velocity_change\"`, chosen on `S/val`); the LSTM and "
