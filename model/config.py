@@ -17,7 +17,7 @@ import math
 import tomllib
 from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
-from typing import Any, Literal, TypeVar
+from typing import Any, Literal, TypeVar, get_args
 
 from logpipe.errors import LogpipeError
 
@@ -145,9 +145,9 @@ class ModelConfig:
                 raise ConfigError(f"model.{name} must be >= 1, got {getattr(self, name)}")
         if self.noise_dim < 0:
             raise ConfigError(f"model.noise_dim must be >= 0, got {self.noise_dim}")
-        if self.step_output not in ("displacement", "velocity_change", "agent_velocity_change"):
-            raise ConfigError("model.step_output must be 'displacement', 'velocity_change' or "
-                              f"'agent_velocity_change', got {self.step_output!r}")
+        if self.step_output not in get_args(StepOutput):
+            raise ConfigError(
+                f"model.step_output must be one of {list(get_args(StepOutput))}, got {self.step_output!r}")
         if self.frame not in ("world", "ego"):
             raise ConfigError(f"model.frame must be 'world' or 'ego', got {self.frame!r}")
         if self.speed_unit_m is not None and not (math.isfinite(self.speed_unit_m) and self.speed_unit_m > 0):

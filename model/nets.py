@@ -502,7 +502,7 @@ class TrajectoryNet(nn.Module):
             o = self.out(h)
             # eqs. 19-20; agent_velocity_change reads o_t in the agent's frame and speed units
             p_next = p_cur + (o * ds if basis is None else torch.einsum("mrj,rij->mri", o, basis))
-            if carried is not None:  # step_output="velocity_change": o_t corrects a constant-velocity step
+            if carried is not None:  # the velocity-change outputs: o_t corrects a constant-velocity step
                 p_next = p_next + (carried[None] if k == 0 else p_cur - p_prev)
             if ego_ok is not None:  # the ego follows its given (planned) future
                 given = ego_ok[:, t_obs + k]
