@@ -160,15 +160,16 @@ def test_collate_masks() -> None:
     assert float(b.positions[2, 3].abs().sum()) == 0.0
 
 
-def test_speed_unit_frame_sees_a_faster_scene_at_a_smaller_size() -> None:
+@pytest.mark.parametrize("step_output", ["displacement", "agent_velocity_change"])
+def test_speed_unit_frame_sees_a_faster_scene_at_a_smaller_size(step_output: str) -> None:
     """With ``speed_unit_m`` a scene and its copy at twice the size (twice the speeds) give the same
     model-frame inputs and the same network output, mapped back to metres at twice the size; rasters keep
-    pointing at the same pixels."""
+    pointing at the same pixels. With the per-agent output its speed floor is in model units, so it holds too."""
     from dataclasses import replace
 
     from logpipe.model.batching import _speed_scale
 
-    cfg = ModelConfig(speed_unit_m=0.5, **SMALL)  # type: ignore[arg-type]
+    cfg = ModelConfig(speed_unit_m=0.5, step_output=step_output, **SMALL)  # type: ignore[arg-type]
     s = _scene(21, 4, with_raster=True)
     big = replace(s, positions=s.positions * 2.0, world_to_raster=s.world_to_raster @ np.diag([0.5, 0.5, 1.0]))
     b, b2 = collate([s], cfg), collate([big], cfg)
