@@ -294,9 +294,11 @@ def train(
     scene: Annotated[str | None, typer.Option(
         "--scene", help="ETH/UCY leave-one-scene-out: train on SCENE/train, validate on SCENE/val.")] = None,
     train_split: Annotated[str | None, typer.Option(
-        "--train-split", help="Training logs: a folder split (eth/train), hash/train (default) or all.")] = None,
+        "--train-split", help="Training logs: a folder split (eth/train), hash/train (default), all, a log id, "
+                              "or terms joined by + and - (eth/train-biwi_hotel_train holds out HOTEL).")] = None,
     val_split: Annotated[str | None, typer.Option(
-        "--val-split", help="Validation logs (default: the matching /val split); 'none' disables.")] = None,
+        "--val-split", help="Validation logs, same syntax (default: the matching /val split; needed when "
+                            "--train-split has + or -); 'none' disables.")] = None,
     config: Annotated[Path | None, typer.Option(
         "--config", help="TOML/JSON with every hyper-parameter (tables model and train); defaults: the paper's.")
     ] = None,
@@ -322,6 +324,9 @@ def train(
 
     with _user_errors():
         chosen_train = train_split or (f"{scene}/train" if scene else "hash/train")
+        if val_split is None and any(op in chosen_train for op in "+-"):
+            raise typer.BadParameter(f"--train-split {chosen_train!r} has no matching /val split: give --val-split "
+                                     "(e.g. the held-out logs) or 'none'")
         chosen_val = val_split or ("none" if chosen_train == "all" else chosen_train.rsplit("/", 1)[0] + "/val")
         overrides: dict[str, Any] = {}
         if steps is not None:

@@ -15,6 +15,7 @@ Only what the manifest lists is read, so a shard left behind by an interrupted r
 from __future__ import annotations
 
 import hashlib
+import re
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from functools import cached_property
@@ -95,27 +96,45 @@ class Dataset:
         return pq.read_table(self.root / LOGS_FILE)
 
     def logs_in_split(self, split: str) -> list[str]:
-        """Log ids of a split: a folder membership (``eth/train``, from the ETH/UCY layout), ``hash/train``,
-        ``hash/val``, ``hash/test`` (70/15/15 by log, see ``HASH_SPLITS``), or ``all``.
+        """Log ids of a split, in log-table order.
+
+        A split is a folder membership (``eth/train``, from the ETH/UCY layout), ``hash/train``, ``hash/val``,
+        ``hash/test`` (70/15/15 by log, see ``HASH_SPLITS``), ``all`` or a log id; or such terms joined by ``+``
+        (union) and ``-`` (difference), read left to right. ``eth/train-biwi_hotel_train`` is the ETH fold's
+        training logs without the HOTEL recording, so a whole scene can be held out for validation
+        (``biwi_hotel_train+biwi_hotel_val``).
 
         Raises:
-            DatasetError: no log is in that split.
+            DatasetError: a term names no log, or the split has none.
         """
         logs = self.logs()
         ids = logs.column("log_id").to_pylist()
-        if split == "all":
-            chosen = list(ids)
-        elif split.startswith("hash/") and split[5:] in HASH_SPLITS:
-            lo, hi = HASH_SPLITS[split[5:]]
-            chosen = [i for i in ids if lo <= hash_fraction(i) < hi]
-        else:
-            memberships = logs.column("memberships").to_pylist()
-            chosen = [i for i, m in zip(ids, memberships, strict=True) if split in m]
+        memberships = logs.column("memberships").to_pylist()
+        parts = re.split(r"([+-])", split.strip())
+        chosen: set[str] = set()
+        for i in range(0, len(parts), 2):
+            term = parts[i].strip()
+            picked = self._term_logs(term, ids, memberships)
+            if not picked:
+                known = sorted({m for ms in memberships for m in ms})
+                raise DatasetError(f"{self.root}: no log in split {term!r}"
+                                   + (f" (of {split!r})" if term != split else "") + "; splits here: "
+                                   + ", ".join(known + [f"hash/{k}" for k in HASH_SPLITS])
+                                   + ", all, a log id, or terms joined by + and -")
+            chosen = chosen - picked if i and parts[i - 1] == "-" else chosen | picked
         if not chosen:
-            known = sorted({m for ms in logs.column("memberships").to_pylist() for m in ms})
-            raise DatasetError(f"{self.root}: no log in split {split!r}; splits here: "
-                               f"{', '.join(known + [f'hash/{k}' for k in HASH_SPLITS])}")
-        return chosen
+            raise DatasetError(f"{self.root}: split {split!r} leaves no log")
+        return [i for i in ids if i in chosen]
+
+    @staticmethod
+    def _term_logs(term: str, ids: list[str], memberships: list[list[str]]) -> set[str]:
+        """Log ids of one split term (membership, ``hash/...``, ``all`` or a log id)."""
+        if term == "all":
+            return set(ids)
+        if term.startswith("hash/") and term[5:] in HASH_SPLITS:
+            lo, hi = HASH_SPLITS[term[5:]]
+            return {i for i in ids if lo <= hash_fraction(i) < hi}
+        return {i for i, m in zip(ids, memberships, strict=True) if term in m or term == i}
 
     def samples(self) -> pa.Table:
         """The sample index."""

@@ -155,3 +155,19 @@ def test_train_streams_from_the_shards_with_loader_workers(bundled: Path, tmp_pa
     summary = json.loads(result.stdout)
     assert summary["train_samples"] == "streamed" and summary["steps"] == 3
     assert np.isfinite(summary["best_val_ade"])
+
+
+def test_train_holds_out_a_scene_with_a_split_expression(bundled: Path, tmp_path: Path) -> None:
+    """``--train-split`` takes + and - terms; then ``--val-split`` must be given (no /val to guess)."""
+    runner.invoke(app, ["ingest", str(bundled / "ethucy"), "--out", str(tmp_path / "e"), "--no-mcap"])
+    config = tmp_path / "c.toml"
+    config.write_text("[train]\nsteps = 2\neval_every = 2\nval_max_samples = 8\nnum_threads = 1\n")
+    base = ["train", str(tmp_path / "e"), "--config", str(config), "--preset", "lstm", "--json"]
+    result = runner.invoke(app, [*base, "--train-split", "all-eth/test-hotel/test", "--out", str(tmp_path / "a")])
+    assert result.exit_code == 2 and "--val-split" in result.output
+    result = runner.invoke(app, [*base, "--train-split", "all-eth/test-hotel/test", "--val-split", "biwi_hotel",
+                                 "--out", str(tmp_path / "b")])
+    assert result.exit_code == 0, result.output
+    summary = json.loads(result.stdout)
+    assert summary["train_split"] == "all-eth/test-hotel/test" and summary["val_split"] == "biwi_hotel"
+    assert summary["train_samples"] > 0 and summary["val_samples"] > 0
