@@ -320,11 +320,12 @@ def train(
 
     Example: logpipe train out/ethucy --scene eth --out runs/eth --config configs/ethucy.toml
     """
+    from logpipe.dataset import is_split_expression
     from logpipe.stages.train import train as run_train
 
     with _user_errors():
         chosen_train = train_split or (f"{scene}/train" if scene else "hash/train")
-        if val_split is None and any(op in chosen_train for op in "+-"):
+        if val_split is None and is_split_expression(chosen_train):
             raise typer.BadParameter(f"--train-split {chosen_train!r} has no matching /val split: give --val-split "
                                      "(e.g. the held-out logs) or 'none'")
         chosen_val = val_split or ("none" if chosen_train == "all" else chosen_train.rsplit("/", 1)[0] + "/val")

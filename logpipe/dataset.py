@@ -56,6 +56,15 @@ def mcap_folder(shard: str) -> str:
     return f"{MCAP_DIR}/{shard.removesuffix('.parquet')}"
 
 
+_SPLIT_OPERATOR = re.compile(r"([+-])")
+"""Joins split terms: ``+`` union, ``-`` difference (see ``Dataset.logs_in_split``)."""
+
+
+def is_split_expression(split: str) -> bool:
+    """Whether ``split`` joins several terms with ``+`` or ``-``."""
+    return _SPLIT_OPERATOR.search(split) is not None
+
+
 @dataclass
 class Dataset:
     """An ingested dataset folder (read-only view).
@@ -110,7 +119,7 @@ class Dataset:
         logs = self.logs()
         ids = logs.column("log_id").to_pylist()
         memberships = logs.column("memberships").to_pylist()
-        parts = re.split(r"([+-])", split.strip())
+        parts = _SPLIT_OPERATOR.split(split.strip())
         chosen: set[str] = set()
         for i in range(0, len(parts), 2):
             term = parts[i].strip()
