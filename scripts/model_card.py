@@ -53,7 +53,10 @@ def _row(name: str, folder: Path) -> str:
     minutes = f"{s['seconds'] / 60:.1f}" if "seconds" in s else "?"
     metrics = meta.get("metrics", {})
     k = meta["config"]["val_modes"]
-    return (f"| {name} | {s.get('train_samples', '?')} / {s.get('val_samples', '?')} | {s.get('steps', '?')} | "
+    steps = s.get("steps", "?")
+    if "resumed_at_step" in s:  # trained in two parts: to resumed_at_step, then `logpipe train --resume`
+        steps = f"{steps} (resumed at {s['resumed_at_step']})"
+    return (f"| {name} | {s.get('train_samples', '?')} / {s.get('val_samples', '?')} | {steps} | "
             f"{meta['step']} | {metrics.get('val_ade', float('nan')):.3f} / {metrics.get('val_fde', float('nan')):.3f}"
             f" (K={k}) | {s.get('train_samples_per_s', '?')} | {minutes} |")
 
@@ -81,7 +84,9 @@ def card(kind: str) -> str:
 - **Seed:** 0, one torch thread per run, two runs at a time on a 2-core CPU shared with other jobs. Card written
   {time.strftime('%Y-%m-%d', time.gmtime())} on Python {platform.python_version()}.
 - **Schedule:** much shorter than the paper's 20,000 steps, so a model trains in minutes here; early stopping on
-  the validation ADE ({val_on}). See the config below.
+  the validation ADE ({val_on}). See the config below. A run "resumed at N" was trained to step N under
+  the config's earlier step count and continued with `logpipe train --resume` (an exact resume: the same weights
+  as one uninterrupted run); its minutes add both parts and its samples/s is the second part's.
 - **Validation errors** are per-agent best-of-K ADE/FDE in metres (mean Euclidean distance) on the validation
   split at the best step; test scores are in `docs/results/{kind}.md`.
 
