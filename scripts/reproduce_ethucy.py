@@ -32,9 +32,11 @@ import numpy as np
 
 from logpipe import metrics
 from logpipe.dataset import Dataset
+from logpipe.formats.ethucy import FRAME_PERIOD_NS
 from logpipe.io import write_parquet
 from logpipe.model.baselines import ConstantVelocity, ConstantVelocitySampler, KalmanCV, LinearFit
 from logpipe.model.predictor import NetPredictor, Predictor, noise_scaled_id
+from logpipe.resample import ResampleSpec, resample_track
 from logpipe.stages.ingest import IngestOptions, ingest
 from logpipe.stages.score import forecasts_to_table, score
 from logpipe.stages.train import scene_samples
@@ -53,6 +55,11 @@ SPEED_SHIFT = 2.4
 """Factor of the speed-shift check: ``S/val`` with every position scaled by it, the same motion this many times
 faster. biwi_eth's median one-step displacement (1.01 m, measured on ``biwi_eth_train.txt``) is about 2.4 times the
 other scenes' (0.21-0.58 m): the leave-one-out ETH fold tests at speeds its training never saw."""
+FRAME_RATE_SHIFT = 10 / 6
+"""Factor of the frame-rate check: ``S/val`` resampled so that one step spans this many of its 0.4 s steps. The
+original ETH annotations are 6 video frames (0.4 s) apart and Social-GAN's biwi_eth has 10-frame steps with more
+rows (see the data's SOURCE.md and agrimgupta92/sgan#84): if its 10-frame step was made from the 6-frame ones, each
+biwi_eth step spans 10/6 x 0.4 s of the recording, a longer time as well as a faster walk."""
 
 PAPER_TABLE1 = {  # Zhu et al. (IJCAI 2020) Table 1, ADE/FDE in metres, columns as SCENES + AVG
     "Linear (Single)": ("1.33/2.94", "0.39/0.72", "0.82/1.59", "0.62/1.21", "0.79/1.59", "0.79/1.59"),
@@ -146,19 +153,57 @@ def speed_shifted(samples: Sequence[SceneSample], factor: float = SPEED_SHIFT) -
             for s in samples]
 
 
+def predicted_best_of_k(predictor: Predictor, samples: Sequence[SceneSample], pred_len: int, k: int,
+                        seed: int) -> tuple[float, float]:
+    """Per-agent best-of-k ADE/FDE of ``predictor`` on ``samples``."""
+    return best_of_k(np.concatenate(predictor.predict(samples, k, seed)), truth_of(samples, pred_len))
+
+
 def shifted_best_of_k(predictor: Predictor, val: Sequence[SceneSample], pred_len: int, k: int,
                       seed: int) -> tuple[float, float]:
     """Per-agent best-of-k ADE/FDE of ``predictor`` on the speed-shifted ``val`` (the speed-shift check)."""
-    shifted = speed_shifted(val)
-    return best_of_k(np.concatenate(predictor.predict(shifted, k, seed)), truth_of(shifted, pred_len))
+    return predicted_best_of_k(predictor, speed_shifted(val), pred_len, k, seed)
+
+
+def rate_shifted_text(path: Path, factor: float = FRAME_RATE_SHIFT) -> str:
+    """A Social-GAN ``frame ped x y`` file resampled (linear interpolation within each track) to one step per
+    ``factor`` of its 0.4 s steps, written back with 10-frame steps: each step then spans ``factor`` times the time
+    of the recording it did, as in biwi_eth if its steps were relabelled (``FRAME_RATE_SHIFT``)."""
+    rows = np.loadtxt(path, ndmin=2)
+    spec = ResampleSpec(hz=2.5 / factor)
+    out: list[tuple[int, float, float, float]] = []
+    for ped in np.unique(rows[:, 1]):
+        track = rows[rows[:, 1] == ped]
+        t_ns = np.rint(track[:, 0] * FRAME_PERIOD_NS).astype(np.int64)
+        grid, xy = resample_track(t_ns, {"x": track[:, 2], "y": track[:, 3]}, spec)
+        steps = np.rint(grid / spec.period_ns).astype(np.int64)
+        out += [(10 * int(s), float(ped), float(x), float(y)) for s, x, y in zip(steps, xy["x"], xy["y"], strict=True)]
+    out.sort()
+    return "".join(f"{f:.1f}\t{p:.1f}\t{x:.4f}\t{y:.4f}\n" for f, p, x, y in out)
+
+
+def rate_shifted_dataset(data: Path, work: Path) -> Dataset:
+    """The frame-rate check's dataset: every ``<scene>/val`` file of ``data`` through ``rate_shifted_text``,
+    ingested like the real ones (so the windows follow the same protocol)."""
+    files = work / "files"
+    for src in sorted(data.glob("*/val/*.txt")):
+        dst = files / src.relative_to(data)
+        text = rate_shifted_text(src)
+        if not dst.is_file() or dst.read_text() != text:  # unchanged files keep their ingest
+            dst.parent.mkdir(parents=True, exist_ok=True)
+            tmp = dst.with_suffix(".tmp")
+            tmp.write_text(text)
+            tmp.replace(dst)
+    return ensure_dataset(files, work / "dataset", "ethucy")
 
 
 def write_learned(checkpoint: Path, kind: str, val: Sequence[SceneSample], test: Sequence[SceneSample], k: int,
                   seed: int, pred_len: int, pdir: Path, method: str, as_trained: str | None = None,
-                  speed_shift: bool = False) -> tuple[list[Path], dict[str, Any] | None]:
+                  speed_shift: bool = False, rate_val: Sequence[SceneSample] | None = None,
+                  ) -> tuple[list[Path], dict[str, Any] | None]:
     """Test predictions of a learned method: with K > 1 at the noise scale chosen on ``val`` (and, named
     ``as_trained``, at scale 1 too); with K = 1 as it is. Returns the files and the choice (None for K = 1),
-    with the speed-shift check's val ADE/FDE when ``speed_shift``."""
+    with the speed-shift check's val ADE/FDE when ``speed_shift`` and the frame-rate check's on ``rate_val``."""
     from logpipe.model.checkpoints import read_meta
 
     sha = read_meta(checkpoint).weights_sha256
@@ -174,6 +219,8 @@ def write_learned(checkpoint: Path, kind: str, val: Sequence[SceneSample], test:
     chosen: dict[str, Any] = {"noise_scale": scale, "grid": grid}
     if speed_shift:
         chosen["speed_shift_val"] = shifted_best_of_k(tuned, val, pred_len, k, seed)
+    if rate_val is not None:
+        chosen["rate_shift_val"] = predicted_best_of_k(tuned, rate_val, pred_len, k, seed)
     return files, chosen
 
 
@@ -213,15 +260,17 @@ def find_checkpoint(template: str, scene: str) -> Path | None:
 
 def validation_summary(results: dict[str, Any], scene: str) -> dict[str, Any]:
     """What was measured on ``scene/val``: per K=20 method its chosen setting, best-of-20 ADE/FDE there and on the
-    speed-shifted val (the noise-scale grid of the learned methods too)."""
+    speed- and frame-rate-shifted val (the noise-scale grid of the learned methods too)."""
     smp = results["sampler"][scene]
     c = smp["choice"]
     at = next(g for g in smp["grid"] if g[0] == c["heading_std_rad"] and g[1] == c["speed_std_frac"])
-    out: dict[str, Any] = {"cv_sampler": {"ade_fde": list(at[2:]), "speed_shift_ade_fde": list(smp["speed_shift_val"])}}
+    out: dict[str, Any] = {"cv_sampler": {"ade_fde": list(at[2:]), "speed_shift_ade_fde": list(smp["speed_shift_val"]),
+                                          "rate_shift_ade_fde": list(smp["rate_shift_val"])}}
     for method, n in results["noise"].get(scene, {}).items():
         chosen = next(g for g in n["grid"] if g[0] == n["noise_scale"])
         out[method] = {"noise_scale": n["noise_scale"], "ade_fde": list(chosen[1:]),
-                       "speed_shift_ade_fde": list(n["speed_shift_val"]), "noise_scale_grid": n["grid"]}
+                       "speed_shift_ade_fde": list(n["speed_shift_val"]),
+                       "rate_shift_ade_fde": list(n["rate_shift_val"]), "noise_scale_grid": n["grid"]}
     return out
 
 
@@ -258,6 +307,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     t0 = time.perf_counter()
     templates = checkpoint_paths(ap, args.checkpoint, {m: t for m, (t, _) in LEARNED.items()})
     ds = ensure_dataset(args.data, args.work / "dataset", "ethucy")
+    rate_ds = rate_shifted_dataset(args.data, args.work / "rate_shift")
     pred_len = ds.protocol.pred_len
     out_md = args.results / "ethucy.md"
     detail = args.results / "ethucy"
@@ -267,10 +317,14 @@ def main(argv: Sequence[str] | None = None) -> int:
         val = scene_samples(ds, f"{scene}/val")
         test = scene_samples(ds, f"{scene}/test")
         choice, grid = tune_sampler(val, pred_len, K_BEST, args.seed)
+        rate_val = scene_samples(rate_ds, f"{scene}/val")
         sampler = ConstantVelocitySampler(pred_len=pred_len, **choice)
         results["sampler"][scene] = {"choice": choice, "val_agents": int(sum(s.target_mask.sum() for s in val)),
                                      "grid": grid,
-                                     "speed_shift_val": shifted_best_of_k(sampler, val, pred_len, K_BEST, args.seed)}
+                                     "speed_shift_val": shifted_best_of_k(sampler, val, pred_len, K_BEST, args.seed),
+                                     "rate_shift_val": predicted_best_of_k(sampler, rate_val, pred_len, K_BEST,
+                                                                           args.seed),
+                                     "rate_shift_agents": int(sum(s.target_mask.sum() for s in rate_val))}
         pdir = args.work / "predictions" / scene
         sampler_id = (f"cv_sampler heading_std_rad={choice['heading_std_rad']} "
                       f"speed_std_frac={choice['speed_std_frac']} (chosen on {scene}/val)")
@@ -282,7 +336,8 @@ def main(argv: Sequence[str] | None = None) -> int:
                                            "reason": f"no checkpoint at {templates[method].format(scene=scene)}"})
                 continue
             written, noise = write_learned(ckpt, ds.kind, val, test, k, args.seed, pred_len, pdir, method,
-                                           AS_TRAINED if method == "zhu2020" else None, speed_shift=True)
+                                           AS_TRAINED if method == "zhu2020" else None, speed_shift=True,
+                                           rate_val=rate_val)
             files += written
             if noise is not None:
                 results["noise"].setdefault(scene, {})[method] = noise
@@ -429,6 +484,19 @@ def render(results: dict[str, Any], args: argparse.Namespace, seconds: float) ->
         for method, v in methods.items():
             lines.append(f"| {scene} | {method} | {v['ade_fde'][0]:.2f}/{v['ade_fde'][1]:.2f} | "
                          f"{v['speed_shift_ade_fde'][0]:.2f}/{v['speed_shift_ade_fde'][1]:.2f} |")
+    lines += ["", f"## Frame-rate check (validation only): `S/val` at one step per {FRAME_RATE_SHIFT:.3g} of its steps",
+              "", "Every `S/val` file resampled (linear interpolation within each track) so that one step spans "
+              f"{FRAME_RATE_SHIFT:.3g} x 0.4 s of the recording, then ingested and windowed like the real files: "
+              "what biwi_eth's steps would be if its 10-frame step was made from the original 6-frame (0.4 s) one "
+              "(see the data's SOURCE.md). Unlike the speed-shift check, the walk's turns and speed changes also "
+              "happen within fewer steps. Each method at its setting chosen on the unchanged `S/val`; best-of-20 "
+              "per agent ADE/FDE.", "",
+              "| scene | method | S/val | S/val at the shifted rate (agents) |", "|---|---|---|---|"]
+    for scene, methods in results["val"].items():
+        n_rate = results["sampler"][scene]["rate_shift_agents"]
+        for method, v in methods.items():
+            lines.append(f"| {scene} | {method} | {v['ade_fde'][0]:.2f}/{v['ade_fde'][1]:.2f} | "
+                         f"{v['rate_shift_ade_fde'][0]:.2f}/{v['rate_shift_ade_fde'][1]:.2f} ({n_rate}) |")
     lines += ["", "## Standing against the issue's targets (computed from the table above)", "",
               *standing(results, "min2"), "", "## Learned methods", ""]
     if results["skipped"]:
@@ -437,7 +505,7 @@ def render(results: dict[str, Any], args: argparse.Namespace, seconds: float) ->
         lines += [f"- {s['scene']}: {s['method']} — {s['reason']}" for s in results["skipped"]]
     else:
         lines.append("All learned methods had checkpoints: `model/checkpoints/ethucy/` (MODEL_CARD.md there), "
-                     "trained by `make train-ethucy` with `configs/ethucy.toml` (at most 2,400 steps, learning rate "
+                     "trained by `make train-ethucy` with `configs/ethucy.toml` (at most 3,600 steps, learning rate "
                      "halved every 600, early stopping on `S/val`, batch 8, Adam 5e-4, H = 20 with the best mode "
                      "taken per agent (`loss_min_over = \"agent\"`, chosen on `S/val`), each training "
                      "scene rotated by a random angle, the "
