@@ -33,7 +33,7 @@ import numpy as np
 from logpipe import metrics
 from logpipe.dataset import Dataset
 from logpipe.formats.ethucy import FRAME_PERIOD_NS
-from logpipe.io import write_parquet
+from logpipe.io import atomic_open, write_parquet
 from logpipe.model.baselines import ConstantVelocity, ConstantVelocitySampler, KalmanCV, LinearFit
 from logpipe.model.predictor import NetPredictor, Predictor, noise_scaled_id
 from logpipe.resample import ResampleSpec, resample_track
@@ -169,15 +169,17 @@ def rate_shifted_text(path: Path, factor: float = FRAME_RATE_SHIFT) -> str:
     """A Social-GAN ``frame ped x y`` file resampled (linear interpolation within each track) to one step per
     ``factor`` of its 0.4 s steps, written back with 10-frame steps: each step then spans ``factor`` times the time
     of the recording it did, as in biwi_eth if its steps were relabelled (``FRAME_RATE_SHIFT``)."""
-    rows = np.loadtxt(path, ndmin=2)
-    spec = ResampleSpec(hz=2.5 / factor)
+    step_frames = 10  # Social-GAN's annotation step, 0.4 s of the 25 fps video
+    rows = np.loadtxt(path, ndmin=2)  # the rewritten file is validated when it is ingested
+    spec = ResampleSpec(hz=1e9 / (step_frames * FRAME_PERIOD_NS * factor))
     out: list[tuple[int, float, float, float]] = []
     for ped in np.unique(rows[:, 1]):
         track = rows[rows[:, 1] == ped]
         t_ns = np.rint(track[:, 0] * FRAME_PERIOD_NS).astype(np.int64)
         grid, xy = resample_track(t_ns, {"x": track[:, 2], "y": track[:, 3]}, spec)
         steps = np.rint(grid / spec.period_ns).astype(np.int64)
-        out += [(10 * int(s), float(ped), float(x), float(y)) for s, x, y in zip(steps, xy["x"], xy["y"], strict=True)]
+        out += [(step_frames * int(s), float(ped), float(x), float(y))
+                for s, x, y in zip(steps, xy["x"], xy["y"], strict=True)]
     out.sort()
     return "".join(f"{f:.1f}\t{p:.1f}\t{x:.4f}\t{y:.4f}\n" for f, p, x, y in out)
 
@@ -190,10 +192,8 @@ def rate_shifted_dataset(data: Path, work: Path) -> Dataset:
         dst = files / src.relative_to(data)
         text = rate_shifted_text(src)
         if not dst.is_file() or dst.read_text() != text:  # unchanged files keep their ingest
-            dst.parent.mkdir(parents=True, exist_ok=True)
-            tmp = dst.with_suffix(".tmp")
-            tmp.write_text(text)
-            tmp.replace(dst)
+            with atomic_open(dst, "w") as fh:
+                fh.write(text)
     return ensure_dataset(files, work / "dataset", "ethucy")
 
 
