@@ -69,6 +69,8 @@ class TrainResult:
         best_val_fde: best-of-K FDE (metres) at ``best_step``.
         stopped_early: whether early stopping ended the run.
         elapsed_s: wall time of this call.
+        total_elapsed_s: wall time of the whole run, every resumed part included (``elapsed_s`` without resume).
+        resumed_at_step: the step this call resumed from (None when it started the run).
         train_samples_per_s: scenes per second in optimiser steps (excluding validation).
         weights_sha256: digest of the final weights (equal on every process of a data-parallel run).
         processes: data-parallel processes (1 without torchrun).
@@ -88,6 +90,8 @@ class TrainResult:
     train_samples_per_s: float
     weights_sha256: str = ""
     processes: int = 1
+    total_elapsed_s: float = 0.0
+    resumed_at_step: int | None = None
 
 
 def _probe(samples: Iterable[SceneSample], limit: int = 256) -> tuple[bool, int | None, int, int]:
@@ -358,6 +362,7 @@ def fit(
     optimizer = torch.optim.Adam(net.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     step, epoch, pos_in_epoch = 0, 0, 0
     best_ade, best_fde, best_step, bad_evals = math.inf, math.inf, -1, 0
+    earlier_elapsed, resumed_at_step = 0.0, None  # wall time of the parts before a resume, and where it resumed
     if (last_dir / "meta.json").exists():
         if not resume:
             raise TrainingError(f"{out_dir} already holds a run; pass resume=True or use a new folder")
@@ -376,6 +381,8 @@ def fit(
         step, epoch, pos_in_epoch = state["step"], state["epoch"], state["pos_in_epoch"]
         best_ade, best_fde, best_step = state["best_ade"], state["best_fde"], state["best_step"]
         bad_evals = state["bad_evals"]
+        earlier_elapsed = float(state.get("elapsed_s", math.nan))  # NaN: written before the state kept it
+        resumed_at_step = step
         log.write("resume", step=step)
     if ranks.main:
         save_config(cfg, out_dir / "config.json")
@@ -401,6 +408,7 @@ def fit(
                 "best_fde": best_fde,
                 "best_step": best_step,
                 "bad_evals": bad_evals,
+                "elapsed_s": earlier_elapsed + time.perf_counter() - start_time,
             },
         )
 
@@ -503,6 +511,8 @@ def fit(
         train_samples_per_s=rate,
         weights_sha256=_weights_digest(net),
         processes=ranks.world,
+        total_elapsed_s=earlier_elapsed + elapsed,
+        resumed_at_step=resumed_at_step,
     )
 
 

@@ -50,7 +50,8 @@ def _row(name: str, folder: Path) -> str:
         return f"| {name} | not trained | | | | | |"
     meta: dict[str, Any] = json.loads(meta_path.read_text())
     s: dict[str, Any] = json.loads(summary_path.read_text()) if summary_path.is_file() else {}
-    minutes = f"{s['seconds'] / 60:.1f}" if "seconds" in s else "?"
+    seconds = s.get("seconds_total", s.get("seconds"))  # a resumed run's total covers every part
+    minutes = f"{seconds / 60:.1f}" if seconds is not None else "?"
     metrics = meta.get("metrics", {})
     k = meta["config"]["val_modes"]
     steps = s.get("steps", "?")

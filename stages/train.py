@@ -8,6 +8,7 @@ JSON-lines log, early stopping, resume) → a summary.
 from __future__ import annotations
 
 import dataclasses
+import math
 import time
 from collections.abc import Iterable, Sequence
 from pathlib import Path
@@ -131,6 +132,11 @@ def train(
         "raster_run": rasters.run_dir.name if rasters is not None else None,
         "environment_net": result.config.model.features.environment,
         "seconds": round(time.perf_counter() - started, 1),
+        # A resumed run: where this part started, and the training wall time of all parts (None for a run whose
+        # earlier part predates the training state's clock).
+        **({"resumed_at_step": result.resumed_at_step,
+            "seconds_total": round(result.total_elapsed_s, 1) if math.isfinite(result.total_elapsed_s) else None}
+           if result.resumed_at_step is not None else {}),
     }
 
 

@@ -102,6 +102,15 @@ def test_train_a_few_steps_writes_a_loadable_checkpoint(bundled: Path, tmp_path:
     again = runner.invoke(app, ["train", str(tmp_path / "e"), "--train-split", "eth/train", "--val-split", "none",
                                 "--config", str(config), "--out", str(tmp_path / "run")])
     assert again.exit_code == 2  # an existing run is not overwritten without --resume
+    assert "resumed_at_step" not in summary
+    resumed = runner.invoke(app, ["train", str(tmp_path / "e"), "--train-split", "eth/train", "--val-split",
+                                  "hotel/test", "--config", str(config), "--out", str(tmp_path / "run"), "--steps", "6",
+                                  "--resume", "--json"])
+    assert resumed.exit_code == 0, resumed.output
+    more = json.loads(resumed.stdout)
+    assert more["steps"] == 6 and more["resumed_at_step"] == 4
+    # both parts' training time (the model tests check it against each part), within both calls' wall time
+    assert 0 < more["seconds_total"] <= summary["seconds"] + more["seconds"] + 0.1
 
 
 @pytest.mark.parametrize(("preset", "noise", "modes"), [("lstm", 0, 1), ("baseline", 16, 20)])

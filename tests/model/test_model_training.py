@@ -86,6 +86,12 @@ def test_same_seed_same_weights_and_resume_continues_exactly(tmp_path: Path) -> 
         fit(train, val, _cfg(steps=40), tmp_path / "a", progress=False)
     resumed = fit(train, val, _cfg(steps=40), tmp_path / "a", resume=True, progress=False)
     assert resumed.steps == 40
+    # the run's clock spans both parts: the first part's wall time comes back from the training state
+    assert a.resumed_at_step is None and a.total_elapsed_s == a.elapsed_s
+    assert resumed.resumed_at_step == 20
+    state = json.loads((a.last_checkpoint / "train_state.json").read_text())
+    assert state["elapsed_s"] == pytest.approx(resumed.total_elapsed_s, abs=0.5)
+    assert resumed.total_elapsed_s >= resumed.elapsed_s + 0.9 * a.elapsed_s
     wf, wr = (
         load_file(str(full.last_checkpoint / "weights.safetensors")),
         load_file(str(resumed.last_checkpoint / "weights.safetensors")),
