@@ -71,7 +71,12 @@ clean:
 # Shipped checkpoints, two trainings at a time: the paper's method (zhu2020) and the LSTM / Noise-LSTM baselines,
 # trained with the same config (`--preset` swaps only the features and noise). ETH/UCY: one per left-out scene in
 # model/checkpoints/ethucy/<scene>/ (baselines in its lstm/ and noise_lstm/); ApolloScape: model/checkpoints/apolloscape/<method>.
+# SEED=N (N > 0) trains the same runs with train.seed = N into model/checkpoints/seedN/ (the reproduce scripts'
+# across-seeds tables read every seedN/ there).
 LEARNED_METHODS := zhu2020 noise_lstm lstm
+SEED ?= 0
+CKPT := model/checkpoints$(if $(filter 0,$(SEED)),,/seed$(SEED))
+RUNS := $(OUT)/runs$(if $(filter 0,$(SEED)),,/seed$(SEED))
 preset_flag = $(if $(filter noise_lstm,$(1)),--preset baseline,$(if $(filter lstm,$(1)),--preset lstm,))
 # copy_best(run, dest): replace only the files of the checkpoint in dest, so baselines nested in it survive.
 copy_best = mkdir -p $(2) && find $(2) -maxdepth 1 -type f -delete && cp $(1)/best/* $(1)/train_log.jsonl $(2)/ \
@@ -84,11 +89,11 @@ train-ethucy: setup
 train-ethucy/%:
 	$(eval method := $(word 1,$(subst /, ,$*)))
 	$(eval scene := $(word 2,$(subst /, ,$*)))
-	rm -rf $(OUT)/runs/ethucy/$*
-	mkdir -p $(OUT)/runs/ethucy/$(method)
+	rm -rf $(RUNS)/ethucy/$*
+	mkdir -p $(RUNS)/ethucy/$(method)
 	$(VENV)/bin/logpipe train $(OUT)/ethucy --scene $(scene) --config configs/ethucy.toml $(call preset_flag,$(method)) \
-		--out $(OUT)/runs/ethucy/$* --json > $(OUT)/runs/ethucy/$*.json
-	$(call copy_best,$(OUT)/runs/ethucy/$*,model/checkpoints/ethucy/$(scene)$(if $(filter zhu2020,$(method)),,/$(method)))
+		--seed $(SEED) --out $(RUNS)/ethucy/$* --json > $(RUNS)/ethucy/$*.json
+	$(call copy_best,$(RUNS)/ethucy/$*,$(CKPT)/ethucy/$(scene)$(if $(filter zhu2020,$(method)),,/$(method)))
 
 train-apolloscape: setup
 	$(VENV)/bin/logpipe ingest $(SHARED)/apolloscape/prediction_train --format apolloscape \
@@ -96,9 +101,9 @@ train-apolloscape: setup
 	$(MAKE) -j2 $(addprefix train-apolloscape/,$(LEARNED_METHODS))
 
 train-apolloscape/%:
-	rm -rf $(OUT)/runs/apolloscape/$*
-	mkdir -p $(OUT)/runs/apolloscape
+	rm -rf $(RUNS)/apolloscape/$*
+	mkdir -p $(RUNS)/apolloscape
 	$(VENV)/bin/logpipe train $(OUT)/reproduce/apolloscape/dataset --train-split hash/train --val-split hash/val \
-		--config configs/apolloscape.toml $(call preset_flag,$*) --out $(OUT)/runs/apolloscape/$* \
-		--json > $(OUT)/runs/apolloscape/$*.json
-	$(call copy_best,$(OUT)/runs/apolloscape/$*,model/checkpoints/apolloscape/$*)
+		--config configs/apolloscape.toml $(call preset_flag,$*) --seed $(SEED) --out $(RUNS)/apolloscape/$* \
+		--json > $(RUNS)/apolloscape/$*.json
+	$(call copy_best,$(RUNS)/apolloscape/$*,$(CKPT)/apolloscape/$*)

@@ -258,6 +258,91 @@ def find_checkpoint(template: str, scene: str) -> Path | None:
     return None
 
 
+def training_seeds(root: Path = REPO / "model" / "checkpoints") -> list[int]:
+    """The extra training seeds with shipped checkpoints: N of every ``root/seedN/`` (``make train-* SEED=N``)."""
+    return sorted(int(p.name[4:]) for p in root.glob("seed*") if p.is_dir() and p.name[4:].isdigit())
+
+
+def seed_template(template: str, seed: int) -> str:
+    """Where ``make train-* SEED=seed`` puts the checkpoint that ``template`` names for seed 0."""
+    prefix = "model/checkpoints/"
+    return template.replace(prefix, f"{prefix}seed{seed}/", 1) if template.startswith(prefix) else template
+
+
+def seed_run(seed: int, templates: dict[str, str], learned: dict[str, tuple[str, int]], scene: str, ds: Dataset,
+             val: Sequence[SceneSample], test: Sequence[SceneSample], split: str, min_agents: int,
+             work: Path) -> dict[str, Any]:
+    """One extra seed's test ADE/FDE: the sampler with sampling seed ``seed`` (its noise chosen on ``val`` again) and
+    each learned method whose ``seed`` checkpoint exists, trained with ``train.seed = seed`` and sampled with it (its
+    noise scale chosen on ``val``); scored like the main table, without plots. Returns method -> (K, ADE, FDE)."""
+    pred_len = ds.protocol.pred_len
+    choice, _ = tune_sampler(val, pred_len, K_BEST, seed)
+    files = [write_predictions(ConstantVelocitySampler(pred_len=pred_len, **choice), test, K_BEST, seed, pred_len,
+                               f"cv_sampler {choice} seed {seed}", work / "cv_sampler.parquet", "cv_sampler")]
+    ks = {"cv_sampler": K_BEST}
+    for method, (_, k) in learned.items():
+        ckpt = find_checkpoint(seed_template(templates[method], seed), scene)
+        if ckpt is not None:
+            files += write_learned(ckpt, ds.kind, val, test, k, seed, pred_len, work, method)[0]
+            ks[method] = k
+    report = score(files, ds.root, work / "report", split=split, min_agents=min_agents, plots=False,
+                   title=f"{split}, training seed {seed}")
+    return {m: (k, report["methods"][m]["overall"][f"k{k}"]["ade"], report["methods"][m]["overall"][f"k{k}"]["fde"])
+            for m, k in ks.items()}
+
+
+SEED_METHODS = (("CV sampler, best-of-20", "cv_sampler", K_BEST), ("LSTM (K=1)", "lstm", 1),
+                ("Noise-LSTM, best-of-20", "noise_lstm", K_BEST),
+                ("Our method (zhu2020), best-of-20", "zhu2020", K_BEST))
+"""Rows of the across-seeds tables: (label, method, K)."""
+
+
+def seed_values(main: dict[str, Any], extra: dict[int, dict[str, Any]], method: str,
+                k: int) -> list[tuple[float, float]]:
+    """(ADE, FDE) of ``method`` at ``k`` per training seed: seed 0 from the main report's ``methods`` block, then
+    every extra seed that ran it."""
+    block = main.get(method, {}).get("overall", {}).get(f"k{k}")
+    values = [(block["ade"], block["fde"])] if block else []
+    return values + [(r[method][1], r[method][2]) for _, r in sorted(extra.items()) if method in r]
+
+
+def across_seeds_table(columns: Sequence[str], cells: dict[str, dict[str, list[tuple[float, float]]]],
+                       with_avg: bool) -> list[str]:
+    """Markdown: per method (``SEED_METHODS``) and column, the mean ADE/FDE over seeds with its min-max range and
+    seed count, then whether the paper's method's means beat each baseline's (both lower)."""
+    head = "| method | " + " | ".join(c.upper() for c in columns) + (" | AVG |" if with_avg else " |")
+    lines = [head, "|---|" + "---|" * (len(columns) + with_avg)]
+    means: dict[str, list[tuple[float, float]]] = {}
+    for label, method, _ in SEED_METHODS:
+        per = [cells[c].get(method, []) for c in columns]
+        if not all(per):
+            continue
+        n = {len(v) for v in per}
+        means[method] = [tuple(np.mean(v, axis=0)) for v in per]
+        row = [f"{a:.3f}/{f:.3f} ({min(x[0] for x in v):.3f}-{max(x[0] for x in v):.3f} / "
+               f"{min(x[1] for x in v):.3f}-{max(x[1] for x in v):.3f})" for (a, f), v in zip(means[method], per,
+                                                                                        strict=True)]
+        if with_avg:
+            row.append("{:.3f}/{:.3f}".format(*np.mean(means[method], axis=0)))
+        lines.append(f"| {label} (seeds: {'/'.join(map(str, sorted(n)))}) | " + " | ".join(row) + " |")
+    ours = means.get("zhu2020")
+    if ours is None:
+        return [*lines, "", "The paper's method has no seed runs here."]
+    lines += ["", "Standing of the paper's method on these means (ADE and FDE both lower = beaten):", "",
+              "| baseline | " + " | ".join(c.upper() for c in columns) + (" | AVG |" if with_avg else " |"),
+              "|---|" + "---|" * (len(columns) + with_avg)]
+    for label, method, _ in SEED_METHODS[:-1]:
+        if method not in means:
+            continue
+        pairs = list(zip(ours, means[method], strict=True))
+        if with_avg:
+            pairs.append((tuple(np.mean(ours, axis=0)), tuple(np.mean(means[method], axis=0))))
+        lines.append(f"| {label} | " + " | ".join(
+            "beaten" if m[0] < o[0] and m[1] < o[1] else "**not beaten**" if m[0] >= o[0] and m[1] >= o[1]
+            else "split" for m, o in pairs) + " |")
+    return lines
+
+
 def validation_summary(results: dict[str, Any], scene: str) -> dict[str, Any]:
     """What was measured on ``scene/val``: per K=20 method its chosen setting, best-of-20 ADE/FDE there and on the
     speed- and frame-rate-shifted val (the noise-scale grid of the learned methods too)."""
@@ -311,7 +396,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     pred_len = ds.protocol.pred_len
     out_md = args.results / "ethucy.md"
     detail = args.results / "ethucy"
-    results: dict[str, Any] = {"scenes": {}, "skipped": [], "sampler": {}, "noise": {}, "val": {}}
+    results: dict[str, Any] = {"scenes": {}, "skipped": [], "sampler": {}, "noise": {}, "val": {}, "seeds": {}}
     for scene in args.scenes:
         ts = time.perf_counter()
         val = scene_samples(ds, f"{scene}/val")
@@ -346,12 +431,16 @@ def main(argv: Sequence[str] | None = None) -> int:
                         title=f"ETH/UCY {scene} (leave-one-out test), Social-GAN literal windows (>= 2 peds)")
         every = score(files, ds.root, detail / scene / "min1", split=f"{scene}/test", min_agents=1, plots=False,
                       title=f"ETH/UCY {scene} (leave-one-out test), every window (>= 1 ped)")
+        results["seeds"][scene] = {seed: seed_run(seed, templates, LEARNED, scene, ds, val, test, f"{scene}/test", 2,
+                                                  args.work / "seeds" / f"seed{seed}" / scene)
+                                   for seed in training_seeds()}
         results["scenes"][scene] = {"min2": literal, "min1": every, "seconds": round(time.perf_counter() - ts, 2)}
         print(f"{scene}: {time.perf_counter() - ts:.1f} s", file=sys.stderr)
     seconds = time.perf_counter() - t0
     args.results.mkdir(parents=True, exist_ok=True)
     summary = {s: {p: {m: e["overall"] for m, e in r[p]["methods"].items()} for p in ("min2", "min1")}
-               | {"sampler": results["sampler"][s]["choice"], "seconds": r["seconds"], "val": results["val"][s]}
+               | {"sampler": results["sampler"][s]["choice"], "seconds": r["seconds"], "val": results["val"][s],
+                  "seeds": {str(n): v for n, v in results["seeds"][s].items()}}
                for s, r in results["scenes"].items()}
     (args.results / "ethucy.json").write_text(json.dumps({"scenes": summary, "skipped": results["skipped"],
                                                           "seconds": round(seconds, 1)}, indent=1, sort_keys=True))
@@ -413,6 +502,22 @@ ROWS = (  # (label, method, k, ade key, fde key)
     ("Our method (zhu2020), best-of-20 per agent, z as trained (scale 1)", AS_TRAINED, 20, "ade", "fde"),
     ("Our method (zhu2020), K=1, z as trained (scale 1)", AS_TRAINED, 1, "ade", "fde"),
 )
+
+
+def across_seeds_section(results: dict[str, Any]) -> list[str]:
+    """The across-seeds table of the min2 protocol (every training seed with checkpoints, seed 0 included)."""
+    seeds = sorted({n for r in results["seeds"].values() for n in r})
+    if not seeds:
+        return []
+    cells = {scene: {m: seed_values(r["min2"]["methods"], results["seeds"][scene], m, k) for _, m, k in SEED_METHODS}
+             for scene, r in results["scenes"].items()}
+    return ["## Across training seeds (Social-GAN literal windows)", "",
+            f"The table above is training seed 0 (the shipped checkpoints). Here every learned method was also trained "
+            f"with `train.seed` = {', '.join(map(str, seeds))} (`make train-ethucy SEED=N`, checkpoints in "
+            "`model/checkpoints/seedN/ethucy/`, the same config), each sampled with its seed and its noise scale "
+            "chosen on `S/val` again; the sampler is re-tuned on `S/val` and sampled with each seed. Cells: mean "
+            "best-of-K ADE/FDE over the seeds (ADE range / FDE range); three decimals because the differences are "
+            "small.", "", *across_seeds_table(list(results["scenes"]), cells, with_avg=len(cells) == len(SCENES)), ""]
 
 
 def render(results: dict[str, Any], args: argparse.Namespace, seconds: float) -> str:
@@ -498,7 +603,9 @@ def render(results: dict[str, Any], args: argparse.Namespace, seconds: float) ->
             lines.append(f"| {scene} | {method} | {v['ade_fde'][0]:.2f}/{v['ade_fde'][1]:.2f} | "
                          f"{v['rate_shift_ade_fde'][0]:.2f}/{v['rate_shift_ade_fde'][1]:.2f} ({n_rate}) |")
     lines += ["", "## Standing against the issue's targets (computed from the table above)", "",
-              *standing(results, "min2"), "", "## Learned methods", ""]
+              *standing(results, "min2"), ""]
+    lines += across_seeds_section(results)
+    lines += ["## Learned methods", ""]
     if results["skipped"]:
         lines += ["Not run (no trained checkpoint yet; train with `logpipe train` and re-run, or pass "
                   "`--checkpoint METHOD=TEMPLATE`):", ""]

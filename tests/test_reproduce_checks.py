@@ -48,3 +48,54 @@ def test_rate_shift_interpolates_each_track_on_the_longer_step() -> None:
         checked += 1
     assert checked >= 10
     assert len(out) == pytest.approx(len(src) / FRAME_RATE_SHIFT, rel=0.1)
+
+
+def test_seed_checkpoints_are_found_under_seed_folders(tmp_path: Path) -> None:
+    from reproduce_ethucy import seed_template, training_seeds
+
+    for name in ("seed2", "seed10", "seedx", "ethucy"):
+        (tmp_path / name).mkdir()
+    (tmp_path / "seed3").write_text("a file, not a checkpoint folder")
+    assert training_seeds(tmp_path) == [2, 10]
+    assert seed_template("model/checkpoints/ethucy/{scene}/lstm", 2) == "model/checkpoints/seed2/ethucy/{scene}/lstm"
+    assert seed_template("/elsewhere/run/best", 2) == "/elsewhere/run/best"  # an explicit folder stays as given
+
+
+def test_across_seeds_table_means_ranges_and_standing() -> None:
+    from reproduce_ethucy import across_seeds_table
+
+    cells = {
+        "eth": {"cv_sampler": [(0.50, 0.90), (0.52, 0.86)], "zhu2020": [(0.53, 0.91), (0.49, 0.87)]},
+        "hotel": {"cv_sampler": [(0.20, 0.30), (0.20, 0.30)], "zhu2020": [(0.18, 0.31), (0.18, 0.31)]},
+    }
+    lines = across_seeds_table(["eth", "hotel"], cells, with_avg=True)
+    sampler = next(line for line in lines if line.startswith("| CV sampler, best-of-20 (seeds: 2)"))
+    assert "0.510/0.880 (0.500-0.520 / 0.860-0.900)" in sampler and sampler.endswith("| 0.355/0.590 |")
+    ours = next(line for line in lines if line.startswith("| Our method"))
+    assert "0.510/0.890" in ours and ours.endswith("| 0.345/0.600 |")
+    verdict = next(line for line in lines[lines.index(ours) + 1:] if line.startswith("| CV sampler"))
+    # eth: equal ADE, higher FDE -> not beaten; hotel: lower ADE, higher FDE -> split; AVG: lower ADE, higher FDE
+    assert verdict == "| CV sampler, best-of-20 | **not beaten** | split | split |"
+    assert not any(line.startswith("| LSTM") for line in lines)  # no seeds of a method: no row
+
+
+def test_seed_run_scores_the_sampler_like_a_direct_computation(bundled: Path, tmp_path: Path) -> None:
+    from reproduce_ethucy import best_of_k, ensure_dataset, seed_run, truth_of, tune_sampler
+
+    from logpipe.model.baselines import ConstantVelocitySampler
+    from logpipe.stages.train import scene_samples
+
+    ds = ensure_dataset(bundled / "ethucy", tmp_path / "ds", "ethucy")
+    val, test = scene_samples(ds, "eth/train")[:40], scene_samples(ds, "eth/test")
+    ours = {"zhu2020": str(REPO / "model" / "checkpoints" / "ethucy" / "eth"), "lstm": str(tmp_path / "none")}
+    learned = {"zhu2020": ("", 20), "lstm": ("", 1)}
+    runs = {seed: seed_run(seed, ours, learned, "eth", ds, val, test, "eth/test", 1, tmp_path / f"s{seed}")
+            for seed in (1, 2)}
+    for seed, run in runs.items():
+        assert set(run) == {"cv_sampler", "zhu2020"}  # the missing lstm checkpoint is left out, not an error
+        assert run["zhu2020"][0] == 20 and np.isfinite(run["zhu2020"][1:]).all()
+        choice, _ = tune_sampler(val, 12, 20, seed)
+        direct = best_of_k(np.concatenate(ConstantVelocitySampler(pred_len=12, **choice).predict(test, 20, seed)),
+                           truth_of(test, 12))
+        np.testing.assert_allclose(run["cv_sampler"][1:], direct, rtol=1e-9)
+    assert runs[1]["zhu2020"][1:] != runs[2]["zhu2020"][1:]  # each seed samples its own noise
