@@ -3,7 +3,8 @@
 Reads only what `make train-ethucy` / `make train-apolloscape` copy next to each checkpoint (``meta.json``,
 ``train_summary.json``), so the card can be rebuilt from a clean clone.
 
-Usage: ``python scripts/model_card.py [ethucy|apolloscape ...]`` (default: both).
+Usage: ``python scripts/model_card.py [--seed N] [ethucy|apolloscape ...]`` (default: both; seed 0, the
+``model/checkpoints/<kind>`` folders, else ``model/checkpoints/seedN/<kind>``).
 """
 
 from __future__ import annotations
@@ -62,9 +63,9 @@ def _row(name: str, folder: Path) -> str:
             f" (K={k}) | {s.get('train_samples_per_s', '?')} | {minutes} |")
 
 
-def card(kind: str) -> str:
-    """The Markdown card of ``model/checkpoints/<kind>``."""
-    root = CHECKPOINTS / kind
+def card(kind: str, seed: int = 0) -> str:
+    """The Markdown card of ``model/checkpoints/<kind>`` (of ``model/checkpoints/seed<seed>/<kind>`` for seed > 0)."""
+    root = _root(seed) / kind
     config = (REPO / "configs" / f"{kind}.toml").read_text()
     val_limit = tomllib.loads(config).get("train", {}).get("val_max_samples")
     val_on = f"first {val_limit} validation samples" if val_limit else "the whole validation split"
@@ -77,13 +78,15 @@ def card(kind: str) -> str:
         label = "method"
     rows = "\n".join(_row(name, folder) for name, folder in folders)
     methods = "; ".join(f"`{k}`: {v}" for k, v in METHODS.items())
+    seed_note = str(seed) if seed == 0 else (f"{seed} (`make train-{kind} SEED={seed}`; seed 0 is in "
+                                             f"`model/checkpoints/{kind}/`)")
     return f"""# {kind} checkpoints
 
 {ABOUT[kind]}
 - **Methods:** {methods}. The baselines train with the same config; `--preset` only switches the features off
   (and, for LSTM, the noise), so the schedule, data and augmentation match.
-- **Seed:** 0, one torch thread per run, two runs at a time on a 2-core CPU shared with other jobs. Card written
-  {time.strftime('%Y-%m-%d', time.gmtime())} on Python {platform.python_version()}.
+- **Seed:** {seed_note}, one torch thread per run, two runs at a time on a 2-core CPU shared with other jobs.
+  Card written {time.strftime('%Y-%m-%d', time.gmtime())} on Python {platform.python_version()}.
 - **Schedule:** much shorter than the paper's 20,000 steps, so a model trains in minutes here; early stopping on
   the validation ADE ({val_on}). See the config below. A run "resumed at N" was trained to step N under
   the config's earlier step count and continued with `logpipe train --resume` (an exact resume: the same weights
@@ -107,11 +110,19 @@ manifest hash, logpipe version), `train_summary.json` and `train_log.jsonl`. Loa
 """
 
 
+def _root(seed: int) -> Path:
+    """Where ``make train-* SEED=seed`` puts its checkpoints."""
+    return CHECKPOINTS if seed == 0 else CHECKPOINTS / f"seed{seed}"
+
+
 def main(argv: list[str]) -> int:
+    seed = 0
+    if argv[:1] == ["--seed"]:
+        seed, argv = int(argv[1]), argv[2:]
     for kind in argv or ["ethucy", "apolloscape"]:
-        path = CHECKPOINTS / kind / "MODEL_CARD.md"
+        path = _root(seed) / kind / "MODEL_CARD.md"
         path.parent.mkdir(parents=True, exist_ok=True)
-        path.write_text(card(kind))
+        path.write_text(card(kind, seed))
         print(path)
     return 0
 
