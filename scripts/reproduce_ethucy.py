@@ -297,6 +297,13 @@ SEED_METHODS = (("CV sampler, best-of-20", "cv_sampler", K_BEST), ("LSTM (K=1)",
 """Rows of the across-seeds tables: (label, method, K)."""
 
 
+def verdict(mine: Sequence[float], other: Sequence[float]) -> str:
+    """The standing of (ADE, FDE) ``mine`` against ``other``: both lower beats it, neither lower does not."""
+    if mine[0] < other[0] and mine[1] < other[1]:
+        return "beaten"
+    return "**not beaten**" if mine[0] >= other[0] and mine[1] >= other[1] else "split"
+
+
 def seed_values(main: dict[str, Any], extra: dict[int, dict[str, Any]], method: str,
                 k: int) -> list[tuple[float, float]]:
     """(ADE, FDE) of ``method`` at ``k`` per training seed: seed 0 from the main report's ``methods`` block, then
@@ -337,9 +344,7 @@ def across_seeds_table(columns: Sequence[str], cells: dict[str, dict[str, list[t
         pairs = list(zip(ours, means[method], strict=True))
         if with_avg:
             pairs.append((tuple(np.mean(ours, axis=0)), tuple(np.mean(means[method], axis=0))))
-        lines.append(f"| {label} | " + " | ".join(
-            "beaten" if m[0] < o[0] and m[1] < o[1] else "**not beaten**" if m[0] >= o[0] and m[1] >= o[1]
-            else "split" for m, o in pairs) + " |")
+        lines.append(f"| {label} | " + " | ".join(verdict(m, o) for m, o in pairs) + " |")
     return lines
 
 
@@ -464,8 +469,7 @@ def standing(results: dict[str, Any], proto: str) -> list[str]:
             continue
         cells = []
         for mine, other in zip(ours, theirs, strict=True):
-            (ma, mf), (oa, of) = (map(float, mine.split("/")), map(float, other.split("/")))
-            cells.append("beaten" if ma < oa and mf < of else "**not beaten**" if ma >= oa and mf >= of else "split")
+            cells.append(verdict(tuple(map(float, mine.split("/"))), tuple(map(float, other.split("/")))))
         out.append(f"| {label} | " + " | ".join(cells) + " |")
     pa, pf = map(float, PAPER_TABLE1["Our method (paper)"][-1].split("/"))
     oa, of = map(float, ours[-1].split("/"))
