@@ -99,7 +99,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     report = score(files, ds.root, args.results / "apolloscape", split="hash/test", min_agents=1, plots=True,
                    title="ApolloScape hash/test (6 + 6 steps at 2 Hz, all agent types)")
     seeds = {n: seed_run(n, templates, LEARNED, "", ds, val, test, "hash/test", 1, args.work / "seeds" / f"seed{n}")
-             for n in training_seeds()}
+             for n in training_seeds(ds.kind)}
     seconds = time.perf_counter() - t0
     n_logs = {s: len(ds.logs_in_split(f"hash/{s}")) for s in ("train", "val", "test")}
     (args.results / "apolloscape.json").write_text(json.dumps(

@@ -258,9 +258,11 @@ def find_checkpoint(template: str, scene: str) -> Path | None:
     return None
 
 
-def training_seeds(root: Path = REPO / "model" / "checkpoints") -> list[int]:
-    """The extra training seeds with shipped checkpoints: N of every ``root/seedN/`` (``make train-* SEED=N``)."""
-    return sorted(int(p.name[4:]) for p in root.glob("seed*") if p.is_dir() and p.name[4:].isdigit())
+def training_seeds(kind: str, root: Path = REPO / "model" / "checkpoints") -> list[int]:
+    """The extra training seeds with shipped checkpoints of dataset ``kind``: N of every ``root/seedN/kind/``
+    (``make train-* SEED=N``). A seed trained for another dataset only is not one of this dataset's seeds."""
+    return sorted(int(p.name[4:]) for p in root.glob("seed*")
+                  if p.name[4:].isdigit() and (p / kind).is_dir())
 
 
 def seed_template(template: str, seed: int) -> str:
@@ -438,7 +440,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                       title=f"ETH/UCY {scene} (leave-one-out test), every window (>= 1 ped)")
         results["seeds"][scene] = {seed: seed_run(seed, templates, LEARNED, scene, ds, val, test, f"{scene}/test", 2,
                                                   args.work / "seeds" / f"seed{seed}" / scene)
-                                   for seed in training_seeds()}
+                                   for seed in training_seeds(ds.kind)}
         results["scenes"][scene] = {"min2": literal, "min1": every, "seconds": round(time.perf_counter() - ts, 2)}
         print(f"{scene}: {time.perf_counter() - ts:.1f} s", file=sys.stderr)
     seconds = time.perf_counter() - t0

@@ -53,10 +53,12 @@ def test_rate_shift_interpolates_each_track_on_the_longer_step() -> None:
 def test_seed_checkpoints_are_found_under_seed_folders(tmp_path: Path) -> None:
     from reproduce_ethucy import seed_template, training_seeds
 
-    for name in ("seed2", "seed10", "seedx", "ethucy"):
-        (tmp_path / name).mkdir()
+    for name in ("seed2/ethucy", "seed10/ethucy", "seed10/apolloscape", "seed4/apolloscape", "seedx/ethucy",
+                 "ethucy"):
+        (tmp_path / name).mkdir(parents=True)
     (tmp_path / "seed3").write_text("a file, not a checkpoint folder")
-    assert training_seeds(tmp_path) == [2, 10]
+    assert training_seeds("ethucy", tmp_path) == [2, 10]
+    assert training_seeds("apolloscape", tmp_path) == [4, 10]  # seed 2 trained ETH/UCY only
     assert seed_template("model/checkpoints/ethucy/{scene}/lstm", 2) == "model/checkpoints/seed2/ethucy/{scene}/lstm"
     assert seed_template("/elsewhere/run/best", 2) == "/elsewhere/run/best"  # an explicit folder stays as given
 
