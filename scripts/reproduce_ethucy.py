@@ -38,7 +38,7 @@ from logpipe.model.baselines import ConstantVelocity, ConstantVelocitySampler, K
 from logpipe.model.predictor import NetPredictor, Predictor, noise_scaled_id
 from logpipe.resample import ResampleSpec, resample_track
 from logpipe.stages.ingest import IngestOptions, ingest
-from logpipe.stages.score import forecasts_to_table, score
+from logpipe.stages.score import forecasts_to_table, load_predictions, score
 from logpipe.stages.train import scene_samples
 from logpipe.types import NDArrayFloat, SceneSample
 
@@ -51,6 +51,8 @@ SPEED_GRID = (0.0, 0.1, 0.2, 0.3, 0.4, 0.6, 0.8)
 """Sampler relative speed noise std candidates."""
 NOISE_SCALE_GRID = (0.5, 0.75, 1.0, 1.5, 2.0, 2.5, 3.0)
 """Candidates for the std of a learned method's noise z at inference (1 = eq. 21, what training drew)."""
+STILL_STEP_M = 0.03
+"""A pedestrian whose last observed step is shorter than this (metres) counts as standing in the motion breakdown."""
 SPEED_SHIFT = 2.4
 """Factor of the speed-shift check: ``S/val`` with every position scaled by it, the same motion this many times
 faster. biwi_eth's median one-step displacement (1.01 m, measured on ``biwi_eth_train.txt``) is about 2.4 times the
@@ -71,6 +73,9 @@ PAPER_TABLE1 = {  # Zhu et al. (IJCAI 2020) Table 1, ADE/FDE in metres, columns 
     "Sophie": ("0.70/1.43", "0.76/1.67", "0.54/1.24", "0.30/0.63", "0.38/0.78", "0.54/1.15"),
     "Our method (paper)": ("0.39/0.79", "0.51/1.05", "0.25/0.56", "0.30/0.61", "0.36/0.73", "0.36/0.75"),
 }
+
+MOTION_METHODS = ("cv_sampler", "noise_lstm", "zhu2020")
+"""Methods of the motion breakdown: the best-of-20 ones of the main table."""
 
 AS_TRAINED = "zhu2020_scale1"
 """Method name of the paper's network run with its noise z as trained (scale 1), beside the tuned run."""
@@ -350,6 +355,50 @@ def across_seeds_table(columns: Sequence[str], cells: dict[str, dict[str, list[t
     return lines
 
 
+def motion_breakdown(files: Sequence[Path], samples: Sequence[SceneSample], pred_len: int, min_agents: int,
+                     methods: Sequence[str]) -> dict[str, dict[str, tuple[int, float, float]]]:
+    """Per-agent best-of-K ADE/FDE of each of ``methods`` (read back from its predictions file) on the standing
+    agents (last observed step under ``STILL_STEP_M``), the moving ones and all, over the windows of ``samples``
+    with at least ``min_agents`` targets: the main table's agents split by what they were doing. Returns
+    method -> group -> (agents, ADE, FDE). A diagnosis of the scored predictions; nothing is chosen with it."""
+    agents: dict[tuple[str, str], tuple[float, NDArrayFloat]] = {}
+    for s in samples:
+        if int(s.target_mask.sum()) < min_agents:
+            continue
+        for row in np.flatnonzero(s.target_mask):
+            step = s.positions[row, s.obs_len - 1] - s.positions[row, s.obs_len - 2]
+            agents[(s.sample_id, s.track_ids[row])] = (float(np.hypot(*step)),
+                                                       s.positions[row, s.obs_len : s.obs_len + pred_len])
+    out: dict[str, dict[str, tuple[int, float, float]]] = {}
+    for forecasts in (m for f in files for m in load_predictions(f) if m.name in methods):
+        keys = list(zip(forecasts.sample_ids.tolist(), forecasts.track_ids.tolist(), strict=True))
+        rows = np.array([k in agents for k in keys])
+        step = np.array([agents[k][0] for k, r in zip(keys, rows, strict=True) if r])
+        truth = np.stack([agents[k][1] for k, r in zip(keys, rows, strict=True) if r])
+        pred = forecasts.pred[rows]
+        ok = np.all(np.isfinite(truth), axis=(1, 2)) & np.isfinite(step)
+        groups = {"standing": ok & (step < STILL_STEP_M), "moving": ok & (step >= STILL_STEP_M), "all": ok}
+        out[forecasts.name] = {g: (int(m.sum()), *best_of_k(pred[m], truth[m])) for g, m in groups.items() if m.any()}
+    return out
+
+
+def standing_agents(samples: Sequence[SceneSample], pred_len: int, min_agents: int) -> dict[str, float]:
+    """What the standing agents of ``samples`` (windows with >= ``min_agents`` targets) do next: their share of the
+    agents, and the mean distance (metres) from where they stand to where they are at the last predicted step."""
+    step, moved = [], []
+    for s in samples:
+        if int(s.target_mask.sum()) < min_agents:
+            continue
+        p = s.positions[s.target_mask]
+        step.append(np.linalg.norm(p[:, s.obs_len - 1] - p[:, s.obs_len - 2], axis=-1))
+        moved.append(np.linalg.norm(p[:, s.obs_len + pred_len - 1] - p[:, s.obs_len - 1], axis=-1))
+    last, end = np.concatenate(step), np.concatenate(moved)
+    ok = np.isfinite(last) & np.isfinite(end)
+    still = ok & (last < STILL_STEP_M)
+    return {"agents": int(ok.sum()), "standing_share": float(still.sum() / max(ok.sum(), 1)),
+            "standing_moved_m": float(end[still].mean()) if still.any() else float("nan")}
+
+
 def validation_summary(results: dict[str, Any], scene: str) -> dict[str, Any]:
     """What was measured on ``scene/val``: per K=20 method its chosen setting, best-of-20 ADE/FDE there and on the
     speed- and frame-rate-shifted val (the noise-scale grid of the learned methods too)."""
@@ -403,7 +452,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     pred_len = ds.protocol.pred_len
     out_md = args.results / "ethucy.md"
     detail = args.results / "ethucy"
-    results: dict[str, Any] = {"scenes": {}, "skipped": [], "sampler": {}, "noise": {}, "val": {}, "seeds": {}}
+    results: dict[str, Any] = {"scenes": {}, "skipped": [], "sampler": {}, "noise": {}, "val": {}, "seeds": {},
+                               "motion": {}}
     for scene in args.scenes:
         ts = time.perf_counter()
         val = scene_samples(ds, f"{scene}/val")
@@ -436,6 +486,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         results["val"][scene] = validation_summary(results, scene)
         literal = score(files, ds.root, detail / scene, split=f"{scene}/test", min_agents=2, plots=True,
                         title=f"ETH/UCY {scene} (leave-one-out test), Social-GAN literal windows (>= 2 peds)")
+        results["motion"][scene] = {
+            "val": standing_agents(val, pred_len, 2), "test": standing_agents(test, pred_len, 2),
+            "methods": motion_breakdown(files, test, pred_len, 2, MOTION_METHODS)}
         every = score(files, ds.root, detail / scene / "min1", split=f"{scene}/test", min_agents=1, plots=False,
                       title=f"ETH/UCY {scene} (leave-one-out test), every window (>= 1 ped)")
         results["seeds"][scene] = {seed: seed_run(seed, templates, LEARNED, scene, ds, val, test, f"{scene}/test", 2,
@@ -447,7 +500,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     args.results.mkdir(parents=True, exist_ok=True)
     summary = {s: {p: {m: e["overall"] for m, e in r[p]["methods"].items()} for p in ("min2", "min1")}
                | {"sampler": results["sampler"][s]["choice"], "seconds": r["seconds"], "val": results["val"][s],
-                  "seeds": {str(n): v for n, v in results["seeds"][s].items()}}
+                  "seeds": {str(n): v for n, v in results["seeds"][s].items()}, "motion": results["motion"][s]}
                for s, r in results["scenes"].items()}
     (args.results / "ethucy.json").write_text(json.dumps({"scenes": summary, "skipped": results["skipped"],
                                                           "seconds": round(seconds, 1)}, indent=1, sort_keys=True))
@@ -524,6 +577,28 @@ def across_seeds_section(results: dict[str, Any]) -> list[str]:
             "chosen on `S/val` again; the sampler is re-tuned on `S/val` and sampled with each seed. Cells: mean "
             "best-of-K ADE/FDE over the seeds (ADE range / FDE range); three decimals because the differences are "
             "small.", "", *across_seeds_table(list(results["scenes"]), cells, with_avg=len(cells) == len(SCENES)), ""]
+
+
+def motion_section(results: dict[str, Any]) -> list[str]:
+    """The motion breakdown of the main (seed-0, `min_agents=2`) table: standing against moving agents."""
+    names = {"cv_sampler": "CV sampler", "noise_lstm": "Noise-LSTM", "zhu2020": "ours"}
+    lines = ["## Standing and moving pedestrians (diagnosis; nothing was chosen with it)", "",
+             f"The main table's best-of-20 rows (`min_agents=2`, test) split by what each pedestrian was doing: "
+             f"standing (last observed step under {STILL_STEP_M * 100:g} cm) or moving. 'Moved' is the mean distance "
+             "a standing pedestrian is from where it stood 4.8 s later; the `S/val` columns are the same figures "
+             "for the validation agents the noise settings were chosen on.", "",
+             "| scene | standing share: val / test | standing moved (m): val / test | "
+             + " | ".join(f"{names[m]}: standing / moving" for m in MOTION_METHODS) + " |",
+             "|---|---|---|" + "---|" * len(MOTION_METHODS)]
+    for scene, m in results["motion"].items():
+        cells = []
+        for method in MOTION_METHODS:
+            g = m["methods"].get(method, {})
+            cells.append(" / ".join(f"{g[k][1]:.3f}/{g[k][2]:.3f}" if k in g else "—" for k in ("standing", "moving")))
+        lines.append(f"| {scene} | {m['val']['standing_share']:.2f} / {m['test']['standing_share']:.2f} | "
+                     f"{m['val']['standing_moved_m']:.2f} / {m['test']['standing_moved_m']:.2f} | "
+                     + " | ".join(cells) + " |")
+    return [*lines, ""]
 
 
 def render(results: dict[str, Any], args: argparse.Namespace, seconds: float) -> str:
@@ -611,6 +686,7 @@ def render(results: dict[str, Any], args: argparse.Namespace, seconds: float) ->
     lines += ["", "## Standing against the issue's targets (computed from the table above)", "",
               *standing(results, "min2"), ""]
     lines += across_seeds_section(results)
+    lines += motion_section(results)
     lines += ["## Learned methods", ""]
     if results["skipped"]:
         lines += ["Not run (no trained checkpoint yet; train with `logpipe train` and re-run, or pass "

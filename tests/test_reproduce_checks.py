@@ -101,3 +101,30 @@ def test_seed_run_scores_the_sampler_like_a_direct_computation(bundled: Path, tm
                            truth_of(test, 12))
         np.testing.assert_allclose(run["cv_sampler"][1:], direct, rtol=1e-9)
     assert runs[1]["zhu2020"][1:] != runs[2]["zhu2020"][1:]  # each seed samples its own noise
+
+
+def test_motion_breakdown_splits_the_scored_agents(bundled: Path, tmp_path: Path) -> None:
+    from reproduce_ethucy import STILL_STEP_M, ensure_dataset, motion_breakdown, standing_agents, write_classical
+
+    from logpipe.stages.score import score
+    from logpipe.stages.train import scene_samples
+
+    ds = ensure_dataset(bundled / "ethucy", tmp_path / "ds", "ethucy")
+    test = scene_samples(ds, "eth/test")
+    sampler = {"heading_std_rad": 0.2, "speed_std_frac": 0.3}
+    files = write_classical(test, 12, 0, sampler, 20, "cv_sampler", tmp_path / "pred")
+    report = score(files, ds.root, tmp_path / "report", split="eth/test", min_agents=2, plots=False)
+    parts = motion_breakdown(files, test, 12, 2, ("cv_sampler", "cv"))
+    assert set(parts) == {"cv_sampler", "cv"}
+    for method, k in (("cv_sampler", 20), ("cv", 1)):
+        whole = report["methods"][method]["overall"][f"k{k}"]
+        n, ade, fde = parts[method]["all"]
+        assert n == report["methods"][method]["overall"]["agents"]  # the agents `logpipe score` counted
+        np.testing.assert_allclose((ade, fde), (whole["ade"], whole["fde"]), rtol=1e-9)
+        standing, moving = parts[method]["standing"], parts[method]["moving"]
+        assert standing[0] + moving[0] == n
+        np.testing.assert_allclose(standing[0] * standing[1] + moving[0] * moving[1], n * ade, rtol=1e-9)
+    # Constant velocity keeps a standing pedestrian (almost) where it stands: its error there is how far it walked.
+    still = standing_agents(test, 12, 2)
+    assert still["standing_share"] == pytest.approx(parts["cv"]["standing"][0] / parts["cv"]["all"][0])
+    assert parts["cv"]["standing"][2] == pytest.approx(still["standing_moved_m"], abs=12 * STILL_STEP_M)
