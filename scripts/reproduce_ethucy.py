@@ -40,7 +40,7 @@ from logpipe.resample import ResampleSpec, resample_track
 from logpipe.stages.ingest import IngestOptions, ingest
 from logpipe.stages.score import forecasts_to_table, load_predictions, score
 from logpipe.stages.train import scene_samples
-from logpipe.types import NDArrayFloat, SceneSample
+from logpipe.types import NDArrayBool, NDArrayFloat, SceneSample
 
 REPO = Path(__file__).resolve().parents[1]
 SCENES = ("eth", "hotel", "univ", "zara1", "zara2")
@@ -53,6 +53,8 @@ NOISE_SCALE_GRID = (0.5, 0.75, 1.0, 1.5, 2.0, 2.5, 3.0)
 """Candidates for the std of a learned method's noise z at inference (1 = eq. 21, what training drew)."""
 STILL_STEP_M = 0.03
 """A pedestrian whose last observed step is shorter than this (metres) counts as standing in the motion breakdown."""
+STAY_RADIUS_M = 0.5
+"""A standing pedestrian within this distance (metres) of where it stood at the last predicted step stayed."""
 SPEED_SHIFT = 2.4
 """Factor of the speed-shift check: ``S/val`` with every position scaled by it, the same motion this many times
 faster. biwi_eth's median one-step displacement (1.01 m, measured on ``biwi_eth_train.txt``) is about 2.4 times the
@@ -355,48 +357,60 @@ def across_seeds_table(columns: Sequence[str], cells: dict[str, dict[str, list[t
     return lines
 
 
-def motion_breakdown(files: Sequence[Path], samples: Sequence[SceneSample], pred_len: int, min_agents: int,
-                     methods: Sequence[str]) -> dict[str, dict[str, tuple[int, float, float]]]:
-    """Per-agent best-of-K ADE/FDE of each of ``methods`` (read back from its predictions file) on the standing
-    agents (last observed step under ``STILL_STEP_M``), the moving ones and all, over the windows of ``samples``
-    with at least ``min_agents`` targets: the main table's agents split by what they were doing. Returns
-    method -> group -> (agents, ADE, FDE). A diagnosis of the scored predictions; nothing is chosen with it."""
-    agents: dict[tuple[str, str], tuple[float, NDArrayFloat]] = {}
-    for s in samples:
-        if int(s.target_mask.sum()) < min_agents:
-            continue
-        for row in np.flatnonzero(s.target_mask):
-            step = s.positions[row, s.obs_len - 1] - s.positions[row, s.obs_len - 2]
-            agents[(s.sample_id, s.track_ids[row])] = (float(np.hypot(*step)),
-                                                       s.positions[row, s.obs_len : s.obs_len + pred_len])
-    out: dict[str, dict[str, tuple[int, float, float]]] = {}
+def read_forecasts(files: Sequence[Path], samples: Sequence[SceneSample], methods: Sequence[str],
+                   ) -> dict[str, NDArrayFloat]:
+    """Each of ``methods`` read back from its predictions file as (N, K, T, 2) in ``truth_of(samples)`` row order;
+    an agent the file lacks gets NaN."""
+    keys = [(s.sample_id, s.track_ids[r]) for s in samples for r in np.flatnonzero(s.target_mask)]
+    row_of = {key: i for i, key in enumerate(keys)}
+    out = {}
     for forecasts in (m for f in files for m in load_predictions(f) if m.name in methods):
-        keys = list(zip(forecasts.sample_ids.tolist(), forecasts.track_ids.tolist(), strict=True))
-        rows = np.array([k in agents for k in keys])
-        step = np.array([agents[k][0] for k, r in zip(keys, rows, strict=True) if r])
-        truth = np.stack([agents[k][1] for k, r in zip(keys, rows, strict=True) if r])
-        pred = forecasts.pred[rows]
-        ok = np.all(np.isfinite(truth), axis=(1, 2)) & np.isfinite(step)
-        groups = {"standing": ok & (step < STILL_STEP_M), "moving": ok & (step >= STILL_STEP_M), "all": ok}
-        out[forecasts.name] = {g: (int(m.sum()), *best_of_k(pred[m], truth[m])) for g, m in groups.items() if m.any()}
+        dense = np.full((len(keys), *forecasts.pred.shape[1:]), np.nan)
+        for i, key in enumerate(zip(forecasts.sample_ids.tolist(), forecasts.track_ids.tolist(), strict=True)):
+            if key in row_of:
+                dense[row_of[key]] = forecasts.pred[i]
+        out[forecasts.name] = dense
     return out
 
 
-def standing_agents(samples: Sequence[SceneSample], pred_len: int, min_agents: int) -> dict[str, float]:
-    """What the standing agents of ``samples`` (windows with >= ``min_agents`` targets) do next: their share of the
-    agents, and the mean distance (metres) from where they stand to where they are at the last predicted step."""
-    step, moved = [], []
-    for s in samples:
-        if int(s.target_mask.sum()) < min_agents:
-            continue
-        p = s.positions[s.target_mask]
-        step.append(np.linalg.norm(p[:, s.obs_len - 1] - p[:, s.obs_len - 2], axis=-1))
-        moved.append(np.linalg.norm(p[:, s.obs_len + pred_len - 1] - p[:, s.obs_len - 1], axis=-1))
-    last, end = np.concatenate(step), np.concatenate(moved)
-    ok = np.isfinite(last) & np.isfinite(end)
-    still = ok & (last < STILL_STEP_M)
-    return {"agents": int(ok.sum()), "standing_share": float(still.sum() / max(ok.sum(), 1)),
-            "standing_moved_m": float(end[still].mean()) if still.any() else float("nan")}
+def motion_groups(samples: Sequence[SceneSample], pred_len: int, min_agents: int) -> dict[str, NDArrayBool]:
+    """Masks over ``truth_of(samples)`` rows of the agents in windows with >= ``min_agents`` targets and a full
+    future: ``standing`` (last observed step under ``STILL_STEP_M``) split into ``stays`` (within ``STAY_RADIUS_M``
+    of where it stood at the last predicted step) and ``starts``; ``moving``; ``all``."""
+    crowded = np.concatenate([np.full(int(s.target_mask.sum()), int(s.target_mask.sum()) >= min_agents)
+                              for s in samples])
+    track = np.concatenate([s.positions[s.target_mask, s.obs_len - 2 : s.obs_len + pred_len] for s in samples])
+    last_step = np.linalg.norm(track[:, 1] - track[:, 0], axis=-1)
+    moved = np.linalg.norm(track[:, -1] - track[:, 1], axis=-1)
+    ok = crowded & np.all(np.isfinite(track), axis=(1, 2))
+    standing = ok & (last_step < STILL_STEP_M)
+    return {"standing": standing, "stays": standing & (moved < STAY_RADIUS_M),
+            "starts": standing & (moved >= STAY_RADIUS_M), "moving": ok & (last_step >= STILL_STEP_M), "all": ok}
+
+
+def motion_breakdown(samples: Sequence[SceneSample], forecasts: dict[str, NDArrayFloat], pred_len: int,
+                     min_agents: int) -> dict[str, Any]:
+    """The agents of ``motion_groups`` (their counts) and each method's per-agent best-of-K ADE/FDE on each group,
+    from ``forecasts`` (method -> (N, K, T, 2) in ``truth_of`` order). A diagnosis; nothing is chosen with it."""
+    groups = motion_groups(samples, pred_len, min_agents)
+    truth = truth_of(samples, pred_len)
+    out: dict[str, Any] = {"agents": {g: int(m.sum()) for g, m in groups.items()}, "methods": {}}
+    for method, pred in forecasts.items():
+        out["methods"][method] = {g: best_of_k(pred[m], truth[m]) for g, m in groups.items() if m.any()}
+    return out
+
+
+def val_forecasts(sampler: Predictor, templates: dict[str, str], noise: dict[str, Any], scene: str, kind: str,
+                  val: Sequence[SceneSample], seed: int) -> dict[str, NDArrayFloat]:
+    """The ``MOTION_METHODS``' K=20 forecasts of ``val`` at their settings chosen there (``noise``: method -> the
+    noise-scale choice), for the motion breakdown; a learned method without a checkpoint is left out."""
+    out = {"cv_sampler": np.concatenate(sampler.predict(val, K_BEST, seed))}
+    for method in MOTION_METHODS[1:]:
+        ckpt = find_checkpoint(templates[method], scene)
+        if ckpt is not None and method in noise:
+            net = NetPredictor.from_checkpoint(ckpt, expect_kind=kind).with_noise_scale(noise[method]["noise_scale"])
+            out[method] = np.concatenate(net.predict(val, K_BEST, seed))
+    return out
 
 
 def validation_summary(results: dict[str, Any], scene: str) -> dict[str, Any]:
@@ -487,8 +501,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         literal = score(files, ds.root, detail / scene, split=f"{scene}/test", min_agents=2, plots=True,
                         title=f"ETH/UCY {scene} (leave-one-out test), Social-GAN literal windows (>= 2 peds)")
         results["motion"][scene] = {
-            "val": standing_agents(val, pred_len, 2), "test": standing_agents(test, pred_len, 2),
-            "methods": motion_breakdown(files, test, pred_len, 2, MOTION_METHODS)}
+            "val": motion_breakdown(val, val_forecasts(sampler, templates, results["noise"].get(scene, {}), scene,
+                                                       ds.kind, val, args.seed), pred_len, 2),
+            "test": motion_breakdown(test, read_forecasts(files, test, MOTION_METHODS), pred_len, 2)}
         every = score(files, ds.root, detail / scene / "min1", split=f"{scene}/test", min_agents=1, plots=False,
                       title=f"ETH/UCY {scene} (leave-one-out test), every window (>= 1 ped)")
         results["seeds"][scene] = {seed: seed_run(seed, templates, LEARNED, scene, ds, val, test, f"{scene}/test", 2,
@@ -580,24 +595,23 @@ def across_seeds_section(results: dict[str, Any]) -> list[str]:
 
 
 def motion_section(results: dict[str, Any]) -> list[str]:
-    """The motion breakdown of the main (seed-0, `min_agents=2`) table: standing against moving agents."""
+    """The motion breakdown of the seed-0 best-of-20 rows (`min_agents=2`) on `S/val` and test."""
     names = {"cv_sampler": "CV sampler", "noise_lstm": "Noise-LSTM", "zhu2020": "ours"}
     lines = ["## Standing and moving pedestrians (diagnosis; nothing was chosen with it)", "",
-             f"The main table's best-of-20 rows (`min_agents=2`, test) split by what each pedestrian was doing: "
-             f"standing (last observed step under {STILL_STEP_M * 100:g} cm) or moving. 'Moved' is the mean distance "
-             "a standing pedestrian is from where it stood 4.8 s later; the `S/val` columns are the same figures "
-             "for the validation agents the noise settings were chosen on.", "",
-             "| scene | standing share: val / test | standing moved (m): val / test | "
-             + " | ".join(f"{names[m]}: standing / moving" for m in MOTION_METHODS) + " |",
-             "|---|---|---|" + "---|" * len(MOTION_METHODS)]
-    for scene, m in results["motion"].items():
-        cells = []
-        for method in MOTION_METHODS:
-            g = m["methods"].get(method, {})
-            cells.append(" / ".join(f"{g[k][1]:.3f}/{g[k][2]:.3f}" if k in g else "—" for k in ("standing", "moving")))
-        lines.append(f"| {scene} | {m['val']['standing_share']:.2f} / {m['test']['standing_share']:.2f} | "
-                     f"{m['val']['standing_moved_m']:.2f} / {m['test']['standing_moved_m']:.2f} | "
-                     + " | ".join(cells) + " |")
+             "The seed-0 best-of-20 rows (`min_agents=2`) split by what each pedestrian did: standing at the last "
+             f"observed step (a step under {STILL_STEP_M * 100:g} cm) and still within {STAY_RADIUS_M:g} m of that "
+             f"spot 4.8 s later (stays), standing and then walking off (starts), or moving. `S/val` is where the "
+             "noise settings were chosen (each method at its choice there); best-of-20 per agent ADE/FDE.", "",
+             "| scene | split | group | agents (share) | " + " | ".join(names[m] for m in MOTION_METHODS) + " |",
+             "|---|---|---|---|" + "---|" * len(MOTION_METHODS)]
+    for scene, by_split in results["motion"].items():
+        for split, m in (("S/val", by_split["val"]), ("test", by_split["test"])):
+            total = max(m["agents"]["all"], 1)
+            for group in ("stays", "starts", "moving"):
+                n = m["agents"][group]
+                cells = [f"{m['methods'][x][group][0]:.3f}/{m['methods'][x][group][1]:.3f}"
+                         if group in m["methods"].get(x, {}) else "—" for x in MOTION_METHODS]
+                lines.append(f"| {scene} | {split} | {group} | {n} ({n / total:.2f}) | " + " | ".join(cells) + " |")
     return [*lines, ""]
 
 
