@@ -108,6 +108,11 @@ class ModelConfig:
             only the inputs).
         agent_min_step_m: floor (metres per step) of the speed that scales ``agent_velocity_change``'s output,
             so that agents standing still (whose last step is position noise) can still start to move.
+        mode_gate: scale each mode's step outputs o_t (eq. 19) by g = sigmoid(w . h_d^(T_obs) + b), one gate per
+            agent and mode read from the decoder's initial state (eqs. 21-22, so from the noise z too). With a
+            velocity-change output a mode whose gate closes is exactly the constant-velocity forecast, which for
+            a pedestrian standing still is standing still: a linear output reaches zero only by balancing its
+            weights, a saturated sigmoid reaches it for a whole region of z. Not in the paper (False there).
         speed_unit_m: None (the paper: model frame in metres) or a length in metres. When set, each scene's
             model frame is also scaled by ``clip(speed_unit_m / u, SPEED_SCALE_MIN, SPEED_SCALE_MAX)``, u
             being the mean length of the scene's observed one-step displacements: a scene whose people
@@ -136,6 +141,7 @@ class ModelConfig:
     step_output: StepOutput = "displacement"
     speed_unit_m: float | None = None
     agent_min_step_m: float = 0.1
+    mode_gate: bool = False
 
     def __post_init__(self) -> None:
         if self.obs_len < 2 or self.pred_len < 1:

@@ -374,6 +374,7 @@ class TrajectoryNet(nn.Module):
         self.decoder = nn.LSTMCell(lstm_in, hid)  # eq. 18, LSTM_D
         self.out = nn.Linear(hid, 2)  # eq. 19, W_u, b_u
         self.init_decoder = nn.Linear(hid + config.noise_dim, hid)  # eqs. 21-22, W_phi, b_phi
+        self.mode_gate = nn.Linear(hid, 1) if config.mode_gate else None  # see ModelConfig.mode_gate
 
     def _q(self, fst: Tensor | None, scene: Tensor, pos_scaled: Tensor) -> Tensor | None:
         """Eqs. 13-14: q_i = fst ⊙ σ(W_c p_i + b_c); fst (L, B, d_fst), pos (L, R, 2) -> (L, R, d_fst)."""
@@ -470,6 +471,7 @@ class TrajectoryNet(nn.Module):
         scene = batch.scene[rows]
         every = torch.ones(mm, r, dtype=torch.bool)
         h = self.init_decoder(torch.cat((enc.h[rows][None].expand(mm, r, hid), noise), dim=-1))  # eqs. 21-22
+        mode_open = None if self.mode_gate is None else torch.sigmoid(self.mode_gate(h))  # (M, R, 1)
         c = enc.c[rows][None].expand(mm, r, hid).reshape(mm * r, hid)
         h_gru = None if enc.h_gru is None else enc.h_gru[None].expand(mm, b, -1).reshape(mm * b, -1)
         ego_ok = (batch.ego[rows][:, None] & enc.ego_ok[scene]) if cfg.features.uses_ego_plan else None
@@ -499,7 +501,7 @@ class TrajectoryNet(nn.Module):
                     x.append(q)
                 h_flat, c = lstm_step(lstm_d, torch.cat(x, dim=-1).reshape(mm * r, -1), h.reshape(mm * r, hid), c)
                 h = h_flat.view(mm, r, hid)  # eq. 18
-            o = self.out(h)
+            o = self.out(h) if mode_open is None else self.out(h) * mode_open
             # eqs. 19-20; agent_velocity_change reads o_t in the agent's frame and speed units
             p_next = p_cur + (o * ds if basis is None else torch.einsum("mrj,rij->mri", o, basis))
             if carried is not None:  # the velocity-change outputs: o_t corrects a constant-velocity step
@@ -562,6 +564,7 @@ class TrajectoryNet(nn.Module):
         h = buf[:, width - 1 - hid : width - 1]
         h.copy_(self.init_decoder(torch.cat((enc.h[rows][:, None].expand(r, mm, hid), noise.transpose(0, 1)), -1))
                 .view(r * mm, hid))  # eqs. 21-22
+        mode_open = None if self.mode_gate is None else torch.sigmoid(self.mode_gate(h)).view(r, mm, 1)
         c = enc.c[rows].repeat_interleave(mm, dim=0)
         h_gru = None if enc.h_gru is None else enc.h_gru.repeat_interleave(mm, dim=0)  # (B * M, G)
         ego_ok = (batch.ego[rows][:, None] & enc.ego_ok[scene]) if cfg.features.uses_ego_plan else None
@@ -600,6 +603,8 @@ class TrajectoryNet(nn.Module):
                     c_blk.mul_(sig[:, hid : 2 * hid]).addcmul_(sig[:, :hid], torch.tanh(gates[:, 3 * hid :]))
                     torch.mul(sig[:, 2 * hid :], torch.tanh(c_blk), out=h[lo:hi])
             o = self.out(h).view(r, mm, 2)
+            if mode_open is not None:  # ModelConfig.mode_gate
+                o = o * mode_open
             p_next = p_cur + (o * ds if basis is None else torch.einsum("rmj,rij->rmi", o, basis))  # eqs. 19-20
             if carried is not None:
                 p_next = p_next + (carried[:, None] if k == 0 else p_cur - p_prev)

@@ -40,9 +40,11 @@ def _scenes() -> list[SceneSample]:
     ],
 )
 @pytest.mark.parametrize("step_output", ["displacement", "velocity_change", "agent_velocity_change"])
-def test_decode_fast_equals_decode(features: Features, step_output: str) -> None:
+@pytest.mark.parametrize("mode_gate", [False, True])
+def test_decode_fast_equals_decode(features: Features, step_output: str, mode_gate: bool) -> None:
     torch.manual_seed(0)
-    cfg = ModelConfig(features=features, noise_dim=3, step_output=step_output, **SMALL)  # type: ignore[arg-type]
+    cfg = ModelConfig(features=features, noise_dim=3, step_output=step_output, mode_gate=mode_gate,  # type: ignore[arg-type]
+                      **SMALL)
     net = TrajectoryNet(cfg).eval()
     batch = collate(_scenes(), cfg)
     with torch.no_grad():
@@ -57,15 +59,21 @@ def test_decode_fast_equals_decode(features: Features, step_output: str) -> None
 
 @pytest.mark.parametrize("step_output", ["velocity_change", "agent_velocity_change"])
 @pytest.mark.parametrize("fast", [False, True])
-def test_velocity_change_with_zero_output_is_constant_velocity(fast: bool, step_output: str) -> None:
-    """With o_t = 0 the decoder carries the last observed displacement on (and stands still where the step
-    before the current one is unobserved), whatever the noise."""
+@pytest.mark.parametrize("silenced", ["output", "mode_gate"])
+def test_velocity_change_with_zero_output_is_constant_velocity(fast: bool, step_output: str, silenced: str) -> None:
+    """With o_t = 0 (a zero output layer, or a random one behind a closed mode gate) the decoder carries the last
+    observed displacement on (and stands still where the step before the current one is unobserved), whatever
+    the noise."""
     torch.manual_seed(0)
-    cfg = ModelConfig(noise_dim=3, step_output=step_output, **SMALL)  # type: ignore[arg-type]
+    cfg = ModelConfig(noise_dim=3, step_output=step_output, mode_gate=silenced == "mode_gate", **SMALL)  # type: ignore[arg-type]
     net = TrajectoryNet(cfg).eval()
     with torch.no_grad():
-        net.out.weight.zero_()
-        net.out.bias.zero_()
+        if net.mode_gate is not None:
+            net.mode_gate.weight.zero_()
+            net.mode_gate.bias.fill_(-40.0)
+        else:
+            net.out.weight.zero_()
+            net.out.bias.zero_()
     scenes = _scenes()
     scenes[0].positions = scenes[0].positions.copy()
     scenes[0].positions[1, 2] = np.nan  # agent 1 of scene 0: p_(T_obs - 1) unobserved
@@ -81,6 +89,25 @@ def test_velocity_change_with_zero_output_is_constant_velocity(fast: bool, step_
     for mode in range(3):
         torch.testing.assert_close(pred.positions[mode][agents], expected[agents], rtol=0, atol=1e-5)
     assert bool((~batch.valid[pred.rows, 2] & agents).any())
+
+
+@pytest.mark.parametrize("fast", [False, True])
+def test_an_open_mode_gate_passes_the_output_through(fast: bool) -> None:
+    """A gate saturated open gives the forecasts of the same weights without a gate: it only scales o_t."""
+    torch.manual_seed(0)
+    plain = TrajectoryNet(ModelConfig(noise_dim=3, step_output="agent_velocity_change", **SMALL)).eval()
+    gated = TrajectoryNet(ModelConfig(noise_dim=3, step_output="agent_velocity_change", mode_gate=True, **SMALL)).eval()
+    missing = gated.load_state_dict(plain.state_dict(), strict=False).missing_keys
+    assert sorted(missing) == ["mode_gate.bias", "mode_gate.weight"]
+    with torch.no_grad():
+        assert gated.mode_gate is not None
+        gated.mode_gate.weight.zero_()
+        gated.mode_gate.bias.fill_(40.0)
+    batch = collate(_scenes(), plain.config)
+    with torch.no_grad():
+        ref = plain(batch, 3, torch.Generator().manual_seed(1), fast=fast)
+        out = gated(batch, 3, torch.Generator().manual_seed(1), fast=fast)
+    torch.testing.assert_close(out.positions, ref.positions, rtol=0, atol=1e-6)
 
 
 @pytest.mark.parametrize("fast", [False, True])
