@@ -35,6 +35,7 @@ from logpipe.dataset import Dataset
 from logpipe.formats.ethucy import FRAME_PERIOD_NS
 from logpipe.io import atomic_open, write_parquet
 from logpipe.model.baselines import ConstantVelocity, ConstantVelocitySampler, KalmanCV, LinearFit
+from logpipe.model.checkpoints import read_meta
 from logpipe.model.predictor import NetPredictor, Predictor, noise_scaled_id
 from logpipe.resample import ResampleSpec, resample_track
 from logpipe.stages.ingest import IngestOptions, ingest
@@ -211,8 +212,6 @@ def write_learned(checkpoint: Path, kind: str, val: Sequence[SceneSample], test:
     """Test predictions of a learned method: with K > 1 at the noise scale chosen on ``val`` (and, named
     ``as_trained``, at scale 1 too); with K = 1 as it is. Returns the files and the choice (None for K = 1),
     with the speed-shift check's val ADE/FDE when ``speed_shift`` and the frame-rate check's on ``rate_val``."""
-    from logpipe.model.checkpoints import read_meta
-
     sha = read_meta(checkpoint).weights_sha256
     net = NetPredictor.from_checkpoint(checkpoint, expect_kind=kind)
     if k == 1:
@@ -267,9 +266,51 @@ def find_checkpoint(template: str, scene: str) -> Path | None:
 
 def training_seeds(kind: str, root: Path = REPO / "model" / "checkpoints") -> list[int]:
     """The extra training seeds with shipped checkpoints of dataset ``kind``: N of every ``root/seedN/kind/``
-    (``make train-* SEED=N``). A seed trained for another dataset only is not one of this dataset's seeds."""
-    return sorted(int(p.name[4:]) for p in root.glob("seed*")
-                  if p.name[4:].isdigit() and (p / kind).is_dir())
+    (``make train-* SEED=N``) whose checkpoints were all trained with the seed-0 recipe (``stale_seeds``). A seed
+    trained for another dataset only is not one of this dataset's seeds."""
+    return sorted(n for n in _seed_folders(kind, root) if n not in stale_seeds(kind, root))
+
+
+def _seed_folders(kind: str, root: Path) -> list[int]:
+    return sorted(int(p.name[4:]) for p in root.glob("seed*") if p.name[4:].isdigit() and (p / kind).is_dir())
+
+
+RECIPE_IGNORES = ("seed", "steps")
+"""Config keys that do not make another recipe: the seed, and the step budget (a best checkpoint saved before a run
+was continued to a longer schedule with ``--resume`` keeps the budget it was saved under)."""
+
+
+def _recipe(folder: Path) -> dict[str, Any]:
+    """A checkpoint's training config (defaults filled in) without ``RECIPE_IGNORES``, flattened to dotted keys."""
+    config = dataclasses.asdict(read_meta(folder).config)
+    flat: dict[str, Any] = {}
+
+    def walk(d: dict[str, Any], prefix: str) -> None:
+        for key, value in d.items():
+            if isinstance(value, dict):
+                walk(value, f"{prefix}{key}.")
+            elif f"{prefix}{key}" not in RECIPE_IGNORES:
+                flat[f"{prefix}{key}"] = value
+    walk(config, "")
+    return flat
+
+
+def stale_seeds(kind: str, root: Path = REPO / "model" / "checkpoints") -> dict[int, list[str]]:
+    """Seed folders of ``kind`` with a checkpoint trained by another recipe than the seed-0 checkpoint at the same
+    place (an older config): seed -> ``"<folder>: <differing keys>"`` lines. Such a seed is no repeat of the shipped
+    runs, so the across-seeds tables leave it out until it is retrained."""
+    out: dict[int, list[str]] = {}
+    for n in _seed_folders(kind, root):
+        for meta in sorted((root / f"seed{n}" / kind).rglob("meta.json")):
+            rel = meta.parent.relative_to(root / f"seed{n}")
+            shipped = root / rel / "meta.json"
+            if not shipped.is_file():
+                continue
+            mine, theirs = _recipe(meta.parent), _recipe(shipped.parent)
+            differ = sorted(k for k in mine.keys() | theirs.keys() if mine.get(k) != theirs.get(k))
+            if differ:
+                out.setdefault(n, []).append(f"{rel.as_posix()}: {', '.join(differ)}")
+    return out
 
 
 def seed_template(template: str, seed: int) -> str:
@@ -467,7 +508,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     out_md = args.results / "ethucy.md"
     detail = args.results / "ethucy"
     results: dict[str, Any] = {"scenes": {}, "skipped": [], "sampler": {}, "noise": {}, "val": {}, "seeds": {},
-                               "motion": {}}
+                               "motion": {}, "stale_seeds": stale_seeds(ds.kind)}
     for scene in args.scenes:
         ts = time.perf_counter()
         val = scene_samples(ds, f"{scene}/val")
@@ -517,8 +558,10 @@ def main(argv: Sequence[str] | None = None) -> int:
                | {"sampler": results["sampler"][s]["choice"], "seconds": r["seconds"], "val": results["val"][s],
                   "seeds": {str(n): v for n, v in results["seeds"][s].items()}, "motion": results["motion"][s]}
                for s, r in results["scenes"].items()}
+    stale = {str(n): v for n, v in results["stale_seeds"].items()}
     (args.results / "ethucy.json").write_text(json.dumps({"scenes": summary, "skipped": results["skipped"],
-                                                          "seconds": round(seconds, 1)}, indent=1, sort_keys=True))
+                                                          "stale_seeds": stale, "seconds": round(seconds, 1)},
+                                                         indent=1, sort_keys=True))
     out_md.write_text(render(results, args, seconds))
     print(f"wrote {out_md} in {seconds:.1f} s", file=sys.stderr)
     return 0
@@ -581,8 +624,13 @@ ROWS = (  # (label, method, k, ade key, fde key)
 def across_seeds_section(results: dict[str, Any]) -> list[str]:
     """The across-seeds table of the min2 protocol (every training seed with checkpoints, seed 0 included)."""
     seeds = sorted({n for r in results["seeds"].values() for n in r})
+    stale = [f"`train.seed` = {n} (" + "; ".join(f"`{line}`" for line in lines) + ")"
+             for n, lines in sorted(results["stale_seeds"].items())]
+    left_out = ([f"Left out: the checkpoints of {', '.join(stale)} differ from the shipped seed-0 runs in the config "
+                 "keys named, so they are no repeats of them; retrain them with `make train-ethucy SEED=N`.", ""]
+                if stale else [])
     if not seeds:
-        return []
+        return ["## Across training seeds", "", "Only training seed 0 here.", "", *left_out] if stale else []
     cells = {scene: {m: seed_values(r["min2"]["methods"], results["seeds"][scene], m, k) for _, m, k in SEED_METHODS}
              for scene, r in results["scenes"].items()}
     return ["## Across training seeds (Social-GAN literal windows)", "",
@@ -591,7 +639,8 @@ def across_seeds_section(results: dict[str, Any]) -> list[str]:
             "`model/checkpoints/seedN/ethucy/`, the same config), each sampled with its seed and its noise scale "
             "chosen on `S/val` again; the sampler is re-tuned on `S/val` and sampled with each seed. Cells: mean "
             "best-of-K ADE/FDE over the seeds (ADE range / FDE range); three decimals because the differences are "
-            "small.", "", *across_seeds_table(list(results["scenes"]), cells, with_avg=len(cells) == len(SCENES)), ""]
+            "small.", "", *across_seeds_table(list(results["scenes"]), cells, with_avg=len(cells) == len(SCENES)), "",
+            *left_out]
 
 
 def motion_section(results: dict[str, Any]) -> list[str]:
@@ -715,7 +764,9 @@ def render(results: dict[str, Any], args: argparse.Namespace, seconds: float) ->
                      "decoder's output correcting a constant-velocity step in each pedestrian's own frame and "
                      "speed: `step_output = \"agent_velocity_change\"`, chosen on `S/val`; each window seen at "
                      "one speed, its mean observed step scaled to 0.3 m: `speed_unit_m = 0.3`, a tie on `S/val` "
-                     "taken for the speed-shift check above); the LSTM and "
+                     "taken for the speed-shift check above; each mode's correction scaled by a learned gate read "
+                     "from the decoder's initial state, so a mode can be exactly constant velocity, standing still "
+                     "for a pedestrian who stands: `mode_gate = true`, chosen on `S/val`); the LSTM and "
                      "Noise-LSTM with the same config through "
                      "`--preset lstm|baseline`.")
     lines += ["", "## Notes and caveats", "",

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import sys
 from pathlib import Path
 
@@ -61,6 +62,30 @@ def test_seed_checkpoints_are_found_under_seed_folders(tmp_path: Path) -> None:
     assert training_seeds("apolloscape", tmp_path) == [4, 10]  # seed 2 trained ETH/UCY only
     assert seed_template("model/checkpoints/ethucy/{scene}/lstm", 2) == "model/checkpoints/seed2/ethucy/{scene}/lstm"
     assert seed_template("/elsewhere/run/best", 2) == "/elsewhere/run/best"  # an explicit folder stays as given
+
+
+def test_a_seed_trained_with_another_recipe_is_left_out(tmp_path: Path) -> None:
+    """Seed N counts only while each of its checkpoints has the config of the shipped one beside it, seed and
+    step budget aside: a seed trained before a config change is no repeat of the shipped runs."""
+    from reproduce_ethucy import stale_seeds, training_seeds
+
+    shipped = json.loads((REPO / "model/checkpoints/ethucy/eth/meta.json").read_text(encoding="utf-8"))
+
+    def place(folder: str, **change: object) -> None:
+        meta = json.loads(json.dumps(shipped))
+        for key, value in change.items():
+            block = meta["config"]["model"] if key == "mode_gate" else meta["config"]
+            block[key] = value
+        (tmp_path / folder).mkdir(parents=True)
+        (tmp_path / folder / "meta.json").write_text(json.dumps(meta), encoding="utf-8")
+
+    gate = bool(shipped["config"]["model"].get("mode_gate", False))
+    place("ethucy/eth")
+    place("seed1/ethucy/eth", seed=1, steps=1234)
+    place("seed2/ethucy/eth", seed=2, mode_gate=not gate, lr=1e-3)
+    place("seed2/ethucy/hotel", seed=2, lr=1e-3)  # nothing shipped beside it to compare with
+    assert stale_seeds("ethucy", tmp_path) == {2: ["ethucy/eth: lr, model.mode_gate"]}
+    assert training_seeds("ethucy", tmp_path) == [1]
 
 
 def test_across_seeds_table_means_ranges_and_standing() -> None:
