@@ -621,11 +621,22 @@ ROWS = (  # (label, method, k, ade key, fde key)
 )
 
 
+def stale_summary(lines: Sequence[str]) -> str:
+    """``stale_seeds`` lines grouped by the config keys that differ, so 15 checkpoints off by one key read as one
+    phrase: "`model.mode_gate` in 15 checkpoints"; groups of up to 3 name their folders."""
+    groups: dict[str, list[str]] = {}
+    for line in lines:
+        folder, keys = line.split(": ", 1)
+        groups.setdefault(keys, []).append(folder)
+    return "; ".join(f"`{keys}` in {len(folders)} checkpoint{'s' if len(folders) > 1 else ''}"
+                     + (f" ({', '.join(folders)})" if len(folders) <= 3 else "")
+                     for keys, folders in groups.items())
+
+
 def across_seeds_section(results: dict[str, Any]) -> list[str]:
     """The across-seeds table of the min2 protocol (every training seed with checkpoints, seed 0 included)."""
     seeds = sorted({n for r in results["seeds"].values() for n in r})
-    stale = [f"`train.seed` = {n} (" + "; ".join(f"`{line}`" for line in lines) + ")"
-             for n, lines in sorted(results["stale_seeds"].items())]
+    stale = [f"`train.seed` = {n} ({stale_summary(lines)})" for n, lines in sorted(results["stale_seeds"].items())]
     left_out = ([f"Left out: the checkpoints of {', '.join(stale)} differ from the shipped seed-0 runs in the config "
                  "keys named, so they are no repeats of them; retrain them with `make train-ethucy SEED=N`.", ""]
                 if stale else [])

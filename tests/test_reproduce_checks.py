@@ -88,6 +88,14 @@ def test_a_seed_trained_with_another_recipe_is_left_out(tmp_path: Path) -> None:
     assert training_seeds("ethucy", tmp_path) == [1]
 
 
+def test_stale_seed_lines_are_grouped_by_the_keys_that_differ() -> None:
+    from reproduce_ethucy import stale_summary
+
+    many = [f"ethucy/{scene}: model.mode_gate" for scene in ("eth", "hotel", "univ", "zara1")]
+    assert stale_summary([*many, "ethucy/eth/lstm: lr, model.mode_gate"]) == (
+        "`model.mode_gate` in 4 checkpoints; `lr, model.mode_gate` in 1 checkpoint (ethucy/eth/lstm)")
+
+
 def test_across_seeds_table_means_ranges_and_standing() -> None:
     from reproduce_ethucy import across_seeds_table
 
