@@ -32,7 +32,7 @@ from torch.nn import functional as F  # noqa: N812
 
 from .backbone import BACKBONE_CHANNELS, BACKBONE_STRIDE, ResNet18Stages12, read_state_dict, roi_align
 from .batching import Batch
-from .config import ModelConfig
+from .config import ConfigError, ModelConfig
 
 
 def masked_max(x: Tensor, mask: Tensor) -> Tensor:
@@ -453,13 +453,14 @@ class TrajectoryNet(nn.Module):
             c = torch.where(ok_t[:, None], c_new, c)
         return Encoded(h, c, h_gru, proj, ego_pos, ego_ok, m_all, f_all)
 
-    def decode(self, batch: Batch, enc: Encoded, noise: Tensor) -> Prediction:
+    def decode(self, batch: Batch, enc: Encoded, noise: Tensor, constant_velocity_modes: int = 0) -> Prediction:
         """Eqs. 17-22 for M modes of the rows observed at the current step.
 
         Args:
             batch: the batch that was encoded.
             enc: ``encode(batch)``.
             noise: (M, R, noise_dim) Gaussian z of eq. 21, R = number of active rows.
+            constant_velocity_modes: the first this many modes get no step outputs (see ``_mode_open``).
         """
         cfg = self.config
         ps, ds = cfg.pos_scale_m, cfg.disp_scale_m
@@ -471,7 +472,7 @@ class TrajectoryNet(nn.Module):
         scene = batch.scene[rows]
         every = torch.ones(mm, r, dtype=torch.bool)
         h = self.init_decoder(torch.cat((enc.h[rows][None].expand(mm, r, hid), noise), dim=-1))  # eqs. 21-22
-        mode_open = None if self.mode_gate is None else torch.sigmoid(self.mode_gate(h))  # (M, R, 1)
+        mode_open = self._mode_open(h, constant_velocity_modes, mode_dim=0)  # (M, R, 1)
         c = enc.c[rows][None].expand(mm, r, hid).reshape(mm * r, hid)
         h_gru = None if enc.h_gru is None else enc.h_gru[None].expand(mm, b, -1).reshape(mm * b, -1)
         ego_ok = (batch.ego[rows][:, None] & enc.ego_ok[scene]) if cfg.features.uses_ego_plan else None
@@ -501,7 +502,7 @@ class TrajectoryNet(nn.Module):
                     x.append(q)
                 h_flat, c = lstm_step(lstm_d, torch.cat(x, dim=-1).reshape(mm * r, -1), h.reshape(mm * r, hid), c)
                 h = h_flat.view(mm, r, hid)  # eq. 18
-            o = self.out(h) if mode_open is None else self.out(h) * mode_open
+            o = self.out(h) if mode_open is None else self.out(h) * mode_open  # ModelConfig.mode_gate
             # eqs. 19-20; agent_velocity_change reads o_t in the agent's frame and speed units
             p_next = p_cur + (o * ds if basis is None else torch.einsum("mrj,rij->mri", o, basis))
             if carried is not None:  # the velocity-change outputs: o_t corrects a constant-velocity step
@@ -514,7 +515,7 @@ class TrajectoryNet(nn.Module):
         return Prediction(torch.stack(outputs, dim=2), rows)
 
     @torch.no_grad()
-    def decode_fast(self, batch: Batch, enc: Encoded, noise: Tensor) -> Prediction:
+    def decode_fast(self, batch: Batch, enc: Encoded, noise: Tensor, constant_velocity_modes: int = 0) -> Prediction:
         """``decode`` for inference (no autograd): the same equations, restructured for speed; outputs equal
         ``decode``'s up to float rounding (tested against it).
 
@@ -564,7 +565,7 @@ class TrajectoryNet(nn.Module):
         h = buf[:, width - 1 - hid : width - 1]
         h.copy_(self.init_decoder(torch.cat((enc.h[rows][:, None].expand(r, mm, hid), noise.transpose(0, 1)), -1))
                 .view(r * mm, hid))  # eqs. 21-22
-        mode_open = None if self.mode_gate is None else torch.sigmoid(self.mode_gate(h)).view(r, mm, 1)
+        mode_open = self._mode_open(h.view(r, mm, hid), constant_velocity_modes, mode_dim=1)  # (R, M, 1)
         c = enc.c[rows].repeat_interleave(mm, dim=0)
         h_gru = None if enc.h_gru is None else enc.h_gru.repeat_interleave(mm, dim=0)  # (B * M, G)
         ego_ok = (batch.ego[rows][:, None] & enc.ego_ok[scene]) if cfg.features.uses_ego_plan else None
@@ -603,7 +604,7 @@ class TrajectoryNet(nn.Module):
                     c_blk.mul_(sig[:, hid : 2 * hid]).addcmul_(sig[:, :hid], torch.tanh(gates[:, 3 * hid :]))
                     torch.mul(sig[:, 2 * hid :], torch.tanh(c_blk), out=h[lo:hi])
             o = self.out(h).view(r, mm, 2)
-            if mode_open is not None:  # ModelConfig.mode_gate
+            if mode_open is not None:  # ModelConfig.mode_gate, constant_velocity_modes
                 o = o * mode_open
             p_next = p_cur + (o * ds if basis is None else torch.einsum("rmj,rij->rmi", o, basis))  # eqs. 19-20
             if carried is not None:
@@ -644,16 +645,40 @@ class TrajectoryNet(nn.Module):
         v: Tensor = self.env(proj, pos, batch, rows, agent_major=True)
         return v
 
+    def _mode_open(self, h0: Tensor, constant_velocity_modes: int, mode_dim: int) -> Tensor | None:
+        """The factor (..., 1) on each mode's step outputs o_t, from the decoder's initial state ``h0`` whose
+        modes run along ``mode_dim``: the mode gate (``ModelConfig.mode_gate``), times 0 for the first
+        ``constant_velocity_modes`` modes. With a velocity-change output such a mode is exactly the
+        constant-velocity forecast (standing still for an agent standing still), a mode the learned gate may
+        never reach; None when every factor is 1."""
+        gate = None if self.mode_gate is None else torch.sigmoid(self.mode_gate(h0))
+        if constant_velocity_modes == 0:
+            return gate
+        if self.config.step_output == "displacement":
+            raise ConfigError("constant-velocity modes need a velocity-change step_output; with 'displacement' "
+                              "a zero output means standing still, not constant velocity")
+        num_modes = h0.shape[mode_dim]
+        if not 0 < constant_velocity_modes <= num_modes:
+            raise ConfigError(f"constant_velocity_modes must be in 0..{num_modes} (the modes drawn), "
+                              f"got {constant_velocity_modes}")
+        shape = [1] * (h0.dim() - 1) + [1]
+        shape[mode_dim] = num_modes
+        keep = (torch.arange(num_modes) >= constant_velocity_modes).to(h0.dtype).view(shape)
+        return keep if gate is None else gate * keep
+
     def forward(
         self, batch: Batch, num_modes: int, generator: torch.Generator | None = None, *, fast: bool = False,
-        noise_scale: float = 1.0,
+        noise_scale: float = 1.0, constant_velocity_modes: int = 0,
     ) -> Prediction:
         """Predictions for ``num_modes`` noise draws z (one per mode and agent); ``fast``: ``decode_fast``
         (inference only). ``noise_scale``: z ~ N(0, noise_scale^2 I) instead of eq. 21's N(0, I), a sampling
-        setting (spread of the K futures) for inference, chosen on validation data like a sampler's."""
+        setting (spread of the K futures) for inference, chosen on validation data like a sampler's.
+        ``constant_velocity_modes``: the first this many modes are held to constant velocity (their step
+        outputs zeroed; see ``_mode_open``), another inference setting to choose on validation data."""
         r = int(batch.active.sum())
         noise = torch.randn(num_modes, r, self.config.noise_dim, generator=generator)
         if noise_scale != 1.0:
             noise = noise * noise_scale
         enc = self.encode(batch)
-        return self.decode_fast(batch, enc, noise) if fast else self.decode(batch, enc, noise)
+        decode = self.decode_fast if fast else self.decode
+        return decode(batch, enc, noise, constant_velocity_modes)

@@ -61,6 +61,7 @@ class NetPredictor:
         batch_size: scenes per forward pass.
         name: label for reports.
         noise_scale: standard deviation of the noise z at inference (1 = eq. 21, what training drew).
+        constant_velocity_modes: how many of the K modes are held to constant velocity (0 = none, the paper).
     """
 
     @classmethod
@@ -78,7 +79,7 @@ class NetPredictor:
         return cls(loaded.net, batch_size=batch_size, noise_scale=noise_scale)
 
     def __init__(self, net: TrajectoryNet, batch_size: int = 32, name: str = "zhu2020",
-                 noise_scale: float = 1.0) -> None:
+                 noise_scale: float = 1.0, constant_velocity_modes: int = 0) -> None:
         if not (math.isfinite(noise_scale) and noise_scale > 0):
             raise LogpipeError(f"noise scale must be a positive number, got {noise_scale}")
         self.net = net.eval()
@@ -86,10 +87,15 @@ class NetPredictor:
         self.batch_size = batch_size
         self.name = name
         self.noise_scale = noise_scale
+        self.constant_velocity_modes = constant_velocity_modes
 
     def with_noise_scale(self, noise_scale: float) -> NetPredictor:
         """The same network and settings, sampling z with standard deviation ``noise_scale``."""
-        return NetPredictor(self.net, self.batch_size, self.name, noise_scale=noise_scale)
+        return NetPredictor(self.net, self.batch_size, self.name, noise_scale, self.constant_velocity_modes)
+
+    def with_constant_velocity_modes(self, count: int) -> NetPredictor:
+        """The same network and settings, with the first ``count`` modes held to constant velocity."""
+        return NetPredictor(self.net, self.batch_size, self.name, self.noise_scale, count)
 
     @torch.no_grad()
     def predict(self, samples: Sequence[SceneSample], num_modes: int, seed: int) -> list[NDArrayFloat]:
@@ -100,7 +106,8 @@ class NetPredictor:
         for lo in range(0, len(samples), self.batch_size):
             chunk = samples[lo : lo + self.batch_size]
             batch = collate(chunk, self.config)
-            pred = self.net(batch, num_modes, gen, fast=True, noise_scale=self.noise_scale)
+            pred = self.net(batch, num_modes, gen, fast=True, noise_scale=self.noise_scale,
+                            constant_velocity_modes=self.constant_velocity_modes)
             n = batch.positions.shape[0]
             world = np.full((n, num_modes, t_pred, 2), np.nan)
             rows = pred.rows

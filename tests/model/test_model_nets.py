@@ -199,3 +199,21 @@ def test_speed_unit_must_be_positive() -> None:
 
     with pytest.raises(ConfigError, match="speed_unit_m"):
         ModelConfig(speed_unit_m=0.0)
+
+
+def test_predictor_settings_compose() -> None:
+    """with_noise_scale and with_constant_velocity_modes each keep the other setting; the held mode is the
+    constant-velocity forecast in world metres, the others are the noise-scaled forecasts."""
+    torch.manual_seed(0)
+    net = TrajectoryNet(ModelConfig(noise_dim=3, step_output="agent_velocity_change", **SMALL)).eval()
+    scenes = [_scene(0, 5), _scene(2, 7)]
+    scaled = NetPredictor(net).with_noise_scale(0.5)
+    both = scaled.with_constant_velocity_modes(1).with_noise_scale(0.5)
+    assert (both.noise_scale, both.constant_velocity_modes) == (0.5, 1)
+    ref, held = scaled.predict(scenes, 3, seed=0), both.predict(scenes, 3, seed=0)
+    for s, r, h in zip(scenes, ref, held, strict=True):
+        pos = s.positions[np.asarray(s.target_mask, bool)]
+        step = pos[:, 3] - pos[:, 2]
+        cv = pos[:, 3, None] + np.arange(1, 4)[None, :, None] * step[:, None]
+        np.testing.assert_allclose(h[:, 0], cv, atol=1e-4)
+        np.testing.assert_allclose(h[:, 1:], r[:, 1:], atol=1e-5)

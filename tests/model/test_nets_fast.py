@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from logpipe.model.batching import collate
-from logpipe.model.config import Features, ModelConfig
+from logpipe.model.config import ConfigError, Features, ModelConfig
 from logpipe.model.nets import TrajectoryNet
 from logpipe.model.synthetic import make_scene
 from logpipe.types import SceneSample
@@ -108,6 +108,38 @@ def test_an_open_mode_gate_passes_the_output_through(fast: bool) -> None:
         ref = plain(batch, 3, torch.Generator().manual_seed(1), fast=fast)
         out = gated(batch, 3, torch.Generator().manual_seed(1), fast=fast)
     torch.testing.assert_close(out.positions, ref.positions, rtol=0, atol=1e-6)
+
+
+@pytest.mark.parametrize("mode_gate", [False, True])
+@pytest.mark.parametrize("fast", [False, True])
+def test_constant_velocity_modes_hold_the_first_modes_and_leave_the_rest(fast: bool, mode_gate: bool) -> None:
+    """constant_velocity_modes = 2 of 4: modes 0-1 carry the last observed step on (what a closed gate gives),
+    modes 2-3 are the forecasts without the setting (same noise)."""
+    torch.manual_seed(0)
+    cfg = ModelConfig(noise_dim=3, step_output="agent_velocity_change", mode_gate=mode_gate, **SMALL)
+    net = TrajectoryNet(cfg).eval()
+    batch = collate(_scenes(), cfg)
+    with torch.no_grad():
+        ref = net(batch, 4, torch.Generator().manual_seed(1), fast=fast)
+        held = net(batch, 4, torch.Generator().manual_seed(1), fast=fast, constant_velocity_modes=2)
+    pos = batch.positions[held.rows]
+    last, before = pos[:, 3], pos[:, 2]
+    step = torch.where(batch.valid[held.rows, 2][:, None], last - before, torch.zeros_like(last))
+    expected = last[:, None] + torch.arange(1, 6, dtype=last.dtype)[None, :, None] * step[:, None]
+    agents = ~batch.ego[held.rows]
+    for mode in (0, 1):
+        torch.testing.assert_close(held.positions[mode][agents], expected[agents], rtol=0, atol=1e-5)
+        assert not torch.allclose(ref.positions[mode][agents], expected[agents], atol=1e-3)
+    torch.testing.assert_close(held.positions[2:], ref.positions[2:], rtol=0, atol=1e-6)
+
+
+def test_constant_velocity_modes_are_checked() -> None:
+    batch = collate(_scenes(), ModelConfig(noise_dim=3, **SMALL))
+    with pytest.raises(ConfigError, match="velocity-change step_output"):
+        TrajectoryNet(ModelConfig(noise_dim=3, **SMALL)).eval()(batch, 4, constant_velocity_modes=1)
+    net = TrajectoryNet(ModelConfig(noise_dim=3, step_output="velocity_change", **SMALL)).eval()
+    with pytest.raises(ConfigError, match=r"must be in 0\.\.4"):
+        net(batch, 4, fast=True, constant_velocity_modes=5)
 
 
 @pytest.mark.parametrize("fast", [False, True])
