@@ -502,7 +502,7 @@ class TrajectoryNet(nn.Module):
                     x.append(q)
                 h_flat, c = lstm_step(lstm_d, torch.cat(x, dim=-1).reshape(mm * r, -1), h.reshape(mm * r, hid), c)
                 h = h_flat.view(mm, r, hid)  # eq. 18
-            o = self.out(h) if mode_open is None else self.out(h) * mode_open  # ModelConfig.mode_gate
+            o = self.out(h) if mode_open is None else self.out(h) * mode_open  # mode_gate, constant_velocity_modes
             # eqs. 19-20; agent_velocity_change reads o_t in the agent's frame and speed units
             p_next = p_cur + (o * ds if basis is None else torch.einsum("mrj,rij->mri", o, basis))
             if carried is not None:  # the velocity-change outputs: o_t corrects a constant-velocity step
@@ -661,7 +661,7 @@ class TrajectoryNet(nn.Module):
         if not 0 < constant_velocity_modes <= num_modes:
             raise ConfigError(f"constant_velocity_modes must be in 0..{num_modes} (the modes drawn), "
                               f"got {constant_velocity_modes}")
-        shape = [1] * (h0.dim() - 1) + [1]
+        shape = [1] * h0.dim()
         shape[mode_dim] = num_modes
         keep = (torch.arange(num_modes) >= constant_velocity_modes).to(h0.dtype).view(shape)
         return keep if gate is None else gate * keep
