@@ -356,6 +356,10 @@ def predict(
     noise_scale: Annotated[float, typer.Option(
         "--noise-scale", help="Std of the network's noise z (1 = as trained); the spread of the K futures. "
         "Choose it on a validation split (make reproduce-ethucy does).")] = 1.0,
+    constant_velocity_modes: Annotated[int | None, typer.Option(
+        "--constant-velocity-modes", help="How many of the K futures are the constant-velocity forecast (the "
+        "network's corrections held at zero; default: the checkpoint's, 0 unless trained with it). Choose it on a "
+        "validation split (make reproduce-ethucy does).")] = None,
     filters: Annotated[list[str] | None, typer.Option(
         "--filter", help="log=ID[,ID] | split=eth/test | time=START_NS:END_NS | type=pedestrian[,..]; repeatable.")
     ] = None,
@@ -380,9 +384,9 @@ def predict(
     with _user_errors(), _progress(0, "predict", enabled=not as_json and sys.stderr.isatty()) as advance:
         summary = predict_dataset(
             dataset, out, checkpoint=checkpoint, predictor=predictor, modes=modes, seed=seed, noise_scale=noise_scale,
-            sample_filter=parse_filter(filters or []), inputs=inputs or [], raster_run=raster_run,
-            raster_images=raster_images, write_mcap=mcap, batch_size=batch_size, threads=threads,
-            progress=advance,
+            constant_velocity_modes=constant_velocity_modes, sample_filter=parse_filter(filters or []),
+            inputs=inputs or [], raster_run=raster_run, raster_images=raster_images, write_mcap=mcap,
+            batch_size=batch_size, threads=threads, progress=advance,
         )
     _emit(summary, as_json, _print_summary)
 

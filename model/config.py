@@ -113,6 +113,11 @@ class ModelConfig:
             velocity-change output a mode whose gate closes is exactly the constant-velocity forecast, which for
             a pedestrian standing still is standing still: a linear output reaches zero only by balancing its
             weights, a saturated sigmoid reaches it for a whole region of z. Not in the paper (False there).
+        constant_velocity_modes: the first this many of the K modes drawn get no step outputs, in training
+            (so the best-of-H loss leaves the agents that constant velocity fits to them and the other modes
+            learn the rest) and by default at inference. With a velocity-change output such a mode is exactly
+            the constant-velocity forecast. At most K - 1 are held, so a single draw is the network's own.
+            Needs a velocity-change ``step_output``. 0 in the paper.
         speed_unit_m: None (the paper: model frame in metres) or a length in metres. When set, each scene's
             model frame is also scaled by ``clip(speed_unit_m / u, SPEED_SCALE_MIN, SPEED_SCALE_MAX)``, u
             being the mean length of the scene's observed one-step displacements: a scene whose people
@@ -142,6 +147,7 @@ class ModelConfig:
     speed_unit_m: float | None = None
     agent_min_step_m: float = 0.1
     mode_gate: bool = False
+    constant_velocity_modes: int = 0
 
     def __post_init__(self) -> None:
         if self.obs_len < 2 or self.pred_len < 1:
@@ -162,6 +168,11 @@ class ModelConfig:
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0):
                 raise ConfigError(f"model.{name} must be a positive number, got {value}")
+        if self.constant_velocity_modes < 0:
+            raise ConfigError(f"model.constant_velocity_modes must be >= 0, got {self.constant_velocity_modes}")
+        if self.constant_velocity_modes and self.step_output == "displacement":
+            raise ConfigError("model.constant_velocity_modes needs a velocity-change step_output; with "
+                              "'displacement' a zero output means standing still, not constant velocity")
 
     def resolved(self, *, has_ego: bool, has_map: bool) -> ModelConfig:
         """This config with the features the data cannot feed switched off (paper: no EMF/ETF/EF on

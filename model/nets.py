@@ -453,14 +453,16 @@ class TrajectoryNet(nn.Module):
             c = torch.where(ok_t[:, None], c_new, c)
         return Encoded(h, c, h_gru, proj, ego_pos, ego_ok, m_all, f_all)
 
-    def decode(self, batch: Batch, enc: Encoded, noise: Tensor, constant_velocity_modes: int = 0) -> Prediction:
+    def decode(self, batch: Batch, enc: Encoded, noise: Tensor,
+               constant_velocity_modes: int | None = None) -> Prediction:
         """Eqs. 17-22 for M modes of the rows observed at the current step.
 
         Args:
             batch: the batch that was encoded.
             enc: ``encode(batch)``.
             noise: (M, R, noise_dim) Gaussian z of eq. 21, R = number of active rows.
-            constant_velocity_modes: the first this many modes get no step outputs (see ``_mode_open``).
+            constant_velocity_modes: the first this many modes get no step outputs (see ``_mode_open``;
+                None: the config's).
         """
         cfg = self.config
         ps, ds = cfg.pos_scale_m, cfg.disp_scale_m
@@ -515,7 +517,8 @@ class TrajectoryNet(nn.Module):
         return Prediction(torch.stack(outputs, dim=2), rows)
 
     @torch.no_grad()
-    def decode_fast(self, batch: Batch, enc: Encoded, noise: Tensor, constant_velocity_modes: int = 0) -> Prediction:
+    def decode_fast(self, batch: Batch, enc: Encoded, noise: Tensor,
+                    constant_velocity_modes: int | None = None) -> Prediction:
         """``decode`` for inference (no autograd): the same equations, restructured for speed; outputs equal
         ``decode``'s up to float rounding (tested against it).
 
@@ -645,19 +648,22 @@ class TrajectoryNet(nn.Module):
         v: Tensor = self.env(proj, pos, batch, rows, agent_major=True)
         return v
 
-    def _mode_open(self, h0: Tensor, constant_velocity_modes: int, mode_dim: int) -> Tensor | None:
+    def _mode_open(self, h0: Tensor, constant_velocity_modes: int | None, mode_dim: int) -> Tensor | None:
         """The factor (..., 1) on each mode's step outputs o_t, from the decoder's initial state ``h0`` whose
         modes run along ``mode_dim``: the mode gate (``ModelConfig.mode_gate``), times 0 for the first
         ``constant_velocity_modes`` modes. With a velocity-change output such a mode is exactly the
         constant-velocity forecast (standing still for an agent standing still), a mode the learned gate may
-        never reach; None when every factor is 1."""
+        never reach; None when every factor is 1. ``constant_velocity_modes`` None: the config's, held to
+        at most K - 1 modes."""
         gate = None if self.mode_gate is None else torch.sigmoid(self.mode_gate(h0))
+        num_modes = h0.shape[mode_dim]
+        if constant_velocity_modes is None:
+            constant_velocity_modes = min(self.config.constant_velocity_modes, num_modes - 1)
         if constant_velocity_modes == 0:
             return gate
         if self.config.step_output == "displacement":
             raise ConfigError("constant-velocity modes need a velocity-change step_output; with 'displacement' "
                               "a zero output means standing still, not constant velocity")
-        num_modes = h0.shape[mode_dim]
         if not 0 < constant_velocity_modes <= num_modes:
             raise ConfigError(f"constant_velocity_modes must be in 0..{num_modes} (the modes drawn), "
                               f"got {constant_velocity_modes}")
@@ -668,13 +674,14 @@ class TrajectoryNet(nn.Module):
 
     def forward(
         self, batch: Batch, num_modes: int, generator: torch.Generator | None = None, *, fast: bool = False,
-        noise_scale: float = 1.0, constant_velocity_modes: int = 0,
+        noise_scale: float = 1.0, constant_velocity_modes: int | None = None,
     ) -> Prediction:
         """Predictions for ``num_modes`` noise draws z (one per mode and agent); ``fast``: ``decode_fast``
         (inference only). ``noise_scale``: z ~ N(0, noise_scale^2 I) instead of eq. 21's N(0, I), a sampling
         setting (spread of the K futures) for inference, chosen on validation data like a sampler's.
         ``constant_velocity_modes``: the first this many modes are held to constant velocity (their step
-        outputs zeroed; see ``_mode_open``), another inference setting to choose on validation data."""
+        outputs zeroed; see ``_mode_open``; None: ``ModelConfig.constant_velocity_modes``, also used in
+        training), an inference setting to choose on validation data."""
         r = int(batch.active.sum())
         noise = torch.randn(num_modes, r, self.config.noise_dim, generator=generator)
         if noise_scale != 1.0:

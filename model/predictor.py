@@ -47,9 +47,15 @@ def split_by_sample(
     return out
 
 
-def noise_scaled_id(weights_sha256: str, noise_scale: float) -> str:
-    """The ``checkpoint_id`` predictions record: the weights' digest, then the noise scale when it is not 1."""
-    return weights_sha256 if noise_scale == 1.0 else f"{weights_sha256} noise_scale={noise_scale:g}"
+def inference_id(weights_sha256: str, noise_scale: float = 1.0, constant_velocity_modes: int | None = None) -> str:
+    """The ``checkpoint_id`` predictions record: the weights' digest, then each inference setting that is not
+    the checkpoint's own (noise scale not 1, constant-velocity modes given)."""
+    parts = [weights_sha256]
+    if noise_scale != 1.0:
+        parts.append(f"noise_scale={noise_scale:g}")
+    if constant_velocity_modes is not None:
+        parts.append(f"constant_velocity_modes={constant_velocity_modes}")
+    return " ".join(parts)
 
 
 class NetPredictor:
@@ -61,7 +67,8 @@ class NetPredictor:
         batch_size: scenes per forward pass.
         name: label for reports.
         noise_scale: standard deviation of the noise z at inference (1 = eq. 21, what training drew).
-        constant_velocity_modes: how many of the K modes are held to constant velocity (0 = none, the paper).
+        constant_velocity_modes: how many of the K modes are held to constant velocity (0 = none, the paper;
+            None = the checkpoint's ``ModelConfig.constant_velocity_modes``, at most K - 1).
     """
 
     @classmethod
@@ -73,13 +80,15 @@ class NetPredictor:
         expect_config: ModelConfig | None = None,
         batch_size: int = 32,
         noise_scale: float = 1.0,
+        constant_velocity_modes: int | None = None,
     ) -> NetPredictor:
         """Load a checkpoint folder (see ``checkpoints.load_checkpoint`` for the checks and errors)."""
         loaded = load_checkpoint(path, expect_kind=expect_kind, expect_config=expect_config)
-        return cls(loaded.net, batch_size=batch_size, noise_scale=noise_scale)
+        return cls(loaded.net, batch_size=batch_size, noise_scale=noise_scale,
+                   constant_velocity_modes=constant_velocity_modes)
 
     def __init__(self, net: TrajectoryNet, batch_size: int = 32, name: str = "zhu2020",
-                 noise_scale: float = 1.0, constant_velocity_modes: int = 0) -> None:
+                 noise_scale: float = 1.0, constant_velocity_modes: int | None = None) -> None:
         if not (math.isfinite(noise_scale) and noise_scale > 0):
             raise LogpipeError(f"noise scale must be a positive number, got {noise_scale}")
         self.net = net.eval()
@@ -93,7 +102,7 @@ class NetPredictor:
         """The same network and settings, sampling z with standard deviation ``noise_scale``."""
         return NetPredictor(self.net, self.batch_size, self.name, noise_scale, self.constant_velocity_modes)
 
-    def with_constant_velocity_modes(self, count: int) -> NetPredictor:
+    def with_constant_velocity_modes(self, count: int | None) -> NetPredictor:
         """The same network and settings, with the first ``count`` modes held to constant velocity."""
         return NetPredictor(self.net, self.batch_size, self.name, self.noise_scale, count)
 

@@ -27,6 +27,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from reproduce_ethucy import (
     AS_TRAINED,
+    CV_MODES_GRID,
     NOISE_SCALE_GRID,
     REPO,
     SEED_METHODS,
@@ -34,6 +35,7 @@ from reproduce_ethucy import (
     checkpoint_paths,
     ensure_dataset,
     find_checkpoint,
+    grid_row,
     machine_note,
     pair,
     seed_run,
@@ -105,7 +107,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     (args.results / "apolloscape.json").write_text(json.dumps(
         {"overall": {m: e["overall"] for m, e in report["methods"].items()},
          "by_type": {m: e["by_type"] for m, e in report["methods"].items()},
-         "sampler": choice, "noise_scale": {m: c["noise_scale"] for m, c in noise.items()}, "split_logs": n_logs,
+         "sampler": choice,
+         "inference": {m: {key: c[key] for key in ("noise_scale", "constant_velocity_modes")}
+                       for m, c in noise.items()},
+         "split_logs": n_logs,
          "skipped": skipped, "seeds": {str(n): v for n, v in seeds.items()}, "seconds": round(seconds, 1)},
         indent=1, sort_keys=True))
     (args.results / "apolloscape.md").write_text(render(report, choice, grid, noise, n_logs, skipped, seconds, args,
@@ -167,13 +172,17 @@ def render(report: dict[str, Any], choice: dict[str, float], grid: list[Any], no
               f"by per-agent best-of-20 ADE (val ADE/FDE "
               + next(f"{g[2]:.2f}/{g[3]:.2f}" for g in grid if g[0] == choice["heading_std_rad"]
                      and g[1] == choice["speed_std_frac"]) + ").", "",
-              "## Noise scale of the learned methods", "",
-              "The noise z of eq. 21 is drawn from N(0, s² I) at inference (s = 1: as trained), s chosen on hash/val "
-              f"from {list(NOISE_SCALE_GRID)} by per-agent best-of-20 ADE, like the sampler's settings:", ""]
+              "## Inference settings of the learned methods", "",
+              "The noise z of eq. 21 is drawn from N(0, s² I) at inference (s = 1: as trained) and the first c of the "
+              "modes can be held to constant velocity; (c, s) is chosen on hash/val from c in "
+              f"{list(CV_MODES_GRID)}, s in {list(NOISE_SCALE_GRID)} by per-agent best-of-20 ADE, like the sampler's "
+              "settings:", ""]
     for method, c in noise.items():
-        at = {g[0]: g for g in c["grid"]}
-        lines.append(f"- {method}: s = {c['noise_scale']:g} (val {at[c['noise_scale']][1]:.2f}/"
-                     f"{at[c['noise_scale']][2]:.2f}; at s = 1 {at[1.0][1]:.2f}/{at[1.0][2]:.2f})")
+        at, one = (grid_row(c["grid"], c["constant_velocity_modes"], c["noise_scale"]),
+                   grid_row(c["grid"], c["trained_constant_velocity_modes"], 1.0))
+        lines.append(f"- {method}: c = {c['constant_velocity_modes']}, s = {c['noise_scale']:g} (val {at[2]:.2f}/"
+                     f"{at[3]:.2f}; as trained, c = {c['trained_constant_velocity_modes']} and s = 1, "
+                     f"{one[2]:.2f}/{one[3]:.2f})")
     lines += ["", "## Learned methods", ""]
     lines += [f"- not run: {s}" for s in skipped] or ["All learned methods had checkpoints."]
     lines += ["", "## Notes", "",

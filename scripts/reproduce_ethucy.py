@@ -36,7 +36,7 @@ from logpipe.formats.ethucy import FRAME_PERIOD_NS
 from logpipe.io import atomic_open, write_parquet
 from logpipe.model.baselines import ConstantVelocity, ConstantVelocitySampler, KalmanCV, LinearFit
 from logpipe.model.checkpoints import read_meta
-from logpipe.model.predictor import NetPredictor, Predictor, noise_scaled_id
+from logpipe.model.predictor import NetPredictor, Predictor, inference_id
 from logpipe.resample import ResampleSpec, resample_track
 from logpipe.stages.ingest import IngestOptions, ingest
 from logpipe.stages.score import forecasts_to_table, load_predictions, score
@@ -52,6 +52,8 @@ SPEED_GRID = (0.0, 0.1, 0.2, 0.3, 0.4, 0.6, 0.8)
 """Sampler relative speed noise std candidates."""
 NOISE_SCALE_GRID = (0.5, 0.75, 1.0, 1.5, 2.0, 2.5, 3.0)
 """Candidates for the std of a learned method's noise z at inference (1 = eq. 21, what training drew)."""
+CV_MODES_GRID = (0, 1)
+"""Candidates for how many of a learned method's K modes are held to constant velocity at inference."""
 STILL_STEP_M = 0.03
 """A pedestrian whose last observed step is shorter than this (metres) counts as standing in the motion breakdown."""
 STAY_RADIUS_M = 0.5
@@ -81,7 +83,8 @@ MOTION_METHODS = ("cv_sampler", "noise_lstm", "zhu2020")
 """Methods of the motion breakdown: the best-of-20 ones of the main table."""
 
 AS_TRAINED = "zhu2020_scale1"
-"""Method name of the paper's network run with its noise z as trained (scale 1), beside the tuned run."""
+"""Method name of the paper's network run as trained (noise scale 1, its config's constant-velocity modes), beside
+the tuned run."""
 
 LEARNED = {  # method -> (default checkpoint template, K): the lead trains these with `logpipe train`
     "zhu2020": ("model/checkpoints/ethucy/{scene}", K_BEST),
@@ -140,16 +143,29 @@ def best_of_k(pred: NDArrayFloat, truth: NDArrayFloat) -> tuple[float, float]:
     return float(best.ade.mean()), float(best.fde.mean())
 
 
-def tune_noise_scale(net: NetPredictor, val: Sequence[SceneSample], pred_len: int, k: int,
-                     seed: int) -> tuple[float, list[tuple[float, float, float]]]:
-    """Pick a learned method's noise scale with the lowest per-agent best-of-k ADE (+FDE as a tie-break) on
-    ``val``, the sampler's criterion. Returns the choice and every candidate's (scale, ade, fde)."""
+def tune_inference(net: NetPredictor, val: Sequence[SceneSample], pred_len: int, k: int,
+                   seed: int) -> tuple[dict[str, Any], list[tuple[int, float, float, float]]]:
+    """Pick a learned method's inference settings, noise scale and constant-velocity modes, with the lowest
+    per-agent best-of-k ADE (+FDE as a tie-break) on ``val``, the sampler's criterion. Returns the choice
+    ({"noise_scale", "constant_velocity_modes"}) and every candidate's (modes, scale, ade, fde)."""
     truth = truth_of(val, pred_len)
     grid = []
-    for scale in NOISE_SCALE_GRID:
-        forecasts = net.with_noise_scale(scale).predict(val, k, seed)
-        grid.append((scale, *best_of_k(np.concatenate(forecasts), truth)))
-    return min(grid, key=lambda g: (g[1], g[2]))[0], grid
+    for held in CV_MODES_GRID:
+        for scale in NOISE_SCALE_GRID:
+            forecasts = net.with_noise_scale(scale).with_constant_velocity_modes(held).predict(val, k, seed)
+            grid.append((held, scale, *best_of_k(np.concatenate(forecasts), truth)))
+    held, scale, _, _ = min(grid, key=lambda g: (g[2], g[3]))
+    return {"noise_scale": scale, "constant_velocity_modes": held}, grid
+
+
+def tuned(net: NetPredictor, choice: dict[str, Any]) -> NetPredictor:
+    """``net`` at the inference settings ``tune_inference`` chose."""
+    return net.with_noise_scale(choice["noise_scale"]).with_constant_velocity_modes(choice["constant_velocity_modes"])
+
+
+def grid_row(grid: Sequence[Sequence[float]], held: int, scale: float) -> Sequence[float]:
+    """The (modes, scale, ade, fde) row of ``tune_inference``'s grid at these settings."""
+    return next(g for g in grid if g[0] == held and g[1] == scale)
 
 
 def speed_shifted(samples: Sequence[SceneSample], factor: float = SPEED_SHIFT) -> list[SceneSample]:
@@ -209,24 +225,25 @@ def write_learned(checkpoint: Path, kind: str, val: Sequence[SceneSample], test:
                   seed: int, pred_len: int, pdir: Path, method: str, as_trained: str | None = None,
                   speed_shift: bool = False, rate_val: Sequence[SceneSample] | None = None,
                   ) -> tuple[list[Path], dict[str, Any] | None]:
-    """Test predictions of a learned method: with K > 1 at the noise scale chosen on ``val`` (and, named
-    ``as_trained``, at scale 1 too); with K = 1 as it is. Returns the files and the choice (None for K = 1),
-    with the speed-shift check's val ADE/FDE when ``speed_shift`` and the frame-rate check's on ``rate_val``."""
+    """Test predictions of a learned method: with K > 1 at the inference settings chosen on ``val`` (and, named
+    ``as_trained``, at the checkpoint's own too); with K = 1 as it is. Returns the files and the choice (None for
+    K = 1), with the speed-shift check's val ADE/FDE when ``speed_shift`` and the frame-rate check's on ``rate_val``."""
     sha = read_meta(checkpoint).weights_sha256
     net = NetPredictor.from_checkpoint(checkpoint, expect_kind=kind)
     if k == 1:
         return [write_predictions(net, test, k, seed, pred_len, sha, pdir / f"{method}.parquet", method)], None
-    scale, grid = tune_noise_scale(net, val, pred_len, k, seed)
-    tuned = net.with_noise_scale(scale)
-    files = [write_predictions(tuned, test, k, seed, pred_len, noise_scaled_id(sha, scale),
+    choice, grid = tune_inference(net, val, pred_len, k, seed)
+    best = tuned(net, choice)
+    files = [write_predictions(best, test, k, seed, pred_len, inference_id(sha, **choice),
                                pdir / f"{method}.parquet", method)]
     if as_trained is not None:
         files.append(write_predictions(net, test, k, seed, pred_len, sha, pdir / f"{as_trained}.parquet", as_trained))
-    chosen: dict[str, Any] = {"noise_scale": scale, "grid": grid}
+    trained_held = min(net.config.constant_velocity_modes, k - 1)
+    chosen: dict[str, Any] = {**choice, "grid": grid, "trained_constant_velocity_modes": trained_held}
     if speed_shift:
-        chosen["speed_shift_val"] = shifted_best_of_k(tuned, val, pred_len, k, seed)
+        chosen["speed_shift_val"] = shifted_best_of_k(best, val, pred_len, k, seed)
     if rate_val is not None:
-        chosen["rate_shift_val"] = predicted_best_of_k(tuned, rate_val, pred_len, k, seed)
+        chosen["rate_shift_val"] = predicted_best_of_k(best, rate_val, pred_len, k, seed)
     return files, chosen
 
 
@@ -324,7 +341,8 @@ def seed_run(seed: int, templates: dict[str, str], learned: dict[str, tuple[str,
              work: Path) -> dict[str, Any]:
     """One extra seed's test ADE/FDE: the sampler with sampling seed ``seed`` (its noise chosen on ``val`` again) and
     each learned method whose ``seed`` checkpoint exists, trained with ``train.seed = seed`` and sampled with it (its
-    noise scale chosen on ``val``); scored like the main table, without plots. Returns method -> (K, ADE, FDE)."""
+    inference settings chosen on ``val``); scored like the main table, without plots. Returns method -> (K, ADE,
+    FDE)."""
     pred_len = ds.protocol.pred_len
     choice, _ = tune_sampler(val, pred_len, K_BEST, seed)
     files = [write_predictions(ConstantVelocitySampler(pred_len=pred_len, **choice), test, K_BEST, seed, pred_len,
@@ -444,29 +462,30 @@ def motion_breakdown(samples: Sequence[SceneSample], forecasts: dict[str, NDArra
 def val_forecasts(sampler: Predictor, templates: dict[str, str], noise: dict[str, Any], scene: str, kind: str,
                   val: Sequence[SceneSample], seed: int) -> dict[str, NDArrayFloat]:
     """The ``MOTION_METHODS``' K=20 forecasts of ``val`` at their settings chosen there (``noise``: method -> the
-    noise-scale choice), for the motion breakdown; a learned method without a checkpoint is left out."""
+    inference choice), for the motion breakdown; a learned method without a checkpoint is left out."""
     out = {"cv_sampler": np.concatenate(sampler.predict(val, K_BEST, seed))}
     for method in MOTION_METHODS[1:]:
         ckpt = find_checkpoint(templates[method], scene)
         if ckpt is not None and method in noise:
-            net = NetPredictor.from_checkpoint(ckpt, expect_kind=kind).with_noise_scale(noise[method]["noise_scale"])
+            net = tuned(NetPredictor.from_checkpoint(ckpt, expect_kind=kind), noise[method])
             out[method] = np.concatenate(net.predict(val, K_BEST, seed))
     return out
 
 
 def validation_summary(results: dict[str, Any], scene: str) -> dict[str, Any]:
     """What was measured on ``scene/val``: per K=20 method its chosen setting, best-of-20 ADE/FDE there and on the
-    speed- and frame-rate-shifted val (the noise-scale grid of the learned methods too)."""
+    speed- and frame-rate-shifted val (the inference-settings grid of the learned methods too)."""
     smp = results["sampler"][scene]
     c = smp["choice"]
     at = next(g for g in smp["grid"] if g[0] == c["heading_std_rad"] and g[1] == c["speed_std_frac"])
     out: dict[str, Any] = {"cv_sampler": {"ade_fde": list(at[2:]), "speed_shift_ade_fde": list(smp["speed_shift_val"]),
                                           "rate_shift_ade_fde": list(smp["rate_shift_val"])}}
     for method, n in results["noise"].get(scene, {}).items():
-        chosen = next(g for g in n["grid"] if g[0] == n["noise_scale"])
-        out[method] = {"noise_scale": n["noise_scale"], "ade_fde": list(chosen[1:]),
-                       "speed_shift_ade_fde": list(n["speed_shift_val"]),
-                       "rate_shift_ade_fde": list(n["rate_shift_val"]), "noise_scale_grid": n["grid"]}
+        chosen = grid_row(n["grid"], n["constant_velocity_modes"], n["noise_scale"])
+        out[method] = {"noise_scale": n["noise_scale"], "constant_velocity_modes": n["constant_velocity_modes"],
+                       "trained_constant_velocity_modes": n["trained_constant_velocity_modes"],
+                       "ade_fde": list(chosen[2:]), "speed_shift_ade_fde": list(n["speed_shift_val"]),
+                       "rate_shift_ade_fde": list(n["rate_shift_val"]), "inference_grid": n["grid"]}
     return out
 
 
@@ -614,10 +633,10 @@ ROWS = (  # (label, method, k, ade key, fde key)
     ("CV sampler, best-of-20 joint (Social-GAN eval)", "cv_sampler", 20, "ade_joint", "fde_joint"),
     ("CV sampler, K=1 (first sample)", "cv_sampler", 1, "ade", "fde"),
     ("LSTM (K=1)", "lstm", 1, "ade", "fde"),
-    ("Noise-LSTM, best-of-20 per agent (noise scale chosen on val)", "noise_lstm", 20, "ade", "fde"),
-    ("Our method (zhu2020), best-of-20 per agent (noise scale chosen on val)", "zhu2020", 20, "ade", "fde"),
-    ("Our method (zhu2020), best-of-20 per agent, z as trained (scale 1)", AS_TRAINED, 20, "ade", "fde"),
-    ("Our method (zhu2020), K=1, z as trained (scale 1)", AS_TRAINED, 1, "ade", "fde"),
+    ("Noise-LSTM, best-of-20 per agent (inference settings chosen on val)", "noise_lstm", 20, "ade", "fde"),
+    ("Our method (zhu2020), best-of-20 per agent (inference settings chosen on val)", "zhu2020", 20, "ade", "fde"),
+    ("Our method (zhu2020), best-of-20 per agent, as trained (s = 1)", AS_TRAINED, 20, "ade", "fde"),
+    ("Our method (zhu2020), K=1, as trained (s = 1)", AS_TRAINED, 1, "ade", "fde"),
 )
 
 
@@ -647,9 +666,9 @@ def across_seeds_section(results: dict[str, Any]) -> list[str]:
     return ["## Across training seeds (Social-GAN literal windows)", "",
             f"The table above is training seed 0 (the shipped checkpoints). Here every learned method was also trained "
             f"with `train.seed` = {', '.join(map(str, seeds))} (`make train-ethucy SEED=N`, checkpoints in "
-            "`model/checkpoints/seedN/ethucy/`, the same config), each sampled with its seed and its noise scale "
-            "chosen on `S/val` again; the sampler is re-tuned on `S/val` and sampled with each seed. Cells: mean "
-            "best-of-K ADE/FDE over the seeds (ADE range / FDE range); three decimals because the differences are "
+            "`model/checkpoints/seedN/ethucy/`, the same config), each sampled with its seed and its inference "
+            "settings chosen on `S/val` again; the sampler is re-tuned on `S/val` and sampled with each seed. Cells: "
+            "mean best-of-K ADE/FDE over the seeds (ADE range / FDE range); three decimals because the differences are "
             "small.", "", *across_seeds_table(list(results["scenes"]), cells, with_avg=len(cells) == len(SCENES)), "",
             *left_out]
 
@@ -722,18 +741,23 @@ def render(results: dict[str, Any], args: argparse.Namespace, seconds: float) ->
         c, (ade, fde) = s["choice"], results["val"][scene]["cv_sampler"]["ade_fde"]
         lines.append(f"| {scene} | {c['heading_std_rad']} | {c['speed_std_frac']} | {s['val_agents']} | "
                      f"{ade:.2f}/{fde:.2f} |")
-    lines += ["", "## Noise scale of the learned methods (chosen on validation)", "",
-              "The noise z of eq. 21 is drawn from N(0, s² I) at inference; s = 1 is what training drew. Like the "
-              f"sampler's noise, s is chosen per scene and method on `S/val` from {list(NOISE_SCALE_GRID)} by "
-              "per-agent best-of-20 ADE (FDE breaks ties); the table above also shows our method at s = 1.", "",
-              "| scene | method | s | val best-of-20 ADE/FDE at s | at s = 1 |", "|---|---|---|---|---|"]
+    lines += ["", "## Inference settings of the learned methods (chosen on validation)", "",
+              "The noise z of eq. 21 is drawn from N(0, s² I) at inference; s = 1 is what training drew. The first c "
+              "of the 20 modes can be held to constant velocity (the network's step corrections zeroed; "
+              "`ModelConfig.constant_velocity_modes`, `logpipe predict --constant-velocity-modes`). Like the "
+              f"sampler's noise, (c, s) is chosen per scene and method on `S/val` from c in {list(CV_MODES_GRID)} "
+              f"and s in {list(NOISE_SCALE_GRID)} by per-agent best-of-20 ADE (FDE breaks ties); the table above "
+              "also shows our method as trained (s = 1, c as in its config).", "",
+              "| scene | method | c | s | val best-of-20 ADE/FDE at (c, s) | as trained (c₀, s = 1) |",
+              "|---|---|---|---|---|---|"]
     for scene, methods in results["val"].items():
         for method, v in methods.items():
             if method == "cv_sampler":
                 continue
-            (ade, fde), one = v["ade_fde"], next(g for g in v["noise_scale_grid"] if g[0] == 1.0)
-            lines.append(f"| {scene} | {method} | {v['noise_scale']:g} | {ade:.2f}/{fde:.2f} | "
-                         f"{one[1]:.2f}/{one[2]:.2f} |")
+            held = v["trained_constant_velocity_modes"]
+            (ade, fde), one = v["ade_fde"], grid_row(v["inference_grid"], held, 1.0)
+            lines.append(f"| {scene} | {method} | {v['constant_velocity_modes']} | {v['noise_scale']:g} | "
+                         f"{ade:.2f}/{fde:.2f} | {one[2]:.2f}/{one[3]:.2f} (c₀ = {held}) |")
     lines += ["", f"## Speed-shift check (validation only): `S/val` at {SPEED_SHIFT}x the speed", "",
               f"Every `S/val` position scaled by {SPEED_SHIFT} (the same paths walked {SPEED_SHIFT} times faster, "
               "about biwi_eth's speed-up over the other scenes, measured on `biwi_eth_train.txt`), each method at "

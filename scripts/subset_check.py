@@ -38,8 +38,9 @@ from reproduce_ethucy import (
     ensure_dataset,
     find_checkpoint,
     truth_of,
-    tune_noise_scale,
+    tune_inference,
     tune_sampler,
+    tuned,
 )
 
 
@@ -109,9 +110,9 @@ def main(argv: Sequence[str] | None = None) -> int:
             if ckpt is None:
                 continue
             net = NetPredictor.from_checkpoint(ckpt, expect_kind=ds.kind)
-            scale, _ = tune_noise_scale(net, val, pred_len, K_BEST, args.seed)
-            methods[method] = {"noise_scale": scale,
-                               **compare(net.with_noise_scale(scale), val, pred_len, args.draws, args.seed)}
+            setting, _ = tune_inference(net, val, pred_len, K_BEST, args.seed)
+            methods[method] = {"setting": setting,
+                               **compare(tuned(net, setting), val, pred_len, args.draws, args.seed)}
         result[scene] = methods
         print(f"{scene}: {json.dumps(methods)}", file=sys.stderr)
     args.out.parent.mkdir(parents=True, exist_ok=True)

@@ -269,14 +269,16 @@ def check_fit(dataset: Dataset, chosen: ChosenPredictor, logs: pa.Table) -> list
     return problems
 
 
-def load_net(chosen: ChosenPredictor, dataset: Dataset, batch_size: int, noise_scale: float = 1.0) -> None:
+def load_net(chosen: ChosenPredictor, dataset: Dataset, batch_size: int, noise_scale: float = 1.0,
+             constant_velocity_modes: int | None = None) -> None:
     """Load the checkpoint's weights into ``chosen.model`` (after ``check_fit`` passed)."""
     if chosen.model is not None or chosen.checkpoint is None:
         return
     from logpipe.model.predictor import NetPredictor
 
     chosen.model = NetPredictor.from_checkpoint(chosen.checkpoint, expect_kind=dataset.kind, batch_size=batch_size,
-                                                noise_scale=noise_scale)
+                                                noise_scale=noise_scale,
+                                                constant_velocity_modes=constant_velocity_modes)
 
 
 def find_original(row: dict[str, Any], inputs: Sequence[Path], dataset: Dataset) -> Source:
@@ -351,6 +353,7 @@ def predict_dataset(
     modes: int | None = None,
     seed: int = 0,
     noise_scale: float = 1.0,
+    constant_velocity_modes: int | None = None,
     sample_filter: SampleFilter | None = None,
     inputs: Sequence[Path] = (),
     raster_run: str | None = None,
@@ -371,6 +374,9 @@ def predict_dataset(
         seed: fixes every random draw (noise z, sampler); same seed and settings give the same output.
         noise_scale: standard deviation of the network's noise z (1 = as trained, eq. 21); the spread of the
             K futures, to be chosen on validation data. Recorded in ``checkpoint_id`` when not 1.
+        constant_velocity_modes: how many of the K futures are the constant-velocity forecast (the network's
+            step outputs held at zero; default: the checkpoint's config, 0 unless trained otherwise), also to be
+            chosen on validation data. Recorded in ``checkpoint_id`` when given.
         sample_filter: which samples (default: all).
         inputs: the roots ROS bags / MCAP files were ingested from (their originals are copied into the output);
             default: the manifest's ``input_roots`` (absolute paths), when ingest records them.
@@ -394,12 +400,16 @@ def predict_dataset(
     if modes < 1 or batch_size < 1:
         raise LogpipeError(f"--modes and --batch-size must be >= 1, got {modes} and {batch_size}")
     chosen = choose_predictor(dataset, checkpoint, predictor, split=sample_filter.split)
-    if noise_scale != 1.0:
+    if noise_scale != 1.0 or constant_velocity_modes is not None:
         if chosen.checkpoint is None:
-            raise LogpipeError("--noise-scale applies to a checkpoint's noise z, not to a --predictor baseline")
-        from logpipe.model.predictor import noise_scaled_id
+            raise LogpipeError("--noise-scale and --constant-velocity-modes apply to a checkpoint's network, "
+                               "not to a --predictor baseline")
+        if constant_velocity_modes is not None and not 0 <= constant_velocity_modes <= modes:
+            raise LogpipeError(f"--constant-velocity-modes must be in 0..{modes} (--modes), "
+                               f"got {constant_velocity_modes}")
+        from logpipe.model.predictor import inference_id
 
-        chosen.checkpoint_id = noise_scaled_id(chosen.checkpoint_id, noise_scale)
+        chosen.checkpoint_id = inference_id(chosen.checkpoint_id, noise_scale, constant_velocity_modes)
     logs_table = _selected_logs(dataset, sample_filter)
     problems = check_fit(dataset, chosen, logs_table)
     samples_by_log = _selected_samples(dataset, logs_table, sample_filter)
@@ -413,7 +423,7 @@ def predict_dataset(
     # Where bags/MCAP inputs are: --inputs, else the roots ingest recorded (manifest "input_roots", if it does).
     roots = list(inputs) or [Path(p) for p in dataset.manifest.get("input_roots", [])]
     originals = {log_id: find_original(row, roots, dataset) for log_id, row in logs.items()} if write_mcap else {}
-    load_net(chosen, dataset, batch_size, noise_scale)
+    load_net(chosen, dataset, batch_size, noise_scale, constant_velocity_modes)
     manifest_sha = sha256_file(dataset.root / "manifest.json")
     settings = {
         "dataset_manifest_sha256": manifest_sha, "predictor": chosen.name, "checkpoint_id": chosen.checkpoint_id,

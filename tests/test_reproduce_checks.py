@@ -175,3 +175,32 @@ def test_motion_breakdown_splits_the_scored_agents(bundled: Path, tmp_path: Path
     drift = 12 * STILL_STEP_M
     assert parts["methods"]["cv"]["stays"][1] < STAY_RADIUS_M + drift
     assert parts["methods"]["cv"]["starts"][1] > STAY_RADIUS_M - drift
+
+
+def test_inference_settings_are_the_val_argmin_over_the_joint_grid(bundled: Path, tmp_path: Path) -> None:
+    """tune_inference tries every (constant-velocity modes, noise scale) pair, picks the lowest val best-of-20
+    ADE, and ``tuned`` reproduces the chosen row; holding a mode at constant velocity changes the forecasts."""
+    from reproduce_ethucy import (
+        CV_MODES_GRID,
+        NOISE_SCALE_GRID,
+        best_of_k,
+        ensure_dataset,
+        grid_row,
+        truth_of,
+        tune_inference,
+        tuned,
+    )
+
+    from logpipe.model.predictor import NetPredictor
+    from logpipe.stages.train import scene_samples
+
+    ds = ensure_dataset(bundled / "ethucy", tmp_path / "ds", "ethucy")
+    val = scene_samples(ds, "eth/train")[:30]
+    net = NetPredictor.from_checkpoint(REPO / "model" / "checkpoints" / "ethucy" / "eth", expect_kind=ds.kind)
+    choice, grid = tune_inference(net, val, 12, 20, 0)
+    assert {(g[0], g[1]) for g in grid} == {(c, s) for c in CV_MODES_GRID for s in NOISE_SCALE_GRID}
+    row = grid_row(grid, choice["constant_velocity_modes"], choice["noise_scale"])
+    assert row[2] == min(g[2] for g in grid)
+    again = best_of_k(np.concatenate(tuned(net, choice).predict(val, 20, 0)), truth_of(val, 12))
+    np.testing.assert_allclose(again, row[2:], rtol=1e-12)
+    assert grid_row(grid, 0, 1.0)[2:] != grid_row(grid, 1, 1.0)[2:]

@@ -133,6 +133,34 @@ def test_constant_velocity_modes_hold_the_first_modes_and_leave_the_rest(fast: b
     torch.testing.assert_close(held.positions[2:], ref.positions[2:], rtol=0, atol=1e-6)
 
 
+@pytest.mark.parametrize("fast", [False, True])
+def test_configured_constant_velocity_modes_are_the_default_and_leave_one_mode_learned(fast: bool) -> None:
+    """ModelConfig.constant_velocity_modes is what a forward pass without the argument holds (training's
+    path), an explicit 0 overrides it, and a single draw (K = 1) stays the network's own."""
+    torch.manual_seed(0)
+    plain = TrajectoryNet(ModelConfig(noise_dim=3, step_output="agent_velocity_change", **SMALL)).eval()
+    held = TrajectoryNet(ModelConfig(noise_dim=3, step_output="agent_velocity_change", constant_velocity_modes=2,
+                                     **SMALL)).eval()
+    held.load_state_dict(plain.state_dict())
+    batch = collate(_scenes(), plain.config)
+
+    def run(net: TrajectoryNet, k: int, **kw: int) -> torch.Tensor:
+        with torch.no_grad():
+            return net(batch, k, torch.Generator().manual_seed(1), fast=fast, **kw).positions
+
+    torch.testing.assert_close(run(held, 4), run(plain, 4, constant_velocity_modes=2), rtol=0, atol=0)
+    torch.testing.assert_close(run(held, 4, constant_velocity_modes=0), run(plain, 4), rtol=0, atol=0)
+    torch.testing.assert_close(run(held, 2), run(plain, 2, constant_velocity_modes=1), rtol=0, atol=0)
+    torch.testing.assert_close(run(held, 1), run(plain, 1), rtol=0, atol=0)
+
+
+def test_configured_constant_velocity_modes_are_checked() -> None:
+    with pytest.raises(ConfigError, match="velocity-change step_output"):
+        ModelConfig(constant_velocity_modes=1)
+    with pytest.raises(ConfigError, match="must be >= 0"):
+        ModelConfig(step_output="velocity_change", constant_velocity_modes=-1)
+
+
 def test_constant_velocity_modes_are_checked() -> None:
     batch = collate(_scenes(), ModelConfig(noise_dim=3, **SMALL))
     with pytest.raises(ConfigError, match="velocity-change step_output"):

@@ -209,6 +209,33 @@ def test_shipped_defaults_are_the_papers_method_never_a_baseline() -> None:
     assert apollo.name == "zhu2020" and not BASELINE_FOLDERS & set(apollo.parts)
 
 
+def test_constant_velocity_modes_are_the_cv_forecast_and_are_recorded(lines_dataset: Path, tmp_path: Path) -> None:
+    """``constant_velocity_modes = 1``: mode 0 of every agent is what the constant-velocity baseline predicts, the
+    other modes are not; the predictions name the setting; baselines and counts beyond K are refused."""
+    net = _checkpoint(tmp_path / "net", _small_net_config(step_output="velocity_change"), "ethucy")
+    predict_dataset(lines_dataset, tmp_path / "held", checkpoint=net, modes=3, constant_velocity_modes=1,
+                    write_mcap=False)
+    predict_dataset(lines_dataset, tmp_path / "cv", predictor="cv", modes=1, write_mcap=False)
+
+    def positions(run: str, mode: int) -> dict[tuple[str, str, int], tuple[float, float]]:
+        t = pq.read_table(tmp_path / run / "predictions" / "part-00000.parquet").to_pydict()
+        return {(t["sample_id"][i], t["track_id"][i], t["step"][i]): (t["x"][i], t["y"][i])
+                for i in range(len(t["x"])) if t["mode"][i] == mode}
+
+    cv, held, learned = positions("cv", 0), positions("held", 0), positions("held", 1)
+    assert held.keys() == cv.keys() and len(cv) == 11 * 3 * 12
+    assert all(held[k] == pytest.approx(cv[k], abs=1e-4) for k in cv)
+    assert max(abs(learned[k][0] - cv[k][0]) + abs(learned[k][1] - cv[k][1]) for k in cv) > 1e-2
+    ids = set(pq.read_table(tmp_path / "held" / "predictions" / "part-00000.parquet").column("checkpoint_id")
+              .to_pylist())
+    sha = json.loads((net / "meta.json").read_text())["weights_sha256"]
+    assert ids == {f"{sha} constant_velocity_modes=1"}
+    with pytest.raises(LogpipeError, match="constant-velocity-modes"):
+        predict_dataset(lines_dataset, tmp_path / "never", predictor="cv", constant_velocity_modes=1)
+    with pytest.raises(LogpipeError, match=r"0\.\.3"):
+        predict_dataset(lines_dataset, tmp_path / "never", checkpoint=net, modes=3, constant_velocity_modes=4)
+
+
 def test_noise_scale_widens_the_modes_and_is_recorded(lines_dataset: Path, tmp_path: Path) -> None:
     """``noise_scale`` multiplies the noise z (scale 1 is the default draw); the spread of the K futures grows
     with it, the predictions name it, and it cannot be given to a baseline or be non-positive."""
