@@ -148,8 +148,9 @@ def with_preset(config: TrainConfig, name: str) -> TrainConfig:
     row = preset(name)
     if row.noise_dim:
         return dataclasses.replace(config, model=dataclasses.replace(config.model, features=row.features))
-    model = dataclasses.replace(config.model, features=row.features, noise_dim=0)
-    return dataclasses.replace(config, model=model, num_modes=1, val_modes=1)  # without noise all modes are equal
+    # Without noise all modes are equal: one is drawn, so none is held at constant velocity.
+    model = dataclasses.replace(config.model, features=row.features, noise_dim=0, constant_velocity_modes=0)
+    return dataclasses.replace(config, model=model, num_modes=1, val_modes=1)
 
 
 def _raster_run(dataset: Dataset, name: str | None) -> RasterShards | None:

@@ -113,13 +113,14 @@ def test_train_a_few_steps_writes_a_loadable_checkpoint(bundled: Path, tmp_path:
     assert 0 < more["seconds_total"] <= summary["seconds"] + more["seconds"] + 0.1
 
 
-@pytest.mark.parametrize(("preset", "noise", "modes"), [("lstm", 0, 1), ("baseline", 16, 20)])
+@pytest.mark.parametrize(("preset", "noise", "modes", "held"), [("lstm", 0, 1, 0), ("baseline", 16, 20, 1)])
 def test_train_preset_trains_a_baseline_with_the_same_schedule(bundled: Path, tmp_path: Path, preset: str, noise: int,
-                                                                modes: int) -> None:
+                                                                modes: int, held: int) -> None:
     runner.invoke(app, ["ingest", str(bundled / "ethucy"), "--out", str(tmp_path / "e"), "--no-mcap"])
     config = tmp_path / "c.toml"
     config.write_text("[train]\nsteps = 2\neval_every = 2\nval_max_samples = 8\nnum_threads = 1\n"
-                      "augment_rotate = true\n")
+                      "augment_rotate = true\n[model]\nstep_output = \"agent_velocity_change\"\n"
+                      "constant_velocity_modes = 1\n")
     result = runner.invoke(app, ["train", str(tmp_path / "e"), "--train-split", "eth/train", "--val-split",
                                  "hotel/test", "--config", str(config), "--preset", preset, "--out",
                                  str(tmp_path / "run"), "--json"])
@@ -129,6 +130,7 @@ def test_train_preset_trains_a_baseline_with_the_same_schedule(bundled: Path, tm
     meta = read_meta(Path(json.loads(result.stdout)["best_checkpoint"]))
     assert not any(dataclasses.asdict(meta.config.model.features).values())  # no AIN, no environment net
     assert meta.config.model.noise_dim == noise and meta.config.num_modes == modes
+    assert meta.config.model.constant_velocity_modes == held  # one draw: none held at constant velocity
     assert meta.config.augment_rotate and meta.config.steps == 2  # everything else as configured
 
 
