@@ -209,6 +209,14 @@ def test_shipped_defaults_are_the_papers_method_never_a_baseline() -> None:
     assert apollo.name == "zhu2020" and not BASELINE_FOLDERS & set(apollo.parts)
 
 
+def _recorded_ids(run: Path) -> set[str]:
+    return set(pq.read_table(run / "predictions" / "part-00000.parquet").column("checkpoint_id").to_pylist())
+
+
+def _weights_sha(checkpoint: Path) -> str:
+    return str(json.loads((checkpoint / "meta.json").read_text())["weights_sha256"])
+
+
 def test_constant_velocity_modes_are_the_cv_forecast_and_are_recorded(lines_dataset: Path, tmp_path: Path) -> None:
     """``constant_velocity_modes = 1``: mode 0 of every agent is what the constant-velocity baseline predicts, the
     other modes are not; the predictions name the setting; baselines and counts beyond K are refused."""
@@ -226,10 +234,7 @@ def test_constant_velocity_modes_are_the_cv_forecast_and_are_recorded(lines_data
     assert held.keys() == cv.keys() and len(cv) == 11 * 3 * 12
     assert all(held[k] == pytest.approx(cv[k], abs=1e-4) for k in cv)
     assert max(abs(learned[k][0] - cv[k][0]) + abs(learned[k][1] - cv[k][1]) for k in cv) > 1e-2
-    ids = set(pq.read_table(tmp_path / "held" / "predictions" / "part-00000.parquet").column("checkpoint_id")
-              .to_pylist())
-    sha = json.loads((net / "meta.json").read_text())["weights_sha256"]
-    assert ids == {f"{sha} constant_velocity_modes=1"}
+    assert _recorded_ids(tmp_path / "held") == {f"{_weights_sha(net)} constant_velocity_modes=1"}
     with pytest.raises(LogpipeError, match="constant-velocity-modes"):
         predict_dataset(lines_dataset, tmp_path / "never", predictor="cv", constant_velocity_modes=1)
     with pytest.raises(LogpipeError, match=r"0\.\.3"):
@@ -264,10 +269,7 @@ def test_noise_scale_widens_the_modes_and_is_recorded(lines_dataset: Path, tmp_p
     assert torch.allclose(direct.positions, scaled.positions)
     assert b.std(axis=1).mean() > a.std(axis=1).mean()
     predict_dataset(lines_dataset, tmp_path / "out", checkpoint=good, modes=3, noise_scale=2.5, write_mcap=False)
-    ids = set(pq.read_table(tmp_path / "out" / "predictions" / "part-00000.parquet").column("checkpoint_id")
-              .to_pylist())
-    sha = json.loads((good / "meta.json").read_text())["weights_sha256"]
-    assert ids == {f"{sha} noise_scale=2.5"}
+    assert _recorded_ids(tmp_path / "out") == {f"{_weights_sha(good)} noise_scale=2.5"}
     with pytest.raises(LogpipeError, match="noise-scale"):
         predict_dataset(lines_dataset, tmp_path / "never", predictor="cv", noise_scale=2.0)
     with pytest.raises(LogpipeError, match="positive"):
