@@ -60,10 +60,10 @@ ROWS = (("Constant velocity (K=1)", "cv", 1, "ade", "fde"), ("Linear (K=1)", "li
         ("CV sampler, best-of-20 per agent", "cv_sampler", 20, "ade", "fde"),
         ("CV sampler, best-of-20 joint", "cv_sampler", 20, "ade_joint", "fde_joint"),
         ("CV sampler, K=1", "cv_sampler", 1, "ade", "fde"), ("LSTM (K=1)", "lstm", 1, "ade", "fde"),
-        ("Noise-LSTM, best-of-20 (noise scale chosen on val)", "noise_lstm", 20, "ade", "fde"),
-        ("Our method (zhu2020), best-of-20 (noise scale chosen on val)", "zhu2020", 20, "ade", "fde"),
-        ("Our method (zhu2020), best-of-20, z as trained (scale 1)", AS_TRAINED, 20, "ade", "fde"),
-        ("Our method (zhu2020), K=1, z as trained (scale 1)", AS_TRAINED, 1, "ade", "fde"))
+        ("Noise-LSTM, best-of-20 (inference settings chosen on val)", "noise_lstm", 20, "ade", "fde"),
+        ("Our method (zhu2020), best-of-20 (inference settings chosen on val)", "zhu2020", 20, "ade", "fde"),
+        ("Our method (zhu2020), best-of-20, as trained (s = 1)", AS_TRAINED, 20, "ade", "fde"),
+        ("Our method (zhu2020), K=1, as trained (s = 1)", AS_TRAINED, 1, "ade", "fde"))
 TYPES = ("vehicle", "bus_truck", "pedestrian", "cyclist", "unknown")
 
 
