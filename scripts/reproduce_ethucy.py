@@ -680,7 +680,7 @@ def motion_section(results: dict[str, Any]) -> list[str]:
              "The seed-0 best-of-20 rows (`min_agents=2`) split by what each pedestrian did: standing at the last "
              f"observed step (a step under {STILL_STEP_M * 100:g} cm) and still within {STAY_RADIUS_M:g} m of that "
              f"spot 4.8 s later (stays), standing and then walking off (starts), or moving. `S/val` is where the "
-             "noise settings were chosen (each method at its choice there); best-of-20 per agent ADE/FDE.", "",
+             "inference settings were chosen (each method at its choice there); best-of-20 per agent ADE/FDE.", "",
              "| scene | split | group | agents (share) | " + " | ".join(names[m] for m in MOTION_METHODS) + " |",
              "|---|---|---|---|" + "---|" * len(MOTION_METHODS)]
     for scene, by_split in results["motion"].items():
