@@ -174,6 +174,11 @@ class ModelConfig:
             raise ConfigError("model.constant_velocity_modes needs a velocity-change step_output; with "
                               "'displacement' a zero output means standing still, not constant velocity")
 
+    def held_modes(self, num_modes: int) -> int:
+        """How many of ``num_modes`` draws ``constant_velocity_modes`` holds: at most ``num_modes - 1``, so a
+        single draw is the network's own."""
+        return min(self.constant_velocity_modes, num_modes - 1)
+
     def resolved(self, *, has_ego: bool, has_map: bool) -> ModelConfig:
         """This config with the features the data cannot feed switched off (paper: no EMF/ETF/EF on
         ETH/UCY and ApolloScape, which have no ego and no HD map)."""

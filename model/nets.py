@@ -653,12 +653,12 @@ class TrajectoryNet(nn.Module):
         modes run along ``mode_dim``: the mode gate (``ModelConfig.mode_gate``), times 0 for the first
         ``constant_velocity_modes`` modes. With a velocity-change output such a mode is exactly the
         constant-velocity forecast (standing still for an agent standing still), a mode the learned gate may
-        never reach; None when every factor is 1. ``constant_velocity_modes`` None: the config's, held to
-        at most K - 1 modes."""
+        never reach; None when every factor is 1. ``constant_velocity_modes`` None: the config's
+        (``ModelConfig.held_modes``)."""
         gate = None if self.mode_gate is None else torch.sigmoid(self.mode_gate(h0))
         num_modes = h0.shape[mode_dim]
         if constant_velocity_modes is None:
-            constant_velocity_modes = min(self.config.constant_velocity_modes, num_modes - 1)
+            constant_velocity_modes = self.config.held_modes(num_modes)
         if constant_velocity_modes == 0:
             return gate
         if self.config.step_output == "displacement":

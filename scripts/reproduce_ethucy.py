@@ -152,7 +152,7 @@ def tune_inference(net: NetPredictor, val: Sequence[SceneSample], pred_len: int,
     grid = []
     for held in CV_MODES_GRID:
         for scale in NOISE_SCALE_GRID:
-            forecasts = net.with_noise_scale(scale).with_constant_velocity_modes(held).predict(val, k, seed)
+            forecasts = tuned(net, {"noise_scale": scale, "constant_velocity_modes": held}).predict(val, k, seed)
             grid.append((held, scale, *best_of_k(np.concatenate(forecasts), truth)))
     held, scale, _, _ = min(grid, key=lambda g: (g[2], g[3]))
     return {"noise_scale": scale, "constant_velocity_modes": held}, grid
@@ -238,7 +238,7 @@ def write_learned(checkpoint: Path, kind: str, val: Sequence[SceneSample], test:
                                pdir / f"{method}.parquet", method)]
     if as_trained is not None:
         files.append(write_predictions(net, test, k, seed, pred_len, sha, pdir / f"{as_trained}.parquet", as_trained))
-    trained_held = min(net.config.constant_velocity_modes, k - 1)
+    trained_held = net.config.held_modes(k)
     chosen: dict[str, Any] = {**choice, "grid": grid, "trained_constant_velocity_modes": trained_held}
     if speed_shift:
         chosen["speed_shift_val"] = shifted_best_of_k(best, val, pred_len, k, seed)
