@@ -21,8 +21,9 @@ and ``Batch.metres`` undo it.
 
 from __future__ import annotations
 
+import itertools
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import torch
@@ -63,6 +64,9 @@ class Batch:
         scale: (B,) float64 model-frame units per world metre (1 unless ``speed_unit_m`` is set).
         offsets: (B + 1,) row offsets of the scenes.
         obs_len: T_obs.
+        sample_targets: per input sample, the rows of its targets in ``target_mask`` order. With
+            ``ModelConfig.context_radius_m`` each target is its own scene (``context_scenes``), so the scenes
+            are not the input samples.
     """
 
     positions: Tensor
@@ -82,6 +86,7 @@ class Batch:
     scale: NDArrayFloat
     offsets: NDArrayInt
     obs_len: int
+    sample_targets: list[NDArrayInt]
 
     @property
     def size(self) -> int:
@@ -136,6 +141,29 @@ def _frame(sample: SceneSample, pos: NDArrayFloat, config: ModelConfig) -> tuple
     return now[anchor].copy(), _rot(-heading)
 
 
+def context_scenes(sample: SceneSample, radius_m: float) -> list[SceneSample]:
+    """One scene per target of ``sample``, in ``target_mask`` order (``ModelConfig.context_radius_m``): the
+    target (the scene's only target), the other agents observed at the current step within ``radius_m``
+    metres of it, and the ego. A target unobserved at the current step gets a scene of its own alone."""
+    now = sample.positions[:, sample.obs_len - 1]
+    seen: NDArrayBool = np.all(np.isfinite(now), axis=1)
+    scenes = []
+    for i in np.flatnonzero(sample.target_mask):
+        keep = np.zeros(len(now), bool)
+        if seen[i]:
+            keep = seen & (np.linalg.norm(np.where(seen[:, None], now - now[i], 0.0), axis=1) <= radius_m)
+            if 0 <= sample.ego_index < len(now):
+                keep[sample.ego_index] = True
+        keep[i] = True
+        rows = np.flatnonzero(keep)
+        ego = sample.ego_index
+        scenes.append(replace(
+            sample, positions=sample.positions[rows], track_ids=[sample.track_ids[j] for j in rows],
+            object_types=sample.object_types[rows], target_mask=rows == i,
+            ego_index=int(np.searchsorted(rows, ego)) if 0 <= ego < len(now) and keep[ego] else -1))
+    return scenes
+
+
 def collate(
     samples: Sequence[SceneSample],
     config: ModelConfig,
@@ -154,6 +182,8 @@ def collate(
     """
     if not samples:
         raise SampleError("cannot build a batch from zero samples")
+    if config.context_radius_m is not None:
+        return _collate_in_context(samples, config, rotations, with_raster)
     t_total = config.obs_len + config.pred_len
     b = len(samples)
     counts = np.array([len(s.positions) for s in samples], np.int64)
@@ -232,7 +262,25 @@ def collate(
         scale=scale,
         offsets=offsets,
         obs_len=config.obs_len,
+        sample_targets=[lo + np.flatnonzero(s.target_mask) for lo, s in zip(offsets[:-1], samples, strict=True)],
     )
+
+
+def _collate_in_context(samples: Sequence[SceneSample], config: ModelConfig, rotations: Sequence[float] | None,
+                        with_raster: bool | None) -> Batch:
+    """``collate`` with each target in its own scene (``context_scenes``); a sample's rotation turns all of its
+    targets' scenes alike."""
+    assert config.context_radius_m is not None
+    parts = [context_scenes(s, config.context_radius_m) for s in samples]
+    scenes = [scene for part in parts for scene in part]
+    if not scenes:  # nothing to predict: the samples as they are
+        return collate(samples, replace(config, context_radius_m=None), rotations=rotations, with_raster=with_raster)
+    turns = None if rotations is None else [r for r, part in zip(rotations, parts, strict=True) for _ in part]
+    batch = collate(scenes, replace(config, context_radius_m=None), rotations=turns, with_raster=with_raster)
+    own = [int(rows[0]) for rows in batch.sample_targets]  # a target's scene has that one target
+    firsts = np.cumsum([0] + [len(part) for part in parts])
+    batch.sample_targets = [np.array(own[lo:hi], np.int64) for lo, hi in itertools.pairwise(firsts)]
+    return batch
 
 
 def _speed_scale(observed: NDArrayFloat, unit_m: float) -> float:

@@ -36,17 +36,6 @@ class Predictor(Protocol):
         ...
 
 
-def split_by_sample(
-    samples: Sequence[SceneSample], offsets: Sequence[int], world: NDArrayFloat
-) -> list[NDArrayFloat]:
-    """Cut (N_rows, K, T, 2) per-row forecasts into per-sample target arrays."""
-    out = []
-    for i, s in enumerate(samples):
-        rows = world[offsets[i] : offsets[i + 1]]
-        out.append(np.ascontiguousarray(rows[np.asarray(s.target_mask, bool)]))
-    return out
-
-
 def inference_id(weights_sha256: str, noise_scale: float = 1.0, constant_velocity_modes: int | None = None) -> str:
     """The ``checkpoint_id`` predictions record: the weights' digest, then each inference setting that is not
     the checkpoint's own (noise scale not 1, constant-velocity modes given)."""
@@ -121,5 +110,5 @@ class NetPredictor:
             world = np.full((n, num_modes, t_pred, 2), np.nan)
             rows = pred.rows
             world[rows.numpy()] = batch.to_world(pred.positions.transpose(0, 1), batch.scene[rows])
-            out += split_by_sample(chunk, batch.offsets.tolist(), world)
+            out += [np.ascontiguousarray(world[targets]) for targets in batch.sample_targets]
         return out

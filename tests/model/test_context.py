@@ -1,0 +1,123 @@
+"""``ModelConfig.context_radius_m``: each target predicted in a scene of its own neighbourhood."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from logpipe.dataset import Dataset
+from logpipe.model.batching import collate, context_scenes
+from logpipe.model.config import ConfigError, Features, ModelConfig, TrainConfig
+from logpipe.model.nets import TrajectoryNet
+from logpipe.model.predictor import NetPredictor
+from logpipe.model.synthetic import make_scene, make_scenes
+from logpipe.model.training import _target_scenes, fit
+from logpipe.stages.ingest import IngestOptions, ingest
+from logpipe.stages.train import scene_samples
+
+BUNDLED = Path(__file__).resolve().parents[1] / "data"
+MODEL = ModelConfig(features=Features(True, True, False, False, False), embed_dim=16, gru_dim=16, lstm_dim=16,
+                    noise_dim=2, obs_len=8, pred_len=12, step_output="agent_velocity_change", speed_unit_m=0.3)
+
+
+@pytest.fixture(scope="module")
+def eth_windows(tmp_path_factory: pytest.TempPathFactory) -> list:  # type: ignore[type-arg]
+    """Real windows (bundled ETH sample) with several pedestrians each."""
+    out = tmp_path_factory.mktemp("ethucy")
+    ingest([BUNDLED / "ethucy"], IngestOptions(out=out, write_mcap=False))
+    windows = [s for s in scene_samples(Dataset.open(out), "eth/train") if len(s.track_ids) >= 3]
+    assert len(windows) >= 5
+    return windows
+
+
+def test_each_target_gets_its_neighbourhood(eth_windows: list) -> None:  # type: ignore[type-arg]
+    radius = 2.0
+    for sample in eth_windows[:40]:
+        scenes = context_scenes(sample, radius)
+        targets = np.flatnonzero(sample.target_mask)
+        assert len(scenes) == len(targets)
+        now = sample.positions[:, sample.obs_len - 1]
+        seen = np.isfinite(now).all(axis=1)
+        for i, scene in zip(targets, scenes, strict=True):
+            assert scene.target_mask.sum() == 1
+            assert scene.track_ids[int(np.flatnonzero(scene.target_mask)[0])] == sample.track_ids[i]
+            near = {sample.track_ids[j] for j in np.flatnonzero(seen)
+                    if np.linalg.norm(now[j] - now[i]) <= radius}
+            assert set(scene.track_ids) == near | {sample.track_ids[i]}
+            rows = [sample.track_ids.index(t) for t in scene.track_ids]
+            np.testing.assert_array_equal(scene.positions, sample.positions[rows])
+
+
+def test_the_ego_stays_in_every_neighbourhood() -> None:
+    sample = make_scene(np.random.default_rng(3), 6, 8, 12, with_ego=True)
+    far = sample.positions.copy()
+    far[sample.ego_index] += 1000.0  # the ego far from everyone
+    scenes = context_scenes(replace(sample, positions=far), 2.0)
+    assert scenes
+    for scene in scenes:
+        assert scene.ego_index >= 0 and scene.track_ids[scene.ego_index] == sample.track_ids[sample.ego_index]
+
+
+def test_predictions_are_those_of_each_neighbourhood_alone(eth_windows: list) -> None:  # type: ignore[type-arg]
+    torch.manual_seed(0)
+    net = TrajectoryNet(MODEL)
+    in_context = NetPredictor(TrajectoryNet(replace(MODEL, context_radius_m=2.0)), batch_size=4)
+    in_context.net.load_state_dict(net.state_dict())
+    plain = NetPredictor(net, batch_size=1000)
+    windows = eth_windows[:10]
+    got = in_context.predict(windows, 5, seed=1)
+    assert [len(g) for g in got] == [int(s.target_mask.sum()) for s in windows]
+    # in_context's first batch (4 windows) is their target scenes collated together: same rows, same noise draws
+    alone = [scene for s in windows[:4] for scene in context_scenes(s, 2.0)]
+    expected = np.concatenate(plain.predict(alone, 5, seed=1))
+    np.testing.assert_allclose(np.concatenate(got[:4]), expected, rtol=1e-5, atol=1e-5)
+    # and the neighbourhoods do change the forecasts of the whole windows
+    assert not np.allclose(np.concatenate(plain.predict(windows, 5, seed=1)), np.concatenate(got), equal_nan=True)
+
+
+def test_collate_maps_each_sample_to_its_target_rows(eth_windows: list) -> None:  # type: ignore[type-arg]
+    cfg = replace(MODEL, context_radius_m=2.0)
+    windows = eth_windows[:6]
+    batch = collate(windows, cfg)
+    assert batch.size == sum(int(s.target_mask.sum()) for s in windows)
+    assert [len(rows) for rows in batch.sample_targets] == [int(s.target_mask.sum()) for s in windows]
+    every = np.concatenate(batch.sample_targets)
+    assert batch.target[torch.from_numpy(every)].all() and int(batch.target.sum()) == len(every)
+    plain = collate(windows, MODEL)
+    assert [len(r) for r in plain.sample_targets] == [len(r) for r in batch.sample_targets]
+
+
+def test_training_scenes_are_target_scenes_of_the_same_kind() -> None:
+    data = make_scenes(4, seed=2, min_agents=2, max_agents=4, obs_len=8, pred_len=12)
+    count = sum(int(s.target_mask.sum()) for s in data)
+    as_list = _target_scenes(data, 2.0)
+    assert isinstance(as_list, list) and len(as_list) == count
+    one_shot = _target_scenes(iter(data), 2.0)
+    assert iter(one_shot) is one_shot and len(list(one_shot)) == count and not list(one_shot)
+
+    class Again:
+        def __iter__(self):  # type: ignore[no-untyped-def]
+            return iter(data)
+
+    view = _target_scenes(Again(), 2.0)
+    assert len(list(view)) == count == len(list(view))
+
+
+def test_fit_trains_on_target_scenes(tmp_path: Path) -> None:
+    data = make_scenes(6, seed=4, min_agents=3, max_agents=4, obs_len=8, pred_len=12)
+    cfg = TrainConfig(model=replace(MODEL, context_radius_m=3.0), steps=4, batch_size=4, num_modes=3, val_modes=3,
+                      eval_every=2, log_every=2, num_threads=1)
+    res = fit(data, data[:2], cfg, tmp_path, progress=False)
+    assert res.steps == 4 and np.isfinite(res.best_val_ade)
+    loaded = NetPredictor.from_checkpoint(res.best_checkpoint)  # type: ignore[arg-type]
+    assert loaded.config.context_radius_m == 3.0
+
+
+@pytest.mark.parametrize("radius", [0.0, -1.0, float("nan"), float("inf")])
+def test_radius_must_be_positive_and_finite(radius: float) -> None:
+    with pytest.raises(ConfigError, match="context_radius_m"):
+        ModelConfig(context_radius_m=radius)
