@@ -114,10 +114,21 @@ def _rot(theta: float) -> NDArrayFloat:
     return np.array([[c, -s], [s, c]])
 
 
-def _frame(sample: SceneSample, pos: NDArrayFloat, config: ModelConfig) -> tuple[NDArrayFloat, NDArrayFloat]:
-    """(origin, R) of the model frame for one sample (see the module docstring)."""
-    cur = sample.obs_len - 1
-    now = pos[:, cur]
+def _window_frame(sample: SceneSample, config: ModelConfig) -> tuple[NDArrayFloat, NDArrayFloat, float]:
+    """(origin, R, scale) of the model frame for one sample (see the module docstring)."""
+    if sample.obs_len != config.obs_len:
+        raise SampleError(f"{sample.sample_id}: obs_len {sample.obs_len} but the model expects {config.obs_len}")
+    observed = np.full((len(sample.positions), config.obs_len, 2), np.nan)
+    steps = min(config.obs_len, sample.positions.shape[1])
+    observed[:, :steps] = sample.positions[:, :steps]
+    origin, rot = _frame(sample, observed, config)
+    return origin, rot, _speed_scale(observed, config.speed_unit_m) if config.speed_unit_m else 1.0
+
+
+def _frame(sample: SceneSample, observed: NDArrayFloat, config: ModelConfig) -> tuple[NDArrayFloat, NDArrayFloat]:
+    """(origin, R) of the model frame for one sample whose observed positions are ``observed`` (A, T_obs, 2)."""
+    cur = observed.shape[1] - 1
+    now = observed[:, cur]
     seen: NDArrayBool = np.all(np.isfinite(now), axis=1)
     if config.frame == "world":
         pick = seen & sample.target_mask.astype(bool)
@@ -131,7 +142,7 @@ def _frame(sample: SceneSample, pos: NDArrayFloat, config: ModelConfig) -> tuple
         anchor = int(targets[0]) if targets.size else int(np.argmax(seen))
     if not seen[anchor]:
         return np.zeros(2), np.eye(2)
-    track = pos[anchor, : cur + 1]
+    track = observed[anchor]
     heading = 0.0
     for k in range(cur - 1, -1, -1):  # latest earlier observation that moved (> 1 cm) defines heading
         d = track[cur] - track[k]
@@ -170,6 +181,7 @@ def collate(
     *,
     rotations: Sequence[float] | None = None,
     with_raster: bool | None = None,
+    frames: Sequence[tuple[NDArrayFloat, NDArrayFloat, float]] | None = None,
 ) -> Batch:
     """Pad and normalise ``samples`` into one ``Batch``.
 
@@ -179,6 +191,7 @@ def collate(
         config: supplies obs/pred lengths, frame and raster channels.
         rotations: optional extra rotation (radians, counter-clockwise) per scene (augmentation).
         with_raster: build the raster tensor (default: when the environment feature is on).
+        frames: (origin, R, scale) per sample instead of its own (``_window_frame``), before ``rotations``.
     """
     if not samples:
         raise SampleError("cannot build a batch from zero samples")
@@ -204,17 +217,14 @@ def collate(
         np.zeros((b, config.raster_channels, *_raster_hw(samples)), np.float32) if use_raster else None
     )
     for i, s in enumerate(samples):
-        if s.obs_len != config.obs_len:
-            raise SampleError(f"{s.sample_id}: obs_len {s.obs_len} but the model expects {config.obs_len}")
         lo, hi = int(offsets[i]), int(offsets[i + 1])
         pos = np.full((hi - lo, t_total, 2), np.nan)
         steps = min(t_total, s.positions.shape[1])
         pos[:, :steps] = s.positions[:, :steps]
-        org, rot = _frame(s, pos, config)
+        org, rot, k = _window_frame(s, config) if frames is None else frames[i]
         if rotations is not None:
             rot = _rot(rotations[i]) @ rot
         ok = np.isfinite(pos).all(axis=2)
-        k = _speed_scale(pos[:, : config.obs_len], config.speed_unit_m) if config.speed_unit_m else 1.0
         local = k * np.einsum("ij,atj->ati", rot, np.nan_to_num(pos - org))
         positions[lo:hi] = np.where(ok[..., None], local, 0.0)
         valid[lo:hi] = ok
@@ -268,15 +278,18 @@ def collate(
 
 def _collate_in_context(samples: Sequence[SceneSample], config: ModelConfig, rotations: Sequence[float] | None,
                         with_raster: bool | None) -> Batch:
-    """``collate`` with each target in its own scene (``context_scenes``); a sample's rotation turns all of its
-    targets' scenes alike."""
+    """``collate`` with each target in its own scene (``context_scenes``) seen in its sample's model frame (origin,
+    axes, speed scale and rotation), so only the agents the interaction features pool differ."""
     assert config.context_radius_m is not None
+    plain = replace(config, context_radius_m=None)
     parts = [context_scenes(s, config.context_radius_m) for s in samples]
     scenes = [scene for part in parts for scene in part]
     if not scenes:  # nothing to predict: the samples as they are
-        return collate(samples, replace(config, context_radius_m=None), rotations=rotations, with_raster=with_raster)
+        return collate(samples, plain, rotations=rotations, with_raster=with_raster)
+    frames = [_window_frame(s, config) for s in samples]
     turns = None if rotations is None else [r for r, part in zip(rotations, parts, strict=True) for _ in part]
-    batch = collate(scenes, replace(config, context_radius_m=None), rotations=turns, with_raster=with_raster)
+    batch = collate(scenes, plain, rotations=turns, with_raster=with_raster,
+                    frames=[f for f, part in zip(frames, parts, strict=True) for _ in part])
     own = [int(rows[0]) for rows in batch.sample_targets]  # a target's scene has that one target
     firsts = np.cumsum([0] + [len(part) for part in parts])
     batch.sample_targets = [np.array(own[lo:hi], np.int64) for lo, hi in itertools.pairwise(firsts)]

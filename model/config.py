@@ -125,11 +125,12 @@ class ModelConfig:
             over between scenes of different speeds (and frame rates), as the constant-velocity sampler's
             relative speed noise does. Outputs and reported errors are mapped back to metres.
         context_radius_m: None (the paper: the interaction features pool every agent of the scene) or a radius
-            in metres. When set, each target is predicted in a scene of its own: itself, the agents observed
-            at the current step within this distance of it (decoded as context, not scored) and the ego, in
-            training as at inference. The pools of eqs. 2 and 4 then see a neighbourhood whose size does not
-            grow with the crowd (ETH/UCY's UNIV fold trains on windows of at most 14 pedestrians and is tested
-            on windows of 20-57). Not in the paper, whose AIN is global.
+            in metres. When set, each target is predicted in a scene of its own, seen in its window's model
+            frame: itself, the agents observed at the current step within this distance of it (decoded as
+            context, not scored) and the ego, in training as at inference. The pools of eqs. 2 and 4 (and the
+            AIN's GRU) then see a neighbourhood whose size does not grow with the crowd (ETH/UCY's UNIV fold
+            trains on windows of at most 14 pedestrians and is tested on windows of 20-57); nothing else
+            changes. Not in the paper, whose AIN is global.
     """
 
     features: Features = field(default_factory=Features)

@@ -36,7 +36,7 @@ import torch
 from logpipe.errors import LogpipeError
 from logpipe.types import SceneSample
 
-from .batching import Batch, collate, context_scenes
+from .batching import Batch, collate
 from .checkpoints import (
     CheckpointMismatchError,
     check_meta,
@@ -243,29 +243,6 @@ def _batches(
         skip = 0
 
 
-class _TargetScenesView:
-    """Re-iterable ``context_scenes`` of every scene of a re-iterable stream."""
-
-    def __init__(self, scenes: Iterable[SceneSample], radius_m: float) -> None:
-        self.scenes, self.radius_m = scenes, radius_m
-
-    def __iter__(self) -> Iterator[SceneSample]:
-        for scene in self.scenes:
-            yield from context_scenes(scene, self.radius_m)
-
-
-def _target_scenes(
-    train: Sequence[SceneSample] | Iterable[SceneSample], radius_m: float
-) -> Sequence[SceneSample] | Iterable[SceneSample]:
-    """``train`` with each scene split into its targets' scenes (``ModelConfig.context_radius_m``), keeping its
-    kind: a Sequence stays one (shuffled per epoch), a one-shot iterator stays one-shot."""
-    if isinstance(train, Sequence):
-        return [part for scene in train for part in context_scenes(scene, radius_m)]
-    if iter(train) is train:
-        return (part for scene in train for part in context_scenes(scene, radius_m))
-    return _TargetScenesView(train, radius_m)
-
-
 @dataclass(frozen=True)
 class _Ranks:
     """Data-parallel training under ``torchrun`` (one process per core or machine).
@@ -364,8 +341,6 @@ def fit(
     start_time = time.perf_counter()
     ranks = _Ranks.from_env()
     cfg = config if isinstance(config, TrainConfig) else TrainConfig(model=config)
-    if cfg.model.context_radius_m is not None:  # a training scene (and batch_size's unit) is a target's neighbourhood
-        train = _target_scenes(train, cfg.model.context_radius_m)
     if cfg.batch_size < ranks.world:
         raise ConfigError(f"train.batch_size {cfg.batch_size} must be >= the {ranks.world} torchrun processes")
     if not isinstance(train, Sequence) and iter(train) is train:

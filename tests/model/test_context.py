@@ -15,7 +15,7 @@ from logpipe.model.config import ConfigError, Features, ModelConfig, TrainConfig
 from logpipe.model.nets import TrajectoryNet
 from logpipe.model.predictor import NetPredictor
 from logpipe.model.synthetic import make_scene, make_scenes
-from logpipe.model.training import _target_scenes, fit
+from logpipe.model.training import fit
 from logpipe.stages.ingest import IngestOptions, ingest
 from logpipe.stages.train import scene_samples
 
@@ -62,21 +62,44 @@ def test_the_ego_stays_in_every_neighbourhood() -> None:
         assert scene.ego_index >= 0 and scene.track_ids[scene.ego_index] == sample.track_ids[sample.ego_index]
 
 
-def test_predictions_are_those_of_each_neighbourhood_alone(eth_windows: list) -> None:  # type: ignore[type-arg]
+def _deterministic(config: ModelConfig) -> NetPredictor:
     torch.manual_seed(0)
-    net = TrajectoryNet(MODEL)
-    in_context = NetPredictor(TrajectoryNet(replace(MODEL, context_radius_m=2.0)), batch_size=4)
-    in_context.net.load_state_dict(net.state_dict())
-    plain = NetPredictor(net, batch_size=1000)
-    windows = eth_windows[:10]
-    got = in_context.predict(windows, 5, seed=1)
+    return NetPredictor(TrajectoryNet(replace(config, noise_dim=0)), batch_size=4)
+
+
+def test_without_interaction_features_the_window_frame_gives_the_same_forecasts(eth_windows: list) -> None:  # type: ignore[type-arg]
+    plain = _deterministic(replace(MODEL, features=Features(False, False, False, False, False)))
+    in_context = _deterministic(replace(plain.config, context_radius_m=2.0))
+    in_context.net.load_state_dict(plain.net.state_dict())
+    windows = eth_windows[:12]
+    got = in_context.predict(windows, 1, seed=1)
     assert [len(g) for g in got] == [int(s.target_mask.sum()) for s in windows]
-    # in_context's first batch (4 windows) is their target scenes collated together: same rows, same noise draws
-    alone = [scene for s in windows[:4] for scene in context_scenes(s, 2.0)]
-    expected = np.concatenate(plain.predict(alone, 5, seed=1))
-    np.testing.assert_allclose(np.concatenate(got[:4]), expected, rtol=1e-5, atol=1e-5)
-    # and the neighbourhoods do change the forecasts of the whole windows
-    assert not np.allclose(np.concatenate(plain.predict(windows, 5, seed=1)), np.concatenate(got), equal_nan=True)
+    # each target is seen in its window's frame (origin, axes, speed scale): nothing but the pools can differ
+    np.testing.assert_allclose(np.concatenate(got), np.concatenate(plain.predict(windows, 1, seed=1)),
+                               rtol=1e-5, atol=1e-5)
+
+
+def test_agents_beyond_the_radius_do_not_reach_a_forecast() -> None:
+    sample = make_scene(np.random.default_rng(5), 8, 8, 12)
+    mask = sample.target_mask.copy()
+    mask[7] = False  # a context agent: moving it leaves the frame (origin = mean target, scale = mean step) alone
+    beside_0 = sample.positions.copy()
+    beside_0[7] = beside_0[0] + [1.0, 0.0]  # walking 1 m beside agent 0
+    sample = replace(sample, target_mask=mask, positions=beside_0)
+    moved = sample.positions.copy()
+    moved[7] += 100.0
+    far_off = replace(sample, positions=moved)
+    now = sample.positions[:, sample.obs_len - 1]
+    apart = np.linalg.norm(now[:7] - now[7], axis=1) > 2.0  # targets that never had agent 7 as a neighbour
+    assert apart.any() and not apart.all()
+    plain = _deterministic(MODEL)
+    in_context = _deterministic(replace(MODEL, context_radius_m=2.0))
+    in_context.net.load_state_dict(plain.net.state_dict())
+    before, after = in_context.predict([sample], 1, 0)[0], in_context.predict([far_off], 1, 0)[0]
+    np.testing.assert_allclose(before[apart], after[apart], rtol=1e-5, atol=1e-5)
+    assert not np.allclose(before[~apart], after[~apart])
+    # the paper's global pools feel it everywhere
+    assert not np.allclose(plain.predict([sample], 1, 0)[0][apart], plain.predict([far_off], 1, 0)[0][apart])
 
 
 def test_collate_maps_each_sample_to_its_target_rows(eth_windows: list) -> None:  # type: ignore[type-arg]
@@ -89,22 +112,6 @@ def test_collate_maps_each_sample_to_its_target_rows(eth_windows: list) -> None:
     assert batch.target[torch.from_numpy(every)].all() and int(batch.target.sum()) == len(every)
     plain = collate(windows, MODEL)
     assert [len(r) for r in plain.sample_targets] == [len(r) for r in batch.sample_targets]
-
-
-def test_training_scenes_are_target_scenes_of_the_same_kind() -> None:
-    data = make_scenes(4, seed=2, min_agents=2, max_agents=4, obs_len=8, pred_len=12)
-    count = sum(int(s.target_mask.sum()) for s in data)
-    as_list = _target_scenes(data, 2.0)
-    assert isinstance(as_list, list) and len(as_list) == count
-    one_shot = _target_scenes(iter(data), 2.0)
-    assert iter(one_shot) is one_shot and len(list(one_shot)) == count and not list(one_shot)
-
-    class Again:
-        def __iter__(self):  # type: ignore[no-untyped-def]
-            return iter(data)
-
-    view = _target_scenes(Again(), 2.0)
-    assert len(list(view)) == count == len(list(view))
 
 
 def test_fit_trains_on_target_scenes(tmp_path: Path) -> None:
