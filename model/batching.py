@@ -195,7 +195,8 @@ def collate(
     """
     if not samples:
         raise SampleError("cannot build a batch from zero samples")
-    if config.context_radius_m is not None:
+    if config.context_radius_m is not None and (config.features.position or config.features.tracking):
+        # Only the pools of eqs. 2 and 4 read other agents: without them the windows are collated as they are.
         return _collate_in_context(samples, config, rotations, with_raster)
     t_total = config.obs_len + config.pred_len
     b = len(samples)

@@ -130,7 +130,8 @@ class ModelConfig:
             context, not scored) and the ego, in training as at inference. The pools of eqs. 2 and 4 (and the
             AIN's GRU) then see a neighbourhood whose size does not grow with the crowd (ETH/UCY's UNIV fold
             trains on windows of at most 14 pedestrians and is tested on windows of 20-57); nothing else
-            changes. Not in the paper, whose AIN is global.
+            changes, and without PF and TF (Noise-LSTM, LSTM) it changes nothing. Not in the paper, whose AIN
+            is global.
     """
 
     features: Features = field(default_factory=Features)
