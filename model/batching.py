@@ -158,20 +158,20 @@ def context_scenes(sample: SceneSample, radius_m: float) -> list[SceneSample]:
     metres of it, and the ego. A target unobserved at the current step gets a scene of its own alone."""
     now = sample.positions[:, sample.obs_len - 1]
     seen: NDArrayBool = np.all(np.isfinite(now), axis=1)
+    ego = sample.ego_index if 0 <= sample.ego_index < len(now) else -1
     scenes = []
     for i in np.flatnonzero(sample.target_mask):
         keep = np.zeros(len(now), bool)
         if seen[i]:
             keep = seen & (np.linalg.norm(np.where(seen[:, None], now - now[i], 0.0), axis=1) <= radius_m)
-            if 0 <= sample.ego_index < len(now):
-                keep[sample.ego_index] = True
+            if ego >= 0:
+                keep[ego] = True
         keep[i] = True
         rows = np.flatnonzero(keep)
-        ego = sample.ego_index
         scenes.append(replace(
             sample, positions=sample.positions[rows], track_ids=[sample.track_ids[j] for j in rows],
             object_types=sample.object_types[rows], target_mask=rows == i,
-            ego_index=int(np.searchsorted(rows, ego)) if 0 <= ego < len(now) and keep[ego] else -1))
+            ego_index=int(np.searchsorted(rows, ego)) if ego >= 0 and keep[ego] else -1))
     return scenes
 
 
@@ -283,11 +283,11 @@ def _collate_in_context(samples: Sequence[SceneSample], config: ModelConfig, rot
     axes, speed scale and rotation), so only the agents the interaction features pool differ."""
     assert config.context_radius_m is not None
     plain = replace(config, context_radius_m=None)
+    frames = [_window_frame(s, config) for s in samples]  # checks obs_len first
     parts = [context_scenes(s, config.context_radius_m) for s in samples]
     scenes = [scene for part in parts for scene in part]
     if not scenes:  # nothing to predict: the samples as they are
         return collate(samples, plain, rotations=rotations, with_raster=with_raster)
-    frames = [_window_frame(s, config) for s in samples]
     turns = None if rotations is None else [r for r, part in zip(rotations, parts, strict=True) for _ in part]
     batch = collate(scenes, plain, rotations=turns, with_raster=with_raster,
                     frames=[f for f, part in zip(frames, parts, strict=True) for _ in part])
