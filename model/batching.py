@@ -114,13 +114,18 @@ def _rot(theta: float) -> NDArrayFloat:
     return np.array([[c, -s], [s, c]])
 
 
-def _window_frame(sample: SceneSample, config: ModelConfig) -> tuple[NDArrayFloat, NDArrayFloat, float]:
-    """(origin, R, scale) of the model frame for one sample (see the module docstring)."""
-    if sample.obs_len != config.obs_len:
-        raise SampleError(f"{sample.sample_id}: obs_len {sample.obs_len} but the model expects {config.obs_len}")
-    observed = np.full((len(sample.positions), config.obs_len, 2), np.nan)
-    steps = min(config.obs_len, sample.positions.shape[1])
-    observed[:, :steps] = sample.positions[:, :steps]
+def _padded(sample: SceneSample, steps: int) -> NDArrayFloat:
+    """The sample's positions over its first ``steps`` steps, NaN (unobserved) beyond its own length."""
+    pos = np.full((len(sample.positions), steps, 2), np.nan)
+    have = min(steps, sample.positions.shape[1])
+    pos[:, :have] = sample.positions[:, :have]
+    return pos
+
+
+def _window_frame(sample: SceneSample, observed: NDArrayFloat,
+                  config: ModelConfig) -> tuple[NDArrayFloat, NDArrayFloat, float]:
+    """(origin, R, scale) of the model frame for one sample whose observed positions are ``observed``
+    (A, T_obs, 2) (see the module docstring)."""
     origin, rot = _frame(sample, observed, config)
     return origin, rot, _speed_scale(observed, config.speed_unit_m) if config.speed_unit_m else 1.0
 
@@ -195,6 +200,9 @@ def collate(
     """
     if not samples:
         raise SampleError("cannot build a batch from zero samples")
+    for s in samples:
+        if s.obs_len != config.obs_len:
+            raise SampleError(f"{s.sample_id}: obs_len {s.obs_len} but the model expects {config.obs_len}")
     if config.context_radius_m is not None and (config.features.position or config.features.tracking):
         # Only the pools of eqs. 2 and 4 read other agents: without them the windows are collated as they are.
         return _collate_in_context(samples, config, rotations, with_raster)
@@ -219,13 +227,11 @@ def collate(
     )
     for i, s in enumerate(samples):
         lo, hi = int(offsets[i]), int(offsets[i + 1])
-        pos = np.full((hi - lo, t_total, 2), np.nan)
-        steps = min(t_total, s.positions.shape[1])
-        pos[:, :steps] = s.positions[:, :steps]
-        org, rot, k = _window_frame(s, config) if frames is None else frames[i]
+        pos = _padded(s, t_total)
+        org, rot, k = _window_frame(s, pos[:, : config.obs_len], config) if frames is None else frames[i]
         if rotations is not None:
             rot = _rot(rotations[i]) @ rot
-        ok = np.isfinite(pos).all(axis=2)
+        ok = np.isfinite(pos[..., 0]) & np.isfinite(pos[..., 1])
         local = k * np.einsum("ij,atj->ati", rot, np.nan_to_num(pos - org))
         positions[lo:hi] = np.where(ok[..., None], local, 0.0)
         valid[lo:hi] = ok
@@ -283,7 +289,7 @@ def _collate_in_context(samples: Sequence[SceneSample], config: ModelConfig, rot
     axes, speed scale and rotation), so only the agents the interaction features pool differ."""
     assert config.context_radius_m is not None
     plain = replace(config, context_radius_m=None)
-    frames = [_window_frame(s, config) for s in samples]  # checks obs_len first
+    frames = [_window_frame(s, _padded(s, config.obs_len), config) for s in samples]
     parts = [context_scenes(s, config.context_radius_m) for s in samples]
     scenes = [scene for part in parts for scene in part]
     if not scenes:  # nothing to predict: the samples as they are
