@@ -228,6 +228,8 @@ class TrainConfig:
         val_modes: K for the validation best-of-K ADE/FDE.
         val_max_samples: validate on the first this many validation samples (None = all).
         early_stop_patience: stop after this many validations without a better val ADE (0 = never).
+        early_stop_min_steps: never stop early before this step (validation at a high learning rate is noisy
+            enough that a lucky early evaluation can end a run that had hardly trained).
         log_every: steps between training-log lines.
         num_threads: ``torch.set_num_threads`` value (0 leaves torch's default).
         shuffle_buffer: buffer size for shuffling a training stream that is not a Sequence.
@@ -250,6 +252,7 @@ class TrainConfig:
     val_modes: int = 20
     val_max_samples: int | None = None
     early_stop_patience: int = 10
+    early_stop_min_steps: int = 0
     log_every: int = 50
     num_threads: int = 2
     shuffle_buffer: int = 1024
@@ -262,6 +265,11 @@ class TrainConfig:
             raise ConfigError(f"train.lr must be > 0 and lr_decay in (0, 1], got {self.lr}, {self.lr_decay}")
         if self.loss_min_over not in ("scene", "agent"):
             raise ConfigError(f"train.loss_min_over must be 'scene' or 'agent', got {self.loss_min_over!r}")
+        if self.early_stop_patience < 0 or self.early_stop_min_steps < 0:
+            raise ConfigError(
+                "train.early_stop_patience and train.early_stop_min_steps must be >= 0, "
+                f"got {self.early_stop_patience}, {self.early_stop_min_steps}"
+            )
         if self.val_max_samples is not None and self.val_max_samples < 1:
             raise ConfigError(f"train.val_max_samples must be >= 1 or unset, got {self.val_max_samples}")
 

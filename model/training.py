@@ -487,7 +487,8 @@ def fit(
                 metrics = validate()
                 if metrics:
                     bar.update(task, ade=best_ade, fde=best_fde)
-                if ranks.agree(bool(cfg.early_stop_patience) and bad_evals >= cfg.early_stop_patience):
+                patience_spent = bool(cfg.early_stop_patience) and bad_evals >= cfg.early_stop_patience
+                if ranks.agree(patience_spent and step >= cfg.early_stop_min_steps):
                     stopped_early = True
                     log.write("early_stop", step=step, best_step=best_step)
                     break

@@ -206,3 +206,15 @@ def test_select_then_backprop_gives_the_eq_23_gradient(reduce: str) -> None:
     assert len(grads[0][1]) == len(grads[1][1]) > 0
     for a, b in zip(grads[0][1], grads[1][1], strict=True):
         torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-6)
+
+
+def test_early_stop_waits_for_min_steps(tmp_path: Path) -> None:
+    # lr far below float32 resolution: the weights never change, so no validation after the first is better
+    train, val = _data(8, 11), _data(3, 12)
+    kw = {"steps": 20, "lr": 1e-30, "eval_every": 1, "early_stop_patience": 2}
+    eager = fit(train, val, _cfg(**kw), tmp_path / "eager", progress=False)
+    assert eager.stopped_early and eager.steps == 3 and eager.best_step == 1
+    patient = fit(train, val, _cfg(early_stop_min_steps=7, **kw), tmp_path / "patient", progress=False)
+    assert patient.stopped_early and patient.steps == 7 and patient.best_step == 1
+    with pytest.raises(ConfigError, match="early_stop_min_steps"):
+        _cfg(early_stop_min_steps=-1)
