@@ -295,8 +295,15 @@ def _collate_in_context(samples: Sequence[SceneSample], config: ModelConfig, rot
     if not scenes:  # nothing to predict: the samples as they are
         return collate(samples, plain, rotations=rotations, with_raster=with_raster)
     turns = None if rotations is None else [r for r, part in zip(rotations, parts, strict=True) for _ in part]
-    batch = collate(scenes, plain, rotations=turns, with_raster=with_raster,
-                    frames=[f for f, part in zip(frames, parts, strict=True) for _ in part])
+    scene_frames = [f for f, part in zip(frames, parts, strict=True) for _ in part]
+    if config.context_origin == "target":  # the window's axes and scale about the target's current position
+        now = config.obs_len - 1
+        here = [sc.positions[int(np.argmax(sc.target_mask)), now] for sc in scenes]
+        scene_frames = [
+            (p if np.isfinite(p).all() else org, rot, k)  # a target unseen now keeps the window's origin
+            for p, (org, rot, k) in zip(here, scene_frames, strict=True)
+        ]
+    batch = collate(scenes, plain, rotations=turns, with_raster=with_raster, frames=scene_frames)
     own = [int(rows[0]) for rows in batch.sample_targets]  # a target's scene has that one target
     firsts = np.cumsum([0] + [len(part) for part in parts])
     batch.sample_targets = [np.array(own[lo:hi], np.int64) for lo, hi in itertools.pairwise(firsts)]

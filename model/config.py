@@ -24,6 +24,7 @@ from logpipe.errors import LogpipeError
 Frame = Literal["world", "ego"]
 LossReduction = Literal["scene", "agent"]
 StepOutput = Literal["displacement", "velocity_change", "agent_velocity_change"]
+ContextOrigin = Literal["window", "target"]
 
 
 class ConfigError(LogpipeError):
@@ -132,6 +133,11 @@ class ModelConfig:
             trains on windows of at most 14 pedestrians and is tested on windows of 20-57); nothing else
             changes, and without PF and TF (Noise-LSTM, LSTM) it changes nothing. Not in the paper, whose AIN
             is global.
+        context_origin: with ``context_radius_m``, where each target's scene has its origin: ``window`` (its
+            window's model-frame origin) or ``target`` (the target's current position; axes, rotation and speed
+            scale stay the window's). With ``target`` the max-pool of eq. 2 over linear embeddings of positions
+            reads the neighbours' extent relative to the target itself, as the paper's ego-centred frame does
+            for the ego.
     """
 
     features: Features = field(default_factory=Features)
@@ -157,6 +163,7 @@ class ModelConfig:
     mode_gate: bool = False
     constant_velocity_modes: int = 0
     context_radius_m: float | None = None
+    context_origin: ContextOrigin = "window"
 
     def __post_init__(self) -> None:
         if self.obs_len < 2 or self.pred_len < 1:
@@ -177,6 +184,10 @@ class ModelConfig:
                 math.isfinite(self.context_radius_m) and self.context_radius_m > 0):
             raise ConfigError(
                 f"model.context_radius_m must be a positive number or absent, got {self.context_radius_m}")
+        if self.context_origin not in get_args(ContextOrigin):
+            raise ConfigError(
+                f"model.context_origin must be one of {list(get_args(ContextOrigin))}, got {self.context_origin!r}"
+            )
         for name in ("pos_scale_m", "disp_scale_m", "roi_half_size_m", "agent_min_step_m"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0):

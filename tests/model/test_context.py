@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from logpipe.dataset import Dataset
-from logpipe.model.batching import collate, context_scenes
+from logpipe.model.batching import Batch, collate, context_scenes
 from logpipe.model.config import ConfigError, Features, ModelConfig, TrainConfig
 from logpipe.model.nets import TrajectoryNet
 from logpipe.model.predictor import NetPredictor
@@ -75,6 +75,32 @@ def test_targets_are_seen_in_their_window_frame(eth_windows: list) -> None:  # t
     # origin, axes, rotation and speed scale are the window's: the same model-frame tracks
     np.testing.assert_allclose(batch.positions[mine].numpy(), plain.positions[theirs].numpy(), atol=1e-6)
     np.testing.assert_allclose(batch.scale[batch.scene[mine].numpy()], plain.scale[plain.scene[theirs].numpy()])
+
+
+def test_target_origin_moves_only_the_origin(eth_windows: list) -> None:  # type: ignore[type-arg]
+    windows = eth_windows[:12]
+    turns = [0.3 * i for i in range(12)]
+    window = collate(windows, replace(MODEL, context_radius_m=2.0), rotations=turns)
+    centred = collate(windows, replace(MODEL, context_radius_m=2.0, context_origin="target"), rotations=turns)
+    mine = np.concatenate(centred.sample_targets)
+    now = MODEL.obs_len - 1
+    assert np.abs(centred.positions[mine, now].numpy()).max() == 0.0  # each target at its scene's origin
+    # same axes, rotation and scale, so the same tracks up to a shift and the same points in the world
+    np.testing.assert_array_equal(centred.rotation, window.rotation)
+    np.testing.assert_array_equal(centred.scale, window.scale)
+    shift = window.positions[:, now : now + 1] - centred.positions[:, now : now + 1]
+    valid = window.valid.numpy()
+    np.testing.assert_allclose((centred.positions + shift).numpy()[valid], window.positions.numpy()[valid], atol=1e-5)
+
+    def world(batch: Batch, rows: np.ndarray) -> np.ndarray:
+        scene = batch.scene.numpy()[rows]
+        local = batch.positions.numpy()[rows] / batch.scale[scene][:, None, None]
+        return np.asarray(np.einsum("nji,ntj->nti", batch.rotation[scene], local) + batch.origin[scene][:, None])
+
+    np.testing.assert_allclose(world(centred, mine)[:, :now + 1], np.concatenate(
+        [w.positions[w.target_mask.astype(bool), :now + 1] for w in windows]), atol=1e-4)
+    with pytest.raises(ConfigError, match="context_origin"):
+        replace(MODEL, context_origin="agent")
 
 
 def test_without_interaction_features_the_option_changes_nothing(eth_windows: list) -> None:  # type: ignore[type-arg]
