@@ -289,11 +289,11 @@ def _collate_in_context(samples: Sequence[SceneSample], config: ModelConfig, rot
     axes, speed scale and rotation), so only the agents the interaction features pool differ."""
     assert config.context_radius_m is not None
     plain = replace(config, context_radius_m=None)
-    frames = [_window_frame(s, _padded(s, config.obs_len), config) for s in samples]
     parts = [context_scenes(s, config.context_radius_m) for s in samples]
     scenes = [scene for part in parts for scene in part]
     if not scenes:  # nothing to predict: the samples as they are
         return collate(samples, plain, rotations=rotations, with_raster=with_raster)
+    frames = [_window_frame(s, _padded(s, config.obs_len), config) for s in samples]
     turns = None if rotations is None else [r for r, part in zip(rotations, parts, strict=True) for _ in part]
     scene_frames = [f for f, part in zip(frames, parts, strict=True) for _ in part]
     if config.context_origin == "target":  # the window's axes and scale about the target's current position
