@@ -314,6 +314,10 @@ def train(
     loader_workers: Annotated[int, typer.Option(
         "--loader-workers", help="Stream training samples from the shards with a DataLoader of N workers "
         "(0: cut them all into memory first, exact resume).")] = 0,
+    init_from: Annotated[Path | None, typer.Option(
+        "--init-from", help="Start from this checkpoint folder: the parameters it has are copied (a Noise-LSTM "
+        "checkpoint warm-starts the full model, whose feature inputs start at zero); the rest keep their "
+        "initialisation. Ignored with --resume.")] = None,
     as_json: JsonOpt = False,
 ) -> None:
     """Train the Zhu et al. predictor (or a Table 4 ablation / LSTM baseline via the config) on a dataset.
@@ -337,7 +341,7 @@ def train(
         summary = run_train(dataset, out, train_split=chosen_train,
                             val_split=None if chosen_val == "none" else chosen_val, config_path=config,
                             overrides=overrides, preset=preset, resume=resume, raster_run=raster_run,
-                            loader_workers=loader_workers,
+                            loader_workers=loader_workers, init_from=init_from,
                             progress=not as_json and sys.stderr.isatty())
     _emit(summary, as_json, _print_summary)
 

@@ -286,3 +286,75 @@ def load_training_state(folder: Path, optimizer: torch.optim.Optimizer) -> dict[
     optimizer.load_state_dict({"state": state, "param_groups": extra.pop("param_groups")})
     torch.set_rng_state(tensors["rng.torch"])
     return dict(extra)
+
+
+# LSTM input weights whose input is a concatenation led by the displacement embedding (eqs. 16 and 18):
+# a checkpoint without the features (Noise-LSTM) fills the leading columns.
+_WIDENABLE = ("encoder.weight_ih", "decoder.weight_ih")
+
+
+@dataclass(frozen=True)
+class WarmStart:
+    """What ``warm_start`` did.
+
+    Attributes:
+        source: the checkpoint folder read.
+        weights_sha256: sha256 of its weights file.
+        copied: parameters copied whole.
+        widened: LSTM input weights whose leading columns were copied and the columns of the extra inputs
+            (interaction and environment features) zeroed.
+        kept: parameters the checkpoint does not have (they keep their fresh initialisation).
+    """
+
+    source: Path
+    weights_sha256: str
+    copied: tuple[str, ...]
+    widened: tuple[str, ...]
+    kept: tuple[str, ...]
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"source": str(self.source), "weights_sha256": self.weights_sha256, "copied": len(self.copied),
+                "widened": list(self.widened), "kept": list(self.kept)}
+
+
+def warm_start(net: TrajectoryNet, path: Path) -> WarmStart:
+    """Initialise ``net`` from a checkpoint of a network with fewer features (e.g. Noise-LSTM into the full model).
+
+    Every parameter the checkpoint has is copied; the encoder and decoder input weights get the checkpoint's
+    columns first and zeros for the extra feature inputs, so the warm-started net computes exactly what the
+    checkpoint did until training moves those zeros. Parameters it lacks (AIN, environment net, attention)
+    keep their initialisation.
+
+    Raises:
+        CheckpointError: missing or corrupt files, a parameter of ``net`` that the checkpoint has with a shape
+            that cannot be fitted, or a checkpoint parameter ``net`` lacks.
+    """
+    folder = path.parent if path.name == "meta.json" else path
+    meta = read_meta(folder)
+    weights = folder / "weights.safetensors"
+    digest = _sha256(weights) if weights.is_file() else ""
+    if digest != meta.weights_sha256:
+        raise CheckpointError(f"{weights}: missing or does not match the sha256 in meta.json")
+    source = load_file(str(weights))
+    target = net.state_dict()
+    unknown = sorted(set(source) - set(target))
+    if unknown:
+        raise CheckpointError(f"{folder}: parameters the network does not have: {unknown}")
+    copied: list[str] = []
+    widened: list[str] = []
+    with torch.no_grad():
+        for name, value in source.items():
+            slot = target[name]
+            if value.shape == slot.shape:
+                slot.copy_(value)
+                copied.append(name)
+            elif (name in _WIDENABLE and value.dim() == 2 and value.shape[0] == slot.shape[0]
+                  and value.shape[1] < slot.shape[1]):
+                slot.zero_()
+                slot[:, : value.shape[1]] = value
+                widened.append(name)
+            else:
+                raise CheckpointError(f"{folder}: parameter {name} has shape {tuple(value.shape)}, the network "
+                                      f"{tuple(slot.shape)}")
+    kept = tuple(sorted(set(target) - set(source)))
+    return WarmStart(folder, digest, tuple(copied), tuple(widened), kept)

@@ -43,6 +43,7 @@ from .checkpoints import (
     load_training_state,
     read_meta,
     save_checkpoint,
+    warm_start,
 )
 from .config import ConfigError, ModelConfig, TrainConfig, config_to_dict, save_config
 from .loss import DisplacementErrors, best_of_h_loss
@@ -322,6 +323,7 @@ def fit(
     progress: bool = True,
     dataset_kind: str = "unknown",
     manifest_hash: str = "",
+    init_from: Path | None = None,
 ) -> TrainResult:
     """Train ``TrajectoryNet`` and write checkpoints and the log into ``out_dir``.
 
@@ -337,6 +339,9 @@ def fit(
         progress: show a rich progress bar with loss and validation ADE/FDE.
         dataset_kind: stored in checkpoints and checked on load.
         manifest_hash: hash of the dataset manifest, stored in checkpoints.
+        init_from: a checkpoint folder to start a new run from (``checkpoints.warm_start``: e.g. a Noise-LSTM
+            checkpoint into the full model, whose extra inputs start at zero); ignored on resume, where the
+            weights come from ``last/``. Logged in the ``start`` event.
     """
     start_time = time.perf_counter()
     ranks = _Ranks.from_env()
@@ -384,9 +389,13 @@ def fit(
         earlier_elapsed = float(state.get("elapsed_s", math.nan))  # NaN: written before the state kept it
         resumed_at_step = step
         log.write("resume", step=step)
+    warm = None
+    if init_from is not None and resumed_at_step is None:
+        warm = warm_start(net, init_from)  # every DDP rank reads the same file, so replicas start equal
     if ranks.main:
         save_config(cfg, out_dir / "config.json")
-    log.write("start", step=step, config=config_to_dict(cfg), processes=ranks.world)
+    log.write("start", step=step, config=config_to_dict(cfg), processes=ranks.world,
+              **({"init_from": warm.to_dict()} if warm is not None else {}))
 
     def checkpoint(folder: Path, metrics: dict[str, float], resumable: bool) -> None:
         if not ranks.main:

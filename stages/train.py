@@ -59,6 +59,7 @@ def train(
     loader_workers: int = 0,
     resume: bool = False,
     progress: bool = True,
+    init_from: Path | None = None,
 ) -> dict[str, Any]:
     """Train on ``train_split`` of ``dataset_dir``, validating on ``val_split``; returns the run summary.
 
@@ -78,6 +79,8 @@ def train(
             shuffled through a buffer).
         resume: continue from ``out_dir/last``.
         progress: show the progress bar.
+        init_from: start a new run from this checkpoint folder (e.g. a Noise-LSTM checkpoint into the full
+            model; see ``logpipe.model.checkpoints.warm_start``).
     """
     from logpipe.model.config import TrainConfig, load_config
     from logpipe.model.training import fit
@@ -113,6 +116,7 @@ def train(
         progress=progress,
         dataset_kind=dataset.kind,
         manifest_hash=sha256_file(dataset.root / "manifest.json"),
+        init_from=init_from,
     )
     return {
         "dataset": str(dataset_dir),
@@ -130,6 +134,7 @@ def train(
         "last_checkpoint": str(result.last_checkpoint),
         "train_samples_per_s": round(result.train_samples_per_s, 1),
         "raster_run": rasters.run_dir.name if rasters is not None else None,
+        "init_from": str(init_from) if init_from is not None and result.resumed_at_step is None else None,
         "environment_net": result.config.model.features.environment,
         "seconds": round(time.perf_counter() - started, 1),
         # A resumed run: where this part started, and the training wall time of all parts (None for a run whose

@@ -218,3 +218,39 @@ def test_early_stop_waits_for_min_steps(tmp_path: Path) -> None:
     assert patient.stopped_early and patient.steps == 7 and patient.best_step == 1
     with pytest.raises(ConfigError, match="early_stop_min_steps"):
         _cfg(early_stop_min_steps=-1)
+
+
+def test_warm_start_from_noise_lstm_starts_at_its_predictions(tmp_path: Path) -> None:
+    from logpipe.model.batching import collate
+    from logpipe.model.checkpoints import warm_start
+    from logpipe.model.config import ALL_OFF
+    from logpipe.model.nets import TrajectoryNet
+
+    train, val = _data(8, 21), _data(3, 22)
+    noise_lstm = fit(train, val, _cfg(model=replace(MODEL, features=ALL_OFF)), tmp_path / "nl", progress=False)
+    source = load_checkpoint(noise_lstm.last_checkpoint).net
+    net = TrajectoryNet(MODEL)
+    done = warm_start(net, noise_lstm.last_checkpoint)
+    assert set(done.widened) == {"encoder.weight_ih", "decoder.weight_ih"}
+    assert done.kept and all(k.startswith(("ain.", "attention.")) for k in done.kept)
+    width = MODEL.embed_dim  # the displacement embedding leads the LSTM input
+    assert not net.encoder.weight_ih[:, width:].any() and net.encoder.weight_ih[:, width:].numel() > 0
+    batch = collate(val, MODEL)
+    noise = torch.randn(4, int(batch.active.sum()), MODEL.noise_dim, generator=torch.Generator().manual_seed(3))
+    with torch.no_grad():
+        mine = net.decode(batch, net.encode(batch), noise).positions
+        theirs = source.decode(batch, source.encode(batch), noise).positions
+    assert torch.equal(mine, theirs)
+
+    # fit(init_from=...) starts there and logs it; weights that cannot move (lr 1e-30) stay the source's
+    run = fit(train, val, _cfg(lr=1e-30, steps=2, eval_every=2), tmp_path / "ws", progress=False,
+              init_from=noise_lstm.last_checkpoint)
+    start = json.loads(run.log_path.read_text().splitlines()[0])
+    assert start["event"] == "start" and start["init_from"]["widened"] == list(done.widened)
+    after = load_file(str(run.last_checkpoint / "weights.safetensors"))
+    before = load_file(str(noise_lstm.last_checkpoint / "weights.safetensors"))
+    assert torch.equal(after["out.weight"], before["out.weight"])
+    assert torch.equal(after["decoder.weight_ih"][:, :width], before["decoder.weight_ih"])
+
+    with pytest.raises(CheckpointError, match="shape"):
+        warm_start(TrajectoryNet(replace(MODEL, lstm_dim=8)), noise_lstm.last_checkpoint)
