@@ -204,3 +204,36 @@ def test_inference_settings_are_the_val_argmin_over_the_joint_grid(bundled: Path
     again = best_of_k(np.concatenate(tuned(net, choice).predict(val, 20, 0)), truth_of(val, 12))
     np.testing.assert_allclose(again, row[2:], rtol=1e-12)
     assert grid_row(grid, 0, 1.0)[2:] != grid_row(grid, 1, 1.0)[2:]
+
+
+def test_paired_differences_agree_with_the_report(bundled: Path, tmp_path: Path) -> None:
+    from reproduce_ethucy import ensure_dataset, paired_differences, read_forecasts, window_blocks, write_classical
+
+    from logpipe.stages.score import score
+    from logpipe.stages.train import scene_samples
+
+    ds = ensure_dataset(bundled / "ethucy", tmp_path / "ds", "ethucy")
+    test = scene_samples(ds, "eth/test")
+    files = write_classical(test, 12, 0, {"heading_std_rad": 0.2, "speed_std_frac": 0.3}, 20, "cv_sampler",
+                            tmp_path / "pred")
+    report = score(files, ds.root, tmp_path / "report", split="eth/test", min_agents=2, plots=False)
+    read = read_forecasts(files, test, ("cv_sampler", "cv"))
+    # The sampler stands in for the paper's method: paired with itself the difference is exactly 0; paired with
+    # constant velocity (K=1) it is the difference of the report's rows, and clearly below 0.
+    paired = paired_differences(test, {"zhu2020": read["cv_sampler"], "cv_sampler": read["cv_sampler"],
+                                       "noise_lstm": read["cv"]}, 12, 2)
+    assert paired["cv_sampler"]["ade"]["low"] == paired["cv_sampler"]["ade"]["high"] == 0.0
+    rows = report["methods"]
+    for key in ("ade", "fde"):
+        got = paired["noise_lstm"][key]
+        want = rows["cv_sampler"]["overall"]["k20"][key] - rows["cv"]["overall"]["k1"][key]
+        assert got["mean"] == pytest.approx(want, rel=1e-9)
+        assert got["low"] <= got["mean"] <= got["high"] < 0
+        assert got["agents"] == rows["cv"]["overall"]["agents"]
+    # Blocks: one label per target row; windows of one log starting within one 20-step block share it.
+    blocks = window_blocks(test)
+    starts = [(s.sample_id.rsplit(":", 1)[0], int(s.sample_id.rsplit(":", 1)[1]) // 20) for s in test
+              for _ in range(int(s.target_mask.sum()))]
+    assert len(blocks) == len(starts) and len(set(blocks.tolist())) == len(set(starts)) > 1
+    assert all((blocks[i] == blocks[j]) == (starts[i] == starts[j]) for i in range(0, len(starts), 7)
+               for j in range(0, len(starts), 11))

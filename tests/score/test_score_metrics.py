@@ -95,3 +95,33 @@ def test_horizon_curve_averages_to_ade_and_shapes_are_checked() -> None:
         metrics.displacement_errors(pred, truth[:, :11])
     with pytest.raises(ValueError, match="modes"):
         metrics.top_k(err, 7)
+
+
+def test_paired_interval_of_a_constant_difference_is_that_constant() -> None:
+    got = metrics.paired_difference_interval(np.full(30, -0.25), np.arange(30) // 3)
+    assert (got.mean, got.low, got.high, got.agents, got.clusters) == (-0.25, -0.25, -0.25, 30, 10)
+
+
+def test_paired_interval_covers_the_true_mean_and_widens_with_clustering() -> None:
+    rng = np.random.default_rng(7)
+    covered = 0
+    for trial in range(200):
+        diff = rng.normal(0.1, 1.0, 60)
+        got = metrics.paired_difference_interval(diff, np.arange(60), resamples=500, seed=trial)
+        assert got.low <= got.mean <= got.high and got.mean == pytest.approx(diff.mean())
+        covered += got.low <= 0.1 <= got.high
+    assert 0.88 <= covered / 200 <= 0.99  # a 95 % interval
+    # Ten agents per cluster sharing one value carry the information of one agent each: treated as clusters the
+    # interval is about sqrt(10) times wider than if every agent counted on its own.
+    shared = np.repeat(rng.normal(0.0, 1.0, 40), 10)
+    clustered = metrics.paired_difference_interval(shared, np.arange(400) // 10)
+    naive = metrics.paired_difference_interval(shared, np.arange(400))
+    ratio = (clustered.high - clustered.low) / (naive.high - naive.low)
+    assert 2.5 < ratio < 4.0
+
+
+def test_paired_interval_rejects_mismatched_input() -> None:
+    with pytest.raises(ValueError, match="diff"):
+        metrics.paired_difference_interval(np.zeros(3), np.zeros(4, dtype=np.int64))
+    with pytest.raises(ValueError, match="diff"):
+        metrics.paired_difference_interval(np.zeros(0), np.zeros(0, dtype=np.int64))
