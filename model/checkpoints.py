@@ -317,7 +317,7 @@ class WarmStart:
                 "widened": list(self.widened), "kept": list(self.kept)}
 
 
-def warm_start(net: TrajectoryNet, path: Path) -> WarmStart:
+def warm_start(net: TrajectoryNet, folder: Path) -> WarmStart:
     """Initialise ``net`` from a checkpoint of a network with fewer features (e.g. Noise-LSTM into the full model).
 
     Every parameter the checkpoint has is copied; the encoder and decoder input weights get the checkpoint's
@@ -329,7 +329,6 @@ def warm_start(net: TrajectoryNet, path: Path) -> WarmStart:
         CheckpointError: missing or corrupt files, a parameter of ``net`` that the checkpoint has with a shape
             that cannot be fitted, or a checkpoint parameter ``net`` lacks.
     """
-    folder = path.parent if path.name == "meta.json" else path
     meta = read_meta(folder)
     weights = folder / "weights.safetensors"
     digest = _sha256(weights) if weights.is_file() else ""

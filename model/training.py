@@ -359,6 +359,8 @@ def fit(
         val = list(itertools.islice(val, cfg.val_max_samples))  # validated repeatedly: keep a one-shot stream
     if cfg.num_threads > 0:
         torch.set_num_threads(cfg.num_threads)
+    if init_from is not None:
+        read_meta(init_from)  # a bad source fails before the run folder is made
     out_dir.mkdir(parents=True, exist_ok=True)
     last_dir, best_dir = out_dir / "last", out_dir / "best"
     log = _Log(out_dir / "train_log.jsonl", enabled=ranks.main)

@@ -182,3 +182,22 @@ def test_train_holds_out_a_scene_with_a_split_expression(bundled: Path, tmp_path
     summary = json.loads(result.stdout)
     assert summary["train_split"] == "all-eth/test-hotel/test" and summary["val_split"] == "biwi_hotel"
     assert summary["train_samples"] > 0 and summary["val_samples"] > 0
+
+
+def test_train_init_from_warm_starts_the_full_model_from_a_noise_lstm(bundled: Path, tmp_path: Path) -> None:
+    runner.invoke(app, ["ingest", str(bundled / "ethucy"), "--out", str(tmp_path / "e"), "--no-mcap"])
+    config = tmp_path / "c.toml"
+    config.write_text("[train]\nsteps = 2\neval_every = 2\nval_max_samples = 8\nnum_threads = 1\n")
+    args = ["train", str(tmp_path / "e"), "--train-split", "eth/train", "--val-split", "hotel/test", "--config",
+            str(config), "--json"]
+    base = runner.invoke(app, [*args, "--preset", "baseline", "--out", str(tmp_path / "nl")])
+    assert base.exit_code == 0, base.output
+    source = json.loads(base.stdout)["best_checkpoint"]
+    warm = runner.invoke(app, [*args, "--init-from", source, "--out", str(tmp_path / "ours")])
+    assert warm.exit_code == 0, warm.output
+    assert json.loads(warm.stdout)["init_from"] == source
+    start = json.loads((tmp_path / "ours" / "train_log.jsonl").read_text().splitlines()[0])
+    assert start["init_from"]["widened"] and start["init_from"]["source"] == source
+    missing = runner.invoke(app, [*args, "--init-from", str(tmp_path / "nowhere"), "--out", str(tmp_path / "x")])
+    assert missing.exit_code != 0 and "nowhere" in missing.output
+    assert not (tmp_path / "x").exists()  # nothing made for a run that cannot start
