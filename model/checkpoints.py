@@ -304,6 +304,8 @@ class WarmStart:
         widened: LSTM input weights whose leading columns were copied and the columns of the extra inputs
             (interaction and environment features) zeroed.
         kept: parameters the checkpoint does not have (they keep their fresh initialisation).
+        differences: the model config keys on which the checkpoint differs from ``net`` (``features`` aside):
+            copied weights may mean something else there (another output form, speed unit, ...).
     """
 
     source: Path
@@ -311,10 +313,11 @@ class WarmStart:
     copied: tuple[str, ...]
     widened: tuple[str, ...]
     kept: tuple[str, ...]
+    differences: tuple[str, ...]
 
     def to_dict(self) -> dict[str, Any]:
         return {"source": str(self.source), "weights_sha256": self.weights_sha256, "copied": len(self.copied),
-                "widened": list(self.widened), "kept": list(self.kept)}
+                "widened": list(self.widened), "kept": list(self.kept), "differences": list(self.differences)}
 
 
 def warm_start(net: TrajectoryNet, folder: Path) -> WarmStart:
@@ -356,4 +359,7 @@ def warm_start(net: TrajectoryNet, folder: Path) -> WarmStart:
                 raise CheckpointError(f"{folder}: parameter {name} has shape {tuple(value.shape)}, the network "
                                       f"{tuple(slot.shape)}")
     kept = tuple(sorted(set(target) - set(source)))
-    return WarmStart(folder, digest, tuple(copied), tuple(widened), kept)
+    mine, theirs = config_to_dict(net.config), config_to_dict(meta.config.model)
+    mine.pop("features")
+    theirs.pop("features")
+    return WarmStart(folder, digest, tuple(copied), tuple(widened), kept, tuple(_diff(mine, theirs, "model.")))

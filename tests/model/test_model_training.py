@@ -233,6 +233,9 @@ def test_warm_start_from_noise_lstm_starts_at_its_predictions(tmp_path: Path) ->
     done = warm_start(net, noise_lstm.last_checkpoint)
     assert set(done.widened) == {"encoder.weight_ih", "decoder.weight_ih"}
     assert done.kept and all(k.startswith(("ain.", "attention.")) for k in done.kept)
+    assert done.differences == ()  # the same model config but for the features
+    assert warm_start(TrajectoryNet(replace(MODEL, disp_scale_m=0.5)), noise_lstm.last_checkpoint).differences == (
+        f"model.disp_scale_m: expected 0.5, checkpoint has {MODEL.disp_scale_m!r}",)
     width = MODEL.embed_dim  # the displacement embedding leads the LSTM input
     assert not net.encoder.weight_ih[:, width:].any() and net.encoder.weight_ih[:, width:].numel() > 0
     batch = collate(val, MODEL)
