@@ -242,6 +242,14 @@ def check_meta(
         raise CheckpointMismatchError(f"{where}: checkpoint does not match: " + "; ".join(problems))
 
 
+def _verified_weights(folder: Path, meta: CheckpointMeta) -> dict[str, torch.Tensor]:
+    """The tensors of ``folder/weights.safetensors`` once its sha256 matches the one ``meta.json`` names."""
+    weights = folder / "weights.safetensors"
+    if not weights.is_file() or _sha256(weights) != meta.weights_sha256:
+        raise CheckpointError(f"{weights}: missing or does not match the sha256 in meta.json")
+    return load_file(str(weights))
+
+
 def load_checkpoint(
     path: Path,
     *,
@@ -260,14 +268,12 @@ def load_checkpoint(
     check_meta(
         meta, folder, expect_kind=expect_kind, expect_config=expect_config, expect_manifest_hash=expect_manifest_hash
     )
-    weights = folder / "weights.safetensors"
-    if not weights.is_file() or _sha256(weights) != meta.weights_sha256:
-        raise CheckpointError(f"{weights}: missing or does not match the sha256 in meta.json")
+    tensors = _verified_weights(folder, meta)
     net = TrajectoryNet(meta.config.model, load_backbone=False)
     try:
-        net.load_state_dict(load_file(str(weights)), strict=True)
+        net.load_state_dict(tensors, strict=True)
     except RuntimeError as exc:
-        raise CheckpointError(f"{weights}: weights do not fit the stored config: {exc}") from exc
+        raise CheckpointError(f"{folder / 'weights.safetensors'}: weights do not fit the stored config: {exc}") from exc
     return LoadedCheckpoint(net.eval(), meta, folder)
 
 
@@ -333,11 +339,7 @@ def warm_start(net: TrajectoryNet, folder: Path) -> WarmStart:
             that cannot be fitted, or a checkpoint parameter ``net`` lacks.
     """
     meta = read_meta(folder)
-    weights = folder / "weights.safetensors"
-    digest = _sha256(weights) if weights.is_file() else ""
-    if digest != meta.weights_sha256:
-        raise CheckpointError(f"{weights}: missing or does not match the sha256 in meta.json")
-    source = load_file(str(weights))
+    source = _verified_weights(folder, meta)
     target = net.state_dict()
     unknown = sorted(set(source) - set(target))
     if unknown:
@@ -362,4 +364,5 @@ def warm_start(net: TrajectoryNet, folder: Path) -> WarmStart:
     mine, theirs = config_to_dict(net.config), config_to_dict(meta.config.model)
     mine.pop("features")
     theirs.pop("features")
-    return WarmStart(folder, digest, tuple(copied), tuple(widened), kept, tuple(_diff(mine, theirs, "model.")))
+    differences = tuple(_diff(mine, theirs, "model."))
+    return WarmStart(folder, meta.weights_sha256, tuple(copied), tuple(widened), kept, differences)

@@ -459,8 +459,8 @@ def motion_breakdown(samples: Sequence[SceneSample], forecasts: dict[str, NDArra
     return out
 
 
-PAIRED_BASELINES = ("noise_lstm", "cv_sampler")
-"""Baselines the paper's method is paired with agent by agent: the best-of-20 rows nearest to it."""
+PAIRED_BASELINES = {"noise_lstm": "Noise-LSTM", "cv_sampler": "CV sampler"}
+"""Baselines the paper's method is paired with agent by agent (the best-of-20 rows nearest to it), and their labels."""
 
 
 def window_blocks(samples: Sequence[SceneSample]) -> NDArrayInt:
@@ -559,8 +559,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     out_md = args.results / "ethucy.md"
     detail = args.results / "ethucy"
     results: dict[str, Any] = {"scenes": {}, "skipped": [], "sampler": {}, "noise": {}, "val": {}, "seeds": {},
-                               "motion": {}, "paired": {},
-                               "stale_seeds": stale_seeds(ds.kind)}
+                               "motion": {}, "paired": {}, "stale_seeds": stale_seeds(ds.kind)}
     for scene in args.scenes:
         ts = time.perf_counter()
         val = scene_samples(ds, f"{scene}/val")
@@ -652,7 +651,6 @@ def paired_section(results: dict[str, Any]) -> list[str]:
     paired = results.get("paired", {})
     if not any(paired.values()):
         return []
-    labels = {"noise_lstm": "Noise-LSTM", "cv_sampler": "CV sampler"}
     out = ["### How sure: paired differences on test", "",
            "The paper's method minus the baseline, agent by agent on the same test agents as the table (best-of-20 "
            "per agent, `min_agents=2`), in metres: mean [95 % interval]. The interval is a percentile bootstrap "
@@ -661,7 +659,7 @@ def paired_section(results: dict[str, Any]) -> list[str]:
            "training seed, and windows in neighbouring blocks still share frames. An interval below 0 means the "
            "paper's method is ahead beyond that sampling noise, one above 0 that it is behind.", "",
            "| baseline | metric | " + " | ".join(s.upper() for s in SCENES) + " |", "|---|---|" + "---|" * len(SCENES)]
-    for base, label in labels.items():
+    for base, label in PAIRED_BASELINES.items():
         for key in ("ade", "fde"):
             cells = []
             for scene in SCENES:
