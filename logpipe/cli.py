@@ -364,6 +364,9 @@ def predict(
         "--constant-velocity-modes", help="How many of the K futures are the constant-velocity forecast (the "
         "network's corrections held at zero; default: the checkpoint's, 0 unless trained with it). Choose it on a "
         "validation split (make reproduce-ethucy does).")] = None,
+    context_max_neighbours: Annotated[int | None, typer.Option(
+        "--context-max-neighbours", help="At most this many of the agents within the checkpoint's context radius "
+        "(the nearest) in each target's context (default: all); make reproduce-ethucy sets it per fold.")] = None,
     filters: Annotated[list[str] | None, typer.Option(
         "--filter", help="log=ID[,ID] | split=eth/test | time=START_NS:END_NS | type=pedestrian[,..]; repeatable.")
     ] = None,
@@ -388,7 +391,8 @@ def predict(
     with _user_errors(), _progress(0, "predict", enabled=not as_json and sys.stderr.isatty()) as advance:
         summary = predict_dataset(
             dataset, out, checkpoint=checkpoint, predictor=predictor, modes=modes, seed=seed, noise_scale=noise_scale,
-            constant_velocity_modes=constant_velocity_modes, sample_filter=parse_filter(filters or []),
+            constant_velocity_modes=constant_velocity_modes, context_max_neighbours=context_max_neighbours,
+            sample_filter=parse_filter(filters or []),
             inputs=inputs or [], raster_run=raster_run, raster_images=raster_images, write_mcap=mcap,
             batch_size=batch_size, threads=threads, progress=advance,
         )

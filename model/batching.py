@@ -157,10 +157,21 @@ def _frame(sample: SceneSample, observed: NDArrayFloat, config: ModelConfig) -> 
     return now[anchor].copy(), _rot(-heading)
 
 
-def context_scenes(sample: SceneSample, radius_m: float) -> list[SceneSample]:
+def neighbour_counts(sample: SceneSample, radius_m: float) -> NDArrayInt:
+    """How many other agents observed at the current step are within ``radius_m`` metres of each target of
+    ``sample`` observed then (``context_scenes``' neighbourhoods, the ego counted like anyone), in target order."""
+    now = sample.positions[:, sample.obs_len - 1]
+    seen: NDArrayBool = np.all(np.isfinite(now), axis=1)
+    counts = [int(np.sum(seen & (np.linalg.norm(np.where(seen[:, None], now - now[i], np.inf), axis=1) <= radius_m)))
+              - 1 for i in np.flatnonzero(sample.target_mask & seen)]
+    return np.array(counts, np.int64)
+
+
+def context_scenes(sample: SceneSample, radius_m: float, max_neighbours: int | None = None) -> list[SceneSample]:
     """One scene per target of ``sample``, in ``target_mask`` order (``ModelConfig.context_radius_m``): the
     target (the scene's only target), the other agents observed at the current step within ``radius_m``
-    metres of it, and the ego. A target unobserved at the current step gets a scene of its own alone."""
+    metres of it (the ``max_neighbours`` nearest of them when given; ties by row), and the ego. A target
+    unobserved at the current step gets a scene of its own alone."""
     now = sample.positions[:, sample.obs_len - 1]
     seen: NDArrayBool = np.all(np.isfinite(now), axis=1)
     ego = sample.ego_index if 0 <= sample.ego_index < len(now) else -1
@@ -168,7 +179,13 @@ def context_scenes(sample: SceneSample, radius_m: float) -> list[SceneSample]:
     for i in np.flatnonzero(sample.target_mask):
         keep = np.zeros(len(now), bool)
         if seen[i]:
-            keep = seen & (np.linalg.norm(np.where(seen[:, None], now - now[i], 0.0), axis=1) <= radius_m)
+            dist = np.linalg.norm(np.where(seen[:, None], now - now[i], 0.0), axis=1)
+            keep = seen & (dist <= radius_m)
+            keep[i] = False
+            if max_neighbours is not None and keep.sum() > max_neighbours:
+                near = np.flatnonzero(keep)[np.argsort(dist[keep], kind="stable")[:max_neighbours]]
+                keep[:] = False
+                keep[near] = True
             if ego >= 0:
                 keep[ego] = True
         keep[i] = True
@@ -289,7 +306,7 @@ def _collate_in_context(samples: Sequence[SceneSample], config: ModelConfig, rot
     axes, speed scale and rotation), so only the agents the interaction features pool differ."""
     assert config.context_radius_m is not None
     plain = replace(config, context_radius_m=None)
-    parts = [context_scenes(s, config.context_radius_m) for s in samples]
+    parts = [context_scenes(s, config.context_radius_m, config.context_max_neighbours) for s in samples]
     scenes = [scene for part in parts for scene in part]
     if not scenes:  # nothing to predict: the samples as they are
         return collate(samples, plain, rotations=rotations, with_raster=with_raster)

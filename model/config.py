@@ -138,6 +138,11 @@ class ModelConfig:
             scale stay the window's). With ``target`` the max-pool of eq. 2 over linear embeddings of positions
             reads the neighbours' extent relative to the target itself, as the paper's ego-centred frame does
             for the ego.
+        context_max_neighbours: with ``context_radius_m``, at most this many of the agents within the radius
+            (the nearest at the current step; the ego is kept besides) join each target's scene. None: all of
+            them. Its use is at inference: a model trained where few targets had more neighbours than this
+            sees crowds of the size its training covered (the pools of eqs. 2 and 4 take maxima, which grow
+            with the number pooled).
     """
 
     features: Features = field(default_factory=Features)
@@ -164,6 +169,7 @@ class ModelConfig:
     constant_velocity_modes: int = 0
     context_radius_m: float | None = None
     context_origin: ContextOrigin = "window"
+    context_max_neighbours: int | None = None
 
     def __post_init__(self) -> None:
         if self.obs_len < 2 or self.pred_len < 1:
@@ -184,6 +190,9 @@ class ModelConfig:
                 math.isfinite(self.context_radius_m) and self.context_radius_m > 0):
             raise ConfigError(
                 f"model.context_radius_m must be a positive number or absent, got {self.context_radius_m}")
+        if self.context_max_neighbours is not None and self.context_max_neighbours < 0:
+            raise ConfigError(
+                f"model.context_max_neighbours must be >= 0 or absent, got {self.context_max_neighbours}")
         if self.context_origin not in get_args(ContextOrigin):
             raise ConfigError(
                 f"model.context_origin must be one of {list(get_args(ContextOrigin))}, got {self.context_origin!r}"

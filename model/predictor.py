@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from dataclasses import replace
 from pathlib import Path
 from typing import Protocol, runtime_checkable
 
@@ -36,14 +37,17 @@ class Predictor(Protocol):
         ...
 
 
-def inference_id(weights_sha256: str, noise_scale: float = 1.0, constant_velocity_modes: int | None = None) -> str:
+def inference_id(weights_sha256: str, noise_scale: float = 1.0, constant_velocity_modes: int | None = None,
+                 context_max_neighbours: int | None = None) -> str:
     """The ``checkpoint_id`` predictions record: the weights' digest, then each inference setting that is not
-    the checkpoint's own (noise scale not 1, constant-velocity modes given)."""
+    the checkpoint's own (noise scale not 1, constant-velocity modes or a neighbour cap given)."""
     parts = [weights_sha256]
     if noise_scale != 1.0:
         parts.append(f"noise_scale={noise_scale:g}")
     if constant_velocity_modes is not None:
         parts.append(f"constant_velocity_modes={constant_velocity_modes}")
+    if context_max_neighbours is not None:
+        parts.append(f"context_max_neighbours={context_max_neighbours}")
     return " ".join(parts)
 
 
@@ -58,6 +62,8 @@ class NetPredictor:
         noise_scale: standard deviation of the noise z at inference (1 = eq. 21, what training drew).
         constant_velocity_modes: how many of the K modes are held to constant velocity (0 = none, the paper;
             None = the checkpoint's ``ModelConfig.constant_velocity_modes``, at most K - 1).
+        context_max_neighbours: at most this many neighbours in each target's context (the nearest; see
+            ``ModelConfig.context_max_neighbours``; None = the checkpoint's). Only with ``context_radius_m``.
     """
 
     @classmethod
@@ -70,30 +76,47 @@ class NetPredictor:
         batch_size: int = 32,
         noise_scale: float = 1.0,
         constant_velocity_modes: int | None = None,
+        context_max_neighbours: int | None = None,
     ) -> NetPredictor:
         """Load a checkpoint folder (see ``checkpoints.load_checkpoint`` for the checks and errors)."""
         loaded = load_checkpoint(path, expect_kind=expect_kind, expect_config=expect_config)
         return cls(loaded.net, batch_size=batch_size, noise_scale=noise_scale,
-                   constant_velocity_modes=constant_velocity_modes)
+                   constant_velocity_modes=constant_velocity_modes, context_max_neighbours=context_max_neighbours)
 
     def __init__(self, net: TrajectoryNet, batch_size: int = 32, name: str = "zhu2020",
-                 noise_scale: float = 1.0, constant_velocity_modes: int | None = None) -> None:
+                 noise_scale: float = 1.0, constant_velocity_modes: int | None = None,
+                 context_max_neighbours: int | None = None) -> None:
         if not (math.isfinite(noise_scale) and noise_scale > 0):
             raise LogpipeError(f"noise scale must be a positive number, got {noise_scale}")
+        if context_max_neighbours is not None:
+            if net.config.context_radius_m is None:
+                raise LogpipeError("a neighbour cap needs a checkpoint trained with model.context_radius_m")
+            if context_max_neighbours < 0:
+                raise LogpipeError(f"the neighbour cap must be >= 0, got {context_max_neighbours}")
         self.net = net.eval()
-        self.config: ModelConfig = net.config
+        # The cap only changes which agents are collated, so it lives in the config collate reads.
+        self.config: ModelConfig = (net.config if context_max_neighbours is None
+                                    else replace(net.config, context_max_neighbours=context_max_neighbours))
         self.batch_size = batch_size
         self.name = name
         self.noise_scale = noise_scale
         self.constant_velocity_modes = constant_velocity_modes
+        self.context_max_neighbours = context_max_neighbours
 
     def with_noise_scale(self, noise_scale: float) -> NetPredictor:
         """The same network and settings, sampling z with standard deviation ``noise_scale``."""
-        return NetPredictor(self.net, self.batch_size, self.name, noise_scale, self.constant_velocity_modes)
+        return NetPredictor(self.net, self.batch_size, self.name, noise_scale, self.constant_velocity_modes,
+                            self.context_max_neighbours)
 
     def with_constant_velocity_modes(self, count: int | None) -> NetPredictor:
         """The same network and settings, with the first ``count`` modes held to constant velocity."""
-        return NetPredictor(self.net, self.batch_size, self.name, self.noise_scale, count)
+        return NetPredictor(self.net, self.batch_size, self.name, self.noise_scale, count,
+                            self.context_max_neighbours)
+
+    def with_context_max_neighbours(self, count: int | None) -> NetPredictor:
+        """The same network and settings, with at most ``count`` neighbours in each target's context."""
+        return NetPredictor(self.net, self.batch_size, self.name, self.noise_scale, self.constant_velocity_modes,
+                            count)
 
     @torch.no_grad()
     def predict(self, samples: Sequence[SceneSample], num_modes: int, seed: int) -> list[NDArrayFloat]:

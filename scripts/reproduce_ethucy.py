@@ -35,7 +35,9 @@ from logpipe.dataset import Dataset
 from logpipe.formats.ethucy import FRAME_PERIOD_NS
 from logpipe.io import atomic_open, write_parquet
 from logpipe.model.baselines import ConstantVelocity, ConstantVelocitySampler, KalmanCV, LinearFit
+from logpipe.model.batching import neighbour_counts
 from logpipe.model.checkpoints import read_meta
+from logpipe.model.config import ModelConfig
 from logpipe.model.predictor import NetPredictor, Predictor, inference_id
 from logpipe.resample import ResampleSpec, resample_track
 from logpipe.stages.ingest import IngestOptions, ingest
@@ -54,6 +56,10 @@ NOISE_SCALE_GRID = (0.5, 0.75, 1.0, 1.5, 2.0, 2.5, 3.0)
 """Candidates for the std of a learned method's noise z at inference (1 = eq. 21, what training drew)."""
 CV_MODES_GRID = (0, 1)
 """Candidates for how many of a learned method's K modes are held to constant velocity at inference."""
+NEIGHBOUR_CAP_PERCENTILE = 99
+"""A fold's neighbour cap (``ModelConfig.context_max_neighbours``, for the methods with interaction features) is this
+percentile of its training targets' neighbour counts within the context radius: at test each target sees at most as
+many neighbours as all but 1 % of the training targets did. Fixed before any test was read; see ``neighbour_cap``."""
 STILL_STEP_M = 0.03
 """A pedestrian whose last observed step is shorter than this (metres) counts as standing in the motion breakdown."""
 STAY_RADIUS_M = 0.5
@@ -159,8 +165,20 @@ def tune_inference(net: NetPredictor, val: Sequence[SceneSample], pred_len: int,
 
 
 def tuned(net: NetPredictor, choice: dict[str, Any]) -> NetPredictor:
-    """``net`` at the inference settings ``tune_inference`` chose."""
-    return net.with_noise_scale(choice["noise_scale"]).with_constant_velocity_modes(choice["constant_velocity_modes"])
+    """``net`` at the inference settings ``tune_inference`` chose (and the fold's neighbour cap, when it has one)."""
+    return (net.with_noise_scale(choice["noise_scale"]).with_constant_velocity_modes(choice["constant_velocity_modes"])
+            .with_context_max_neighbours(choice.get("context_max_neighbours")))
+
+
+def pools_context(config: ModelConfig) -> bool:
+    """Whether a network reads each target's neighbourhood (a context radius and at least one of PF, TF)."""
+    return config.context_radius_m is not None and (config.features.position or config.features.tracking)
+
+
+def neighbour_cap(train: Sequence[SceneSample], radius_m: float, percentile: float = NEIGHBOUR_CAP_PERCENTILE) -> int:
+    """``percentile`` of the neighbour counts within ``radius_m`` of the targets of ``train`` (an observed count)."""
+    counts = np.concatenate([neighbour_counts(s, radius_m) for s in train])
+    return int(np.percentile(counts, percentile, method="higher"))
 
 
 def grid_row(grid: Sequence[Sequence[float]], held: int, scale: float) -> Sequence[float]:
@@ -224,20 +242,31 @@ def rate_shifted_dataset(data: Path, work: Path) -> Dataset:
 def write_learned(checkpoint: Path, kind: str, val: Sequence[SceneSample], test: Sequence[SceneSample], k: int,
                   seed: int, pred_len: int, pdir: Path, method: str, as_trained: str | None = None,
                   speed_shift: bool = False, rate_val: Sequence[SceneSample] | None = None,
-                  ) -> tuple[list[Path], dict[str, Any] | None]:
+                  train: Sequence[SceneSample] | None = None) -> tuple[list[Path], dict[str, Any] | None]:
     """Test predictions of a learned method: with K > 1 at the inference settings chosen on ``val`` (and, named
-    ``as_trained``, at the checkpoint's own too); with K = 1 as it is. Returns the files and the choice (None for
-    K = 1), with the speed-shift check's val ADE/FDE when ``speed_shift`` and the frame-rate check's on ``rate_val``."""
+    ``as_trained``, at the checkpoint's own too); with K = 1 as it is. A network that pools each target's
+    neighbourhood gets the fold's neighbour cap from ``train`` (``neighbour_cap``) in every run but the as-trained
+    one. Returns the files and the choice (None for K = 1), with the speed-shift check's val ADE/FDE when
+    ``speed_shift`` and the frame-rate check's on ``rate_val``."""
     sha = read_meta(checkpoint).weights_sha256
     net = NetPredictor.from_checkpoint(checkpoint, expect_kind=kind)
+    cap = None
+    if train is not None and pools_context(net.config):
+        assert net.config.context_radius_m is not None
+        cap = neighbour_cap(train, net.config.context_radius_m)
+        net = net.with_context_max_neighbours(cap)
     if k == 1:
         return [write_predictions(net, test, k, seed, pred_len, sha, pdir / f"{method}.parquet", method)], None
     choice, grid = tune_inference(net, val, pred_len, k, seed)
+    if cap is not None:
+        choice["context_max_neighbours"] = cap
     best = tuned(net, choice)
     files = [write_predictions(best, test, k, seed, pred_len, inference_id(sha, **choice),
                                pdir / f"{method}.parquet", method)]
     if as_trained is not None:
-        files.append(write_predictions(net, test, k, seed, pred_len, sha, pdir / f"{as_trained}.parquet", as_trained))
+        plain = net.with_context_max_neighbours(None)
+        files.append(write_predictions(plain, test, k, seed, pred_len, sha, pdir / f"{as_trained}.parquet",
+                                       as_trained))
     trained_held = net.config.held_modes(k)
     chosen: dict[str, Any] = {**choice, "grid": grid, "trained_constant_velocity_modes": trained_held}
     if speed_shift:
@@ -338,7 +367,7 @@ def seed_template(template: str, seed: int) -> str:
 
 def seed_run(seed: int, templates: dict[str, str], learned: dict[str, tuple[str, int]], scene: str, ds: Dataset,
              val: Sequence[SceneSample], test: Sequence[SceneSample], split: str, min_agents: int,
-             work: Path) -> dict[str, Any]:
+             work: Path, train: Sequence[SceneSample] | None = None) -> dict[str, Any]:
     """One extra seed's test ADE/FDE: the sampler with sampling seed ``seed`` (its noise chosen on ``val`` again) and
     each learned method whose ``seed`` checkpoint exists, trained with ``train.seed = seed`` and sampled with it (its
     inference settings chosen on ``val``); scored like the main table, without plots. Returns method -> (K, ADE,
@@ -351,7 +380,7 @@ def seed_run(seed: int, templates: dict[str, str], learned: dict[str, tuple[str,
     for method, (_, k) in learned.items():
         ckpt = find_checkpoint(seed_template(templates[method], seed), scene)
         if ckpt is not None:
-            files += write_learned(ckpt, ds.kind, val, test, k, seed, pred_len, work, method)[0]
+            files += write_learned(ckpt, ds.kind, val, test, k, seed, pred_len, work, method, train=train)[0]
             ks[method] = k
     report = score(files, ds.root, work / "report", split=split, min_agents=min_agents, plots=False,
                    title=f"{split}, training seed {seed}")
@@ -516,6 +545,7 @@ def validation_summary(results: dict[str, Any], scene: str) -> dict[str, Any]:
         chosen = grid_row(n["grid"], n["constant_velocity_modes"], n["noise_scale"])
         out[method] = {"noise_scale": n["noise_scale"], "constant_velocity_modes": n["constant_velocity_modes"],
                        "trained_constant_velocity_modes": n["trained_constant_velocity_modes"],
+                       "context_max_neighbours": n.get("context_max_neighbours"),
                        "ade_fde": list(chosen[2:]), "speed_shift_ade_fde": list(n["speed_shift_val"]),
                        "rate_shift_ade_fde": list(n["rate_shift_val"]), "inference_grid": n["grid"]}
     return out
@@ -564,6 +594,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         ts = time.perf_counter()
         val = scene_samples(ds, f"{scene}/val")
         test = scene_samples(ds, f"{scene}/test")
+        train = scene_samples(ds, f"{scene}/train")  # for the neighbour cap only
         choice, grid = tune_sampler(val, pred_len, K_BEST, args.seed)
         rate_val = scene_samples(rate_ds, f"{scene}/val")
         sampler = ConstantVelocitySampler(pred_len=pred_len, **choice)
@@ -585,7 +616,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                 continue
             written, noise = write_learned(ckpt, ds.kind, val, test, k, args.seed, pred_len, pdir, method,
                                            AS_TRAINED if method == "zhu2020" else None, speed_shift=True,
-                                           rate_val=rate_val)
+                                           rate_val=rate_val, train=train)
             files += written
             if noise is not None:
                 results["noise"].setdefault(scene, {})[method] = noise
@@ -601,7 +632,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         every = score(files, ds.root, detail / scene / "min1", split=f"{scene}/test", min_agents=1, plots=False,
                       title=f"ETH/UCY {scene} (leave-one-out test), every window (>= 1 ped)")
         results["seeds"][scene] = {seed: seed_run(seed, templates, LEARNED, scene, ds, val, test, f"{scene}/test", 2,
-                                                  args.work / "seeds" / f"seed{seed}" / scene)
+                                                  args.work / "seeds" / f"seed{seed}" / scene, train)
                                    for seed in training_seeds(ds.kind)}
         results["scenes"][scene] = {"min2": literal, "min1": every, "seconds": round(time.perf_counter() - ts, 2)}
         print(f"{scene}: {time.perf_counter() - ts:.1f} s", file=sys.stderr)
@@ -805,17 +836,24 @@ def render(results: dict[str, Any], args: argparse.Namespace, seconds: float) ->
               "`ModelConfig.constant_velocity_modes`, `logpipe predict --constant-velocity-modes`). Like the "
               f"sampler's noise, (c, s) is chosen per scene and method on `S/val` from c in {list(CV_MODES_GRID)} "
               f"and s in {list(NOISE_SCALE_GRID)} by per-agent best-of-20 ADE (FDE breaks ties); the table above "
-              "also shows our method as trained (s = 1, c as in its config).", "",
-              "| scene | method | c | s | val best-of-20 ADE/FDE at (c, s) | as trained (c₀, s = 1) |",
-              "|---|---|---|---|---|---|"]
+              "also shows our method as trained (s = 1, c as in its config). A method with interaction features "
+              "pools at most n neighbours of each target (the nearest within its context radius; "
+              "`logpipe predict --context-max-neighbours`), n the "
+              f"{NEIGHBOUR_CAP_PERCENTILE}th percentile of the fold's training targets' neighbour counts, a rule fixed "
+              "before test was read: at test no target sees a larger crowd than all but 1 % of training did. Its "
+              "(c, s) grid is run with that cap; the test table's as-trained row runs without it.", "",
+              "| scene | method | c | s | n | val best-of-20 ADE/FDE at (c, s) | as trained (c₀, s = 1) |",
+              "|---|---|---|---|---|---|---|"]
     for scene, methods in results["val"].items():
         for method, v in methods.items():
             if method == "cv_sampler":
                 continue
             held = v["trained_constant_velocity_modes"]
             (ade, fde), one = v["ade_fde"], grid_row(v["inference_grid"], held, 1.0)
+            cap = v.get("context_max_neighbours")
             lines.append(f"| {scene} | {method} | {v['constant_velocity_modes']} | {v['noise_scale']:g} | "
-                         f"{ade:.2f}/{fde:.2f} | {one[2]:.2f}/{one[3]:.2f} (c₀ = {held}) |")
+                         f"{'-' if cap is None else cap} | {ade:.2f}/{fde:.2f} | {one[2]:.2f}/{one[3]:.2f} "
+                         f"(c₀ = {held}) |")
     lines += ["", f"## Speed-shift check (validation only): `S/val` at {SPEED_SHIFT}x the speed", "",
               f"Every `S/val` position scaled by {SPEED_SHIFT} (the same paths walked {SPEED_SHIFT} times faster, "
               "about biwi_eth's speed-up over the other scenes, measured on `biwi_eth_train.txt`), each method at "

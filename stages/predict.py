@@ -270,7 +270,7 @@ def check_fit(dataset: Dataset, chosen: ChosenPredictor, logs: pa.Table) -> list
 
 
 def load_net(chosen: ChosenPredictor, dataset: Dataset, batch_size: int, noise_scale: float = 1.0,
-             constant_velocity_modes: int | None = None) -> None:
+             constant_velocity_modes: int | None = None, context_max_neighbours: int | None = None) -> None:
     """Load the checkpoint's weights into ``chosen.model`` (after ``check_fit`` passed)."""
     if chosen.model is not None or chosen.checkpoint is None:
         return
@@ -278,7 +278,8 @@ def load_net(chosen: ChosenPredictor, dataset: Dataset, batch_size: int, noise_s
 
     chosen.model = NetPredictor.from_checkpoint(chosen.checkpoint, expect_kind=dataset.kind, batch_size=batch_size,
                                                 noise_scale=noise_scale,
-                                                constant_velocity_modes=constant_velocity_modes)
+                                                constant_velocity_modes=constant_velocity_modes,
+                                                context_max_neighbours=context_max_neighbours)
 
 
 def find_original(row: dict[str, Any], inputs: Sequence[Path], dataset: Dataset) -> Source:
@@ -354,6 +355,7 @@ def predict_dataset(
     seed: int = 0,
     noise_scale: float = 1.0,
     constant_velocity_modes: int | None = None,
+    context_max_neighbours: int | None = None,
     sample_filter: SampleFilter | None = None,
     inputs: Sequence[Path] = (),
     raster_run: str | None = None,
@@ -377,6 +379,8 @@ def predict_dataset(
         constant_velocity_modes: how many of the K futures are the constant-velocity forecast (the network's
             step outputs held at zero; default: the checkpoint's config, 0 unless trained otherwise), also to be
             chosen on validation data. Recorded in ``checkpoint_id`` when given.
+        context_max_neighbours: at most this many of the agents within the checkpoint's ``context_radius_m``
+            (the nearest) join each target's context (default: all). Recorded in ``checkpoint_id`` when given.
         sample_filter: which samples (default: all).
         inputs: the roots ROS bags / MCAP files were ingested from (their originals are copied into the output);
             default: the manifest's ``input_roots`` (absolute paths), when ingest records them.
@@ -400,16 +404,19 @@ def predict_dataset(
     if modes < 1 or batch_size < 1:
         raise LogpipeError(f"--modes and --batch-size must be >= 1, got {modes} and {batch_size}")
     chosen = choose_predictor(dataset, checkpoint, predictor, split=sample_filter.split)
-    if noise_scale != 1.0 or constant_velocity_modes is not None:
+    if noise_scale != 1.0 or constant_velocity_modes is not None or context_max_neighbours is not None:
         if chosen.checkpoint is None:
-            raise LogpipeError("--noise-scale and --constant-velocity-modes apply to a checkpoint's network, "
-                               "not to a --predictor baseline")
+            raise LogpipeError("--noise-scale, --constant-velocity-modes and --context-max-neighbours apply to a "
+                               "checkpoint's network, not to a --predictor baseline")
+        if context_max_neighbours is not None and context_max_neighbours < 0:
+            raise LogpipeError(f"--context-max-neighbours must be >= 0, got {context_max_neighbours}")
         if constant_velocity_modes is not None and not 0 <= constant_velocity_modes <= modes:
             raise LogpipeError(f"--constant-velocity-modes must be in 0..{modes} (--modes), "
                                f"got {constant_velocity_modes}")
         from logpipe.model.predictor import inference_id
 
-        chosen.checkpoint_id = inference_id(chosen.checkpoint_id, noise_scale, constant_velocity_modes)
+        chosen.checkpoint_id = inference_id(chosen.checkpoint_id, noise_scale, constant_velocity_modes,
+                                            context_max_neighbours)
     logs_table = _selected_logs(dataset, sample_filter)
     problems = check_fit(dataset, chosen, logs_table)
     samples_by_log = _selected_samples(dataset, logs_table, sample_filter)
@@ -423,7 +430,7 @@ def predict_dataset(
     # Where bags/MCAP inputs are: --inputs, else the roots ingest recorded (manifest "input_roots", if it does).
     roots = list(inputs) or [Path(p) for p in dataset.manifest.get("input_roots", [])]
     originals = {log_id: find_original(row, roots, dataset) for log_id, row in logs.items()} if write_mcap else {}
-    load_net(chosen, dataset, batch_size, noise_scale, constant_velocity_modes)
+    load_net(chosen, dataset, batch_size, noise_scale, constant_velocity_modes, context_max_neighbours)
     manifest_sha = sha256_file(dataset.root / "manifest.json")
     settings = {
         "dataset_manifest_sha256": manifest_sha, "predictor": chosen.name, "checkpoint_id": chosen.checkpoint_id,

@@ -52,6 +52,30 @@ def test_each_target_gets_its_neighbourhood(eth_windows: list) -> None:  # type:
             np.testing.assert_array_equal(scene.positions, sample.positions[rows])
 
 
+def test_max_neighbours_keeps_the_nearest(eth_windows: list) -> None:  # type: ignore[type-arg]
+    radius, cap = 4.0, 2
+    capped_some = False
+    for sample in eth_windows[:40]:
+        now = sample.positions[:, sample.obs_len - 1]
+        seen = np.isfinite(now).all(axis=1)
+        for i, full, capped in zip(np.flatnonzero(sample.target_mask), context_scenes(sample, radius),
+                                   context_scenes(sample, radius, cap), strict=True):
+            others = [t for t in full.track_ids if t != sample.track_ids[i]]
+            kept = [t for t in capped.track_ids if t != sample.track_ids[i]]
+            assert set(kept) <= set(others) and len(kept) == min(cap, len(others))
+            capped_some |= len(others) > cap
+            if len(others) > cap:  # nobody left out is nearer than someone kept
+                dist = {sample.track_ids[j]: float(np.linalg.norm(now[j] - now[i])) for j in np.flatnonzero(seen)}
+                assert max(dist[t] for t in kept) <= min(dist[t] for t in set(others) - set(kept))
+        assert context_scenes(sample, radius, 0)[0].track_ids == [sample.track_ids[np.argmax(sample.target_mask)]]
+    assert capped_some, "the bundled windows should have a target with more than two neighbours within 4 m"
+
+
+def test_max_neighbours_must_not_be_negative() -> None:
+    with pytest.raises(ConfigError, match="context_max_neighbours"):
+        replace(MODEL, context_max_neighbours=-1)
+
+
 def test_the_ego_stays_in_every_neighbourhood() -> None:
     sample = make_scene(np.random.default_rng(3), 6, 8, 12, with_ego=True)
     far = sample.positions.copy()
