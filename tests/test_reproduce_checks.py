@@ -7,6 +7,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pyarrow.parquet as pq
 import pytest
 
 REPO = Path(__file__).resolve().parents[1]
@@ -237,3 +238,28 @@ def test_paired_differences_agree_with_the_report(bundled: Path, tmp_path: Path)
     assert len(blocks) == len(starts) and len(set(blocks.tolist())) == len(set(starts)) > 1
     assert all((blocks[i] == blocks[j]) == (starts[i] == starts[j]) for i in range(0, len(starts), 7)
                for j in range(0, len(starts), 11))
+
+
+def test_the_neighbour_cap_is_the_training_percentile_and_only_for_pooling_nets(bundled: Path, tmp_path: Path) -> None:
+    from reproduce_ethucy import NEIGHBOUR_CAP_PERCENTILE, ensure_dataset, neighbour_cap, write_learned
+
+    from logpipe.model.batching import neighbour_counts
+    from logpipe.stages.train import scene_samples
+
+    ds = ensure_dataset(bundled / "ethucy", tmp_path / "ds", "ethucy")
+    train = scene_samples(ds, "eth/train")
+    counts = np.concatenate([neighbour_counts(s, 2.0) for s in train])
+    cap = neighbour_cap(train, 2.0)
+    assert cap in counts and np.mean(counts <= cap) >= NEIGHBOUR_CAP_PERCENTILE / 100 > np.mean(counts < cap)
+    val, test = train[:20], scene_samples(ds, "eth/test")[:10]
+    folder = REPO / "model" / "checkpoints" / "ethucy" / "eth"
+    _, ours = write_learned(folder, ds.kind, val, test, 20, 0, 12, tmp_path / "p", "zhu2020", "as_trained",
+                            train=train)
+    _, theirs = write_learned(folder / "noise_lstm", ds.kind, val, test, 20, 0, 12, tmp_path / "p", "noise_lstm",
+                              train=train)
+    assert ours is not None and theirs is not None
+    assert ours["context_max_neighbours"] == cap and "context_max_neighbours" not in theirs
+    ids = {m: set(pq.read_table(tmp_path / "p" / f"{m}.parquet", columns=["checkpoint_id"]).column(0).to_pylist())
+           for m in ("zhu2020", "as_trained")}
+    assert all(f"context_max_neighbours={cap}" in i for i in ids["zhu2020"])
+    assert not any("context_max_neighbours" in i for i in ids["as_trained"])

@@ -10,7 +10,8 @@ import pytest
 import torch
 
 from logpipe.dataset import Dataset
-from logpipe.model.batching import Batch, collate, context_scenes
+from logpipe.errors import LogpipeError
+from logpipe.model.batching import Batch, collate, context_scenes, neighbour_counts
 from logpipe.model.config import ConfigError, Features, ModelConfig, TrainConfig
 from logpipe.model.nets import TrajectoryNet
 from logpipe.model.predictor import NetPredictor
@@ -184,3 +185,30 @@ def test_fit_trains_on_target_scenes(tmp_path: Path) -> None:
 def test_radius_must_be_positive_and_finite(radius: float) -> None:
     with pytest.raises(ConfigError, match="context_radius_m"):
         ModelConfig(context_radius_m=radius)
+
+
+def test_neighbour_counts_are_the_context_sizes(eth_windows: list) -> None:  # type: ignore[type-arg]
+    for sample in eth_windows[:40]:
+        seen = np.isfinite(sample.positions[:, sample.obs_len - 1]).all(axis=1)
+        sizes = [len(scene.track_ids) - 1 for scene, i in
+                 zip(context_scenes(sample, 3.0), np.flatnonzero(sample.target_mask), strict=True) if seen[i]]
+        np.testing.assert_array_equal(neighbour_counts(sample, 3.0), sizes)
+
+
+def test_a_neighbour_cap_at_inference_changes_only_capped_targets(eth_windows: list) -> None:  # type: ignore[type-arg]
+    """The override reaches collate: a cap above every count gives the plain forecasts to the bit, a cap of 0 the
+    forecasts of a radius nobody is within; a network without a context radius refuses it."""
+    config = replace(MODEL, context_radius_m=4.0)
+    plain = _deterministic(config)
+    windows = eth_windows[:12]
+    most = int(max(neighbour_counts(s, 4.0).max(initial=0) for s in windows))
+    assert most >= 1
+    base = np.concatenate(plain.predict(windows, 1, 0))
+    np.testing.assert_array_equal(np.concatenate(plain.with_context_max_neighbours(most).predict(windows, 1, 0)), base)
+    alone = np.concatenate(plain.with_context_max_neighbours(0).predict(windows, 1, 0))
+    tiny = _deterministic(replace(MODEL, context_radius_m=1e-6))  # same weights, nobody within reach
+    np.testing.assert_array_equal(alone, np.concatenate(tiny.predict(windows, 1, 0)))
+    assert not np.allclose(alone, base, atol=1e-4)
+    assert plain.with_context_max_neighbours(3).with_noise_scale(0.5).config.context_max_neighbours == 3
+    with pytest.raises(LogpipeError, match="context_radius_m"):
+        NetPredictor(TrajectoryNet(MODEL), context_max_neighbours=2)

@@ -274,3 +274,21 @@ def test_noise_scale_widens_the_modes_and_is_recorded(lines_dataset: Path, tmp_p
         predict_dataset(lines_dataset, tmp_path / "never", predictor="cv", noise_scale=2.0)
     with pytest.raises(LogpipeError, match="positive"):
         NetPredictor.from_checkpoint(good, expect_kind="ethucy", noise_scale=0.0)
+
+
+def test_context_max_neighbours_is_recorded_and_refused_where_it_cannot_apply(lines_dataset: Path,
+                                                                             tmp_path: Path) -> None:
+    """The neighbour cap is an inference setting of a network with a context radius: recorded in the predictions'
+    checkpoint_id, refused for a baseline, a negative count and a network that pools the whole window."""
+    ringed = _checkpoint(tmp_path / "ringed", _small_net_config(context_radius_m=2.0), "ethucy")
+    predict_dataset(lines_dataset, tmp_path / "out", checkpoint=ringed, modes=2, context_max_neighbours=1,
+                    write_mcap=False)
+    assert _recorded_ids(tmp_path / "out") == {f"{_weights_sha(ringed)} context_max_neighbours=1"}
+    with pytest.raises(LogpipeError, match="context-max-neighbours"):
+        predict_dataset(lines_dataset, tmp_path / "never", predictor="cv", context_max_neighbours=1)
+    with pytest.raises(LogpipeError, match=">= 0"):
+        predict_dataset(lines_dataset, tmp_path / "never", checkpoint=ringed, context_max_neighbours=-1)
+    whole = _checkpoint(tmp_path / "whole", _small_net_config(), "ethucy")
+    with pytest.raises(LogpipeError, match="context_radius_m"):
+        predict_dataset(lines_dataset, tmp_path / "never", checkpoint=whole, context_max_neighbours=1)
+    assert not (tmp_path / "never").exists()
