@@ -165,9 +165,10 @@ def tune_inference(net: NetPredictor, val: Sequence[SceneSample], pred_len: int,
 
 
 def tuned(net: NetPredictor, choice: dict[str, Any]) -> NetPredictor:
-    """``net`` at the inference settings ``tune_inference`` chose (and the fold's neighbour cap, when it has one)."""
+    """``net`` at the inference settings ``tune_inference`` chose; a neighbour cap the choice does not name stays
+    ``net``'s."""
     return (net.with_noise_scale(choice["noise_scale"]).with_constant_velocity_modes(choice["constant_velocity_modes"])
-            .with_context_max_neighbours(choice.get("context_max_neighbours")))
+            .with_context_max_neighbours(choice.get("context_max_neighbours", net.context_max_neighbours)))
 
 
 def pools_context(config: ModelConfig) -> bool:

@@ -241,9 +241,19 @@ def test_paired_differences_agree_with_the_report(bundled: Path, tmp_path: Path)
 
 
 def test_the_neighbour_cap_is_the_training_percentile_and_only_for_pooling_nets(bundled: Path, tmp_path: Path) -> None:
-    from reproduce_ethucy import NEIGHBOUR_CAP_PERCENTILE, ensure_dataset, neighbour_cap, write_learned
+    from reproduce_ethucy import (
+        NEIGHBOUR_CAP_PERCENTILE,
+        best_of_k,
+        ensure_dataset,
+        grid_row,
+        neighbour_cap,
+        truth_of,
+        tuned,
+        write_learned,
+    )
 
     from logpipe.model.batching import neighbour_counts
+    from logpipe.model.predictor import NetPredictor
     from logpipe.stages.train import scene_samples
 
     ds = ensure_dataset(bundled / "ethucy", tmp_path / "ds", "ethucy")
@@ -251,7 +261,10 @@ def test_the_neighbour_cap_is_the_training_percentile_and_only_for_pooling_nets(
     counts = np.concatenate([neighbour_counts(s, 2.0) for s in train])
     cap = neighbour_cap(train, 2.0)
     assert cap in counts and np.mean(counts <= cap) >= NEIGHBOUR_CAP_PERCENTILE / 100 > np.mean(counts < cap)
-    val, test = train[:20], scene_samples(ds, "eth/test")[:10]
+    # val: windows where the cap binds, so a grid run without it would score differently
+    val = [s for s in train if neighbour_counts(s, 2.0).max(initial=0) > cap][:20]
+    assert val
+    test = scene_samples(ds, "eth/test")[:10]
     folder = REPO / "model" / "checkpoints" / "ethucy" / "eth"
     _, ours = write_learned(folder, ds.kind, val, test, 20, 0, 12, tmp_path / "p", "zhu2020", "as_trained",
                             train=train)
@@ -259,6 +272,13 @@ def test_the_neighbour_cap_is_the_training_percentile_and_only_for_pooling_nets(
                               train=train)
     assert ours is not None and theirs is not None
     assert ours["context_max_neighbours"] == cap and "context_max_neighbours" not in theirs
+    # The (c, s) grid ran with the cap: its chosen row is what the capped network scores on val.
+    net = NetPredictor.from_checkpoint(folder, expect_kind=ds.kind)
+    row = grid_row(ours["grid"], ours["constant_velocity_modes"], ours["noise_scale"])
+    capped = tuned(net, {k: ours[k] for k in ("noise_scale", "constant_velocity_modes", "context_max_neighbours")})
+    assert capped.context_max_neighbours == cap
+    np.testing.assert_allclose(best_of_k(np.concatenate(capped.predict(val, 20, 0)), truth_of(val, 12)), row[2:],
+                               rtol=1e-12)
     ids = {m: set(pq.read_table(tmp_path / "p" / f"{m}.parquet", columns=["checkpoint_id"]).column(0).to_pylist())
            for m in ("zhu2020", "as_trained")}
     assert all(f"context_max_neighbours={cap}" in i for i in ids["zhu2020"])
