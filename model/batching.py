@@ -157,13 +157,19 @@ def _frame(sample: SceneSample, observed: NDArrayFloat, config: ModelConfig) -> 
     return now[anchor].copy(), _rot(-heading)
 
 
+def _current_distances(now: NDArrayFloat, seen: NDArrayBool, i: int) -> NDArrayFloat:
+    """Distance (metres) from agent ``i`` to every agent at the current step ``now`` (A, 2); inf where unseen."""
+    out: NDArrayFloat = np.linalg.norm(np.where(seen[:, None], now - now[i], np.inf), axis=1)
+    return out
+
+
 def neighbour_counts(sample: SceneSample, radius_m: float) -> NDArrayInt:
     """How many other agents observed at the current step are within ``radius_m`` metres of each target of
     ``sample`` observed then (``context_scenes``' neighbourhoods, the ego counted like anyone), in target order."""
     now = sample.positions[:, sample.obs_len - 1]
     seen: NDArrayBool = np.all(np.isfinite(now), axis=1)
-    counts = [int(np.sum(seen & (np.linalg.norm(np.where(seen[:, None], now - now[i], np.inf), axis=1) <= radius_m)))
-              - 1 for i in np.flatnonzero(sample.target_mask & seen)]
+    counts = [int(np.sum(_current_distances(now, seen, int(i)) <= radius_m)) - 1
+              for i in np.flatnonzero(sample.target_mask & seen)]
     return np.array(counts, np.int64)
 
 
@@ -179,8 +185,8 @@ def context_scenes(sample: SceneSample, radius_m: float, max_neighbours: int | N
     for i in np.flatnonzero(sample.target_mask):
         keep = np.zeros(len(now), bool)
         if seen[i]:
-            dist = np.linalg.norm(np.where(seen[:, None], now - now[i], 0.0), axis=1)
-            keep = seen & (dist <= radius_m)
+            dist = _current_distances(now, seen, int(i))
+            keep = dist <= radius_m
             keep[i] = False
             if max_neighbours is not None and keep.sum() > max_neighbours:
                 near = np.flatnonzero(keep)[np.argsort(dist[keep], kind="stable")[:max_neighbours]]
@@ -220,7 +226,7 @@ def collate(
     for s in samples:
         if s.obs_len != config.obs_len:
             raise SampleError(f"{s.sample_id}: obs_len {s.obs_len} but the model expects {config.obs_len}")
-    if config.context_radius_m is not None and (config.features.position or config.features.tracking):
+    if config.pools_context:
         # Only the pools of eqs. 2 and 4 read other agents: without them the windows are collated as they are.
         return _collate_in_context(samples, config, rotations, with_raster)
     t_total = config.obs_len + config.pred_len

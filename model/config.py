@@ -171,6 +171,12 @@ class ModelConfig:
     context_origin: ContextOrigin = "window"
     context_max_neighbours: int | None = None
 
+    @property
+    def pools_context(self) -> bool:
+        """Whether each target is predicted in its own neighbourhood: a context radius and at least one of the
+        pools that read other agents (PF, TF: eqs. 2 and 4)."""
+        return self.context_radius_m is not None and (self.features.position or self.features.tracking)
+
     def __post_init__(self) -> None:
         if self.obs_len < 2 or self.pred_len < 1:
             raise ConfigError(f"obs_len must be >= 2 and pred_len >= 1, got {self.obs_len}, {self.pred_len}")

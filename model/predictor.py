@@ -6,7 +6,7 @@ import math
 from collections.abc import Sequence
 from dataclasses import replace
 from pathlib import Path
-from typing import Protocol, runtime_checkable
+from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 import torch
@@ -88,13 +88,11 @@ class NetPredictor:
                  context_max_neighbours: int | None = None) -> None:
         if not (math.isfinite(noise_scale) and noise_scale > 0):
             raise LogpipeError(f"noise scale must be a positive number, got {noise_scale}")
-        if context_max_neighbours is not None:
-            if net.config.context_radius_m is None:
-                raise LogpipeError("a neighbour cap needs a checkpoint trained with model.context_radius_m")
-            if context_max_neighbours < 0:
-                raise LogpipeError(f"the neighbour cap must be >= 0, got {context_max_neighbours}")
+        if context_max_neighbours is not None and net.config.context_radius_m is None:
+            raise LogpipeError("a neighbour cap needs a checkpoint trained with model.context_radius_m")
         self.net = net.eval()
-        # The cap only changes which agents are collated, so it lives in the config collate reads.
+        # The cap only changes which agents are collated, so it lives in the config collate reads (which also
+        # rejects a negative one).
         self.config: ModelConfig = (net.config if context_max_neighbours is None
                                     else replace(net.config, context_max_neighbours=context_max_neighbours))
         self.batch_size = batch_size
@@ -103,20 +101,22 @@ class NetPredictor:
         self.constant_velocity_modes = constant_velocity_modes
         self.context_max_neighbours = context_max_neighbours
 
+    def _with(self, **changes: Any) -> NetPredictor:
+        settings = {"noise_scale": self.noise_scale, "constant_velocity_modes": self.constant_velocity_modes,
+                    "context_max_neighbours": self.context_max_neighbours} | changes
+        return NetPredictor(self.net, self.batch_size, self.name, **settings)
+
     def with_noise_scale(self, noise_scale: float) -> NetPredictor:
         """The same network and settings, sampling z with standard deviation ``noise_scale``."""
-        return NetPredictor(self.net, self.batch_size, self.name, noise_scale, self.constant_velocity_modes,
-                            self.context_max_neighbours)
+        return self._with(noise_scale=noise_scale)
 
     def with_constant_velocity_modes(self, count: int | None) -> NetPredictor:
         """The same network and settings, with the first ``count`` modes held to constant velocity."""
-        return NetPredictor(self.net, self.batch_size, self.name, self.noise_scale, count,
-                            self.context_max_neighbours)
+        return self._with(constant_velocity_modes=count)
 
     def with_context_max_neighbours(self, count: int | None) -> NetPredictor:
         """The same network and settings, with at most ``count`` neighbours in each target's context."""
-        return NetPredictor(self.net, self.batch_size, self.name, self.noise_scale, self.constant_velocity_modes,
-                            count)
+        return self._with(context_max_neighbours=count)
 
     @torch.no_grad()
     def predict(self, samples: Sequence[SceneSample], num_modes: int, seed: int) -> list[NDArrayFloat]:

@@ -37,7 +37,6 @@ from logpipe.io import atomic_open, write_parquet
 from logpipe.model.baselines import ConstantVelocity, ConstantVelocitySampler, KalmanCV, LinearFit
 from logpipe.model.batching import neighbour_counts
 from logpipe.model.checkpoints import read_meta
-from logpipe.model.config import ModelConfig
 from logpipe.model.predictor import NetPredictor, Predictor, inference_id
 from logpipe.resample import ResampleSpec, resample_track
 from logpipe.stages.ingest import IngestOptions, ingest
@@ -171,11 +170,6 @@ def tuned(net: NetPredictor, choice: dict[str, Any]) -> NetPredictor:
             .with_context_max_neighbours(choice.get("context_max_neighbours", net.context_max_neighbours)))
 
 
-def pools_context(config: ModelConfig) -> bool:
-    """Whether a network reads each target's neighbourhood (a context radius and at least one of PF, TF)."""
-    return config.context_radius_m is not None and (config.features.position or config.features.tracking)
-
-
 def neighbour_cap(train: Sequence[SceneSample], radius_m: float, percentile: float = NEIGHBOUR_CAP_PERCENTILE) -> int:
     """``percentile`` of the neighbour counts within ``radius_m`` of the targets of ``train`` (an observed count)."""
     counts = np.concatenate([neighbour_counts(s, radius_m) for s in train])
@@ -252,7 +246,7 @@ def write_learned(checkpoint: Path, kind: str, val: Sequence[SceneSample], test:
     sha = read_meta(checkpoint).weights_sha256
     net = NetPredictor.from_checkpoint(checkpoint, expect_kind=kind)
     cap = None
-    if train is not None and pools_context(net.config):
+    if train is not None and net.config.pools_context:
         assert net.config.context_radius_m is not None
         cap = neighbour_cap(train, net.config.context_radius_m)
         net = net.with_context_max_neighbours(cap)
