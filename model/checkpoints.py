@@ -6,6 +6,7 @@ Layout of a checkpoint folder::
     meta.json             format, full TrainConfig, normalisation, dataset kind, dataset manifest hash,
                           logpipe version, step, metrics, sha256 of weights.safetensors
     optimizer.safetensors (resumable "last" checkpoints only) Adam moments + torch RNG state
+    averaged.safetensors  (resumable checkpoints of a run with ``ema_decay``) the weight average
     train_state.json      (resumable only) optimiser param groups, loop counters, numpy RNG state
 
 ``meta.json`` is written last and names the weights' sha256, so a folder interrupted mid-write is
@@ -134,6 +135,9 @@ def _atomic_json(path: Path, data: dict[str, Any]) -> None:
     os.replace(tmp, path)
 
 
+AVERAGED_FILE = "averaged.safetensors"
+
+
 def _atomic_tensors(path: Path, tensors: dict[str, torch.Tensor]) -> None:
     tmp = path.with_name(path.name + ".tmp")
     save_file({k: v.detach().contiguous().clone() for k, v in tensors.items()}, str(tmp))
@@ -151,11 +155,15 @@ def save_checkpoint(
     metrics: dict[str, float] | None = None,
     optimizer: torch.optim.Optimizer | None = None,
     train_state: dict[str, Any] | None = None,
+    averaged: dict[str, torch.Tensor] | None = None,
 ) -> Path:
-    """Write a checkpoint folder (created if needed); with ``optimizer`` it is resumable."""
+    """Write a checkpoint folder (created if needed); with ``optimizer`` it is resumable, and ``averaged``
+    (the state dict of the run's weight average, ``TrainConfig.ema_decay``) goes to ``averaged.safetensors``."""
     folder.mkdir(parents=True, exist_ok=True)
     weights = folder / "weights.safetensors"
     _atomic_tensors(weights, dict(net.state_dict()))
+    if averaged is not None:
+        _atomic_tensors(folder / AVERAGED_FILE, averaged)
     if optimizer is not None:
         state = optimizer.state_dict()
         tensors = {"rng.torch": torch.get_rng_state()}
@@ -275,6 +283,15 @@ def load_checkpoint(
     except RuntimeError as exc:
         raise CheckpointError(f"{folder / 'weights.safetensors'}: weights do not fit the stored config: {exc}") from exc
     return LoadedCheckpoint(net.eval(), meta, folder)
+
+
+def load_averaged(folder: Path) -> dict[str, torch.Tensor]:
+    """The weight average a resumable checkpoint of an ``ema_decay`` run keeps beside its raw weights."""
+    path = folder / AVERAGED_FILE
+    try:
+        return load_file(str(path))
+    except (OSError, ValueError, RuntimeError) as exc:
+        raise CheckpointError(f"{path}: cannot read the run's weight average: {exc}") from exc
 
 
 def load_training_state(folder: Path, optimizer: torch.optim.Optimizer) -> dict[str, Any]:

@@ -243,6 +243,9 @@ class TrainConfig:
         lr_decay_every: steps between decays.
         weight_decay: Adam L2 penalty.
         grad_clip: max global gradient norm (0 disables).
+        ema_decay: validate and keep as ``best/`` an exponential moving average of the weights, updated after
+            every optimiser step with this decay (0 disables: the raw weights). ``last/`` keeps the raw weights
+            and the average, so a resumed run continues both.
         num_modes: H, decoder samples per scene in the best-of-H loss (eq. 23; paper: 20 on ETH/UCY).
         loss_min_over: ``scene`` takes eq. 23's min over modes of the error summed over a scene's targets
             (the paper); ``agent`` takes the min per target.
@@ -270,6 +273,7 @@ class TrainConfig:
     lr_decay_every: int = 1000
     weight_decay: float = 0.0
     grad_clip: float = 1.5
+    ema_decay: float = 0.0
     num_modes: int = 20
     loss_min_over: LossReduction = "scene"
     select_then_backprop: bool = True
@@ -296,6 +300,8 @@ class TrainConfig:
                 "train.early_stop_patience and train.early_stop_min_steps must be >= 0, "
                 f"got {self.early_stop_patience}, {self.early_stop_min_steps}"
             )
+        if not 0 <= self.ema_decay < 1:
+            raise ConfigError(f"train.ema_decay must be in [0, 1), got {self.ema_decay}")
         if self.val_max_samples is not None and self.val_max_samples < 1:
             raise ConfigError(f"train.val_max_samples must be >= 1 or unset, got {self.val_max_samples}")
 

@@ -40,6 +40,7 @@ from .batching import Batch, collate
 from .checkpoints import (
     CheckpointMismatchError,
     check_meta,
+    load_averaged,
     load_training_state,
     read_meta,
     save_checkpoint,
@@ -367,6 +368,7 @@ def fit(
     torch.manual_seed(cfg.seed)
     net = TrajectoryNet(cfg.model)
     optimizer = torch.optim.Adam(net.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
+    average = _weight_average(net, cfg.ema_decay)
     step, epoch, pos_in_epoch = 0, 0, 0
     best_ade, best_fde, best_step, bad_evals = math.inf, math.inf, -1, 0
     earlier_elapsed, resumed_at_step = 0.0, None  # wall time of the parts before a resume, and where it resumed
@@ -385,6 +387,8 @@ def fit(
 
         net.load_state_dict(load_file(str(last_dir / "weights.safetensors")))
         state = load_training_state(last_dir, optimizer)
+        if average is not None:
+            average.load_state_dict(load_averaged(last_dir))
         step, epoch, pos_in_epoch = state["step"], state["epoch"], state["pos_in_epoch"]
         best_ade, best_fde, best_step = state["best_ade"], state["best_fde"], state["best_step"]
         bad_evals = state["bad_evals"]
@@ -394,23 +398,29 @@ def fit(
     warm = None
     if init_from is not None and resumed_at_step is None:
         warm = warm_start(net, init_from)  # every DDP rank reads the same file, so replicas start equal
+        average = _weight_average(net, cfg.ema_decay)  # averages from the warm-started weights
     if ranks.main:
         save_config(cfg, out_dir / "config.json")
     log.write("start", step=step, config=config_to_dict(cfg), processes=ranks.world,
               **({"init_from": warm.to_dict()} if warm is not None else {}))
+
+    def evaluated() -> TrajectoryNet:
+        """The weights validation scores and ``best/`` keeps: the average when the run keeps one."""
+        return net if average is None else average.module  # type: ignore[return-value]
 
     def checkpoint(folder: Path, metrics: dict[str, float], resumable: bool) -> None:
         if not ranks.main:
             return
         save_checkpoint(
             folder,
-            net,
+            net if resumable else evaluated(),
             cfg,
             dataset_kind=dataset_kind,
             manifest_hash=manifest_hash,
             step=step,
             metrics=metrics,
             optimizer=optimizer if resumable else None,
+            averaged=dict(average.state_dict()) if resumable and average is not None else None,
             train_state={
                 "step": step,
                 "epoch": epoch,
@@ -428,7 +438,7 @@ def fit(
         if val is None or not ranks.main:
             checkpoint(last_dir, {}, resumable=True)
             return {}
-        err = evaluate(net, val, num_modes=cfg.val_modes, seed=cfg.seed, limit=cfg.val_max_samples)
+        err = evaluate(evaluated(), val, num_modes=cfg.val_modes, seed=cfg.seed, limit=cfg.val_max_samples)
         improved = err.ade < best_ade
         if improved:
             best_ade, best_fde, best_step, bad_evals = err.ade, err.fde, step, 0
@@ -479,6 +489,8 @@ def fit(
             if cfg.grad_clip > 0:
                 torch.nn.utils.clip_grad_norm_(net.parameters(), cfg.grad_clip)
             optimizer.step()
+            if average is not None:
+                average.update_parameters(net)
             step += 1
             train_time += time.perf_counter() - t0
             train_samples += len(chunk)
@@ -526,6 +538,16 @@ def fit(
         total_elapsed_s=earlier_elapsed + elapsed,
         resumed_at_step=resumed_at_step,
     )
+
+
+def _weight_average(net: TrajectoryNet, decay: float) -> torch.optim.swa_utils.AveragedModel | None:
+    """An exponential moving average of ``net``'s weights (None when ``decay`` is 0)."""
+    if decay == 0:
+        return None
+    from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
+
+    ema = get_ema_multi_avg_fn(decay)  # type: ignore[no-untyped-call]
+    return AveragedModel(net, multi_avg_fn=ema, use_buffers=True)
 
 
 def _weights_digest(net: torch.nn.Module) -> str:

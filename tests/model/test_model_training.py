@@ -257,3 +257,39 @@ def test_warm_start_from_noise_lstm_starts_at_its_predictions(tmp_path: Path) ->
 
     with pytest.raises(CheckpointError, match="shape"):
         warm_start(TrajectoryNet(replace(MODEL, lstm_dim=8)), noise_lstm.last_checkpoint)
+
+
+def test_weight_average_is_validated_kept_as_best_and_resumes(tmp_path: Path) -> None:
+    train, val = _data(12, 31), _data(4, 32)
+    decay = 0.9
+    kw = {"steps": 4, "eval_every": 1, "early_stop_patience": 0, "ema_decay": decay}
+    runs = {}
+    for steps in (1, 2, 3, 4):  # the raw weights after each step, from otherwise identical runs
+        runs[steps] = fit(train, val, _cfg(**{**kw, "steps": steps}), tmp_path / f"s{steps}", progress=False)
+    raw = [load_file(str(runs[n].last_checkpoint / "weights.safetensors")) for n in (1, 2, 3, 4)]
+    # the average by hand: the first step's weights, then avg <- decay * avg + (1 - decay) * raw
+    expected = dict(raw[0])
+    for weights in raw[1:]:
+        expected = {k: decay * expected[k] + (1 - decay) * weights[k] for k in expected}
+    kept = load_file(str(runs[4].last_checkpoint / "averaged.safetensors"))
+    for k in expected:
+        torch.testing.assert_close(kept[f"module.{k}"], expected[k], rtol=1e-5, atol=1e-7)
+    # validation scores the average, and best/ holds the average of its step
+    log = [json.loads(x) for x in runs[4].log_path.read_text().splitlines()]
+    best_step = runs[4].best_step
+    best = load_file(str(runs[4].best_checkpoint / "weights.safetensors"))  # type: ignore[operator]
+    at_best = load_file(str(runs[best_step].last_checkpoint / "averaged.safetensors"))
+    assert all(torch.equal(best[k], at_best[f"module.{k}"]) for k in best)
+    averaged_net = load_checkpoint(runs[4].best_checkpoint).net  # type: ignore[arg-type]
+    from logpipe.model.training import evaluate
+
+    err = evaluate(averaged_net, val, num_modes=3, seed=0)
+    logged = next(x["val_ade"] for x in log if x["event"] == "val" and x["step"] == best_step)
+    assert err.ade == pytest.approx(logged)
+    assert not all(torch.equal(raw[-1][k], kept[f"module.{k}"]) for k in raw[-1])
+    # a resumed run continues the average exactly
+    resumed = fit(train, val, _cfg(**kw), tmp_path / "s2", resume=True, progress=False)
+    again = load_file(str(resumed.last_checkpoint / "averaged.safetensors"))
+    assert all(torch.equal(again[k], kept[k]) for k in kept)
+    with pytest.raises(ConfigError, match="ema_decay"):
+        _cfg(ema_decay=1.0)
