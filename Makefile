@@ -74,17 +74,19 @@ clean:
 # SEED=N (N > 0) trains the same runs with train.seed = N into model/checkpoints/seedN/ (the reproduce scripts'
 # across-seeds tables read every seedN/ there).
 LEARNED_METHODS := zhu2020 noise_lstm lstm
+# ETH/UCY also trains the paper's method without its position feature (eqs. 1-2), an ablation row of its table.
+ETHUCY_METHODS := $(LEARNED_METHODS) no_position
 SEED ?= 0
 CKPT := model/checkpoints$(if $(filter 0,$(SEED)),,/seed$(SEED))
 RUNS := $(OUT)/runs$(if $(filter 0,$(SEED)),,/seed$(SEED))
-preset_flag = $(if $(filter noise_lstm,$(1)),--preset baseline,$(if $(filter lstm,$(1)),--preset lstm,))
+preset_flag = $(if $(filter noise_lstm,$(1)),--preset baseline,$(if $(filter lstm no_position,$(1)),--preset $(1),))
 # copy_best(run, dest): replace only the files of the checkpoint in dest, so baselines nested in it survive.
 copy_best = mkdir -p $(2) && find $(2) -maxdepth 1 -type f -delete && cp $(1)/best/* $(1)/train_log.jsonl $(2)/ \
 	&& cp $(1).json $(2)/train_summary.json
 
 train-ethucy: setup
 	$(VENV)/bin/logpipe ingest $(SHARED)/ethucy --out $(OUT)/ethucy --no-mcap
-	$(MAKE) -j2 $(foreach m,$(LEARNED_METHODS),$(addprefix train-ethucy/$(m)/,$(ETHUCY_SCENES)))
+	$(MAKE) -j2 $(foreach m,$(ETHUCY_METHODS),$(addprefix train-ethucy/$(m)/,$(ETHUCY_SCENES)))
 
 train-ethucy/%:
 	$(eval method := $(word 1,$(subst /, ,$*)))

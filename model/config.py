@@ -319,6 +319,8 @@ PRESETS: dict[str, Features] = {
     "v3": Features(True, True, True, False, False),
     "v4": Features(True, True, True, True, False),
     "full": Features(),
+    # Not in the paper: the full model without PF (eqs. 1-2), the ablation ETH/UCY's UNIV fold asks for.
+    "no_position": Features(False, True, True, True, True),
 }
 
 

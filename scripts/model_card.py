@@ -21,11 +21,14 @@ REPO = Path(__file__).resolve().parents[1]
 CHECKPOINTS = REPO / "model" / "checkpoints"
 METHODS = {"zhu2020": "the paper's method", "noise_lstm": "Noise-LSTM (preset `baseline`)",
            "lstm": "LSTM (preset `lstm`, no noise, K=1)"}
+ABLATIONS = {"ethucy": {"no_position": "the paper's method without its position feature (eqs. 1-2; preset "
+                                       "`no_position`), an ablation"}}
 
 ABOUT = {
     "ethucy": """Leave-one-scene-out models, one per held-out scene, trained with `make train-ethucy` (`logpipe train
-out/ethucy --scene SCENE --config configs/ethucy.toml [--preset baseline|lstm]`). The paper's method is in
-`ethucy/<scene>/`, the baselines in `ethucy/<scene>/noise_lstm/` and `ethucy/<scene>/lstm/`.
+out/ethucy --scene SCENE --config configs/ethucy.toml [--preset baseline|lstm|no_position]`). The paper's method is
+in `ethucy/<scene>/`, the baselines in `ethucy/<scene>/noise_lstm/` and `ethucy/<scene>/lstm/`, the ablation without
+the position feature in `ethucy/<scene>/no_position/`.
 
 - **Data:** `logpipe ingest ../shared/data/ethucy` (Social-GAN split files). Training logs: memberships
   `SCENE/train`; validation: `SCENE/val` (the held-out scene is never seen). Samples: 8 observed + 12 predicted steps
@@ -69,15 +72,16 @@ def card(kind: str, seed: int = 0) -> str:
     config = (REPO / "configs" / f"{kind}.toml").read_text()
     val_limit = tomllib.loads(config).get("train", {}).get("val_max_samples")
     val_on = f"first {val_limit} validation samples" if val_limit else "the whole validation split"
+    trained = METHODS | ABLATIONS.get(kind, {})
     if kind == "ethucy":
         scenes = ("eth", "hotel", "univ", "zara1", "zara2")
-        folders = [(f"{s} ({m})", root / s if m == "zhu2020" else root / s / m) for m in METHODS for s in scenes]
+        folders = [(f"{s} ({m})", root / s if m == "zhu2020" else root / s / m) for m in trained for s in scenes]
         label = "held-out scene (method)"
     else:
-        folders = [(m, root / m) for m in METHODS]
+        folders = [(m, root / m) for m in trained]
         label = "method"
     rows = "\n".join(_row(name, folder) for name, folder in folders)
-    methods = "; ".join(f"`{k}`: {v}" for k, v in METHODS.items())
+    methods = "; ".join(f"`{k}`: {v}" for k, v in trained.items())
     seed_note = str(seed) if seed == 0 else (f"{seed} (`make train-{kind} SEED={seed}`; seed 0 is in "
                                              f"`model/checkpoints/{kind}/`)")
     return f"""# {kind} checkpoints

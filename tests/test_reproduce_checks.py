@@ -283,3 +283,22 @@ def test_the_neighbour_cap_is_the_training_percentile_and_only_for_pooling_nets(
            for m in ("zhu2020", "as_trained")}
     assert all(f"context_max_neighbours={cap}" in i for i in ids["zhu2020"])
     assert not any("context_max_neighbours" in i for i in ids["as_trained"])
+
+
+def test_the_ablation_is_never_a_baseline_and_gets_its_own_standing() -> None:
+    from reproduce_ethucy import ABLATION, SCENES, standing
+
+    def cell(ade: float, fde: float) -> dict[str, dict[str, dict[str, float]]]:
+        return {"overall": {"k20": {"ade": ade, "fde": fde}, "k1": {"ade": 9.0, "fde": 9.0}}}
+
+    methods = {"noise_lstm": cell(0.30, 0.60), "zhu2020": cell(0.35, 0.70), ABLATION: cell(0.20, 0.40)}
+    results = {"scenes": {s: {"min2": {"methods": methods}} for s in SCENES}}
+    def row(lines: list[str], label: str) -> list[str]:
+        return next(line for line in lines if line.startswith(f"| {label}")).strip("| ").split(" | ")[1:]
+
+    ours = standing(results, "min2")
+    assert not any(line.startswith("| Ablation") for line in ours)  # not a row the method must beat
+    assert row(ours, "Noise-LSTM") == ["**not beaten**"] * (len(SCENES) + 1)
+    ablation = standing(results, "min2", ABLATION)
+    assert row(ablation, "Noise-LSTM") == ["beaten"] * (len(SCENES) + 1)
+    assert "0.20/0.40 against the paper's 0.36/0.75: reached" in "\n".join(ablation)
