@@ -305,7 +305,8 @@ def train(
     steps: Annotated[int | None, typer.Option("--steps", help="Override train.steps.")] = None,
     seed: Annotated[int | None, typer.Option("--seed", help="Override train.seed.")] = None,
     preset: Annotated[str | None, typer.Option(
-        "--preset", help="Train a row of the paper's tables instead: full, v1..v4, baseline (Noise-LSTM) or lstm.")
+        "--preset", help="Train a row of the paper's tables instead: full, v1..v4, baseline (Noise-LSTM) or lstm; "
+        "or no_position (the full model without PF, eqs. 1-2).")
     ] = None,
     resume: Annotated[bool, typer.Option("--resume", help="Continue from OUT/last.")] = False,
     raster_run: Annotated[str | None, typer.Option(
