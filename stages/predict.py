@@ -172,9 +172,10 @@ class ChosenPredictor:
     raster_channels: int | None = None
 
 
-# Shipped baselines live in folders named after their method (``ethucy/eth/lstm``, ``apolloscape/noise_lstm``);
-# they are there for the reproduction tables, never the default model.
-BASELINE_FOLDERS = frozenset({"lstm", "noise_lstm"})
+# Shipped baselines and ablations live in folders named after their method (``ethucy/eth/lstm``,
+# ``apolloscape/noise_lstm``, ``ethucy/eth/no_position``); they are there for the reproduction tables, never the
+# default model.
+COMPARISON_FOLDERS = frozenset({"lstm", "noise_lstm", "no_position"})
 
 
 def shipped_checkpoints(kind: str) -> list[Path]:
@@ -183,7 +184,7 @@ def shipped_checkpoints(kind: str) -> list[Path]:
 
     root = Path(logpipe.model.__file__).parent / "checkpoints" / kind
     found = sorted(p.parent for p in root.glob("**/meta.json")) if root.is_dir() else []
-    return [p for p in found if p.name not in BASELINE_FOLDERS]
+    return [p for p in found if p.name not in COMPARISON_FOLDERS]
 
 
 def default_checkpoint(kind: str, split: str | None) -> Path:

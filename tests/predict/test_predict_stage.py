@@ -199,14 +199,15 @@ def test_background_writer_output_does_not_depend_on_batching(lines_dataset: Pat
 
 
 def test_shipped_defaults_are_the_papers_method_never_a_baseline() -> None:
-    from logpipe.stages.predict import BASELINE_FOLDERS, default_checkpoint, shipped_checkpoints
+    from logpipe.stages.predict import COMPARISON_FOLDERS, default_checkpoint, shipped_checkpoints
 
     eth = shipped_checkpoints("ethucy")
     assert sorted(p.name for p in eth) == ["eth", "hotel", "univ", "zara1", "zara2"]
-    assert (eth[0] / "lstm" / "meta.json").is_file()  # the baselines are shipped beside, just not candidates
+    # the baselines and the ablation are shipped beside, just not candidates
+    assert all((eth[0] / name / "meta.json").is_file() for name in ("lstm", "noise_lstm", "no_position"))
     assert default_checkpoint("ethucy", "hotel/test").name == "hotel"
     apollo = default_checkpoint("apolloscape", None)
-    assert apollo.name == "zhu2020" and not BASELINE_FOLDERS & set(apollo.parts)
+    assert apollo.name == "zhu2020" and not COMPARISON_FOLDERS & set(apollo.parts)
 
 
 def _recorded_ids(run: Path) -> set[str]:
