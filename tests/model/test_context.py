@@ -212,3 +212,58 @@ def test_a_neighbour_cap_at_inference_changes_only_capped_targets(eth_windows: l
     assert plain.with_context_max_neighbours(3).with_noise_scale(0.5).config.context_max_neighbours == 3
     with pytest.raises(LogpipeError, match="context_radius_m"):
         NetPredictor(TrajectoryNet(MODEL), context_max_neighbours=2)
+
+
+TARGET_FRAME = replace(MODEL, context_radius_m=2.0, interaction_frame="target")
+
+
+def test_interaction_positions_are_relative_to_the_target_in_its_axes(eth_windows: list) -> None:  # type: ignore[type-arg]
+    """Eqs. 1 and 13 read each agent's position minus its scene's target's at the same step, along and across the
+    target's last observed step: checked against a computation in numpy on real windows, rotated."""
+    batch = collate(eth_windows[:12], TARGET_FRAME, rotations=[0.4 * i for i in range(12)])
+    torch.manual_seed(0)
+    got = TrajectoryNet(TARGET_FRAME).interaction_positions(batch).numpy()
+    pos, valid = batch.positions.numpy(), batch.valid.numpy()
+    scene, t_obs = batch.scene.numpy(), MODEL.obs_len
+    checked = 0
+    for target in np.flatnonzero(batch.target.numpy()):
+        step = pos[target, t_obs - 1] - pos[target, t_obs - 2]
+        along = step / np.linalg.norm(step)
+        across = np.array([-along[1], along[0]])
+        for row in np.flatnonzero(scene == scene[target]):
+            for t in np.flatnonzero(valid[row, :t_obs]):
+                rel = pos[row, t] - pos[target, t if valid[target, t] else t_obs - 1]
+                np.testing.assert_allclose(got[t, row], [rel @ along, rel @ across], atol=1e-5)
+                checked += 1
+        np.testing.assert_allclose(got[:t_obs, target][valid[target, :t_obs]], 0.0, atol=1e-6)
+    assert checked > 500
+    assert np.abs(got[:, ~batch.target.numpy()]).max() > 0.1  # the neighbours are not all at the target
+
+
+def test_the_target_frame_ignores_where_the_window_origin_is() -> None:
+    """A far pedestrian joining the window moves the window's origin (the mean of its targets): with
+    ``interaction_frame = 'target'`` a target's forecast stays the same, with the paper's frame it changes."""
+    sample = make_scene(np.random.default_rng(7), 3, 8, 12)
+    far = sample.positions[:1] + 50.0  # walks like agent 0, 50 m away: in nobody's neighbourhood
+    joined = replace(sample, positions=np.concatenate([sample.positions, far]), track_ids=[*sample.track_ids, "far"],
+                     object_types=np.concatenate([sample.object_types, sample.object_types[:1]]),
+                     target_mask=np.concatenate([sample.target_mask, [True]]))
+    for frame, same in (("target", True), ("scene", False)):
+        config = replace(TARGET_FRAME, speed_unit_m=None, interaction_frame=frame)  # one scale for both windows
+        predictor = _deterministic(config)
+        alone, with_far = predictor.predict([sample], 1, 0)[0], predictor.predict([joined], 1, 0)[0][:3]
+        assert np.allclose(alone, with_far, atol=1e-4) is same
+
+
+def test_the_target_frame_needs_a_context_and_changes_nothing_without_interaction_features(
+        eth_windows: list) -> None:  # type: ignore[type-arg]
+    with pytest.raises(ConfigError, match="context_radius_m"):
+        replace(MODEL, interaction_frame="target")
+    with pytest.raises(ConfigError, match="interaction_frame"):
+        replace(TARGET_FRAME, interaction_frame="agent")
+    no_pools = replace(TARGET_FRAME, features=Features(False, False, False, False, False))
+    paper = _deterministic(replace(no_pools, interaction_frame="scene"))
+    mine = _deterministic(no_pools)
+    mine.net.load_state_dict(paper.net.state_dict())
+    np.testing.assert_array_equal(np.concatenate(mine.predict(eth_windows[:12], 1, 0)),
+                                  np.concatenate(paper.predict(eth_windows[:12], 1, 0)))
