@@ -311,7 +311,7 @@ def _collate_in_context(samples: Sequence[SceneSample], config: ModelConfig, rot
     """``collate`` with each target in its own scene (``context_scenes``) seen in its sample's model frame (origin,
     axes, speed scale and rotation), so only the agents the interaction features pool differ."""
     assert config.context_radius_m is not None
-    plain = replace(config, context_radius_m=None, interaction_frame="scene")  # collate's own reading of the scenes
+    plain = replace(config, context_radius_m=None)
     parts = [context_scenes(s, config.context_radius_m, config.context_max_neighbours) for s in samples]
     scenes = [scene for part in parts for scene in part]
     if not scenes:  # nothing to predict: the samples as they are

@@ -25,7 +25,6 @@ Frame = Literal["world", "ego"]
 LossReduction = Literal["scene", "agent"]
 StepOutput = Literal["displacement", "velocity_change", "agent_velocity_change"]
 ContextOrigin = Literal["window", "target"]
-InteractionFrame = Literal["scene", "target"]
 
 
 class ConfigError(LogpipeError):
@@ -144,15 +143,6 @@ class ModelConfig:
             them. Its use is at inference: a model trained where few targets had more neighbours than this
             sees crowds of the size its training covered (the pools of eqs. 2 and 4 take maxima, which grow
             with the number pooled).
-        interaction_frame: which positions p_i eqs. 1 (PF) and 13 (attention) read. ``scene`` (the paper): the
-            scene's model-frame positions. ``target`` (needs ``context_radius_m``, so each scene has one target):
-            every agent's position relative to the scene's target at the same step (its predicted position in
-            the same mode while decoding; its current one at a step where it was not observed), in axes along
-            and across the target's last observed step (``agent_velocity_change``'s axes; model-frame axes for
-            a target without one). The pooled layout then reads "who is ahead, behind, left, right of me"
-            whatever the window's origin and rotation: at the window's frame the UNIV fold's test targets sit
-            3x as far from their window's origin as its training targets (p50 0.45 against 0.14 in units of
-            ``pos_scale_m``), a region of eqs. 1 and 13's input its training hardly covered.
         interaction_while_decoding: True (the paper): PF, TF, EMF and the AIN's GRU run on at every predicted
             step, pooling the agents' predicted positions and decoder states in the same mode. False: the
             decoder reads fst^(T_obs), the AIN as observed (eq. 13's attention still reads each predicted
@@ -186,7 +176,6 @@ class ModelConfig:
     context_radius_m: float | None = None
     context_origin: ContextOrigin = "window"
     context_max_neighbours: int | None = None
-    interaction_frame: InteractionFrame = "scene"
     interaction_while_decoding: bool = True
 
     @property
@@ -221,11 +210,6 @@ class ModelConfig:
             raise ConfigError(
                 f"model.context_origin must be one of {list(get_args(ContextOrigin))}, got {self.context_origin!r}"
             )
-        if self.interaction_frame not in get_args(InteractionFrame):
-            raise ConfigError(f"model.interaction_frame must be one of {list(get_args(InteractionFrame))}, "
-                              f"got {self.interaction_frame!r}")
-        if self.interaction_frame == "target" and self.context_radius_m is None:
-            raise ConfigError("model.interaction_frame = 'target' needs model.context_radius_m (one target per scene)")
         for name in ("pos_scale_m", "disp_scale_m", "roi_half_size_m", "agent_min_step_m"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0):

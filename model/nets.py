@@ -82,41 +82,6 @@ def lstm_step(weights: tuple[Tensor, Tensor], x: Tensor, h: Tensor, c: Tensor) -
     return torch.sigmoid(o) * torch.tanh(c_new), c_new
 
 
-def in_target_axes(d: Tensor, unit: Tensor) -> Tensor:
-    """Vectors ``d`` (..., 2) in model axes as (along, across) the unit vectors ``unit`` (..., 2, broadcast):
-    ``ModelConfig.interaction_frame = 'target'``'s axes."""
-    along = d[..., 0] * unit[..., 0] + d[..., 1] * unit[..., 1]
-    across = d[..., 1] * unit[..., 0] - d[..., 0] * unit[..., 1]
-    return torch.stack((along, across), dim=-1)
-
-
-@dataclass
-class TargetAxes:
-    """Each scene's target for ``ModelConfig.interaction_frame = 'target'``.
-
-    Attributes:
-        row: (B,) int64 batch row of the scene's target (0 where ``has`` is False).
-        has: (B,) bool, the scene has an active target (else eqs. 1 and 13 read its model-frame positions).
-        unit: (B, 2) model-axes unit vector of the target's last observed step (+x where it has none).
-    """
-
-    row: Tensor
-    has: Tensor
-    unit: Tensor
-
-    def relative(self, pos: Tensor, target_pos: Tensor, scene: Tensor) -> Tensor:
-        """``pos`` (L, R, 2) of rows in scenes ``scene`` (R,) relative to their scene's target at ``target_pos``
-        (L, B, 2), in its axes; unchanged in scenes without a target."""
-        origin = torch.where(self.has[None, :, None], target_pos, torch.zeros_like(target_pos))
-        return in_target_axes(pos - origin[:, scene], self.unit[scene])
-
-    def index_in(self, rows: Tensor) -> Tensor:
-        """(B,) index of each scene's target within the sorted batch rows ``rows`` (R,) that hold it (0 for a
-        scene without one)."""
-        idx = torch.searchsorted(rows, self.row).clamp(max=max(rows.numel() - 1, 0))
-        return torch.where(self.has, idx, torch.zeros_like(idx))
-
-
 def _bag_picks(k: int, s: int) -> tuple[Tensor, Tensor]:
     """For the bag entries (ky, kx, sy, sx, cy, cx) of ``EnvironmentNet.forward``, the index into the per-axis
     (K*S*2) y and x entries."""
@@ -423,40 +388,6 @@ class TrajectoryNet(nn.Module):
             return None
         return fst[:, scene] * torch.sigmoid(self.attention(pos_scaled))
 
-    def _target_axes(self, batch: Batch) -> TargetAxes | None:
-        """The scenes' targets and axes for ``interaction_frame = 'target'``; None where eqs. 1 and 13 read
-        model-frame positions (``scene``, or no attention: no AIN feature at all)."""
-        if self.config.interaction_frame != "target" or self.attention is None:
-            return None
-        targets = batch.target.nonzero().squeeze(1)
-        scene = batch.scene[targets]
-        if scene.numel() != torch.unique(scene).numel():
-            raise ValueError("interaction_frame = 'target' needs one target per scene (collate with context_radius_m)")
-        t_obs = batch.obs_len
-        step = batch.positions[targets, t_obs - 1] - batch.positions[targets, t_obs - 2]
-        length = torch.linalg.vector_norm(step, dim=-1, keepdim=True)
-        moved = batch.valid[targets, t_obs - 2][:, None] & (length > 1e-6)
-        unit = batch.positions.new_zeros(batch.size, 2)
-        unit[:, 0] = 1.0
-        unit[scene] = torch.where(moved, step / length.clamp(min=1e-6), unit[scene])
-        row = torch.zeros(batch.size, dtype=torch.long)
-        row[scene] = targets
-        has = torch.zeros(batch.size, dtype=torch.bool)
-        has[scene] = True
-        return TargetAxes(row, has, unit)
-
-    def interaction_positions(self, batch: Batch) -> Tensor:
-        """(T_obs, N, 2) the observed positions p_i^(t) that eqs. 1 and 13 read (``ModelConfig.interaction_frame``):
-        the model-frame ones, or each relative to its scene's target at the same step (at the target's current
-        position where it was not observed then) in the target's axes."""
-        obs = batch.positions[:, : batch.obs_len].transpose(0, 1)
-        axes = self._target_axes(batch)
-        if axes is None:
-            return obs
-        seen = batch.valid[axes.row, : batch.obs_len].t()[..., None]
-        target_pos = torch.where(seen, obs[:, axes.row], obs[-1, axes.row][None])
-        return axes.relative(obs, target_pos, batch.scene)
-
     def _env(self, proj: Tensor | None, pos: Tensor, batch: Batch, rows: Tensor) -> Tensor:
         """v (L, R, d_v): eqs. 11-12 at pos (L, R, 2); zero for scenes without a raster."""
         if proj is None or self.env is None:
@@ -494,17 +425,16 @@ class TrajectoryNet(nn.Module):
             m_all = self.ain.ego_motion(ego_disp / ds, ego_disp_ok)  # eq. 5, (B, T, d)
         if self.ain.ego_trajectory is not None:
             f_all = self.ain.ego_trajectory(ego_pos / ps, ego_ok)  # eqs. 8-9, (B, T, d)
-        inter = self.interaction_positions(batch)
         o_all = None
         if self.ain.position is not None:  # eqs. 1-2 for all observed steps at once: (T_obs, B, d)
-            o_all = self.ain.position(inter / ps, ok, batch, rows)
+            o_all = self.ain.position(obs / ps, ok, batch, rows)
         proj = v_all = None
         if self.env is not None:
             if batch.raster is not None:
                 proj = self.env.project(self.env.feature_map(batch.raster))
             v_all = self._env(proj, obs, batch, rows)  # (T_obs, N, d_v)
             v_all = torch.where(ok[..., None], v_all, torch.zeros_like(v_all))
-        gate = torch.sigmoid(self.attention(inter / ps)) if self.attention is not None else None  # eq. 13
+        gate = torch.sigmoid(self.attention(obs / ps)) if self.attention is not None else None  # eq. 13
         hid = cfg.lstm_dim
         h = obs.new_zeros(n, hid)
         c = obs.new_zeros(n, hid)
@@ -558,20 +488,16 @@ class TrajectoryNet(nn.Module):
         p_cur = batch.positions[rows, t_obs - 1][None].expand(mm, r, 2)
         carried = self._carried_first_step(batch, rows)
         basis = self._agent_output_basis(carried)
-        axes = self._target_axes(batch) if r else None
-        target_at = None if axes is None else axes.index_in(rows)
         outputs: list[Tensor] = []
         lstm_d = lstm_weights(self.decoder)
         for k in range(cfg.pred_len):
             if k > 0:  # one LSTM_D step at t = T_obs + k on the predicted positions
                 t = t_obs - 1 + k
-                # eqs. 1 and 13 read the positions relative to the target in the same mode (interaction_frame)
-                inter = p_cur if axes is None else axes.relative(p_cur, p_cur[:, target_at], scene)
                 f_t = None if enc.f_all is None else enc.f_all[None, :, t].expand(mm, b, -1).reshape(mm * b, -1)
                 if cfg.interaction_while_decoding:
                     parts = []
                     if self.ain.position is not None:
-                        parts.append(self.ain.position(inter / ps, every, batch, rows).reshape(mm * b, -1))
+                        parts.append(self.ain.position(p_cur / ps, every, batch, rows).reshape(mm * b, -1))
                     if self.ain.tracking is not None:  # h_d^(t-1)
                         parts.append(self.ain.tracking(h, every, batch, rows).reshape(mm * b, -1))
                     if enc.m_all is not None:
@@ -582,7 +508,7 @@ class TrajectoryNet(nn.Module):
                 x = [self.disp_embed((p_cur - p_prev) / ds)]  # eq. 17
                 if self.env is not None:
                     x.append(self._env(enc.proj, p_cur, batch, rows))
-                q = self._q(None if fst is None else fst.view(mm, b, -1), scene, inter / ps)
+                q = self._q(None if fst is None else fst.view(mm, b, -1), scene, p_cur / ps)
                 if q is not None:
                     x.append(q)
                 h_flat, c = lstm_step(lstm_d, torch.cat(x, dim=-1).reshape(mm * r, -1), h.reshape(mm * r, hid), c)
@@ -661,17 +587,11 @@ class TrajectoryNet(nn.Module):
         p_cur = batch.positions[rows, t_obs - 1][:, None].expand(r, mm, 2)
         carried = self._carried_first_step(batch, rows)
         basis = self._agent_output_basis(carried)
-        axes = self._target_axes(batch) if r else None
-        target_at = None if axes is None else axes.index_in(rows)
         outputs = noise.new_empty(r, mm, cfg.pred_len, 2)
         for k in range(cfg.pred_len):
             if k > 0:  # one LSTM_D step at t = T_obs + k on the predicted positions
                 t = t_obs - 1 + k
-                if axes is None:
-                    pos_scaled = p_cur / ps
-                else:  # interaction_frame = 'target': relative to the target in the same mode (mode-major there)
-                    pos_scaled = axes.relative(p_cur.transpose(0, 1), p_cur[target_at].transpose(0, 1),
-                                               scene).transpose(0, 1) / ps
+                pos_scaled = p_cur / ps
                 f_t = None if enc.f_all is None else enc.f_all[:, None, t].expand(b, mm, -1).reshape(b * mm, -1)
                 if cfg.interaction_while_decoding:
                     parts = []

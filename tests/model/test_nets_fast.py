@@ -232,21 +232,6 @@ def test_environment_lookup_is_bag_order_independent() -> None:
             torch.testing.assert_close(together[m : m + 1], net.env(enc.proj, pos[m : m + 1], batch, rows))
 
 
-def test_decode_fast_equals_decode_with_the_target_interaction_frame() -> None:
-    torch.manual_seed(0)
-    cfg = ModelConfig(features=Features(True, True, False, False, False), noise_dim=3,
-                      step_output="agent_velocity_change", context_radius_m=3.0, interaction_frame="target", **SMALL)
-    net = TrajectoryNet(cfg).eval()
-    batch = collate(_scenes(), cfg)
-    assert batch.size > len(_scenes())  # one scene per target
-    with torch.no_grad():
-        enc = net.encode(batch)
-        noise = torch.randn(4, int(batch.active.sum()), 3)
-        ref = net.decode(batch, enc, noise)
-        fast = net.decode_fast(batch, enc, noise)
-    torch.testing.assert_close(fast.positions, ref.positions, rtol=1e-5, atol=1e-5)
-
-
 @pytest.mark.parametrize("fast", [False, True])
 def test_without_interaction_while_decoding_a_neighbours_noise_does_not_reach_a_forecast(fast: bool) -> None:
     """Redrawing the noise of every agent but one changes that agent's forecast through the predicted-step pools
