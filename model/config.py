@@ -184,6 +184,18 @@ class ModelConfig:
         pools that read other agents (PF, TF: eqs. 2 and 4)."""
         return self.context_radius_m is not None and (self.features.position or self.features.tracking)
 
+    def effective(self) -> ModelConfig:
+        """This config with the settings its network cannot feel at their defaults, so two configs that train the
+        same computation compare equal: the context options without the pools that read other agents
+        (``pools_context``; Noise-LSTM and LSTM collate windows as they are), and ``interaction_while_decoding``
+        without an AIN output (no fst^(t) to hold)."""
+        out = self
+        if not self.pools_context:
+            out = replace(out, context_radius_m=None, context_origin="window", context_max_neighbours=None)
+        if not (self.features.uses_gru or self.features.ego_trajectory):
+            out = replace(out, interaction_while_decoding=True)
+        return out
+
     def __post_init__(self) -> None:
         if self.obs_len < 2 or self.pred_len < 1:
             raise ConfigError(f"obs_len must be >= 2 and pred_len >= 1, got {self.obs_len}, {self.pred_len}")

@@ -327,8 +327,10 @@ was continued to a longer schedule with ``--resume`` keeps the budget it was sav
 
 
 def _recipe(folder: Path) -> dict[str, Any]:
-    """A checkpoint's training config (defaults filled in) without ``RECIPE_IGNORES``, flattened to dotted keys."""
-    config = dataclasses.asdict(read_meta(folder).config)
+    """A checkpoint's training config (defaults filled in, model settings its network cannot feel at their defaults:
+    ``ModelConfig.effective``) without ``RECIPE_IGNORES``, flattened to dotted keys."""
+    trained = read_meta(folder).config
+    config = dataclasses.asdict(dataclasses.replace(trained, model=trained.model.effective()))
     flat: dict[str, Any] = {}
 
     def walk(d: dict[str, Any], prefix: str) -> None:

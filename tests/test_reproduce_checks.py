@@ -89,6 +89,20 @@ def test_a_seed_trained_with_another_recipe_is_left_out(tmp_path: Path) -> None:
     assert training_seeds("ethucy", tmp_path) == [1]
 
 
+def test_settings_a_network_cannot_feel_make_no_other_recipe(tmp_path: Path) -> None:
+    """A Noise-LSTM trained before ``context_radius_m`` existed and one trained with it collate the same windows
+    (no pools read other agents), so they are one recipe; for the paper's method the radius is another recipe."""
+    from reproduce_ethucy import stale_seeds
+
+    for method in ("noise_lstm", ""):
+        meta = json.loads((REPO / f"model/checkpoints/ethucy/univ/{method}/meta.json").read_text(encoding="utf-8"))
+        for folder, radius in ((f"ethucy/univ/{method}", None), (f"seed1/ethucy/univ/{method}", 3.0)):
+            meta["config"]["model"]["context_radius_m"] = radius
+            (tmp_path / folder).mkdir(parents=True, exist_ok=True)
+            (tmp_path / folder / "meta.json").write_text(json.dumps(meta), encoding="utf-8")
+    assert stale_seeds("ethucy", tmp_path) == {1: ["ethucy/univ: model.context_radius_m"]}
+
+
 def test_stale_seed_lines_are_grouped_by_the_keys_that_differ() -> None:
     from reproduce_ethucy import stale_summary
 

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 import torch
@@ -255,3 +257,22 @@ def test_without_interaction_while_decoding_a_neighbours_noise_does_not_reach_a_
                 torch.testing.assert_close(net.decode_fast(batch, enc, noise).positions,
                                            net.decode(batch, enc, noise).positions, rtol=1e-5, atol=1e-5)
         assert (not torch.allclose(first, second, atol=1e-6)) is changes
+
+
+def test_without_an_ain_holding_it_while_decoding_changes_nothing() -> None:
+    """Noise-LSTM has no fst^(t) to hold: the same weights give the same forecasts either way, and
+    ``ModelConfig.effective`` calls the two configs one recipe (while the paper's method's differ)."""
+    torch.manual_seed(0)
+    base = ModelConfig(features=Features(False, False, False, False, False), noise_dim=3,
+                       step_output="agent_velocity_change", **SMALL)
+    held = replace(base, interaction_while_decoding=False)
+    paper, mine = TrajectoryNet(base).eval(), TrajectoryNet(held).eval()
+    mine.load_state_dict(paper.state_dict())
+    batch = collate(_scenes(), base)
+    noise = torch.randn(4, int(batch.active.sum()), 3)
+    with torch.no_grad():
+        torch.testing.assert_close(mine.decode(batch, mine.encode(batch), noise).positions,
+                                   paper.decode(batch, paper.encode(batch), noise).positions, rtol=0, atol=0)
+    assert held.effective() == base.effective() == base
+    full = ModelConfig(features=Features(True, True, False, False, False), **SMALL)
+    assert replace(full, interaction_while_decoding=False).effective() != full.effective()
