@@ -261,6 +261,7 @@ class _Ranks:
 
     rank: int = 0
     world: int = 1
+    owns_group: bool = False
 
     @classmethod
     def from_env(cls) -> _Ranks:
@@ -268,11 +269,24 @@ class _Ranks:
         world = int(os.environ.get("WORLD_SIZE", "1"))
         if world <= 1:
             return cls()
+        import torch._dynamo  # noqa: F401  (see below)
         import torch.distributed as dist
 
-        if not dist.is_initialized():
+        # torch._dynamo, imported lazily by the first optimizer, holds C++ references to any process group that
+        # exists when it loads, so destroy_process_group cannot free that group's gloo threads, and about one
+        # torchrun exit in six then aborts ("terminate called without an active exception"). Imported before
+        # the group exists, it holds none.
+        owns_group = not dist.is_initialized()
+        if owns_group:
             dist.init_process_group("gloo")
-        return cls(rank=dist.get_rank(), world=dist.get_world_size())
+        return cls(rank=dist.get_rank(), world=dist.get_world_size(), owns_group=owns_group)
+
+    def close(self) -> None:
+        """Leave the process group this object joined, so its gloo threads end before the interpreter does."""
+        if self.owns_group:
+            import torch.distributed as dist
+
+            dist.destroy_process_group()
 
     @property
     def main(self) -> bool:
@@ -344,8 +358,29 @@ def fit(
             checkpoint into the full model, whose extra inputs start at zero); ignored on resume, where the
             weights come from ``last/``. Logged in the ``start`` event.
     """
-    start_time = time.perf_counter()
     ranks = _Ranks.from_env()
+    try:
+        return _fit(train, val, config, out_dir, ranks, resume=resume, progress=progress, dataset_kind=dataset_kind,
+                    manifest_hash=manifest_hash, init_from=init_from)
+    finally:
+        ranks.close()
+
+
+def _fit(
+    train: Sequence[SceneSample] | Iterable[SceneSample],
+    val: Sequence[SceneSample] | Iterable[SceneSample] | None,
+    config: TrainConfig | ModelConfig,
+    out_dir: Path,
+    ranks: _Ranks,
+    *,
+    resume: bool = False,
+    progress: bool = True,
+    dataset_kind: str = "unknown",
+    manifest_hash: str = "",
+    init_from: Path | None = None,
+) -> TrainResult:
+    """``fit`` in the process group ``ranks`` describes."""
+    start_time = time.perf_counter()
     cfg = config if isinstance(config, TrainConfig) else TrainConfig(model=config)
     if cfg.batch_size < ranks.world:
         raise ConfigError(f"train.batch_size {cfg.batch_size} must be >= the {ranks.world} torchrun processes")
