@@ -19,16 +19,17 @@ for Sequence inputs (streams restart their current pass).
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import itertools
 import json
 import math
 import os
 import time
-from collections.abc import Iterable, Iterator, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any
+from typing import Any, ParamSpec, TypeVar
 
 import numpy as np
 import torch
@@ -261,7 +262,6 @@ class _Ranks:
 
     rank: int = 0
     world: int = 1
-    owns_group: bool = False
 
     @classmethod
     def from_env(cls) -> _Ranks:
@@ -276,17 +276,9 @@ class _Ranks:
         # exists when it loads, so destroy_process_group cannot free that group's gloo threads, and about one
         # torchrun exit in six then aborts ("terminate called without an active exception"). Imported before
         # the group exists, it holds none.
-        owns_group = not dist.is_initialized()
-        if owns_group:
+        if not dist.is_initialized():
             dist.init_process_group("gloo")
-        return cls(rank=dist.get_rank(), world=dist.get_world_size(), owns_group=owns_group)
-
-    def close(self) -> None:
-        """Leave the process group this object joined, so its gloo threads end before the interpreter does."""
-        if self.owns_group:
-            import torch.distributed as dist
-
-            dist.destroy_process_group()
+        return cls(rank=dist.get_rank(), world=dist.get_world_size())
 
     @property
     def main(self) -> bool:
@@ -328,6 +320,32 @@ class _Log:
             fh.write(json.dumps({"event": event, "time": time.time(), **fields}) + "\n")
 
 
+_Params = ParamSpec("_Params")
+_Result = TypeVar("_Result")
+
+
+def _leaves_process_group(train: Callable[_Params, _Result]) -> Callable[_Params, _Result]:
+    """``train``, leaving the torchrun process group it joined when it returns.
+
+    Why: a gloo group alive at interpreter exit keeps its threads running into teardown. Not on an exception,
+    where another process may still be inside a collective and the teardown could hang (torchtitan's rule too);
+    torchrun ends the others then.
+    """
+
+    @functools.wraps(train)
+    def wrapper(*args: _Params.args, **kwargs: _Params.kwargs) -> _Result:
+        import torch.distributed as dist
+
+        joined_here = not dist.is_initialized()
+        result = train(*args, **kwargs)
+        if joined_here and dist.is_initialized():
+            dist.destroy_process_group()
+        return result
+
+    return wrapper
+
+
+@_leaves_process_group
 def fit(
     train: Sequence[SceneSample] | Iterable[SceneSample],
     val: Sequence[SceneSample] | Iterable[SceneSample] | None,
@@ -358,29 +376,8 @@ def fit(
             checkpoint into the full model, whose extra inputs start at zero); ignored on resume, where the
             weights come from ``last/``. Logged in the ``start`` event.
     """
-    ranks = _Ranks.from_env()
-    try:
-        return _fit(train, val, config, out_dir, ranks, resume=resume, progress=progress, dataset_kind=dataset_kind,
-                    manifest_hash=manifest_hash, init_from=init_from)
-    finally:
-        ranks.close()
-
-
-def _fit(
-    train: Sequence[SceneSample] | Iterable[SceneSample],
-    val: Sequence[SceneSample] | Iterable[SceneSample] | None,
-    config: TrainConfig | ModelConfig,
-    out_dir: Path,
-    ranks: _Ranks,
-    *,
-    resume: bool = False,
-    progress: bool = True,
-    dataset_kind: str = "unknown",
-    manifest_hash: str = "",
-    init_from: Path | None = None,
-) -> TrainResult:
-    """``fit`` in the process group ``ranks`` describes."""
     start_time = time.perf_counter()
+    ranks = _Ranks.from_env()
     cfg = config if isinstance(config, TrainConfig) else TrainConfig(model=config)
     if cfg.batch_size < ranks.world:
         raise ConfigError(f"train.batch_size {cfg.batch_size} must be >= the {ranks.world} torchrun processes")
