@@ -72,10 +72,13 @@ def build_samples(
     steps = as_numpy(tracks.column("step")).astype(np.int64)
     ts = as_numpy(tracks.column("timestamp_ns"))
     focal = as_numpy(pc.equal(tracks.column("role"), Role.FOCAL.value))
+    # Only computed for the rule that needs it, so the presets' index is built exactly as before.
+    ego = as_numpy(pc.equal(tracks.column("role"), Role.EGO.value)) if protocol.targets == "fully_observed_no_ego" \
+        else None
     rate = {m.log_id: m.frame_rate_hz for m in logs}
     if protocol.window == "first":
         return conform(pa.table(_first_windows(log_code, log_names, track_code, track_names, steps, ts, focal,
-                                               protocol, rate)), schema)
+                                               protocol, rate, ego)), schema)
 
     bounds = np.flatnonzero(np.diff(log_code)) + 1
     starts = np.concatenate([[0], bounds])
@@ -85,7 +88,7 @@ def build_samples(
         log_id = log_names[log_code[lo]]
         _log_windows(
             columns, log_id, steps[lo:hi], ts[lo:hi], track_code[lo:hi], track_names, focal[lo:hi],
-            protocol, 1e9 / rate[log_id] if rate.get(log_id) else 0.0,
+            protocol, 1e9 / rate[log_id] if rate.get(log_id) else 0.0, None if ego is None else ego[lo:hi],
         )
     return conform(pa.table(columns), schema)
 
@@ -100,6 +103,7 @@ def _log_windows(
     focal: np.ndarray,
     protocol: SampleProtocol,
     period_ns: float,
+    ego: NDArrayBool | None = None,
 ) -> None:
     n_steps = int(steps[-1]) + 1
     seq = protocol.seq_len
@@ -125,6 +129,9 @@ def _log_windows(
         target_rows[focal_ids[0]] = full[focal_ids[0]]
     else:
         target_rows = full
+        if ego is not None and ego.any():
+            target_rows = full.copy()
+            target_rows[np.unique(local[ego])] = False
     counts = target_rows.sum(axis=0)
     dt = np.diff(step_ts)
     if period_ns > 0:
@@ -161,6 +168,7 @@ def _first_windows(
     focal: np.ndarray,
     protocol: SampleProtocol,
     rate: dict[str, float],
+    ego: NDArrayBool | None = None,
 ) -> dict[str, list[object]]:
     """One window at step 0 of every log, for all logs at once (Argoverse: one sample per file).
 
@@ -180,6 +188,8 @@ def _first_windows(
     key = log_of_row * n_tracks + track_code
     full_keys = _complete_keys(key, in_window, focal if protocol.targets == "focal" else None, n_logs * n_tracks,
                                seq)
+    if ego is not None and ego.any():
+        full_keys = np.setdiff1d(full_keys, np.unique(key[ego]), assume_unique=False)
     target_log = full_keys // n_tracks
     target_names = track_names[full_keys % n_tracks]
     split_at = np.searchsorted(target_log, np.arange(n_logs + 1))

@@ -99,6 +99,10 @@ class LogMeta:
     attributes: dict[str, Any] = field(default_factory=dict)
 
 
+TARGET_RULES: tuple[str, ...] = ("fully_observed", "focal", "fully_observed_no_ego")
+"""Values of ``SampleProtocol.targets``."""
+
+
 @dataclass(frozen=True)
 class SampleProtocol:
     """Declarative description of prediction samples cut from continuous logs.
@@ -109,7 +113,9 @@ class SampleProtocol:
         pred_len: predicted steps after the current one.
         stride: steps between consecutive window starts (``window="sliding"``).
         window: ``sliding`` (every ``stride`` steps, Social-GAN) or ``first`` (one window at step 0, Argoverse).
-        targets: ``fully_observed`` (every agent present at all obs+pred steps) or ``focal`` (the focal track).
+        targets: ``fully_observed`` (every agent present at all obs+pred steps), ``focal`` (the focal track) or
+            ``fully_observed_no_ego`` (every fully observed agent but the ego: on Argoverse the AV's future is the
+            model's planned-trajectory input, ETF, so it cannot also be a target).
         min_targets: keep a window only with at least this many targets (Social-GAN's loader keeps >= 2).
     """
 
