@@ -2,41 +2,42 @@
 log, an MCAP with the original recording plus prediction channels.
 
 Reads top-down: open the dataset and the predictor (a checkpoint, the shipped one for the dataset kind, or a
-baseline) → check that they fit (kind, obs/pred lengths, frame rate, agent types, rasters, originals) before
-any work → select samples (``SampleFilter``) → per dataset shard not yet done: cut ``SceneSample``s, attach
-rasters, predict in batches under ``torch.inference_mode`` → write the shard's Parquet and its logs' MCAPs
-into a staging folder → commit by rename, then the run manifest.
+baseline) → check that they fit (kind, obs/pred lengths, frame rate, agent types, rasters, originals, log ids
+that are safe file names) before any work → take the output folder's lock → select samples
+(``SampleFilter``) → per dataset shard not yet committed: cut ``SceneSample``s, attach rasters, predict in
+batches under ``torch.inference_mode`` → write the shard's Parquet and its logs' MCAPs (each file whole, under
+a new name) → commit the shard by replacing the run manifest (``logpipe.artifact``).
 
-Output folder::
+Output folder (a committed artifact; the table and the manifest's metadata are ``logpipe.predictions``)::
 
-    predict.json                     run settings and the finished shards (rewritten after each shard)
-    predictions/part-NNNNN.parquet   schemas/predictions.json, one file per dataset shard
+    manifest.json                    settings, metadata, the finished shards and every committed file
+    predictions/part-NNNNN.parquet   schemas/predictions.json, one file per dataset shard (NNNNN = its index)
     mcap/part-NNNNN/<log_id>.mcap    the original log + /logpipe/predictions (logpipe.Predictions),
                                      /logpipe/predictions/scene (foxglove.SceneUpdate) and, with rasters,
                                      /logpipe/raster (foxglove.RawImage)
 
 Frames and units: positions are metres in the log's world frame (``logpipe.types``); message times and
 ``timestamp_ns`` are ns on the log's clock; a sample's prediction time is its current (last observed) step.
-Resuming: shards listed in ``predict.json`` with the same settings are skipped; a shard interrupted midway is
-redone (its outputs only ever appear whole).
+Resuming: shards the committed manifest lists with the same settings are skipped; a shard interrupted midway
+is redone from scratch (the files it left are not committed and are removed), so the rerun of an interrupted
+run gives the same bytes as an uninterrupted one.
 """
 
 from __future__ import annotations
 
 import base64
 import dataclasses
+import errno
 import json
 import queue
-import shutil
 import sys
 import threading
 import time
-import uuid
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, TypedDict
 
 import numpy as np
 import pyarrow as pa
@@ -44,13 +45,23 @@ import pyarrow.compute as pc
 import pyarrow.parquet as pq
 
 from logpipe import __version__
-from logpipe.contracts import arrow_schema, json_schema
-from logpipe.dataset import Dataset, mcap_folder
-from logpipe.errors import DatasetError, LogpipeError
+from logpipe.artifact import MANIFEST, ArtifactWriter, FileEntry, file_entry, os_error_message, owned_by, read_manifest
+from logpipe.contracts import json_schema
+from logpipe.dataset import Dataset
+from logpipe.errors import DatasetError, LogpipeError, OutputError
 from logpipe.executor import default_workers
-from logpipe.io import PARQUET_OPTIONS, as_numpy, read_json, sha256_file, sha256_tree, write_json
+from logpipe.io import PARQUET_OPTIONS, as_numpy, atomic_path, read_json, read_table, sha256_file, sha256_tree
 from logpipe.mcap_merge import NewChannel, NewMessage, Source, write_merged
 from logpipe.mcapio import WORLD_FRAME
+from logpipe.predictions import (
+    LEGACY_RUN_FILE,
+    PREDICTIONS_DIR,
+    RUN_ARTIFACT,
+    RUN_FORMAT_VERSION,
+    PredictionMeta,
+    SampleForecast,
+    build_table,
+)
 from logpipe.rasters import RasterShards, find_raster_run
 from logpipe.types import OBJECT_TYPES, NDArrayFloat, NDArrayInt, SceneSample
 
@@ -68,8 +79,13 @@ except ImportError:  # pragma: no cover - orjson is a dependency; keep working w
         return json.dumps(obj, separators=(",", ":"), default=lambda a: a.tolist()).encode()
 
 
-RUN_FILE = "predict.json"
-PREDICTIONS_DIR = "predictions"
+MCAP_DIR = "mcap"
+OWNED = owned_by([f"{PREDICTIONS_DIR}/", f"{MCAP_DIR}/"])
+"""The run's own paths (``ArtifactWriter`` removes those its manifest does not name)."""
+OUTPUT_ERRNOS = frozenset({errno.ENOSPC, errno.EROFS, errno.EACCES, errno.EDQUOT, errno.EPERM})
+"""OS errors on writing that are the output's fault (full, read-only, no permission): one line, not a traceback."""
+MAX_LOG_ID_CHARS = 200
+"""Longest log id that becomes a file name (most file systems refuse names over 255 bytes)."""
 PREDICTIONS_TOPIC = "/logpipe/predictions"
 SCENE_TOPIC = "/logpipe/predictions/scene"
 RASTER_TOPIC = "/logpipe/raster"
@@ -162,6 +178,7 @@ class ChosenPredictor:
         checkpoint: the checkpoint folder, if any.
         needs_raster: the environment net is on (every sample needs a raster).
         raster_channels: C the net expects.
+        weights_sha256: the checkpoint's weights digest (None for baselines).
     """
 
     model: Any
@@ -170,6 +187,7 @@ class ChosenPredictor:
     checkpoint: Path | None = None
     needs_raster: bool = False
     raster_channels: int | None = None
+    weights_sha256: str | None = None
 
 
 # Shipped baselines and ablations live in folders named after their method (``ethucy/eth/lstm``,
@@ -235,7 +253,7 @@ def choose_predictor(
     meta = read_meta(folder)
     model_cfg = meta.config.model
     return ChosenPredictor(None, "zhu2020", meta.weights_sha256, folder, model_cfg.features.environment,
-                           model_cfg.raster_channels)
+                           model_cfg.raster_channels, meta.weights_sha256)
 
 
 def check_fit(dataset: Dataset, chosen: ChosenPredictor, logs: pa.Table) -> list[str]:
@@ -263,7 +281,7 @@ def check_fit(dataset: Dataset, chosen: ChosenPredictor, logs: pa.Table) -> list
     if types is not None:
         seen = set()
         for path in dataset.shard_paths:
-            seen |= set(pc.unique(pq.read_table(path, columns=["object_type"]).column(0)).to_pylist())
+            seen |= set(pc.unique(read_table(path, columns=["object_type"]).column(0)).to_pylist())
         unknown = sorted(seen - set(types))
         if unknown:
             problems.append(f"agent types: dataset has {unknown}, checkpoint was trained on {sorted(types)}")
@@ -342,7 +360,7 @@ class _Run:
     samples_by_log: dict[str, list[dict[str, Any]]]
     originals: dict[str, Source]
     manifest_sha256: str
-    schema: pa.Schema
+    meta: PredictionMeta
     raster_ids: frozenset[str]
 
 
@@ -428,22 +446,25 @@ def predict_dataset(
         where = chosen.checkpoint or "predictor"
         raise LogpipeError(f"{where} does not fit {dataset_dir}: " + "; ".join(problems))
     logs = {str(r["log_id"]): r for r in logs_table.to_pylist()}
+    _check_log_ids(dataset, logs)
     # Where bags/MCAP inputs are: --inputs, else the roots ingest recorded (manifest "input_roots", if it does).
     roots = list(inputs) or [Path(p) for p in dataset.manifest.get("input_roots", [])]
     originals = {log_id: find_original(row, roots, dataset) for log_id, row in logs.items()} if write_mcap else {}
-    load_net(chosen, dataset, batch_size, noise_scale, constant_velocity_modes, context_max_neighbours)
-    manifest_sha = sha256_file(dataset.root / "manifest.json")
-    settings = {
+    manifest_sha = sha256_file(dataset.root / MANIFEST)
+    settings: RunSettings = {
         "dataset_manifest_sha256": manifest_sha, "predictor": chosen.name, "checkpoint_id": chosen.checkpoint_id,
         "num_modes": modes, "seed": seed, "batch_size": batch_size, "filter": sample_filter.to_dict(),
         "protocol": dataset.protocol.to_dict(), "write_mcap": write_mcap,
         "raster_run": rasters.run_dir.name if rasters is not None and raster_images else None,
     }
-    state = _open_run(out_dir, settings)
-    run = _Run(dataset, chosen, modes, seed, batch_size, sample_filter, rasters, raster_images, write_mcap, logs,
-               samples_by_log, originals, manifest_sha, _table_schema(dataset, chosen, modes, seed, manifest_sha),
-               frozenset(rasters.index.column("sample_id").to_pylist()) if rasters is not None else frozenset())
-    done = {s["shard"] for s in state["shards"]}
+    protocol = dataset.protocol
+    meta = PredictionMeta(
+        predictor=chosen.name, checkpoint_id=chosen.checkpoint_id, protocol=protocol.name, obs_len=protocol.obs_len,
+        pred_len=protocol.pred_len, num_modes=modes, checkpoint_sha256=chosen.weights_sha256, seed=seed,
+        dataset_manifest_sha256=manifest_sha, noise_scale=noise_scale, constant_velocity_modes=constant_velocity_modes,
+        context_max_neighbours=context_max_neighbours,
+    )
+    _refuse_other_folders(out_dir)
     summary: dict[str, Any] = {
         "dataset": str(dataset_dir), "out": str(out_dir), "predictor": chosen.name,
         "checkpoint_id": chosen.checkpoint_id, "num_modes": modes, "seed": seed,
@@ -454,25 +475,44 @@ def predict_dataset(
         "io_busy_seconds": 0.0,
     }
     previous_threads = torch.get_num_threads()
-    torch.set_num_threads(threads or default_workers())
-    # The writer thread (``_ShardWriter``) holds the GIL for long stretches of JSON encoding; with the default
-    # 5 ms switch interval every small torch op of the model thread could wait that long for it.
     previous_switch = sys.getswitchinterval()
-    sys.setswitchinterval(_SWITCH_INTERVAL_S)
     try:
-        for shard in dataset.manifest["shards"]:
-            name = str(shard["file"])
-            if name in done:
-                summary["shards_skipped_done"] += 1
-                continue
-            entry = _predict_shard(run, name, out_dir, summary, progress)
-            state["shards"].append(entry)
-            write_json(state, out_dir / RUN_FILE)
+        with ArtifactWriter(out_dir, OWNED) as writer:
+            shards, files = _committed_state(writer, settings)
+            load_net(chosen, dataset, batch_size, noise_scale, constant_velocity_modes, context_max_neighbours)
+            run = _Run(dataset, chosen, modes, seed, batch_size, sample_filter, rasters, raster_images, write_mcap,
+                       logs, samples_by_log, originals, manifest_sha, meta,
+                       frozenset(rasters.index.column("sample_id").to_pylist()) if rasters is not None
+                       else frozenset())
+            done = {s["shard"] for s in shards}
+            torch.set_num_threads(threads or default_workers())
+            # The writer thread (``_ShardWriter``) holds the GIL for long stretches of JSON encoding; with the
+            # default 5 ms switch interval every small torch op of the model thread could wait that long for it.
+            sys.setswitchinterval(_SWITCH_INTERVAL_S)
+            uncommitted = writer.manifest is None
+            for index, path in enumerate(dataset.shard_paths):
+                key = path.relative_to(dataset.root).as_posix()
+                if key in done:
+                    summary["shards_skipped_done"] += 1
+                    continue
+                entry, new_files = _predict_shard(run, index, key, path, out_dir, summary, progress)
+                shards.append(entry)
+                files.update(new_files)
+                uncommitted = True
+                if new_files:  # one commit per shard with outputs; empty shards ride along with the next one
+                    writer.commit(_manifest(settings, meta, shards, files))
+                    uncommitted = False
+            if uncommitted:
+                writer.commit(_manifest(settings, meta, shards, files))
+    except OSError as exc:
+        if exc.errno in OUTPUT_ERRNOS:
+            raise OutputError(os_error_message(exc)) from None
+        raise
     finally:
         torch.set_num_threads(previous_threads)
         sys.setswitchinterval(previous_switch)
-    summary["shards"] = len(state["shards"])
-    summary["rows_total"] = sum(int(s["rows"]) for s in state["shards"])
+    summary["shards"] = len(shards)
+    summary["rows_total"] = sum(int(s["rows"]) for s in shards)
     summary["seconds"] = round(time.perf_counter() - started, 3)
     summary["samples_per_s"] = round(summary["samples"] / summary["seconds"], 1) if summary["seconds"] else None
     summary["model_seconds"] = round(summary["model_seconds"], 3)
@@ -480,6 +520,88 @@ def predict_dataset(
     summary["io_wait_seconds"] = round(summary["io_wait_seconds"], 3)
     summary["io_busy_seconds"] = round(summary["io_busy_seconds"], 3)
     return summary
+
+
+def _unsafe_name(name: str) -> str | None:
+    """Why ``name`` cannot be one file name inside an output folder, or None when it can."""
+    if not name or name in (".", "..") or "/" in name or "\\" in name:
+        return "is not a single file name (empty, '.', '..' or has '/')"
+    if any(ord(c) < 32 or ord(c) == 127 for c in name):
+        return "holds NUL or control characters"
+    if len(name) > MAX_LOG_ID_CHARS:
+        return f"is {len(name)} characters long (at most {MAX_LOG_ID_CHARS})"
+    return None
+
+
+def _check_log_ids(dataset: Dataset, logs: dict[str, dict[str, Any]]) -> None:
+    """Refuse, before any output, a selected log whose id cannot be a file name: MCAPs are named after log ids,
+    and an id like ``../../x`` would put one outside ``--out``."""
+    for log_id in logs:
+        reason = _unsafe_name(log_id)
+        if reason:
+            raise DatasetError(f"{dataset.root}: log id {log_id[:80]!r} {reason}; log ids become file names, so "
+                               "predict refuses it (damaged or hand-made dataset? re-ingest it)")
+
+
+class RunSettings(TypedDict):
+    """What a run was made with; a rerun resumes only with equal settings."""
+
+    dataset_manifest_sha256: str
+    predictor: str
+    checkpoint_id: str
+    num_modes: int
+    seed: int
+    batch_size: int
+    filter: dict[str, Any]
+    protocol: dict[str, Any]
+    write_mcap: bool
+    raster_run: str | None
+
+
+class ShardEntry(TypedDict):
+    """A finished dataset shard in the run manifest (``file`` None when none of its logs was selected)."""
+
+    shard: str
+    logs: int
+    samples: int
+    rows: int
+    file: str | None
+
+
+def _refuse_other_folders(out_dir: Path) -> None:
+    """Never adopt a folder that holds another artifact (a dataset: its ``mcap/`` would look like ours) or a
+    run of an older logpipe: entering the writer would remove their files."""
+    if not out_dir.is_dir():
+        return
+    existing = read_manifest(out_dir, required=False)
+    if existing is not None and existing.get("artifact") != RUN_ARTIFACT:
+        raise DatasetError(f"{out_dir}: holds another logpipe artifact ({MANIFEST} of a "
+                           f"{existing.get('artifact') or 'dataset'}), not a prediction run; choose another --out")
+    if existing is None and (out_dir / LEGACY_RUN_FILE).is_file():
+        raise DatasetError(f"{out_dir}: holds a prediction run of an older logpipe ({LEGACY_RUN_FILE}); "
+                           "choose another --out or delete it")
+
+
+def _committed_state(writer: ArtifactWriter, settings: RunSettings) -> tuple[list[ShardEntry], dict[str, FileEntry]]:
+    """The committed shards and files of ``writer``'s folder (none when new), when made with ``settings``."""
+    committed = writer.manifest
+    if committed is None:
+        return [], {}
+    _refuse_other_folders(writer.root)
+    wanted = json.loads(json.dumps(settings))
+    if committed.get("settings") != wanted:
+        old = committed.get("settings") or {}
+        diff = sorted(k for k in wanted if old.get(k) != wanted[k])
+        raise DatasetError(f"{writer.root}: holds predictions made with other settings ({', '.join(diff)}); "
+                           "use another --out or delete it")
+    return list(committed.get("shards", [])), dict(committed.get("files", {}))
+
+
+def _manifest(settings: RunSettings, meta: PredictionMeta, shards: list[ShardEntry],
+              files: dict[str, FileEntry]) -> dict[str, Any]:
+    """The run manifest: nothing in it depends on time, pid or machine, so a resumed run equals a whole one."""
+    return {"artifact": RUN_ARTIFACT, "format_version": RUN_FORMAT_VERSION, "logpipe_version": __version__,
+            "settings": settings, "metadata": meta.to_dict(), "shards": shards, "files": files}
 
 
 def _selected_logs(dataset: Dataset, f: SampleFilter) -> pa.Table:
@@ -519,36 +641,6 @@ def _raster_problems(dataset_dir: Path, rasters: RasterShards | None,
         return [f"raster run {rasters.run_dir.name} lacks {len(missing)} selected samples (e.g. {missing[0]}); "
                 "re-run `logpipe rasterise`"]
     return []
-
-
-def _table_schema(dataset: Dataset, chosen: ChosenPredictor, modes: int, seed: int, manifest_sha: str) -> pa.Schema:
-    """The contract schema with the protocol, K and provenance as Parquet metadata."""
-    schema = arrow_schema("predictions")
-    protocol = dataset.protocol
-    extra = {
-        "logpipe.protocol": json.dumps({"name": protocol.name, "obs_len": protocol.obs_len,
-                                        "pred_len": protocol.pred_len, "num_modes": modes}, sort_keys=True),
-        "logpipe.dataset_manifest_sha256": manifest_sha,
-        "logpipe.predictor": chosen.name,
-        "logpipe.checkpoint_id": chosen.checkpoint_id,
-        "logpipe.seed": str(seed),
-        "logpipe.version": __version__,
-    }
-    return schema.with_metadata({**(schema.metadata or {}), **{k.encode(): v.encode() for k, v in extra.items()}})
-
-
-def _open_run(out_dir: Path, settings: dict[str, Any]) -> dict[str, Any]:
-    """The run state of ``out_dir`` (new, or an earlier run with the same settings to resume)."""
-    path = out_dir / RUN_FILE
-    if path.is_file():
-        state: dict[str, Any] = read_json(path)
-        if state["settings"] != json.loads(json.dumps(settings)):
-            diff = sorted(k for k in settings if state["settings"].get(k) != json.loads(json.dumps(settings[k])))
-            raise DatasetError(f"{out_dir}: holds predictions made with other settings ({', '.join(diff)}); "
-                               "use another --out or delete it")
-        return state
-    out_dir.mkdir(parents=True, exist_ok=True)
-    return {"logpipe_version": __version__, "settings": settings, "shards": []}
 
 
 # ---------------------------------------------------------------------------------------------------------
@@ -599,7 +691,7 @@ class _ShardWriter:
     ``_ROW_GROUP_ROWS`` rows (the last one shorter), whatever the batching.
     """
 
-    def __init__(self, run: _Run, parquet: pq.ParquetWriter, mcap_dir: Path, entry: dict[str, Any]) -> None:
+    def __init__(self, run: _Run, parquet: pq.ParquetWriter, mcap_dir: Path, entry: ShardEntry) -> None:
         self._run, self._parquet, self._mcap_dir, self._entry = run, parquet, mcap_dir, entry
         self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="logpipe-predict-write")
         self._jobs: list[Future[None]] = []
@@ -613,6 +705,7 @@ class _ShardWriter:
         self.wait_seconds = 0.0  # main-thread time spent waiting for the writer
         self.mcap_files = 0
         self.original_messages = 0
+        self.mcap_written: list[str] = []  # file names in mcap_dir, in log order
 
     def add(self, out: _LogOutput, predictions: list[_SamplePrediction]) -> None:
         """Queue a batch's predictions of one log (starting the log's job at its first batch)."""
@@ -688,8 +781,12 @@ class _ShardWriter:
 
         try:
             if run.write_mcap:
-                self.original_messages += _write_log_mcap(run, log_id, predictions(), self._mcap_dir / f"{log_id}.mcap")
+                target = self._mcap_dir / f"{log_id}.mcap"
+                if target.parent != self._mcap_dir:  # _check_log_ids refused such ids; never write elsewhere
+                    raise DatasetError(f"log id {log_id!r} is not a single file name")
+                self.original_messages += _write_log_mcap(run, log_id, predictions(), target)
                 self.mcap_files += 1
+                self.mcap_written.append(target.name)
             else:
                 for _ in predictions():
                     pass
@@ -711,53 +808,50 @@ class _ShardWriter:
             self._buffered_rows = rest.num_rows
 
 
-def _predict_shard(run: _Run, shard: str, out_dir: Path, summary: dict[str, Any],
-                   progress: Callable[[int], None] | None) -> dict[str, Any]:
-    """Predict one dataset shard into a staging folder and move its outputs into place."""
-    shard_logs = [log_id for log_id, row in run.logs.items() if row["shard"] == shard]
-    entry: dict[str, Any] = {"shard": shard, "logs": len(shard_logs), "samples": 0, "rows": 0, "file": None}
+def _predict_shard(run: _Run, index: int, key: str, path: Path, out_dir: Path, summary: dict[str, Any],
+                   progress: Callable[[int], None] | None) -> tuple[ShardEntry, dict[str, FileEntry]]:
+    """Predict one dataset shard (``path``, named ``key`` in the run manifest) into new files; returns its
+    manifest entry and the files to commit with it.
+
+    Files are written under the shard's index (``part-NNNNN``): names no committed shard uses, so a reader of
+    the folder never sees them change; a crash leaves them uncommitted and the next writer removes them.
+    """
+    entry: ShardEntry = {"shard": key, "logs": 0, "samples": 0, "rows": 0, "file": None}
+    t0 = time.perf_counter()
+    in_shard = set(pc.unique(read_table(path, columns=["log_id"]).column("log_id")).to_pylist())
+    shard_logs = [log_id for log_id in run.logs if log_id in in_shard]  # logs-table order, as batches were cut
+    entry["logs"] = len(shard_logs)
     if not shard_logs:
-        return entry
-    staging = out_dir / f".staging-{uuid.uuid4().hex[:12]}"
-    parquet_rel = f"{PREDICTIONS_DIR}/{shard}"
-    mcap_rel = mcap_folder(shard)  # mcap/part-NNNNN, as the dataset groups its MCAPs
-    try:
-        (staging / PREDICTIONS_DIR).mkdir(parents=True)
-        (staging / mcap_rel).mkdir(parents=True)
-        t0 = time.perf_counter()
-        tracks = pq.read_table(run.dataset.root / shard)
         summary["io_seconds"] += time.perf_counter() - t0
-        options = {k: v for k, v in PARQUET_OPTIONS.items() if k != "row_group_size"}
-        with pq.ParquetWriter(staging / parquet_rel, run.schema, **options) as parquet:
-            sink = _ShardWriter(run, parquet, staging / mcap_rel, entry)
-            try:
-                _predict_logs(run, tracks, shard_logs, summary, progress, sink)
-                sink.close()
-            except BaseException:
-                sink.abort()
-                raise
-            finally:
-                summary["io_seconds"] += sink.busy_seconds  # overlapped with the model (writer thread)
-                summary["io_busy_seconds"] += sink.busy_seconds
-                summary["io_wait_seconds"] += sink.wait_seconds
-                summary["mcap_files"] += sink.mcap_files
-                summary["original_messages"] += sink.original_messages
-        t0 = time.perf_counter()
-        (out_dir / PREDICTIONS_DIR).mkdir(exist_ok=True)
-        (staging / parquet_rel).replace(out_dir / parquet_rel)
-        if run.write_mcap:
-            target = out_dir / mcap_rel
-            target.parent.mkdir(parents=True, exist_ok=True)
-            if target.exists():  # left by a run interrupted between this rename and the manifest
-                shutil.rmtree(target)
-            (staging / mcap_rel).replace(target)
-        summary["io_seconds"] += time.perf_counter() - t0
-    finally:
-        shutil.rmtree(staging, ignore_errors=True)
+        return entry, {}
+    part = f"part-{index:05d}"
+    parquet_rel = f"{PREDICTIONS_DIR}/{part}.parquet"
+    mcap_rel = f"{MCAP_DIR}/{part}"
+    tracks = read_table(path)  # a damaged shard is a one-line DatasetError
+    summary["io_seconds"] += time.perf_counter() - t0
+    options = {k: v for k, v in PARQUET_OPTIONS.items() if k != "row_group_size"}
+    with atomic_path(out_dir / parquet_rel) as tmp, pq.ParquetWriter(tmp, run.meta.schema(), **options) as parquet:
+        sink = _ShardWriter(run, parquet, out_dir / mcap_rel, entry)
+        try:
+            _predict_logs(run, tracks, shard_logs, summary, progress, sink)
+            sink.close()
+        except BaseException:
+            sink.abort()
+            raise
+        finally:
+            summary["io_seconds"] += sink.busy_seconds  # overlapped with the model (writer thread)
+            summary["io_busy_seconds"] += sink.busy_seconds
+            summary["io_wait_seconds"] += sink.wait_seconds
+            summary["mcap_files"] += sink.mcap_files
+            summary["original_messages"] += sink.original_messages
+    t0 = time.perf_counter()
     summary["rows"] += entry["rows"]
     entry["file"] = parquet_rel
-    entry["sha256"] = sha256_file(out_dir / parquet_rel)
-    return entry
+    files = {parquet_rel: file_entry(out_dir / parquet_rel, rows=entry["rows"])}
+    for name in sink.mcap_written:
+        files[f"{mcap_rel}/{name}"] = file_entry(out_dir / mcap_rel / name)
+    summary["io_seconds"] += time.perf_counter() - t0
+    return entry, files
 
 
 def _predict_logs(run: _Run, tracks: pa.Table, shard_logs: list[str], summary: dict[str, Any],
@@ -923,36 +1017,14 @@ def _future_times(sample: SceneSample, obs_len: int, pred_len: int, dt_ns: int) 
 
 
 def _log_table(run: _Run, log_id: str, done: list[_SamplePrediction]) -> pa.Table:
-    """The predictions rows of samples of one log, built column-wise (no per-row Python)."""
-    schema = run.schema
-    if not done:
-        return schema.empty_table()
-    k, t = run.modes, run.dataset.protocol.pred_len
-    per_target = k * t
-    n_targets = np.array([len(p.targets) for p in done])
-    sample_ids = pa.array([p.sample.sample_id for p in done], pa.string())
-    track_names = [p.sample.track_ids[i] for p in done for i in p.targets]
-    type_names = [OBJECT_TYPES[int(p.sample.object_types[i])] for p in done for i in p.targets]
-    total = int(n_targets.sum()) * per_target
-    futures = np.concatenate([p.futures for p in done]).reshape(-1, 2) if total else np.zeros((0, 2))
-    step_ns = np.concatenate([np.tile(p.step_ns, len(p.targets) * k) for p in done]) if total else np.zeros(0)
-    scores = np.concatenate([np.repeat(p.scores.reshape(-1), t) for p in done]) if total else np.zeros(0)
-    target_index = pa.array(np.repeat(np.arange(len(track_names)), per_target))
-    columns = {
-        "log_id": pa.repeat(log_id, total),
-        "sample_id": sample_ids.take(pa.array(np.repeat(np.arange(len(done)), n_targets * per_target))),
-        "track_id": pa.array(track_names, pa.string()).take(target_index),
-        "object_type": pa.array(type_names, pa.string()).take(target_index),
-        "mode": pa.array(np.tile(np.repeat(np.arange(k, dtype=np.int16), t), len(track_names))),
-        "step": pa.array(np.tile(np.arange(1, t + 1, dtype=np.int16), len(track_names) * k)),
-        "timestamp_ns": pa.array(step_ns.astype(np.int64)),
-        "x": pa.array(futures[:, 0]),
-        "y": pa.array(futures[:, 1]),
-        "score": pa.array(scores.astype(np.float32)),
-        "predictor": pa.repeat(run.chosen.name, total),
-        "checkpoint_id": pa.repeat(run.chosen.checkpoint_id, total),
-    }
-    return pa.Table.from_arrays([columns[f.name] for f in schema], schema=schema)
+    """The predictions rows of samples of one log (``logpipe.predictions`` decides the layout)."""
+    return build_table(run.meta, [
+        SampleForecast(log_id=log_id, sample_id=p.sample.sample_id,
+                       track_ids=[p.sample.track_ids[i] for i in p.targets],
+                       object_types=[OBJECT_TYPES[int(p.sample.object_types[i])] for i in p.targets],
+                       futures=p.futures, scores=p.scores, step_ns=p.step_ns)
+        for p in done
+    ])
 
 
 # ---------------------------------------------------------------------------------------------------------

@@ -15,6 +15,7 @@ from logpipe.errors import LogpipeError
 from logpipe.model.checkpoints import save_checkpoint
 from logpipe.model.config import Features, ModelConfig, TrainConfig
 from logpipe.model.nets import TrajectoryNet
+from logpipe.predictions import PredictionRun
 from logpipe.stages.ingest import IngestOptions, ingest
 from logpipe.stages.predict import SampleFilter, parse_filter, predict_dataset
 
@@ -53,8 +54,9 @@ def test_constant_velocity_predictions_of_straight_tracks_are_exact(lines_datase
     table = pq.read_table(tmp_path / "out" / "predictions" / "part-00000.parquet")
     assert table.schema.equals(arrow_schema("predictions"))  # the contract exactly (metadata aside)
     assert table.num_rows == 11 * 3 * 20 * 12 == summary["rows"]
-    meta = table.schema.metadata
-    assert json.loads(meta[b"logpipe.protocol"]) == {"name": "ethucy", "obs_len": 8, "pred_len": 12, "num_modes": 20}
+    run = PredictionRun.open(tmp_path / "out")
+    assert (run.meta.protocol, run.meta.obs_len, run.meta.pred_len, run.meta.num_modes) == ("ethucy", 8, 12, 20)
+    assert PredictionRun.open(tmp_path / "out" / "predictions" / "part-00000.parquet").meta == run.meta
     rows = table.to_pydict()
     # Positions were written with 2 decimals: the expected line is through those exact observed values.
     for i in range(0, table.num_rows, 97):
