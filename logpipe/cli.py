@@ -54,6 +54,13 @@ def _user_errors() -> Iterator[None]:
     except LogpipeError as exc:
         err.print(f"[bold red]error:[/] {exc}", highlight=False, soft_wrap=True)
         raise typer.Exit(code=2) from None
+    except OSError as exc:
+        # Disk full, read-only or forbidden outputs: the writers commit only by the manifest swap, so the
+        # folder still holds its previous state; one line, not a traceback.
+        from logpipe.artifact import os_error_message
+
+        err.print(f"[bold red]error:[/] {os_error_message(exc)}", highlight=False, soft_wrap=True)
+        raise typer.Exit(code=2) from None
 
 
 @contextmanager
@@ -465,6 +472,35 @@ def score(
     if report["gate"]["failed"]:
         raise typer.Exit(code=1)
 
+
+
+@app.command()
+def verify(
+    folders: Annotated[list[Path], typer.Argument(
+        help="Artifact folders: a dataset, a raster run (DATASET/rasters/<run>), a prediction run, a score report.",
+        show_default=False)],
+    repair: Annotated[bool, typer.Option(
+        "--repair", help="Remove uncommitted leftovers (staging and temp files, files no manifest names).")] = False,
+    shallow: Annotated[bool, typer.Option("--shallow", help="Check sizes only, not sha256 and row counts.")] = False,
+    as_json: JsonOpt = False,
+) -> None:
+    """Check folders against their manifests: every committed file's size, sha256 and row count. Prints one line
+    per problem and exits 1 when any is found. A dataset's raster runs are checked with it."""
+    from logpipe.verify import verify_tree
+
+    with _user_errors():
+        report = verify_tree(folders, repair=repair, deep=not shallow)
+    if as_json:
+        typer.echo(json.dumps(report, indent=2, sort_keys=True))
+    else:
+        for line in report["problems"]:
+            typer.echo(line)
+        for line in report["leftovers"]:
+            typer.echo(f"{line}: uncommitted leftover" + (" (removed)" if repair else " (--repair removes it)"))
+        err.print(f"{report['files_checked']} files checked in {len(report['folders'])} folders: "
+                  f"{len(report['problems'])} problems, {len(report['leftovers'])} leftovers", highlight=False)
+    if report["problems"]:
+        raise typer.Exit(code=1)
 
 
 @app.command()

@@ -1,15 +1,21 @@
-"""Reading a dataset folder written by ``logpipe ingest``.
+"""The on-disk dataset written by ``logpipe ingest``: its layout, its writer's ownership rule and its reader.
 
 Layout::
 
     DATASET/
-      manifest.json          versions, inputs (sha256), shards (rows, sha256), protocol, parameters
-      part-00000.parquet     track-table shards, whole logs each, sorted by log, time, track
-      logs.parquet           one row per log (schemas/logs.json)
-      samples.parquet        the prediction-sample index (schemas/samples.json)
-      mcap/part-NNNNN/<log_id>.mcap   each log for a viewer, grouped like the shards
+      manifest.json                    the commit point (``logpipe.artifact``): versions, inputs (sha256),
+                                       quarantined inputs, shards, tables, protocol, and every file's
+                                       bytes / sha256 / rows
+      tracks/part-00000.parquet        track-table shards, whole logs each, sorted by log, time, track
+      logs/logs-NNNNN.parquet          one row per log (schemas/logs.json); NNNNN = the commit's generation
+      samples/samples-NNNNN.parquet    the prediction-sample index (schemas/samples.json)
+      mcap/part-NNNNN/<log_id>.mcap    each log for a viewer, grouped like the shards
+      rasters/<run>/                   raster runs: artifacts of their own (``logpipe rasterise``)
 
-Only what the manifest lists is read, so a shard left behind by an interrupted run is never seen.
+Only what the manifest names is read, so files of an interrupted run are never seen; every commit writes
+its tables under a new generation's name, so a reader holding the previous manifest reads a consistent state.
+Datasets written before this layout (``part-*.parquet``, ``logs.parquet`` at the top) are read the same way:
+the manifest names their files.
 """
 
 from __future__ import annotations
@@ -25,16 +31,30 @@ from typing import Any
 import numpy as np
 import pyarrow as pa
 import pyarrow.compute as pc
-import pyarrow.parquet as pq
 
+from logpipe.artifact import MANIFEST, check_files, read_manifest
 from logpipe.errors import DatasetError
-from logpipe.io import as_numpy, read_json
+from logpipe.io import as_numpy, read_table
 from logpipe.types import OBJECT_TYPES, Role, SampleProtocol, SceneSample
 
-MANIFEST = "manifest.json"
-LOGS_FILE = "logs.parquet"
-SAMPLES_FILE = "samples.parquet"
+TRACKS_DIR = "tracks"
+LOGS_DIR = "logs"
+SAMPLES_DIR = "samples"
 MCAP_DIR = "mcap"
+_LEGACY_FILE = re.compile(r"(part-\d{5}\.parquet|logs\.parquet|samples\.parquet)")
+
+
+def dataset_owned(rel: str) -> bool:
+    """Whether a path inside a dataset folder is one of the dataset's own files (``logpipe.artifact.Owned``):
+    the table folders, the MCAP folder and the files of the previous layout; never ``rasters/``."""
+    return rel.startswith((f"{TRACKS_DIR}/", f"{LOGS_DIR}/", f"{SAMPLES_DIR}/", f"{MCAP_DIR}/")) \
+        or _LEGACY_FILE.fullmatch(rel) is not None
+
+
+def table_file(table: str, generation: int) -> str:
+    """``logs/logs-NNNNN.parquet`` / ``samples/samples-NNNNN.parquet`` of a commit generation (``table`` is
+    also the folder name: ``LOGS_DIR``, ``SAMPLES_DIR``)."""
+    return f"{table}/{table}-{generation:05d}.parquet"
 
 
 HASH_SPLITS = {"train": (0.0, 0.7), "val": (0.7, 0.85), "test": (0.85, 1.0)}
@@ -47,13 +67,18 @@ def hash_fraction(log_id: str) -> float:
 
 
 def shard_name(index: int) -> str:
-    """``part-NNNNN.parquet``."""
-    return f"part-{index:05d}.parquet"
+    """``tracks/part-NNNNN.parquet``."""
+    return f"{TRACKS_DIR}/part-{index:05d}.parquet"
+
+
+def shard_number(shard: str) -> int:
+    """NNNNN of ``[tracks/]part-NNNNN.parquet``."""
+    return int(Path(shard).name[5:10])
 
 
 def mcap_folder(shard: str) -> str:
     """``mcap/part-NNNNN``: the MCAP files of one shard's logs (moved into place as one folder)."""
-    return f"{MCAP_DIR}/{shard.removesuffix('.parquet')}"
+    return f"{MCAP_DIR}/{Path(shard).name.removesuffix('.parquet')}"
 
 
 _SPLIT_OPERATOR = re.compile(r"([+-])")
@@ -79,11 +104,27 @@ class Dataset:
 
     @classmethod
     def open(cls, root: Path) -> Dataset:
-        """Open ``root``; raises ``DatasetError`` when it holds no manifest."""
-        path = Path(root) / MANIFEST
-        if not path.is_file():
+        """Open ``root`` at its committed state, checking that every file it names is there whole (by size).
+
+        Raises:
+            DatasetError: no manifest, a damaged one, or a committed file missing or truncated.
+        """
+        root = Path(root)
+        if not (root / MANIFEST).is_file():
             raise DatasetError(f"{root}: not a logpipe dataset (no {MANIFEST}); run `logpipe ingest` first")
-        return cls(Path(root), read_json(path))
+        manifest = read_manifest(root)
+        assert manifest is not None
+        for key in ("format", "protocol", "shards", "tables"):
+            if key not in manifest:
+                raise DatasetError(f"{root / MANIFEST}: damaged manifest (no {key!r})")
+        check_files(root, manifest.get("files", {}))
+        return cls(root, manifest)
+
+    def _table_path(self, table: str) -> Path:
+        entry = self.manifest["tables"].get(table)
+        if entry is None:
+            raise DatasetError(f"{self.root / MANIFEST}: names no {table} table")
+        return self.root / str(entry["file"])
 
     @property
     def protocol(self) -> SampleProtocol:
@@ -102,7 +143,7 @@ class Dataset:
 
     def logs(self) -> pa.Table:
         """The logs table."""
-        return pq.read_table(self.root / LOGS_FILE)
+        return read_table(self._table_path("logs"))
 
     def logs_in_split(self, split: str) -> list[str]:
         """Log ids of a split, in log-table order.
@@ -147,18 +188,18 @@ class Dataset:
 
     def samples(self) -> pa.Table:
         """The sample index."""
-        return pq.read_table(self.root / SAMPLES_FILE)
+        return read_table(self._table_path("samples"))
 
     def tracks(self, columns: list[str] | None = None) -> pa.Table:
         """All track rows (fine for ETH/UCY-sized data; stream with ``iter_logs`` for large sets)."""
-        tables = [pq.read_table(p, columns=columns) for p in self.shard_paths]
+        tables = [read_table(p, columns=columns) for p in self.shard_paths]
         if not tables:
             raise DatasetError(f"{self.root}: dataset has no shards")
         return pa.concat_tables(tables)
 
     @cached_property
     def _shard_of_log(self) -> dict[str, str]:
-        logs = pq.read_table(self.root / LOGS_FILE, columns=["log_id", "shard"])
+        logs = read_table(self._table_path("logs"), columns=["log_id", "shard"])
         return dict(zip(logs.column("log_id").to_pylist(), logs.column("shard").to_pylist(), strict=True))
 
     def mcap_path(self, log_id: str) -> Path:
@@ -173,7 +214,7 @@ class Dataset:
         shard = self._shard_of_log.get(log_id)
         if shard is None:
             raise DatasetError(f"{self.root}: no log {log_id!r}")
-        return pq.read_table(self.root / shard, filters=[("log_id", "=", log_id)])
+        return read_table(self.root / shard, filters=[("log_id", "=", log_id)])
 
     def iter_logs(
         self, shards: Sequence[Path] | None = None, log_ids: Sequence[str] | None = None
@@ -182,7 +223,7 @@ class Dataset:
         at a time."""
         filters = [("log_id", "in", list(log_ids))] if log_ids is not None else None
         for path in self.shard_paths if shards is None else shards:
-            table = pq.read_table(path, filters=filters)
+            table = read_table(path, filters=filters)
             if table.num_rows == 0:
                 continue
             log_ids_np = as_numpy(table.column("log_id"))

@@ -47,3 +47,12 @@ def _rebuild_source_error(file: str, reason: str, line: int | None, field: str |
 
 class DatasetError(LogpipeError):
     """A dataset folder is missing, incomplete or was written with incompatible settings."""
+
+
+class ArtifactBusyError(LogpipeError):
+    """Another process holds the write lock of an output folder."""
+
+
+class OutputError(LogpipeError):
+    """Writing an output failed at the operating-system level (disk full, read-only, permissions); the folder
+    keeps its last committed state."""

@@ -14,6 +14,9 @@ from typing import IO, Any
 import pyarrow as pa
 import pyarrow.parquet as pq
 
+from logpipe.artifact import crash_point
+from logpipe.errors import DatasetError
+
 _HASH_CHUNK = 1 << 20
 
 
@@ -107,11 +110,12 @@ def sha256_tree(path: Path) -> str:
 
 
 @contextmanager
-def atomic_path(target: Path) -> Iterator[Path]:
+def atomic_path(target: Path, *, durable: bool = False) -> Iterator[Path]:
     """Yield a temporary path beside ``target``; on success it is renamed onto ``target`` in one step.
 
     The temp file lives in the same folder so the rename never crosses file systems; on error it is removed
-    and ``target`` is untouched.
+    and ``target`` is untouched. ``durable``: the bytes reach the disk before the rename (a manifest: the
+    commit point must never name a file the disk does not hold yet).
     """
     target.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp_name = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
@@ -120,7 +124,12 @@ def atomic_path(target: Path) -> Iterator[Path]:
     tmp = Path(tmp_name)
     try:
         yield tmp
+        if durable:
+            with tmp.open("rb+") as fh:
+                os.fsync(fh.fileno())
+        crash_point(f"before rename {target.name}")
         os.replace(tmp, target)
+        crash_point(f"after rename {target.name}")
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise
@@ -162,6 +171,18 @@ def write_json(data: Any, target: Path, *, indent: int | None = 2) -> None:
     text = json.dumps(data, indent=indent, sort_keys=True, separators=(",", ":") if indent is None else None)
     with atomic_open(target, "w") as fh:
         fh.write(text + "\n")
+
+
+def read_table(path: Path, **kwargs: Any) -> pa.Table:
+    """``pq.read_table`` whose failures (missing, truncated or damaged file) are one ``DatasetError`` line
+    naming the file."""
+    try:
+        return pq.read_table(path, **kwargs)
+    except FileNotFoundError:
+        raise DatasetError(f"{path}: missing; `logpipe verify` on its folder lists every problem") from None
+    except (pa.ArrowException, OSError) as exc:
+        raise DatasetError(f"{path}: unreadable Parquet ({str(exc).splitlines()[0][:200]}); "
+                           "`logpipe verify` on its folder lists every problem") from None
 
 
 def read_json(path: Path) -> Any:

@@ -14,10 +14,10 @@ from typing import Any
 
 import numpy as np
 import pyarrow as pa
-import pyarrow.parquet as pq
 
+from logpipe.artifact import check_files, read_manifest
 from logpipe.errors import DatasetError
-from logpipe.io import read_json
+from logpipe.io import read_table
 from logpipe.raster import RasterSpec
 from logpipe.types import NDArrayByte, NDArrayFloat
 
@@ -30,14 +30,20 @@ LANE_HEADING_MAX_DIST_M = 3.0
 """Stationary agents take the direction of a centerline at most this far away (metres)."""
 
 
-def shard_file(i: int) -> str:
-    """``shard-NNNNN.npy``."""
-    return f"shard-{i:05d}.npy"
+def shard_file(i: int, tag: str) -> str:
+    """``shard-TAG-NNNNN.npy``; ``tag`` names the run's inputs (``inputs_tag``), so files made from other
+    samples, maps or shard size never take the name of a committed one."""
+    return f"shard-{tag}-{i:05d}.npy"
 
 
-def index_file(i: int) -> str:
-    """``index-NNNNN.parquet``."""
-    return f"index-{i:05d}.parquet"
+def index_file(i: int, tag: str) -> str:
+    """``index-TAG-NNNNN.parquet``."""
+    return f"index-{tag}-{i:05d}.parquet"
+
+
+def inputs_tag(identity: dict[str, Any]) -> str:
+    """Short hash of a run's input identity (sample index, map files, shard size)."""
+    return hashlib.sha256(json.dumps(identity, sort_keys=True).encode()).hexdigest()[:8]
 
 
 def run_settings(spec: RasterSpec, centre: str) -> dict[str, Any]:
@@ -87,15 +93,18 @@ class RasterShards:
             DatasetError: no finished run with exactly these settings.
         """
         run_dir = Path(dataset_dir) / RASTER_DIR / run_id(spec, centre)
-        path = run_dir / RUN_MANIFEST
-        if not path.is_file():
+        manifest = read_manifest(run_dir, required=False)
+        if manifest is None or not manifest.get("complete", True):
             raise DatasetError(
                 f"{dataset_dir}: no finished raster run for {spec.to_dict()} centre={centre}; run `logpipe rasterise`"
             )
-        manifest = read_json(path)
-        if manifest["settings"] != json.loads(json.dumps(run_settings(spec, centre))):
+        if manifest.get("settings") != json.loads(json.dumps(run_settings(spec, centre))):
             raise DatasetError(f"{run_dir}: raster settings differ from the requested ones")
-        index = pa.concat_tables([pq.read_table(run_dir / s["index"]) for s in manifest["shards"]])
+        check_files(run_dir, manifest.get("files", {}))
+        index = pa.concat_tables([read_table(run_dir / s["index"]) for s in manifest["shards"]])
+        if index.num_rows != manifest.get("samples", index.num_rows):
+            raise DatasetError(f"{run_dir}: index holds {index.num_rows} rasters, the manifest says "
+                               f"{manifest['samples']}; `logpipe verify` lists what is wrong")
         return cls(run_dir, spec, index)
 
     def __len__(self) -> int:
@@ -119,11 +128,13 @@ def find_raster_run(dataset_dir: Path, run: str | None, channels: int | None) ->
     """
     root = dataset_dir / RASTER_DIR
     runs = sorted(p.parent for p in root.glob(f"*/{RUN_MANIFEST}")) if root.is_dir() else []
+    manifests = {r: read_manifest(r) or {} for r in runs}
+    runs = [r for r in runs if manifests[r].get("complete", True)]  # an interrupted run is not finished
     if run is not None:
         runs = [r for r in runs if r.name == run]
         if not runs:
             raise DatasetError(f"{dataset_dir}: no finished raster run {run!r} in {root}")
-    settings = [read_json(r / RUN_MANIFEST)["settings"] for r in runs]
+    settings = [manifests[r]["settings"] for r in runs]
     fitting = [(r, s) for r, s in zip(runs, settings, strict=True)
                if channels is None or len(s["spec"]["channels"]) == channels]
     if not fitting:

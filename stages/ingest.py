@@ -1,7 +1,9 @@
 """``logpipe ingest``: input logs → canonical Parquet shards, logs table, sample index, MCAP per log.
 
-Reads top-down: find and hash inputs → skip those already ingested (by content) → parse batches in
-parallel, each batch one shard written to a staging folder → commit by renames, manifest last.
+Reads top-down: lock the dataset folder and clean what no commit names → find and hash inputs → skip
+those already ingested (by content) → parse batches in parallel, each batch one shard written to a staging
+folder → move the shards into place, write the new generation's tables → commit by the manifest swap
+(``logpipe.artifact``). A crash at any point leaves the previous state, and a rerun gives the same bytes.
 With ``on_error="fail"`` the first bad input stops the run and nothing becomes visible; with ``"skip"``
 bad inputs are quarantined (listed in the manifest and the summary) and the rest lands.
 """
@@ -11,7 +13,6 @@ from __future__ import annotations
 import json
 import shutil
 import time
-import uuid
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -20,16 +21,25 @@ from typing import Any, Literal
 import numpy as np
 import pyarrow as pa
 import pyarrow.compute as pc
-import pyarrow.parquet as pq
 
 from logpipe import __version__
+from logpipe.artifact import ArtifactWriter, FileEntry, crash_point, file_entry
 from logpipe.contracts import arrow_schema, conform, schema_version, tracks_schema
-from logpipe.dataset import LOGS_FILE, MANIFEST, MCAP_DIR, SAMPLES_FILE, mcap_folder, shard_name
+from logpipe.dataset import (
+    MCAP_DIR,
+    SAMPLES_DIR,
+    dataset_owned,
+    mcap_folder,
+    shard_name,
+    shard_number,
+    table_file,
+)
 from logpipe.errors import DatasetError, SourceError
 from logpipe.executor import Backend, default_workers, run_ordered, warm_up
 from logpipe.formats import detect, get_adapter
+from logpipe.formats.base import FormatAdapter
 from logpipe.inputs import complete_hashes, find_inputs, fingerprint_inputs, read_ahead, unhashed_inputs
-from logpipe.io import as_numpy, parquet_options, read_json, sha256_file, write_json, write_parquet
+from logpipe.io import as_numpy, parquet_options, read_table, write_parquet
 from logpipe.samples import TrackCodes, build_samples, steps_from_sorted_times
 from logpipe.types import LogMeta, NDArrayBool, NDArrayInt, Role, SampleProtocol, SourceFile
 
@@ -83,6 +93,8 @@ class _BatchResult:
     ingested: list[SourceFile]
     failures: list[tuple[SourceFile, SourceError]]
     mcap_messages: int
+    files: dict[str, FileEntry] = field(default_factory=dict)
+    """Entries of the files written into staging (paths relative to the dataset), hashed by the worker."""
 
 
 def ingest(roots: Sequence[Path], options: IngestOptions,
@@ -107,8 +119,17 @@ def ingest(roots: Sequence[Path], options: IngestOptions,
     fmt = options.format or detect(roots[0])
     adapter = get_adapter(fmt, **options.adapter_options)
     protocol = options.protocol or adapter.default_protocol
+    with ArtifactWriter(options.out, dataset_owned) as writer:
+        return _ingest_locked(writer, roots, options, fmt, adapter, protocol, progress, started)
+
+
+def _ingest_locked(writer: ArtifactWriter, roots: Sequence[Path], options: IngestOptions, fmt: str,
+                   adapter: FormatAdapter, protocol: SampleProtocol, progress: Callable[[int], None] | None,
+                   started: float) -> dict[str, Any]:
+    """``ingest`` while holding the dataset folder's lock."""
+    default_batch = adapter.batch_files
     out = options.out
-    manifest = _load_compatible_manifest(out, fmt, protocol)
+    manifest = _compatible_manifest(writer.manifest, out, fmt, protocol)
     found = find_inputs(roots, adapter)
     known_sizes = _known_sizes(manifest)
     # A first ingest hashes nothing up front when twins are unlikely; a run that finds some is redone below.
@@ -126,29 +147,26 @@ def ingest(roots: Sequence[Path], options: IngestOptions,
         "inputs_skipped_already_ingested": len(sources) - len(new), "inputs_ingested": 0, "quarantined": [],
         "logs": 0, "rows": 0, "samples": 0, "shards_written": [],
     }
-    if new and not _ingest_new(new, manifest, fmt, adapter.batch_files, protocol, options, summary, progress,
+    if new and not _ingest_new(writer, new, manifest, fmt, default_batch, protocol, options, summary, progress,
                                reject_twins=optimistic is not None):
         new = fingerprint_inputs(found, known_sizes, threads=default_workers())  # merges the twins found
         summary["inputs_found"] = len(new)
-        _ingest_new(new, manifest, fmt, adapter.batch_files, protocol, options, summary, progress)
+        _ingest_new(writer, new, manifest, fmt, default_batch, protocol, options, summary, progress)
     summary["seconds"] = round(time.perf_counter() - started, 3)
     summary["totals"] = manifest["totals"]
     return summary
 
 
 def _ingest_new(
-    new: list[SourceFile], manifest: dict[str, Any], fmt: str, default_batch: int, protocol: SampleProtocol,
-    options: IngestOptions, summary: dict[str, Any], progress: Callable[[int], None] | None, *,
-    reject_twins: bool = False,
+    writer: ArtifactWriter, new: list[SourceFile], manifest: dict[str, Any], fmt: str, default_batch: int,
+    protocol: SampleProtocol, options: IngestOptions, summary: dict[str, Any],
+    progress: Callable[[int], None] | None, *, reject_twins: bool = False,
 ) -> bool:
     """Ingest ``new`` and commit; with ``reject_twins``, commit nothing and return False when two inputs turn
     out to have equal contents (their digests were left to the workers)."""
-    out = options.out
-    created = not out.exists()
-    out.mkdir(parents=True, exist_ok=True)
     per_batch = options.batch_files or default_batch
-    first_shard = 1 + max((int(s["file"][5:10]) for s in manifest["shards"]), default=-1)
-    staging = out / f".staging-{uuid.uuid4().hex[:12]}"
+    first_shard = 1 + max((shard_number(s["file"]) for s in manifest["shards"]), default=-1)
+    staging = writer.staging()
     jobs = [
         _BatchJob(fmt, options.adapter_options, new[i:i + per_batch], shard_name(first_shard + n), str(staging),
                   protocol, options.on_error == "skip", options.write_mcap)
@@ -165,12 +183,10 @@ def _ingest_new(
             digests = [s.sha256 for r in results for s in [*r.ingested, *(f for f, _ in r.failures)]]
             if len(set(digests)) < len(digests):
                 return False
-        _commit(results, manifest, staging, out, summary)
+        _commit(writer, results, manifest, staging, summary)
         return True
     finally:
         shutil.rmtree(staging, ignore_errors=True)
-        if created and out.is_dir() and not any(out.iterdir()):
-            out.rmdir()  # a failed first run leaves no trace
 
 
 def _ingest_batch(job: _BatchJob) -> _BatchResult:
@@ -196,6 +212,7 @@ def _ingest_batch(job: _BatchJob) -> _BatchResult:
         failures.append((by_path[meta.source_file], error))
     staging = Path(job.staging)
     shard = None
+    files: dict[str, FileEntry] = {}
     samples = arrow_schema("samples").empty_table()
     messages = 0
     if tracks.num_rows:
@@ -206,15 +223,19 @@ def _ingest_batch(job: _BatchJob) -> _BatchResult:
         options = parquet_options(tracks.schema, string_statistics=["log_id"]) | {"compression": "lz4"}
         options.pop("compression_level", None)
         write_parquet(tracks, path, options, dictionaries_as_values=True)
-        shard = {"file": job.shard_file, "rows": tracks.num_rows, "sha256": sha256_file(path),
+        files[job.shard_file] = file_entry(path, rows=tracks.num_rows)
+        shard = {"file": job.shard_file, "rows": tracks.num_rows, "sha256": files[job.shard_file]["sha256"],
                  "logs": logs.num_rows}
         kept = [m for m in parsed.logs if m not in empty]
         samples = build_samples(tracks, kept, job.protocol, codes)
         if job.write_mcap:
-            messages = _write_mcaps(tracks, kept, staging / mcap_folder(job.shard_file))
+            folder = mcap_folder(job.shard_file)
+            messages = _write_mcaps(tracks, kept, staging / folder)
+            for mcap in sorted((staging / folder).iterdir()):
+                files[f"{folder}/{mcap.name}"] = file_entry(mcap)
     failed = {s.relpath for s, _ in failures}
     ingested = [s for s in sources if s.relpath not in failed]
-    return _BatchResult(shard, logs, samples, ingested, failures, messages)
+    return _BatchResult(shard, logs, samples, ingested, failures, messages, files)
 
 
 def _canonical_order(tracks: pa.Table) -> pa.Table:
@@ -372,14 +393,20 @@ def _empty_manifest(fmt: str, protocol: SampleProtocol) -> dict[str, Any]:
         "shards": [],
         "tables": {},
         "totals": {"logs": 0, "rows": 0, "samples": 0, "inputs": 0, "quarantined": 0},
+        "generation": 0,
+        "files": {},
     }
 
 
-def _load_compatible_manifest(out: Path, fmt: str, protocol: SampleProtocol) -> dict[str, Any]:
-    path = out / MANIFEST
-    if not path.exists():
+def _compatible_manifest(manifest: dict[str, Any] | None, out: Path, fmt: str,
+                         protocol: SampleProtocol) -> dict[str, Any]:
+    """The committed manifest (a new one for an empty folder), refused when made with other settings."""
+    if manifest is None:
         return _empty_manifest(fmt, protocol)
-    manifest: dict[str, Any] = read_json(path)
+    if "format" not in manifest or "protocol" not in manifest:
+        raise DatasetError(f"{out}: holds a manifest.json that is not a logpipe dataset's")
+    manifest = dict(manifest)
+    manifest.setdefault("files", {})
     problems = []
     if manifest["format"] != fmt:
         problems.append(f"format {manifest['format']!r} (now {fmt!r})")
@@ -394,34 +421,46 @@ def _load_compatible_manifest(out: Path, fmt: str, protocol: SampleProtocol) -> 
     return manifest
 
 
-def _commit(results: list[_BatchResult], manifest: dict[str, Any], staging: Path, out: Path,
+def _commit(writer: ArtifactWriter, results: list[_BatchResult], manifest: dict[str, Any], staging: Path,
             summary: dict[str, Any]) -> None:
-    """Make the batches visible: shards and MCAPs by rename, then the tables, the manifest last."""
+    """Move the batches' shards and MCAPs into place, write the new generation's tables, swap the manifest."""
+    out = writer.root
+    old_logs = [read_table(out / manifest["tables"]["logs"]["file"])] if "logs" in manifest["tables"] else []
     new_logs = [r.logs for r in results if r.logs.num_rows]
-    existing_logs = pq.read_table(out / LOGS_FILE) if (out / LOGS_FILE).exists() else None
-    all_logs = pa.concat_tables(([existing_logs] if existing_logs is not None else []) + new_logs) \
-        if new_logs or existing_logs is not None else arrow_schema("logs").empty_table()
+    all_logs = pa.concat_tables(old_logs + new_logs) if old_logs or new_logs else arrow_schema("logs").empty_table()
     # Arrow kernels on Arrow values only: a first conversion from numpy or Python (a numpy view, a Python 1
     # in a comparison) would make pyarrow import pandas, ~1 s of CPU, where no work is left to overlap it.
     counts = pc.value_counts(all_logs.column("log_id"))
     if all_logs.num_rows and pc.max(counts.field("counts")).as_py() > 1:
         clash = next(v["values"] for v in counts.to_pylist() if v["counts"] > 1)
-        files = all_logs.filter(pc.equal(all_logs.column("log_id"), clash)).column("source_file").to_pylist()
-        raise DatasetError(f"log id {clash!r} comes from different inputs {files}: ingest them into separate "
+        sources = all_logs.filter(pc.equal(all_logs.column("log_id"), clash)).column("source_file").to_pylist()
+        raise DatasetError(f"log id {clash!r} comes from different inputs {sources}: ingest them into separate "
                            "datasets (log ids are file stems)")
+    files: dict[str, Any] = dict(manifest.get("files", {}))
     for result in results:
         if result.shard is not None:
+            (out / result.shard["file"]).parent.mkdir(exist_ok=True)
+            crash_point(f"move {result.shard['file']}")
             (staging / result.shard["file"]).replace(out / result.shard["file"])
             manifest["shards"].append(result.shard)
             summary["shards_written"].append(result.shard["file"])
+        files.update(result.files)
     if (staging / MCAP_DIR).is_dir():
         (out / MCAP_DIR).mkdir(exist_ok=True)
         for folder in sorted((staging / MCAP_DIR).iterdir()):  # one rename per shard, not per log
+            crash_point(f"move {MCAP_DIR}/{folder.name}")
             folder.replace(out / MCAP_DIR / folder.name)
-    old_samples = [pq.read_table(out / SAMPLES_FILE)] if (out / SAMPLES_FILE).exists() else []
+    old_samples = [read_table(out / manifest["tables"]["samples"]["file"])] if "samples" in manifest["tables"] else []
     all_samples = pa.concat_tables(old_samples + [r.samples for r in results])
-    write_parquet(all_logs, out / LOGS_FILE)
-    write_parquet(all_samples, out / SAMPLES_FILE)
+    generation = int(manifest.get("generation", 0)) + 1
+    tables = {}
+    for name, table in (("logs", all_logs), ("samples", all_samples)):
+        if name in manifest["tables"]:
+            files.pop(manifest["tables"][name]["file"], None)
+        rel = table_file(name, generation)
+        write_parquet(table, out / rel)
+        files[rel] = file_entry(out / rel, rows=table.num_rows)
+        tables[name] = {"file": rel, "rows": table.num_rows, "sha256": files[rel]["sha256"]}
     for result in results:
         for source in result.ingested:
             manifest["inputs"].append({"path": source.relpath, "sha256": source.sha256, "bytes": source.size,
@@ -430,10 +469,9 @@ def _commit(results: list[_BatchResult], manifest: dict[str, Any], staging: Path
             entry = {"path": source.relpath, "sha256": source.sha256, "bytes": source.size, "error": error.to_dict()}
             manifest["quarantined"].append(entry)
             summary["quarantined"].append(entry)
-    manifest["tables"] = {
-        "logs": {"file": LOGS_FILE, "rows": all_logs.num_rows, "sha256": sha256_file(out / LOGS_FILE)},
-        "samples": {"file": SAMPLES_FILE, "rows": all_samples.num_rows, "sha256": sha256_file(out / SAMPLES_FILE)},
-    }
+    manifest["tables"] = tables
+    manifest["generation"] = generation
+    manifest["files"] = files
     manifest["totals"] = {
         "logs": all_logs.num_rows,
         "rows": sum(s["rows"] for s in manifest["shards"]),
@@ -441,7 +479,7 @@ def _commit(results: list[_BatchResult], manifest: dict[str, Any], staging: Path
         "inputs": len(manifest["inputs"]),
         "quarantined": len(manifest["quarantined"]),
     }
-    write_json(manifest, out / MANIFEST, indent=None if len(manifest["inputs"]) > 1000 else 2)
+    writer.commit(manifest)
     summary["inputs_ingested"] = sum(len(r.ingested) for r in results)
     summary["logs"] = sum(r.logs.num_rows for r in results)
     summary["rows"] = sum(r.shard["rows"] for r in results if r.shard)
@@ -450,24 +488,38 @@ def _commit(results: list[_BatchResult], manifest: dict[str, Any], staging: Path
 
 
 def reindex(dataset_dir: Path, protocol: SampleProtocol) -> dict[str, Any]:
-    """Rebuild ``samples.parquet`` with ``protocol``, one shard in memory at a time; manifest updated last."""
+    """Rebuild the sample index with ``protocol``, one shard in memory at a time, as one new commit."""
     from logpipe.dataset import Dataset
 
-    dataset = Dataset.open(dataset_dir)
-    logs = dataset.logs()
-    metas = [
-        LogMeta(log_id=r["log_id"], source_format=r["source_format"], source_file=r["source_file"],
-                source_sha256=r["source_sha256"], map_id=r["map_id"], frame_rate_hz=r["frame_rate_hz"])
-        for r in logs.select(["log_id", "source_format", "source_file", "source_sha256", "map_id",
-                              "frame_rate_hz"]).to_pylist()
-    ]
-    parts = [build_samples(pq.read_table(path), metas, protocol) for path in dataset.shard_paths]
-    samples = pa.concat_tables(parts) if parts else arrow_schema("samples").empty_table()
-    write_parquet(samples, dataset_dir / SAMPLES_FILE)
-    manifest = dataset.manifest
-    manifest["protocol"] = protocol.to_dict()
-    manifest["tables"]["samples"] = {"file": SAMPLES_FILE, "rows": samples.num_rows,
-                                     "sha256": sha256_file(dataset_dir / SAMPLES_FILE)}
-    manifest["totals"]["samples"] = samples.num_rows
-    write_json(manifest, dataset_dir / MANIFEST)
+    with ArtifactWriter(dataset_dir, dataset_owned) as writer:
+        if writer.manifest is None:
+            raise DatasetError(f"{dataset_dir}: not a logpipe dataset (no manifest.json); run `logpipe ingest` first")
+        dataset = Dataset.open(dataset_dir)
+        logs = dataset.logs()
+        metas = [
+            LogMeta(log_id=r["log_id"], source_format=r["source_format"], source_file=r["source_file"],
+                    source_sha256=r["source_sha256"], map_id=r["map_id"], frame_rate_hz=r["frame_rate_hz"])
+            for r in logs.select(["log_id", "source_format", "source_file", "source_sha256", "map_id",
+                                  "frame_rate_hz"]).to_pylist()
+        ]
+        parts = [build_samples(read_table(path), metas, protocol) for path in dataset.shard_paths]
+        samples = pa.concat_tables(parts) if parts else arrow_schema("samples").empty_table()
+        manifest = dict(dataset.manifest)
+        files = dict(manifest.get("files", {}))
+        files.pop(manifest["tables"]["samples"]["file"], None)
+        generation = int(manifest.get("generation", 0)) + 1
+        rel = table_file(SAMPLES_DIR, generation)
+        write_parquet(samples, dataset_dir / rel)
+        files[rel] = file_entry(dataset_dir / rel, rows=samples.num_rows)
+        if "logs" in manifest["tables"] and manifest["tables"]["logs"]["file"] not in files:
+            # A dataset of the previous layout: name its files so the commit keeps them.
+            for rel_old in [manifest["tables"]["logs"]["file"], *(s["file"] for s in manifest["shards"])]:
+                files[rel_old] = file_entry(dataset_dir / rel_old)
+        manifest["tables"] = {**manifest["tables"], "samples": {"file": rel, "rows": samples.num_rows,
+                                                                 "sha256": files[rel]["sha256"]}}
+        manifest["protocol"] = protocol.to_dict()
+        manifest["totals"] = {**manifest["totals"], "samples": samples.num_rows}
+        manifest["generation"] = generation
+        manifest["files"] = files
+        writer.commit(manifest)
     return {"dataset": str(dataset_dir), "protocol": protocol.to_dict(), "samples": samples.num_rows}

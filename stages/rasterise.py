@@ -42,11 +42,12 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from logpipe import __version__
+from logpipe.artifact import ArtifactWriter, file_entry
 from logpipe.contracts import arrow_schema
-from logpipe.dataset import SAMPLES_FILE, Dataset
+from logpipe.dataset import Dataset
 from logpipe.errors import DatasetError
 from logpipe.executor import Backend, run_ordered
-from logpipe.io import as_numpy, atomic_path, read_json, sha256_file, write_json, write_parquet
+from logpipe.io import as_numpy, atomic_path, sha256_file, write_parquet
 from logpipe.maps import MapSource, MapStore, load_map
 from logpipe.raster import Rasteriser, RasterSpec, direction_values, heading_from_motion
 from logpipe.rasters import (
@@ -54,8 +55,8 @@ from logpipe.rasters import (
     LANE_HEADING_MAX_DIST_M,
     MIN_HEADING_DISP_M,
     RASTER_DIR,
-    RUN_MANIFEST,
     index_file,
+    inputs_tag,
     run_id,
     run_settings,
     shard_file,
@@ -174,17 +175,36 @@ def rasterise_dataset(
     started = time.perf_counter()
     spec = RasterSpec(**{**_spec_kwargs(spec or RasterSpec()), "rotate": rotate})
     ds = Dataset.open(dataset_dir)
-    samples = ds.samples()
     logs = ds.logs()
     log_map = dict(zip(logs.column("log_id").to_pylist(), logs.column("map_id").to_pylist(), strict=True))
     rid = run_id(spec, centre)
     out = ds.root / RASTER_DIR / rid
 
-    # Identity of the inputs: the sample index bytes and every map file this run resolves to.
+    # Identity of the inputs: the sample index bytes, every map file this run resolves to, and the shard size
+    # (it decides which sample lands in which file).
     map_files: dict[str, Path | None] = {lid: maps.resolve(mid, lid) for lid, mid in log_map.items()}
     map_hashes = {str(p): sha256_file(p) for p in sorted({p for p in map_files.values() if p is not None})}
-    identity = {"samples_sha256": sha256_file(ds.root / SAMPLES_FILE), "maps": map_hashes}
-    _prepare_folder(out, spec, centre, identity, force)
+    identity = {"samples_sha256": ds.manifest["tables"]["samples"]["sha256"], "maps": map_hashes,
+                "shard_size": shard_size}
+    with ArtifactWriter(out, lambda rel: True) as writer:
+        return _rasterise_locked(writer, ds, spec, centre, identity, map_files, map_hashes, preview,
+                                 shard_size, force, progress, workers, backend, started)
+
+
+def _rasterise_locked(
+    writer: ArtifactWriter, ds: Dataset, spec: RasterSpec, centre: str, identity: dict[str, Any],
+    map_files: dict[str, Path | None], map_hashes: dict[str, str], preview: int, shard_size: int, force: bool,
+    progress: Callable[[int], None] | None, workers: int, backend: Backend, started: float,
+) -> dict[str, Any]:
+    """``rasterise_dataset`` while holding the run folder's lock: render the shards no commit names, committing
+    the manifest after each (so an interrupted run resumes), the last commit marking the run complete."""
+    out = writer.root
+    rid = out.name
+    committed = _committed_shards(writer.manifest, out, identity, force)
+    tag = inputs_tag(identity)
+    samples = ds.samples()
+    logs = ds.logs()
+    log_map = dict(zip(logs.column("log_id").to_pylist(), logs.column("map_id").to_pylist(), strict=True))
 
     no_map = sorted(lid for lid, p in map_files.items() if p is None)
     n = samples.num_rows
@@ -210,13 +230,15 @@ def rasterise_dataset(
     shard_of = dict(zip(logs.column("log_id").to_pylist(), logs.column("shard").to_pylist(), strict=True))
     shard_meta: list[dict[str, Any]] = []
     tasks: list[_ShardTask] = []
+    files: dict[str, Any] = {}
     for si in range(n_shards):
         chunk = rows[si * shard_size : (si + 1) * shard_size]
-        npy, idx = out / shard_file(si), out / index_file(si)
-        need_preview = si * shard_size < preview
-        if npy.exists() and idx.exists() and not need_preview:
+        npy = shard_file(si, tag)
+        done = committed.get(npy)
+        if done is not None and (si * shard_size >= preview or done["previews"]):
             summary["skipped_existing"] += len(chunk)
-            shard_meta.append(_shard_entry(npy, idx, len(chunk)))
+            shard_meta.append(done["entry"])
+            files.update(done["files"])
             if progress:
                 progress(len(chunk))
             continue
@@ -227,6 +249,7 @@ def rasterise_dataset(
                 root=ds.root,
                 out=out,
                 shard=si,
+                tag=tag,
                 first=si * shard_size,
                 samples=chunk,
                 spec=spec,
@@ -239,9 +262,28 @@ def rasterise_dataset(
             )
         )
     render_seconds = 0.0
+
+    def manifest(complete: bool) -> dict[str, Any]:
+        done = [m for m in shard_meta if m]
+        return {
+            "logpipe_version": __version__,
+            "run_id": rid,
+            "settings": run_settings(spec, centre),
+            "fingerprint": spec.fingerprint(),
+            "identity": identity,
+            "samples": n,
+            "shard_size": shard_size,
+            "shards": done,
+            "complete": complete,
+            "counts": _index_counts(out, done) if complete else {},
+            "files": files,
+        }
+
     try:
         for res in run_ordered(_render_shard, tasks, workers=workers, backend=backend):
             shard_meta[res["shard"]] = res["entry"]
+            files.update(res["files"])
+            writer.commit(manifest(complete=False))
             render_seconds += res["render_seconds"]
             summary["rendered"] += res["rendered"]
             for key in ("empty", "no_centre"):
@@ -261,18 +303,7 @@ def rasterise_dataset(
             n,
             out / "index-*.parquet",
         )
-    manifest = {
-        "logpipe_version": __version__,
-        "run_id": rid,
-        "settings": run_settings(spec, centre),
-        "fingerprint": spec.fingerprint(),
-        "identity": identity,
-        "samples": n,
-        "shard_size": shard_size,
-        "shards": shard_meta,
-        "counts": _index_counts(out, shard_meta),
-    }
-    write_json(manifest, out / RUN_MANIFEST)
+    writer.commit(manifest(complete=True))
     summary["seconds"] = round(time.perf_counter() - started, 3)
     summary["render_seconds"] = round(render_seconds, 3)
     summary["rasters_per_s"] = round(summary["rendered"] / render_seconds, 1) if render_seconds > 0 else None
@@ -294,6 +325,7 @@ class _ShardTask:
     root: Path
     out: Path
     shard: int
+    tag: str
     first: int
     samples: list[dict[str, Any]]
     spec: RasterSpec
@@ -327,7 +359,7 @@ def _worker_rasteriser(path: Path, sha: str, spec: RasterSpec) -> Rasteriser:
 def _render_shard(task: _ShardTask) -> dict[str, Any]:
     """Render one shard, write its ``.npy`` and index, return its counts and manifest entry."""
     spec, out = task.spec, task.out
-    npy, idx = out / shard_file(task.shard), out / index_file(task.shard)
+    npy, idx = out / shard_file(task.shard, task.tag), out / index_file(task.shard, task.tag)
     tracks = _TrackReader(task.root, task.track_shards)
     empty_rasteriser = Rasteriser(None, spec)
     counts: dict[str, Any] = {
@@ -396,6 +428,8 @@ def _render_shard(task: _ShardTask) -> dict[str, Any]:
         np.save(fh, images, allow_pickle=False)
     write_parquet(pa.Table.from_pylist(index_rows, schema=arrow_schema("raster")), idx)
     counts["entry"] = _shard_entry(npy, idx, len(task.samples))
+    counts["files"] = {npy.name: file_entry(npy), idx.name: file_entry(idx, rows=len(index_rows)),
+                       **{f"previews/{Path(p).name}": file_entry(Path(p)) for p in counts["previews"]}}
     return counts
 
 
@@ -457,21 +491,31 @@ def _spec_kwargs(spec: RasterSpec) -> dict[str, Any]:
     }
 
 
-def _prepare_folder(out: Path, spec: RasterSpec, centre: str, identity: dict[str, Any], force: bool) -> None:
-    """Create the run folder or check that an existing one was made from the same samples and maps."""
-    stamp = out / "inputs.json"
-    expected = {"settings": run_settings(spec, centre), "identity": identity}
-    if stamp.exists():
-        if read_json(stamp) == json.loads(json.dumps(expected)):
-            return
-        if not force:
-            raise DatasetError(
-                f"{out} holds rasters of other samples or maps; rerun with force=True (--force) to replace them"
-            )
-        for p in sorted(out.rglob("*"), reverse=True):
-            p.unlink() if p.is_file() else p.rmdir()
-    out.mkdir(parents=True, exist_ok=True)
-    write_json(expected, stamp)
+def _committed_shards(manifest: dict[str, Any] | None, out: Path, identity: dict[str, Any],
+                      force: bool) -> dict[str, dict[str, Any]]:
+    """Shards a previous run of the same inputs committed (by ``.npy`` name), with their files and whether
+    their previews were written; refuses a run of other inputs unless ``force`` (then nothing is reused).
+
+    Raises:
+        DatasetError: the folder holds a run of other samples, maps or shard size, and not ``force``.
+    """
+    if manifest is None:
+        return {}
+    old = manifest.get("identity")
+    if old != json.loads(json.dumps(identity)):
+        if force:
+            return {}
+        changed = sorted(k for k in identity if (old or {}).get(k) != identity[k])
+        was = f" (shard size was {(old or {}).get('shard_size')})" if "shard_size" in changed else ""
+        raise DatasetError(f"{out} holds rasters made with other {', '.join(changed) or 'inputs'}{was}; "
+                           "rerun with --force to replace them")
+    files = manifest.get("files", {})
+    previews = {rel: e for rel, e in files.items() if rel.startswith("previews/")}
+    committed = {}
+    for entry in manifest.get("shards", []):
+        own = {rel: files[rel] for rel in (entry["file"], entry["index"]) if rel in files}
+        committed[entry["file"]] = {"entry": entry, "files": {**own, **previews}, "previews": bool(previews)}
+    return committed
 
 
 def _shard_entry(npy: Path, idx: Path, rows: int) -> dict[str, Any]:

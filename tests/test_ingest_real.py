@@ -173,13 +173,16 @@ def test_new_inputs_extend_an_existing_dataset(bundled: Path, tmp_path: Path) ->
     summary = ingest([src], IngestOptions(out=tmp_path / "ds"))
     assert summary["inputs_ingested"] == 3 and summary["inputs_skipped_already_ingested"] == 3
     ds = Dataset.open(tmp_path / "ds")
-    assert [s["file"] for s in ds.manifest["shards"]] == ["part-00000.parquet", "part-00001.parquet"]
+    assert [s["file"] for s in ds.manifest["shards"]] == ["tracks/part-00000.parquet", "tracks/part-00001.parquet"]
     assert ds.logs().num_rows == ds.samples().num_rows == 6
 
 
 def test_written_tables_match_schema_files(bundled: Path, tmp_path: Path) -> None:
     ingest([bundled / "apolloscape"], IngestOptions(out=tmp_path / "ap"))
-    for name, file in (("tracks", "part-00000.parquet"), ("logs", "logs.parquet"), ("samples", "samples.parquet")):
+    ds = Dataset.open(tmp_path / "ap")
+    files = {"tracks": ds.manifest["shards"][0]["file"], "logs": ds.manifest["tables"]["logs"]["file"],
+             "samples": ds.manifest["tables"]["samples"]["file"]}
+    for name, file in files.items():
         written = pq.read_schema(tmp_path / "ap" / file)
         expected = arrow_schema(name)
         assert [(f.name, f.type, f.nullable) for f in written] == [(f.name, f.type, f.nullable) for f in expected]

@@ -9,6 +9,7 @@ import cv2
 import numpy as np
 import pytest
 
+from logpipe.artifact import read_manifest
 from logpipe.errors import DatasetError
 from logpipe.io import sha256_file
 from logpipe.maps import MapSource, load_map
@@ -44,7 +45,8 @@ def test_stage_writes_index_shards_and_previews(dataset: Path) -> None:
     assert summary["samples"] == 2 and summary["rendered"] == 2 and summary["empty"] == 0
     assert summary["centre_role"] == {"ego": 2, "focal": 0}
     run = Path(summary["run_dir"])
-    assert sorted(p.name for p in run.glob("shard-*.npy")) == ["shard-00000.npy", "shard-00001.npy"]
+    assert [s["rows"] for s in read_manifest(run)["shards"]] == [1, 1]  # type: ignore[index]
+    assert len(list(run.glob("shard-*.npy"))) == 2
     for png in summary["previews"]:
         img = cv2.imread(png)
         assert img is not None and img.shape == (672, 672, 3)
@@ -82,11 +84,18 @@ def test_rerun_skips_and_repairs_identically(dataset: Path) -> None:
     before = {p.name: sha256_file(p) for p in run.iterdir() if p.is_file()}
     again = rasterise_dataset(dataset, maps, centre="ego", rotate=False, shard_size=1)
     assert again["skipped_existing"] == 2 and again["rendered"] == 0
-    (run / "shard-00001.npy").unlink()  # an interrupted run
-    repaired = rasterise_dataset(dataset, maps, centre="ego", rotate=False, shard_size=1)
-    assert repaired["rendered"] == 1 and repaired["skipped_existing"] == 1
     assert {p.name: sha256_file(p) for p in run.iterdir() if p.is_file()} == before
     assert not list(run.glob(".*.tmp"))
+    # Another shard size is another set of files: refused, not mixed with the committed ones.
+    with pytest.raises(DatasetError, match=r"shard_size \(shard size was 1\)"):
+        rasterise_dataset(dataset, maps, centre="ego", rotate=False, shard_size=2)
+    resharded = rasterise_dataset(dataset, maps, centre="ego", rotate=False, shard_size=2, force=True)
+    assert resharded["rendered"] == 2 and len(list(run.glob("shard-*.npy"))) == 1
+    assert len(RasterShards.open(dataset, RasterSpec(rotate=False), centre="ego")) == 2
+    # A committed shard that disappears is damage: the reader refuses it instead of reading fewer rasters.
+    next(run.glob("shard-*.npy")).unlink()
+    with pytest.raises(DatasetError, match="missing"):
+        RasterShards.open(dataset, RasterSpec(rotate=False), centre="ego")
 
 
 def test_stale_run_is_refused_then_replaced_with_force(dataset: Path, tmp_path: Path) -> None:
@@ -100,7 +109,7 @@ def test_stale_run_is_refused_then_replaced_with_force(dataset: Path, tmp_path: 
         arrays = {k: z[k] for k in z.files}
     arrays["points"] = arrays["points"] + 0.5  # a different survey of the city
     np.savez(other / "PIT_lane_centerlines_copy_3861.npz", **arrays)
-    with pytest.raises(DatasetError, match="other samples or maps"):
+    with pytest.raises(DatasetError, match="made with other maps"):
         rasterise_dataset(dataset, MapSource(roots=(other,)), centre="focal", rotate=False)
     summary = rasterise_dataset(dataset, MapSource(roots=(other,)), centre="focal", rotate=False, force=True)
     assert summary["rendered"] == 2 and summary["centre_role"] == {"ego": 0, "focal": 2}

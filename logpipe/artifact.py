@@ -1,0 +1,446 @@
+"""Committed artifact folders: one writer at a time, one atomic commit point, verification against it.
+
+Every folder logpipe writes (a dataset, a raster run, a prediction run, a score report) follows one protocol:
+
+1. ``ArtifactWriter`` takes an exclusive ``fcntl.flock`` on the folder for the whole write; a second writer
+   fails at once with one line naming the holder's pid and command (``FOLDER/.logpipe.lock`` while held).
+2. It removes what the committed manifest does not name, among the paths the artifact owns (``owned``):
+   leftovers of a crashed writer. Files of other artifacts nested inside (a dataset's ``rasters/``) and
+   anything the user put there are never touched.
+3. New files are written whole (temp name + rename, ``logpipe.io.atomic_path``) under names the committed
+   manifest does not use, so the state a reader sees never changes under it.
+4. ``commit`` flushes every new file to disk (one ``syncfs``), then replaces ``manifest.json`` by rename and
+   syncs the folder: the single commit point. A crash before the rename leaves the old state, after it the
+   new one; the next writer cleans the rest.
+5. Files the new manifest no longer names are removed.
+
+The manifest's ``files`` section lists every committed file (relative path → bytes, sha256, and rows for
+Parquet tables): readers trust only these, ``verify`` recomputes them.
+
+``crash_point`` marks each step of the protocol; ``LOGPIPE_CRASH_AT=N`` makes the process kill itself
+(SIGKILL) at the N-th one it reaches and ``LOGPIPE_CRASH_TRACE=FILE`` lists them (the crash-injection tests).
+"""
+
+from __future__ import annotations
+
+import ctypes
+import errno
+import fcntl
+import json
+import os
+import shlex
+import shutil
+import signal
+import sys
+from collections.abc import Callable, Iterable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from types import TracebackType
+from typing import Any, TypedDict
+
+from logpipe.errors import ArtifactBusyError, DatasetError, LogpipeError
+
+MANIFEST = "manifest.json"
+LOCK_FILE = ".logpipe.lock"
+STAGING_PREFIX = ".staging-"
+
+
+class FileEntry(TypedDict, total=False):
+    """A committed file in a manifest's ``files`` section."""
+
+    bytes: int
+    sha256: str
+    rows: int
+
+
+# ---- crash injection -----------------------------------------------------------------------------------
+
+
+@dataclass
+class _CrashPlan:
+    at: int
+    trace: str | None
+    pid: int
+    reached: int = 0
+
+
+def _crash_plan() -> _CrashPlan | None:
+    at, trace = os.environ.get("LOGPIPE_CRASH_AT"), os.environ.get("LOGPIPE_CRASH_TRACE")
+    if at is None and trace is None:
+        return None
+    return _CrashPlan(int(at) if at else 0, trace, os.getpid())
+
+
+_PLAN = _crash_plan()
+
+
+def crash_point(label: str) -> None:
+    """A step of a commit where a crash must leave a consistent folder; a no-op unless a test asked for a crash.
+
+    Counts only in the process that read the environment (worker processes write only staging files, which
+    the random-time kills of the tests cover).
+    """
+    if _PLAN is None or os.getpid() != _PLAN.pid:
+        return
+    _PLAN.reached += 1
+    if _PLAN.trace:
+        with open(_PLAN.trace, "a", encoding="utf-8") as fh:
+            fh.write(f"{_PLAN.reached}\t{label}\n")
+    if _PLAN.reached == _PLAN.at:
+        os.kill(os.getpid(), signal.SIGKILL)
+
+
+# ---- durability ----------------------------------------------------------------------------------------
+
+
+def _syncfs(folder: Path) -> None:
+    """Flush every dirty page of ``folder``'s file system: one call instead of an fsync per new file."""
+    fd = os.open(folder, os.O_RDONLY)
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        if getattr(libc, "syncfs", None) is None or libc.syncfs(fd) != 0:
+            os.sync()
+    finally:
+        os.close(fd)
+
+
+def fsync_dir(folder: Path) -> None:
+    """Make renames inside ``folder`` durable."""
+    fd = os.open(folder, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+# ---- the lock ------------------------------------------------------------------------------------------
+
+
+class FolderLock:
+    """An exclusive, non-blocking ``flock`` on the folder itself, released when the process ends.
+
+    Locking the directory (not a file in it) leaves a finished folder's contents independent of who wrote
+    it. While held, ``.logpipe.lock`` names the holder's pid and command for the error a second writer gets;
+    it is removed on release (a crashed holder's stale copy is overwritten by the next one). The kernel
+    drops the lock with the process, so a crashed writer never blocks the next one.
+    """
+
+    def __init__(self, root: Path) -> None:
+        self.root = root
+        self._fd: int | None = None
+
+    def acquire(self) -> None:
+        fd = os.open(self.root, os.O_RDONLY | os.O_DIRECTORY | os.O_CLOEXEC)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            os.close(fd)
+            try:
+                holder = (self.root / LOCK_FILE).read_text(encoding="utf-8", errors="replace")
+            except OSError:
+                holder = ""
+            raise ArtifactBusyError(f"{self.root}: another logpipe process is writing here "
+                                    f"({_describe_holder(holder)}); wait for it to finish") from None
+        except BaseException:
+            os.close(fd)
+            raise
+        self._fd = fd
+        try:
+            info = json.dumps({"pid": os.getpid(), "command": shlex.join(sys.argv)})
+            (self.root / LOCK_FILE).write_text(info + "\n", encoding="utf-8")
+        except BaseException:
+            self.release()
+            raise
+
+    def release(self) -> None:
+        if self._fd is None:
+            return
+        try:
+            (self.root / LOCK_FILE).unlink(missing_ok=True)
+        finally:
+            os.close(self._fd)  # closing the last descriptor drops the flock
+            self._fd = None
+
+    @property
+    def held(self) -> bool:
+        return self._fd is not None
+
+
+def _describe_holder(text: str) -> str:
+    try:
+        info = json.loads(text)
+        return f"pid {info['pid']}: {info['command']}"
+    except (ValueError, KeyError, TypeError):
+        return "holder unknown"
+
+
+# ---- manifests -----------------------------------------------------------------------------------------
+
+
+def read_manifest(root: Path, *, required: bool = True) -> dict[str, Any] | None:
+    """The committed manifest of ``root`` (None when there is none and ``required`` is False).
+
+    Raises:
+        DatasetError: missing (when required) or not a JSON object.
+    """
+    path = root / MANIFEST
+    try:
+        text = path.read_bytes()
+    except FileNotFoundError:
+        if required:
+            raise DatasetError(f"{root}: no {MANIFEST} (not a logpipe output folder, or never committed)") from None
+        return None
+    except OSError as exc:
+        raise DatasetError(f"{path}: cannot read: {exc.strerror}") from None
+    try:
+        manifest = json.loads(text)
+    except (ValueError, UnicodeDecodeError) as exc:
+        raise DatasetError(f"{path}: damaged manifest ({exc}); `logpipe verify` lists what is wrong") from None
+    if not isinstance(manifest, dict):
+        raise DatasetError(f"{path}: damaged manifest (not a JSON object)")
+    return manifest
+
+
+def file_entry(path: Path, *, rows: int | None = None) -> FileEntry:
+    """The ``files`` entry of a file just written (size, sha256, and rows for tables)."""
+    from logpipe.io import sha256_file
+
+    entry: FileEntry = {"bytes": path.stat().st_size, "sha256": sha256_file(path)}
+    if rows is not None:
+        entry["rows"] = rows
+    return entry
+
+
+def check_files(root: Path, files: dict[str, Any]) -> None:
+    """Cheap invariants a reader checks on open: every committed file exists with its committed size.
+
+    Raises:
+        DatasetError: the first file that is missing or has another size.
+    """
+    for rel, entry in files.items():
+        try:
+            size = (root / rel).stat().st_size
+        except OSError:
+            raise DatasetError(f"{root / rel}: missing (named by {root / MANIFEST}); "
+                               "`logpipe verify` lists every problem") from None
+        if size != entry["bytes"]:
+            raise DatasetError(f"{root / rel}: {size} bytes, the manifest says {entry['bytes']} (truncated or "
+                               "changed); `logpipe verify` lists every problem")
+
+
+# ---- the writer ----------------------------------------------------------------------------------------
+
+
+Owned = Callable[[str], bool]
+"""Whether a path relative to the folder (POSIX, no leading ``./``) belongs to the artifact's own files."""
+
+
+class ArtifactWriter:
+    """Writes one artifact folder under the protocol of this module.
+
+    Use as a context manager: entering takes the lock and cleans leftovers; ``commit`` is the one commit point;
+    leaving releases the lock (a writer that leaves without committing changes nothing a reader sees).
+
+    Attributes:
+        root: the folder (created when missing).
+        manifest: the committed manifest when entering (None for a new folder).
+    """
+
+    def __init__(self, root: Path, owned: Owned) -> None:
+        self.root = Path(root)
+        self.owned = owned
+        self.manifest: dict[str, Any] | None = None
+        self._lock = FolderLock(self.root)
+        self._created = False
+
+    def __enter__(self) -> ArtifactWriter:
+        if self.root.exists() and not self.root.is_dir():
+            raise DatasetError(f"{self.root}: exists and is not a folder")
+        self._created = not self.root.exists()
+        self.root.mkdir(parents=True, exist_ok=True)
+        self._lock.acquire()
+        try:
+            self.manifest = read_manifest(self.root, required=False)
+            self.clean()
+        except BaseException:
+            self._lock.release()
+            raise
+        return self
+
+    def __exit__(self, kind: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None) -> None:
+        committed = self.manifest is not None
+        self._lock.release()
+        if self._created and not committed:
+            # A failed first run leaves no trace: only the lock file and empty folders can be here.
+            shutil.rmtree(self.root, ignore_errors=True)
+
+    def staging(self) -> Path:
+        """A fresh staging folder inside the artifact (removed by ``clean`` if never committed)."""
+        import uuid
+
+        folder = self.root / f"{STAGING_PREFIX}{uuid.uuid4().hex[:12]}"
+        folder.mkdir()
+        return folder
+
+    def committed_files(self) -> set[str]:
+        return set((self.manifest or {}).get("files", {}))
+
+    def clean(self) -> list[str]:
+        """Remove owned paths the committed manifest does not name (and any staging or temp file)."""
+        keep = self.committed_files()
+        removed = []
+        for rel, path in _walk(self.root):
+            if rel in keep or rel in (MANIFEST, LOCK_FILE):
+                continue
+            name = path.name
+            leftover = name.startswith(STAGING_PREFIX) or (name.startswith(".") and name.endswith(".tmp"))
+            if (leftover and ("/" not in rel or self.owned(rel))) or (self.owned(rel) and not path.is_dir()):
+                crash_point(f"clean {rel}")
+                if path.is_dir() and not path.is_symlink():
+                    shutil.rmtree(path)
+                else:
+                    path.unlink()
+                removed.append(rel)
+        _remove_empty_owned_dirs(self.root, self.owned)
+        return removed
+
+    def commit(self, manifest: dict[str, Any]) -> None:
+        """Make ``manifest`` (whose ``files`` name every file of the new state) the folder's state."""
+        from logpipe.io import atomic_path
+
+        files = manifest.get("files")
+        if not isinstance(files, dict):
+            raise LogpipeError("internal: a manifest must list its files")
+        missing = [rel for rel in files if not (self.root / rel).is_file()]
+        if missing:
+            raise LogpipeError(f"internal: {self.root}: commit names files that are not there: {missing[:3]}")
+        crash_point("before sync")
+        _syncfs(self.root)
+        text = json.dumps(manifest, indent=None if len(files) > 1000 else 2, sort_keys=True,
+                          separators=(",", ":") if len(files) > 1000 else None) + "\n"
+        with atomic_path(self.root / MANIFEST, durable=True) as tmp:
+            tmp.write_text(text, encoding="utf-8")
+        crash_point("after manifest")
+        fsync_dir(self.root)
+        superseded = sorted(self.committed_files() - set(files))
+        self.manifest = manifest
+        # Only what the previous state named: workers may be writing the next commit's files right now.
+        for rel in superseded:
+            crash_point(f"remove {rel}")
+            (self.root / rel).unlink(missing_ok=True)
+        _remove_empty_owned_dirs(self.root, self.owned)
+
+
+def _walk(root: Path) -> Iterable[tuple[str, Path]]:
+    """(relative POSIX path, path) of every file and staging folder under ``root``, not into staging folders
+    or other artifacts' folders (those that hold their own manifest)."""
+    for folder, dirs, names in os.walk(root):
+        here = Path(folder)
+        rel_folder = here.relative_to(root).as_posix()
+        prefix = "" if rel_folder == "." else rel_folder + "/"
+        keep_dirs = []
+        for d in sorted(dirs):
+            if d.startswith(STAGING_PREFIX):
+                yield prefix + d, here / d
+            elif not ((here / d / MANIFEST).exists() or (here / d / LOCK_FILE).exists()):
+                keep_dirs.append(d)  # another artifact's folder is its own writer's business
+        dirs[:] = keep_dirs
+        for name in sorted(names):
+            yield prefix + name, here / name
+
+
+def _remove_empty_owned_dirs(root: Path, owned: Owned) -> None:
+    for folder, dirs, names in sorted(os.walk(root, topdown=False), key=lambda t: -len(t[0])):
+        here = Path(folder)
+        if here == root or dirs or names:
+            continue
+        rel = here.relative_to(root).as_posix()
+        if owned(rel + "/"):
+            here.rmdir()
+
+
+# ---- verification --------------------------------------------------------------------------------------
+
+
+@dataclass
+class Problem:
+    """One thing ``verify`` found wrong: the file and what."""
+
+    path: str
+    what: str
+
+    def line(self) -> str:
+        return f"{self.path}: {self.what}"
+
+
+def verify_folder(root: Path, owned: Owned | None = None, *, deep: bool = True) -> tuple[list[Problem], list[str]]:
+    """Check a committed folder against its manifest.
+
+    Returns:
+        (problems, leftovers): every committed file missing, of another size, sha256 or row count; and the
+        uncommitted files (staging, temp, owned but unnamed) a crashed writer left.
+    """
+    from logpipe.io import sha256_file
+
+    root = Path(root)
+    try:
+        manifest = read_manifest(root)
+    except DatasetError as exc:
+        return [Problem(str(root / MANIFEST), str(exc).split(": ", 1)[-1])], []
+    assert manifest is not None
+    files = manifest.get("files")
+    if not isinstance(files, dict):
+        return [Problem(str(root / MANIFEST), "lists no files (written by logpipe < 0.2; re-create the folder)")], []
+    problems = []
+    for rel, entry in sorted(files.items()):
+        path = root / rel
+        try:
+            size = path.stat().st_size
+        except OSError:
+            problems.append(Problem(str(path), "missing"))
+            continue
+        if size != entry.get("bytes"):
+            problems.append(Problem(str(path), f"{size} bytes, manifest says {entry.get('bytes')}"))
+            continue
+        if deep and sha256_file(path) != entry.get("sha256"):
+            problems.append(Problem(str(path), "sha256 differs from the manifest (content changed)"))
+            continue
+        if deep and "rows" in entry:
+            rows = _parquet_rows(path)
+            if rows != entry["rows"]:
+                problems.append(Problem(str(path), f"{rows} rows, manifest says {entry['rows']}"))
+    leftovers = []
+    for rel, path in _walk(root):
+        if rel in files or rel in (MANIFEST, LOCK_FILE):
+            continue
+        leftover = path.name.startswith(STAGING_PREFIX) or (path.name.startswith(".") and path.name.endswith(".tmp"))
+        mine = owned is not None and owned(rel)
+        if (leftover and ("/" not in rel or mine)) or (mine and not path.is_dir()):
+            leftovers.append(rel)
+    return problems, leftovers
+
+
+def _parquet_rows(path: Path) -> int | str:
+    import pyarrow.parquet as pq
+
+    try:
+        return int(pq.ParquetFile(path).metadata.num_rows)
+    except Exception as exc:
+        return f"unreadable ({type(exc).__name__})"
+
+
+def owned_by(prefixes: Sequence[str], names: Sequence[str] = ()) -> Owned:
+    """An ``Owned`` rule: paths under one of ``prefixes`` (folders, with ``/``) or equal to one of ``names``."""
+    def owned(rel: str) -> bool:
+        return rel in names or any(rel.startswith(p) for p in prefixes)
+
+    return owned
+
+
+def os_error_message(exc: OSError) -> str:
+    """One line for an OS error on an output (disk full, read-only, permissions)."""
+    where = exc.filename or "output"
+    hints = {errno.ENOSPC: "disk full", errno.EROFS: "read-only file system", errno.EACCES: "permission denied",
+             errno.EDQUOT: "disk quota exceeded", errno.EPERM: "operation not permitted"}
+    what = hints.get(exc.errno or 0, exc.strerror or type(exc).__name__)
+    return f"{where}: {what}; nothing was committed, the folder holds its previous state"
