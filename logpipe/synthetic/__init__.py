@@ -1,0 +1,1 @@
+"""Synthetic data generators. Everything they write is labelled synthetic (file names, log ids, READMEs)."""

@@ -1,0 +1,691 @@
+"""SYNTHETIC traffic on real Argoverse 1 lane graphs, written as Argoverse 1 forecasting CSVs.
+
+Purpose: data on which the map decides the future (issue 33, item 2), so that the environment net (EN) can be
+shown to read the lane raster. Vehicles drive along real AV1 city lane centerlines, pick a successor at random at
+every fork, follow a speed profile limited by curvature and acceleration bounds, and keep a car-following gap
+(IDM) to the vehicle ahead on their own route. One vehicle per window is the AV (ego) with its own route; one
+other is the AGENT. Nothing here is recorded data: files and log ids start with ``synthetic_``.
+
+Frames and units: positions are metres in the AV1 city frame of the map (the same frame as the real CSVs),
+speeds m/s, accelerations m/s², time steps 0.1 s (10 Hz), CSV timestamps decimal seconds on an invented clock.
+
+Lane links: the pickle-free AV1 ``.npz`` holds centerlines only, so successors are derived geometrically: lane B
+follows lane A when B's first vertex lies within ``LINK_TOL_M`` of A's last vertex and their directions there
+differ by less than ``LINK_MAX_TURN_DEG``. On the real city maps every such link has distance 0 (shared
+vertices). A store that carries ``successors`` (AV1 vector-map XML) is used as is.
+
+Held-out region: per city, a box covering the top ``holdout_fraction`` of lanes along the city's longer axis.
+Test windows use only lanes wholly inside it; training windows only lanes at least ``holdout_margin_m`` outside
+it, so no training trajectory (nor an ego-centred 100 m raster around it) touches the box.
+
+CLI: ``python -m logpipe.synthetic.traffic --maps DIR --out DIR --windows N --seed S``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import time
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+import pyarrow.compute as pc
+
+from logpipe.maps import FeatureKind, MapStore, load_map
+from logpipe.maps.argoverse1 import city_from_name, sniff_npz
+from logpipe.types import NDArrayBool, NDArrayFloat, NDArrayInt
+
+LINK_TOL_M = 1.0
+"""Largest end-to-start distance (m) of two lanes that are linked."""
+LINK_MAX_TURN_DEG = 60.0
+"""Largest direction change (deg) at a link: excludes the opposite-direction twin that starts where a lane ends."""
+AV_TRACK_ID = "00000000-0000-0000-0000-000000000000"
+"""The AV's track id in every AV1 CSV."""
+CSV_HEADER = "TIMESTAMP,TRACK_ID,OBJECT_TYPE,X,Y,CITY_NAME"
+ROUTE_DS_M = 0.5
+"""Resampling step of a route polyline (m): speed limits and positions are looked up on this grid."""
+
+
+@dataclass(frozen=True)
+class SimConfig:
+    """Vehicle model and window layout. Lengths in metres, speeds m/s, accelerations m/s², times s.
+
+    Attributes:
+        dt: step (0.1 s = AV1's 10 Hz). steps: recorded steps per window (AV1: 20 observed + 30 future).
+        warmup: simulated steps before the first recorded one (speeds settle, gaps form).
+        v_desired: range of each vehicle's free-road speed. a_max: largest acceleration.
+        b_comfort: deceleration planned for ahead of curves. b_max: hardest braking (the clamp).
+        a_lat: lateral acceleration allowed in curves (v <= sqrt(a_lat / curvature)).
+        gap_min: IDM standstill gap. headway: IDM time headway. length: vehicle length (gap is bumper to bumper).
+        others: range of other vehicles per window. spawn_radius: others start within this of the ego.
+        spawn_sep: smallest distance between two vehicles' start points.
+        lateral_sd: stationary standard deviation of a vehicle's slow lateral wander off the centerline.
+        lateral_max: clamp of that wander. noise_sd: white position noise (tracking noise), 0 = none.
+        lookahead: route length beyond the distance a vehicle can cover, for braking ahead of curves.
+    """
+
+    dt: float = 0.1
+    steps: int = 50
+    warmup: int = 10
+    v_desired: tuple[float, float] = (8.0, 16.0)
+    a_max: float = 2.0
+    b_comfort: float = 2.0
+    b_max: float = 6.0
+    a_lat: float = 2.5
+    gap_min: float = 2.0
+    headway: float = 1.2
+    length: float = 4.5
+    others: tuple[int, int] = (6, 14)
+    spawn_radius: float = 50.0
+    spawn_sep: float = 10.0
+    lateral_sd: float = 0.15
+    lateral_max: float = 0.5
+    noise_sd: float = 0.0
+    lookahead: float = 40.0
+
+
+@dataclass
+class LaneGraph:
+    """Lane centerlines of one city and their successor links.
+
+    Attributes:
+        city: AV1 city name (MIA, PIT) written to CITY_NAME.
+        lane_ids: (L,) map lane ids (strings).
+        lines: per lane, (n, 2) vertices in travel order, metres, city frame.
+        lengths: (L,) m. mids: (L, 2) mean vertex of each lane. lo, hi: (L, 2) bounding boxes.
+        successors: per lane, indices of the lanes it continues into.
+        derived_links: True when the links were computed from geometry (npz) rather than read (XML).
+    """
+
+    city: str
+    lane_ids: list[str]
+    lines: list[NDArrayFloat]
+    lengths: NDArrayFloat
+    mids: NDArrayFloat
+    lo: NDArrayFloat
+    hi: NDArrayFloat
+    successors: list[list[int]]
+    derived_links: bool
+
+    @classmethod
+    def from_store(cls, store: MapStore, city: str | None = None) -> LaneGraph:
+        """The centerline layer of a map store; links from its ``successors`` column when filled, else geometry."""
+        rows = store.rows(FeatureKind.LANE_CENTERLINE)
+        lines = [np.asarray(store.geometry(int(r)), dtype=np.float64) for r in rows.tolist()]
+        ids = store.feature_ids(rows.tolist())
+        succ_col = store.table.column("successors").take(rows)
+        have_links = succ_col.null_count < len(rows) and pc.sum(pc.list_value_length(succ_col)).as_py()
+        lengths = np.array([float(np.hypot(*np.diff(p, axis=0).T).sum()) for p in lines])
+        graph = cls(
+            city=city or store.map_id,
+            lane_ids=ids,
+            lines=lines,
+            lengths=lengths,
+            mids=np.array([p.mean(axis=0) for p in lines]).reshape(-1, 2),
+            lo=np.array([p.min(axis=0) for p in lines]).reshape(-1, 2),
+            hi=np.array([p.max(axis=0) for p in lines]).reshape(-1, 2),
+            successors=[],
+            derived_links=not have_links,
+        )
+        if have_links:
+            index = {lane: i for i, lane in enumerate(ids)}
+            graph.successors = [
+                [index[s] for s in (succ or []) if s in index] for succ in succ_col.to_pylist()
+            ]
+        else:
+            graph.successors = derive_successors(lines)
+        return graph
+
+    @classmethod
+    def from_path(cls, path: Path, city: str | None = None) -> LaneGraph:
+        """Load a map file through ``logpipe.maps.load_map`` (npz, XML, store parquet)."""
+        return cls.from_store(load_map(path), city or city_from_name(path))
+
+    def __len__(self) -> int:
+        return len(self.lines)
+
+    @property
+    def forks(self) -> NDArrayInt:
+        """Lanes with two or more successors."""
+        return np.array([i for i, s in enumerate(self.successors) if len(s) >= 2], dtype=np.int64)
+
+
+def derive_successors(lines: Sequence[NDArrayFloat], tol: float = LINK_TOL_M,
+                      max_turn_deg: float = LINK_MAX_TURN_DEG) -> list[list[int]]:
+    """Successor links from geometry: B follows A when B starts within ``tol`` m of A's end and turns less than
+    ``max_turn_deg`` there. Starts are bucketed in a grid of ``tol`` cells, so this is linear in the lanes."""
+    starts = np.array([p[0] for p in lines]).reshape(-1, 2)
+    ends = np.array([p[-1] for p in lines]).reshape(-1, 2)
+    start_dir = np.array([p[1] - p[0] for p in lines]).reshape(-1, 2)
+    end_dir = np.array([p[-1] - p[-2] for p in lines]).reshape(-1, 2)
+    start_h = np.arctan2(start_dir[:, 1], start_dir[:, 0])
+    end_h = np.arctan2(end_dir[:, 1], end_dir[:, 0])
+    cells: dict[tuple[int, int], list[int]] = {}
+    keys = np.floor(starts / tol).astype(np.int64)
+    for i, (cx, cy) in enumerate(keys.tolist()):
+        cells.setdefault((cx, cy), []).append(i)
+    max_turn = math.radians(max_turn_deg)
+    out: list[list[int]] = []
+    for a, (ex, ey) in enumerate(np.floor(ends / tol).astype(np.int64).tolist()):
+        found: list[int] = []
+        for dx in (-1, 0, 1):
+            for dy in (-1, 0, 1):
+                for b in cells.get((ex + dx, ey + dy), ()):
+                    if b == a or float(np.hypot(*(starts[b] - ends[a]))) > tol:
+                        continue
+                    turn = abs((start_h[b] - end_h[a] + math.pi) % (2 * math.pi) - math.pi)
+                    if turn < max_turn:
+                        found.append(b)
+        out.append(sorted(found))
+    return out
+
+
+@dataclass(frozen=True)
+class HoldOut:
+    """The held-out box of one city, metres, city frame; ``margin`` keeps training lanes this far outside it."""
+
+    xmin: float
+    ymin: float
+    xmax: float
+    ymax: float
+    margin: float
+
+    @classmethod
+    def for_graph(cls, graph: LaneGraph, fraction: float, margin: float) -> HoldOut:
+        """A box over the top ``fraction`` of lanes (by mid point) along the city's longer axis, full width across."""
+        lo, hi = graph.lo.min(axis=0), graph.hi.max(axis=0)
+        axis = int(np.argmax(hi - lo))
+        cut = float(np.quantile(graph.mids[:, axis], 1.0 - fraction))
+        box = [float(lo[0]) - 1.0, float(lo[1]) - 1.0, float(hi[0]) + 1.0, float(hi[1]) + 1.0]
+        box[axis] = cut
+        return cls(box[0], box[1], box[2], box[3], margin)
+
+    def inside(self, xy: NDArrayFloat) -> NDArrayBool:
+        """(n,) points inside the box."""
+        x, y = xy[..., 0], xy[..., 1]
+        result: NDArrayBool = (x >= self.xmin) & (x <= self.xmax) & (y >= self.ymin) & (y <= self.ymax)
+        return result
+
+    def clear(self, xy: NDArrayFloat) -> NDArrayBool:
+        """(n,) points at least ``margin`` outside the box (outside the box grown by the margin)."""
+        m = self.margin
+        x, y = xy[..., 0], xy[..., 1]
+        near = (x >= self.xmin - m) & (x <= self.xmax + m) & (y >= self.ymin - m) & (y <= self.ymax + m)
+        result: NDArrayBool = ~near
+        return result
+
+    def lane_masks(self, graph: LaneGraph) -> tuple[NDArrayBool, NDArrayBool]:
+        """(train, test) lanes: wholly clear of the grown box, wholly inside the box."""
+        train = np.array([bool(self.clear(p).all()) for p in graph.lines])
+        test = np.array([bool(self.inside(p).all()) for p in graph.lines])
+        return train, test
+
+
+@dataclass
+class Route:
+    """A vehicle's path: lanes in order, resampled every ``ROUTE_DS_M`` m.
+
+    Attributes:
+        lanes: lane indices; each is a successor of the one before.
+        lane_start: (len(lanes),) arc length (m) at which each lane begins.
+        xy: (n, 2) points, metres, city frame; ``s`` (n,) their arc length. heading: (n,) rad CCW from +x.
+        v_allow: (n,) m/s, the speed that still allows braking at ``b_comfort`` to every curve limit ahead.
+        forks: (lane position in ``lanes``, options) at every lane with two or more allowed successors.
+    """
+
+    lanes: list[int]
+    lane_start: NDArrayFloat
+    xy: NDArrayFloat
+    s: NDArrayFloat
+    heading: NDArrayFloat
+    v_allow: NDArrayFloat
+    forks: list[tuple[int, int]] = field(default_factory=list)
+
+    def at(self, s: float) -> tuple[float, float, float]:
+        """(x, y, heading) at arc length ``s`` (clamped to the route)."""
+        k = min(max(s / ROUTE_DS_M, 0.0), len(self.s) - 1.0)
+        i = min(int(k), len(self.s) - 2)
+        f = k - i
+        x = self.xy[i, 0] * (1 - f) + self.xy[i + 1, 0] * f
+        y = self.xy[i, 1] * (1 - f) + self.xy[i + 1, 1] * f
+        return float(x), float(y), float(self.heading[i])
+
+    def lane_at(self, s: float) -> int:
+        """Position in ``lanes`` of the lane holding arc length ``s``."""
+        return max(int(np.searchsorted(self.lane_start, s, side="right")) - 1, 0)
+
+
+def plan_route(graph: LaneGraph, allowed: NDArrayBool, start: int, length: float, rng: np.random.Generator,
+               cfg: SimConfig, v_desired: float, max_expansions: int = 200) -> Route | None:
+    """A random walk along successors from lane ``start`` over allowed lanes, at least ``length`` m long.
+
+    At a fork each allowed successor is equally likely; a branch that dead-ends (or leaves the allowed lanes)
+    before ``length`` is backtracked. None when no such route exists within ``max_expansions`` lane visits.
+    """
+    path = [start]
+    total = [float(graph.lengths[start])]
+    options: list[list[int]] = [_shuffled([s for s in graph.successors[start] if allowed[s]], rng)]
+    expansions = 0
+    while total[-1] < length:
+        if expansions > max_expansions:
+            return None
+        if not options[-1]:
+            path.pop()
+            total.pop()
+            options.pop()
+            if not path:
+                return None
+            continue
+        nxt = options[-1].pop()
+        expansions += 1
+        path.append(nxt)
+        total.append(total[-1] + float(graph.lengths[nxt]))
+        options.append(_shuffled([s for s in graph.successors[nxt] if allowed[s]], rng))
+    return build_route(graph, allowed, path, cfg, v_desired)
+
+
+def _shuffled(items: list[int], rng: np.random.Generator) -> list[int]:
+    if len(items) > 1:
+        order = rng.permutation(len(items))
+        items = [items[i] for i in order.tolist()]
+    return items
+
+
+def build_route(graph: LaneGraph, allowed: NDArrayBool, lanes: list[int], cfg: SimConfig,
+                v_desired: float) -> Route:
+    """Resample the lanes' joined centerline and compute its speed limit profile."""
+    pieces = [graph.lines[lanes[0]]] + [graph.lines[i][1:] for i in lanes[1:]]  # shared joint vertex once
+    pts = np.concatenate(pieces)
+    seg = np.hypot(*np.diff(pts, axis=0).T)
+    keep = np.concatenate([[True], seg > 1e-6])
+    pts = pts[keep]
+    arc = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(pts, axis=0).T))])
+    s = np.arange(0.0, arc[-1], ROUTE_DS_M)
+    xy = np.stack([np.interp(s, arc, pts[:, 0]), np.interp(s, arc, pts[:, 1])], axis=1)
+    d = np.diff(xy, axis=0, append=xy[-1:] + (xy[-1:] - xy[-2:-1]))
+    heading = np.unwrap(np.arctan2(d[:, 1], d[:, 0]))
+    # Curvature over a 3 m baseline: AV1 centerlines are polylines, so per-vertex kinks would look like tight turns.
+    w = max(round(3.0 / ROUTE_DS_M), 1)
+    idx = np.arange(len(s))
+    turn = np.abs(heading[np.minimum(idx + w, len(s) - 1)] - heading[np.maximum(idx - w, 0)])
+    kappa = turn / (2 * w * ROUTE_DS_M)
+    v_curve = np.minimum(np.sqrt(cfg.a_lat / np.maximum(kappa, 1e-6)), v_desired)
+    # v_allow(s)^2 = min over s' >= s of v_curve(s')^2 + 2 b (s' - s): reverse running minimum.
+    c = v_curve**2 + 2 * cfg.b_comfort * s
+    v_allow = np.sqrt(np.maximum(np.minimum.accumulate(c[::-1])[::-1] - 2 * cfg.b_comfort * s, 0.0))
+    starts = np.concatenate([[0.0], np.cumsum(graph.lengths[lanes])[:-1]])
+    forks = [(k, int(lane)) for k, lane in enumerate(lanes[:-1])
+             if sum(1 for t in graph.successors[lane] if allowed[t]) >= 2]
+    return Route(list(lanes), starts, xy, s, heading, v_allow, forks)
+
+
+@dataclass
+class SimWindow:
+    """One simulated window (row 0 is the AV).
+
+    Attributes:
+        positions: (A, steps, 2) metres, city frame, as written to the CSV.
+        speeds: (A, steps) m/s. accels: (A, steps) m/s² applied over each step.
+        routes: per vehicle. s: (A, steps) arc length along its route, m.
+        agent: row of the AGENT (the focal vehicle). min_gap: smallest bumper-to-bumper gap between two
+            vehicles on the same lane over the recorded steps (m; inf when no lane held two).
+        fork_choices: (fork lane id, chosen successor lane id) passed by any vehicle during the recorded steps.
+    """
+
+    positions: NDArrayFloat
+    speeds: NDArrayFloat
+    accels: NDArrayFloat
+    routes: list[Route]
+    s: NDArrayFloat
+    agent: int
+    min_gap: float
+    fork_choices: list[tuple[str, str]]
+
+
+def simulate_window(graph: LaneGraph, allowed: NDArrayBool, rng: np.random.Generator, cfg: SimConfig,
+                    starts: NDArrayInt | None = None, tries: int = 20) -> SimWindow | None:
+    """Simulate one window on the allowed lanes (None when no ego route fits after ``tries`` start lanes).
+
+    Args:
+        graph: the city lane graph.
+        allowed: (L,) lanes vehicles may use (the split's region).
+        rng: the window's own generator (the window depends on nothing else).
+        cfg: vehicle model.
+        starts: candidate ego start lanes (default: every allowed lane).
+    """
+    duration = (cfg.warmup + cfg.steps) * cfg.dt
+    pool = np.flatnonzero(allowed) if starts is None else starts
+    if not len(pool):
+        return None
+    ego_route: Route | None = None
+    for _ in range(tries):
+        lane = int(pool[rng.integers(len(pool))])
+        v_des = float(rng.uniform(*cfg.v_desired))
+        ego_route = plan_route(graph, allowed, lane, v_des * duration + cfg.lookahead, rng, cfg, v_des)
+        if ego_route is not None:
+            offset = float(rng.uniform(0.0, graph.lengths[lane]))
+            break
+    if ego_route is None:
+        return None
+    routes = [ego_route]
+    desired = [v_des]
+    s0 = [offset]
+    centre = np.array(ego_route.at(offset)[:2])
+    near = np.flatnonzero(allowed & (np.hypot(*(graph.mids - centre).T) < cfg.spawn_radius))
+    n_others = int(rng.integers(cfg.others[0], cfg.others[1] + 1))
+    spawned = [centre]
+    for _ in range(4 * n_others):
+        if len(routes) > n_others or not len(near):
+            break
+        lane = int(near[rng.integers(len(near))])
+        off = float(rng.uniform(0.0, graph.lengths[lane]))
+        v_des = float(rng.uniform(*cfg.v_desired))
+        route = plan_route(graph, allowed, lane, off + v_des * duration + cfg.lookahead, rng, cfg, v_des)
+        if route is None:
+            continue
+        p = np.array(route.at(off)[:2])
+        if min(float(np.hypot(*(p - q))) for q in spawned) < cfg.spawn_sep:
+            continue
+        # Converging lanes: two starts far apart in the plane can be close along the route they will share.
+        trial = [*routes, route]
+        table = [_lane_starts(r) for r in trial]
+        gaps, _ = _leaders(trial, table, np.array([*s0, off]), cfg)
+        if (gaps < cfg.gap_min + cfg.length).any():
+            continue
+        spawned.append(p)
+        routes.append(route)
+        desired.append(v_des)
+        s0.append(off)
+    return _run(graph, routes, np.array(desired), np.array(s0), rng, cfg)
+
+
+def _run(graph: LaneGraph, routes: list[Route], desired: NDArrayFloat, s_init: NDArrayFloat,
+         rng: np.random.Generator, cfg: SimConfig) -> SimWindow:
+    n = len(routes)
+    total = cfg.warmup + cfg.steps
+    s = s_init.astype(np.float64).copy()
+    v = np.array([float(rng.uniform(0.5, 1.0)) * min(desired[i], _allow(routes[i], s[i])) for i in range(n)])
+    # Lane -> arc where it starts on each route, to find leaders on shared lanes (first occurrence: loops are rare).
+    starts_of = [_lane_starts(r) for r in routes]
+    gaps, _ = _leaders(routes, starts_of, s, cfg)
+    # Start no closer than the car-following gap allows: spawns behind a slower car would otherwise brake past b_max.
+    v = np.minimum(v, np.maximum((gaps - cfg.gap_min) / cfg.headway, 0.0))
+    lateral = rng.normal(0.0, cfg.lateral_sd, n).clip(-cfg.lateral_max, cfg.lateral_max)
+    rho = 0.98  # AR(1) per step: a wander with a ~5 s correlation time
+    pos = np.zeros((n, cfg.steps, 2))
+    speeds = np.zeros((n, cfg.steps))
+    accels = np.zeros((n, cfg.steps))
+    arcs = np.zeros((n, cfg.steps))
+    min_gap = math.inf
+    for t in range(total):
+        gaps, leader = _leaders(routes, starts_of, s, cfg)
+        dv = np.where(leader >= 0, v - v[np.maximum(leader, 0)], 0.0)  # closing speed, m/s
+        v0 = np.array([max(min(desired[i], _allow(routes[i], s[i])), 0.1) for i in range(n)])
+        # IDM: free-road term towards v0 (the curve-limited speed), interaction term from the leader's gap.
+        s_star = cfg.gap_min + np.maximum(v * cfg.headway + v * dv / (2 * math.sqrt(cfg.a_max * cfg.b_comfort)), 0)
+        interaction = np.where(np.isfinite(gaps), (s_star / np.maximum(gaps, 0.1)) ** 2, 0.0)
+        a = cfg.a_max * (1 - (v / v0) ** 4 - interaction)
+        a = np.clip(a, -cfg.b_max, cfg.a_max)
+        a = np.maximum(a, -v / cfg.dt)  # stop, never reverse
+        v_new = v + a * cfg.dt
+        s = s + 0.5 * (v + v_new) * cfg.dt
+        v = v_new
+        lateral = rho * lateral + rng.normal(0.0, cfg.lateral_sd * math.sqrt(1 - rho**2), n)
+        lateral = lateral.clip(-cfg.lateral_max, cfg.lateral_max)
+        k = t - cfg.warmup
+        if k < 0:
+            continue
+        for i, r in enumerate(routes):
+            x, y, h = r.at(float(s[i]))
+            pos[i, k] = (x - math.sin(h) * lateral[i], y + math.cos(h) * lateral[i])
+        speeds[:, k], accels[:, k], arcs[:, k] = v, a, s
+        min_gap = min(min_gap, same_lane_gap(routes, s, cfg.length))
+    if cfg.noise_sd > 0:
+        pos += rng.normal(0.0, cfg.noise_sd, pos.shape)
+    choices: list[tuple[str, str]] = []
+    future_forks = np.zeros(n, dtype=bool)
+    obs_last = cfg.steps * 2 // 5 - 1  # step 19 of 50: the AV1 current step
+    for i, r in enumerate(routes):
+        first, last = r.lane_at(float(arcs[i, 0])), r.lane_at(float(arcs[i, -1]))
+        for k, lane in r.forks:
+            if first <= k < last:
+                choices.append((graph.lane_ids[lane], graph.lane_ids[r.lanes[k + 1]]))
+                if k >= r.lane_at(float(arcs[i, obs_last])):
+                    future_forks[i] = True
+    dist = np.hypot(*(pos[:, obs_last] - pos[0, obs_last]).T)
+    # The AGENT: a vehicle that meets a fork after the current step (where the map decides), nearest the AV.
+    score = dist - 1000.0 * future_forks
+    score[0] = math.inf
+    agent = int(np.argmin(score)) if n > 1 else 0
+    return SimWindow(pos, speeds, accels, routes, arcs, agent, min_gap, choices)
+
+
+def _lane_starts(route: Route) -> dict[int, float]:
+    """Lane -> arc (m) where it starts on ``route`` (first occurrence: loops are rare)."""
+    return {lane: float(route.lane_start[k]) for k, lane in reversed(list(enumerate(route.lanes)))}
+
+
+def same_lane_gap(routes: Sequence[Route], s: NDArrayFloat, length: float) -> float:
+    """Smallest bumper-to-bumper gap (m) between two vehicles on the same lane (inf when no lane holds two):
+    negative means they overlap."""
+    by_lane: dict[int, list[float]] = {}
+    for r, sj in zip(routes, s.tolist(), strict=True):
+        k = r.lane_at(sj)
+        by_lane.setdefault(r.lanes[k], []).append(sj - float(r.lane_start[k]))
+    best = math.inf
+    for offs in by_lane.values():
+        if len(offs) > 1:
+            best = min(best, float(np.diff(np.sort(offs)).min()) - length)
+    return best
+
+
+def _allow(route: Route, s: float) -> float:
+    k = min(int(s / ROUTE_DS_M), len(route.v_allow) - 1)
+    return float(route.v_allow[max(k, 0)])
+
+
+MERGE_LOOKAHEAD_M = 60.0
+"""A vehicle is a leader for another as soon as a lane within this distance ahead of it is on the other's route:
+at a merge the one nearer the joining lane leads (a zipper), instead of both discovering each other on it."""
+
+
+def _leaders(routes: list[Route], starts_of: list[dict[int, float]], s: NDArrayFloat,
+             cfg: SimConfig) -> tuple[NDArrayFloat, NDArrayInt]:
+    """Per vehicle, bumper-to-bumper gap (m, inf when none) to the nearest vehicle ahead on its route's lanes
+    (its current lane or one it enters within ``MERGE_LOOKAHEAD_M``), and that leader's row (-1 when none)."""
+    n = len(routes)
+    # Per vehicle: (lane, distance from the vehicle back to that lane's start; <= 0 ahead) for its near lanes.
+    near: list[list[tuple[int, float]]] = []
+    for j, r in enumerate(routes):
+        sj = float(s[j])
+        k = r.lane_at(sj)
+        lanes = [(r.lanes[k], sj - float(r.lane_start[k]))]
+        for m in range(k + 1, len(r.lanes)):
+            back = sj - float(r.lane_start[m])
+            if back < -MERGE_LOOKAHEAD_M:
+                break
+            lanes.append((r.lanes[m], back))
+        near.append(lanes)
+    gaps = np.full(n, math.inf)
+    leader = np.full(n, -1, dtype=np.int64)
+    for i in range(n):
+        table = starts_of[i]
+        si = float(s[i])
+        for j in range(n):
+            if j == i:
+                continue
+            for lane, back in near[j]:
+                start = table.get(lane)
+                if start is None:
+                    continue
+                ahead = start + back - si  # j's arc position on i's route minus i's
+                if 0.0 <= ahead < gaps[i] + cfg.length:
+                    gaps[i] = ahead - cfg.length
+                    leader[i] = j
+                break  # the first shared lane decides who is ahead
+    return gaps, leader
+
+
+def window_csv(window: SimWindow, city: str, t0_ns: int, dt_ns: int = 100_000_000) -> str:
+    """The window as AV1 forecasting CSV text (rows by timestamp, then AV, AGENT, OTHERS)."""
+    n, steps = window.positions.shape[:2]
+    ids = [AV_TRACK_ID] + [f"00000000-0000-0000-0000-{i:012d}" for i in range(1, n)]
+    kinds = ["AV"] + ["AGENT" if i == window.agent else "OTHERS" for i in range(1, n)]
+    lines = [CSV_HEADER]
+    for k in range(steps):
+        ns = t0_ns + k * dt_ns
+        stamp = f"{ns // 1_000_000_000}.{ns % 1_000_000_000:09d}"
+        for i in range(n):
+            x, y = window.positions[i, k]
+            lines.append(f"{stamp},{ids[i]},{kinds[i]},{x:.4f},{y:.4f},{city}")
+    return "\n".join(lines) + "\n"
+
+
+@dataclass
+class CityPlan:
+    """A city's graph, held-out box and lane masks."""
+
+    graph: LaneGraph
+    holdout: HoldOut
+    train: NDArrayBool
+    test: NDArrayBool
+
+
+def city_maps(maps: Path) -> dict[str, Path]:
+    """City -> pickle-free centerline ``.npz`` under ``maps`` (shortest name wins; pickles are never opened)."""
+    found: dict[str, Path] = {}
+    for p in sorted(maps.rglob("*.npz"), key=lambda q: (len(q.name), str(q))):
+        city = city_from_name(p)
+        if city and city not in found and sniff_npz(p):
+            found[city] = p
+    return found
+
+
+def plan_city(path: Path, holdout_fraction: float, holdout_margin: float) -> CityPlan:
+    """Load a city's lane graph and split its lanes into training and held-out ones."""
+    graph = LaneGraph.from_path(path)
+    box = HoldOut.for_graph(graph, holdout_fraction, holdout_margin)
+    train, test = box.lane_masks(graph)
+    return CityPlan(graph, box, train, test)
+
+
+def generate(maps: Path, out: Path, windows: int, seed: int, *, test_fraction: float = 0.2,
+             holdout_fraction: float = 0.15, holdout_margin: float = 75.0, cfg: SimConfig | None = None,
+             cities: Sequence[str] | None = None, progress: bool = True) -> dict[str, object]:
+    """Write ``windows`` SYNTHETIC windows as AV1 CSVs: ``out/train/`` and ``out/test/`` (held-out regions).
+
+    Windows alternate over the cities; every ``1/test_fraction``-th round over the cities is drawn in the
+    held-out boxes (test).
+    Window ``k`` uses the generator ``default_rng([seed, k])``, so any window can be regenerated alone.
+
+    Returns:
+        The summary also written to ``out/generation.json`` (counts, boxes, speed in windows/s).
+    """
+    cfg = cfg or SimConfig()
+    paths = city_maps(maps)
+    if cities:
+        paths = {c: paths[c] for c in cities if c in paths}
+    if not paths:
+        raise SystemExit(f"no AV1 lane-centerline .npz under {maps}")
+    t_load = time.perf_counter()
+    plans = {c: plan_city(p, holdout_fraction, holdout_margin) for c, p in sorted(paths.items())}
+    load_s = time.perf_counter() - t_load
+    (out / "train").mkdir(parents=True, exist_ok=True)
+    (out / "test").mkdir(parents=True, exist_ok=True)
+    names = sorted(plans)
+    counts = {f"{c}/{split}": 0 for c in names for split in ("train", "test")}
+    failed = 0
+    every = max(round(1 / test_fraction), 1) if test_fraction > 0 else 0
+    t_start = time.perf_counter()
+    base_ns = 400_000_000 * 1_000_000_000  # an invented clock, well clear of the real AV1 times (~3.16e8 s)
+    for k in range(windows):
+        city = names[k % len(names)]
+        plan = plans[city]
+        # Count rounds over the cities, not windows, so every city gets its share of test windows.
+        split = "test" if every and (k // len(names)) % every == every - 1 else "train"
+        rng = np.random.default_rng([seed, k])
+        win = simulate_window(plan.graph, plan.test if split == "test" else plan.train, rng, cfg)
+        if win is None:
+            failed += 1
+            continue
+        name = f"synthetic_{city}_{k:06d}"
+        text = window_csv(win, city, base_ns + k * 10 * 1_000_000_000)
+        (out / split / f"{name}.csv").write_text(text)
+        counts[f"{city}/{split}"] += 1
+        if progress and ((k + 1) % 100 == 0 or k + 1 == windows):
+            rate = (k + 1) / max(time.perf_counter() - t_start, 1e-9)
+            print(f"\r{k + 1}/{windows} windows  {rate:.1f} windows/s", end="", file=sys.stderr, flush=True)
+    if progress:
+        print(file=sys.stderr)
+    elapsed = time.perf_counter() - t_start
+    summary: dict[str, object] = {
+        "synthetic": True,
+        "seed": seed,
+        "windows_requested": windows,
+        "windows_written": sum(counts.values()),
+        "windows_failed": failed,
+        "counts": counts,
+        "seconds": round(elapsed, 3),
+        "map_load_seconds": round(load_s, 3),
+        "windows_per_s": round(sum(counts.values()) / max(elapsed, 1e-9), 2),
+        "test_fraction": test_fraction,
+        "holdout": {c: asdict(p.holdout) for c, p in plans.items()},
+        "lanes": {c: {"total": len(p.graph), "train": int(p.train.sum()), "test": int(p.test.sum()),
+                      "forks": len(p.graph.forks), "derived_links": p.graph.derived_links}
+                  for c, p in plans.items()},
+        "maps": {c: str(p) for c, p in sorted(paths.items())},
+        "sim": asdict(cfg),
+    }
+    (out / "generation.json").write_text(json.dumps(summary, indent=2) + "\n")
+    (out / "README.md").write_text(_readme(summary, [str(p) for _, p in sorted(paths.items())]))
+    return summary
+
+
+def _readme(summary: dict[str, object], map_files: list[str]) -> str:
+    return f"""# SYNTHETIC traffic on real Argoverse 1 lane graphs — not recorded data
+
+Every file in this folder was **simulated** by `logpipe.synthetic.traffic` (seed {summary['seed']}); no vehicle
+here was ever observed. Only the lane centerlines are real: the Argoverse 1 city lane centerlines
+(`{'`, `'.join(map_files)}`, CC BY-NC-SA 4.0; see
+`../shared/data/argoverse1/SOURCE.md`). Lane successor links were derived from geometry (end vertex = start vertex,
+direction change < {LINK_MAX_TURN_DEG:.0f} deg), since the npz holds centerlines only.
+
+Layout: `train/` and `test/` hold Argoverse 1 forecasting CSVs (`{CSV_HEADER}`), 50 steps at 10 Hz,
+one AV (the ego, with its own route), one AGENT (a vehicle that meets a fork after step 20 when one does) and
+OTHERS. File names and log ids start with `synthetic_`. `test/` windows use only lanes inside each city's held-out
+box; `train/` windows only lanes at least the margin outside it (boxes in `generation.json`).
+
+Model: lane following along successor lanes, a uniformly random successor at every fork, IDM car following on
+shared lanes, speed limited by curvature (lateral acceleration) and acceleration bounds, a slow lateral wander of a
+few decimetres. Not modelled: lane changes, traffic lights, right of way at intersections (paths that cross may
+overlap), pedestrians, partial tracks.
+
+Counts: {json.dumps(summary['counts'])}; {summary['windows_per_s']} windows/s.
+"""
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """``python -m logpipe.synthetic.traffic --maps DIR --out DIR --windows N --seed S``."""
+    ap = argparse.ArgumentParser(prog="python -m logpipe.synthetic.traffic", description=__doc__.split("\n\n")[0])
+    ap.add_argument("--maps", type=Path, required=True, help="folder with {MIA,PIT}*_lane_centerlines*.npz")
+    ap.add_argument("--out", type=Path, required=True, help="output folder (train/, test/, README.md)")
+    ap.add_argument("--windows", type=int, default=1000, help="windows to simulate (train + test)")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--test-fraction", type=float, default=0.2, help="share of windows drawn in the held-out boxes")
+    ap.add_argument("--holdout-fraction", type=float, default=0.15, help="share of a city's lanes in its box")
+    ap.add_argument("--holdout-margin", type=float, default=75.0, help="metres training lanes keep from the box")
+    ap.add_argument("--cities", nargs="*", default=None, help="restrict to these cities (default: all found)")
+    args = ap.parse_args(argv)
+    summary = generate(args.maps, args.out, args.windows, args.seed, test_fraction=args.test_fraction,
+                       holdout_fraction=args.holdout_fraction, holdout_margin=args.holdout_margin,
+                       cities=args.cities)
+    print(json.dumps({k: summary[k] for k in ("windows_written", "windows_failed", "counts", "windows_per_s")}))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
