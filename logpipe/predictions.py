@@ -77,7 +77,7 @@ class PredictionMeta:
         checkpoint_id: weights sha256 plus non-default inference settings, or the baseline with its parameters;
             also the ``checkpoint_id`` column.
         protocol: the sample protocol's name (``ethucy``, ``argoverse1``, ...), None when unknown.
-        obs_len: observed steps of each window.
+        obs_len: observed steps of each window (0 when unknown: tables of older writers).
         pred_len: T, predicted steps (the horizon).
         num_modes: K, futures per target.
         checkpoint_sha256: the weights' sha256 alone (None for baselines).
@@ -122,8 +122,9 @@ class PredictionMeta:
             meta = cls(**values)
         except TypeError as exc:
             raise PredictionsError(f"{where}: predictions metadata incomplete ({exc})") from None
-        ints = (meta.obs_len, meta.pred_len, meta.num_modes)
-        if not all(isinstance(v, int) and v >= 1 for v in ints) or not isinstance(meta.predictor, str):
+        ints = (meta.pred_len, meta.num_modes)
+        if not all(isinstance(v, int) and v >= 1 for v in ints) or not isinstance(meta.obs_len, int) \
+                or not isinstance(meta.predictor, str):
             raise PredictionsError(f"{where}: predictions metadata has bad lengths or names: {values}")
         return meta
 
@@ -284,7 +285,7 @@ def meta_from_table(schema: pa.Schema, table: pa.Table | None, where: str) -> Pr
     seed = raw.get("logpipe.seed")
     return PredictionMeta(
         predictor=names[0], checkpoint_id=ids[0], protocol=protocol.get("name"),
-        obs_len=number("obs_len", 0) or 1,
+        obs_len=number("obs_len", 0),
         pred_len=number("pred_len", int(pc.max(table.column("step")).as_py())),
         num_modes=number("num_modes", int(pc.max(table.column("mode")).as_py()) + 1),
         seed=int(seed) if seed is not None else None,

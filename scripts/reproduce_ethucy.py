@@ -38,9 +38,10 @@ from logpipe.model.baselines import ConstantVelocity, ConstantVelocitySampler, K
 from logpipe.model.batching import neighbour_counts
 from logpipe.model.checkpoints import read_meta
 from logpipe.model.predictor import NetPredictor, Predictor, inference_id
+from logpipe.predictions import PredictionMeta, samples_table
 from logpipe.resample import ResampleSpec, resample_track
 from logpipe.stages.ingest import IngestOptions, ingest
-from logpipe.stages.score import forecasts_to_table, load_predictions, score
+from logpipe.stages.score import load_method, score
 from logpipe.stages.train import scene_samples
 from logpipe.types import NDArrayBool, NDArrayFloat, NDArrayInt, SceneSample
 
@@ -280,9 +281,9 @@ def write_predictions(predictor: Predictor, samples: Sequence[SceneSample], k: i
                       checkpoint_id: str, out: Path, name: str | None = None) -> Path:
     """Run ``predictor`` and write its predictions table (``schemas/predictions.json``) to ``out``."""
     forecasts = predictor.predict(samples, k, seed)
-    table = forecasts_to_table(samples, forecasts, predictor=name or predictor.name, checkpoint_id=checkpoint_id,
-                               pred_len=pred_len)
-    write_parquet(table, out)
+    meta = PredictionMeta(predictor=name or predictor.name, checkpoint_id=checkpoint_id, protocol=None,
+                          obs_len=samples[0].obs_len if samples else 0, pred_len=pred_len, num_modes=k, seed=seed)
+    write_parquet(samples_table(meta, samples, forecasts), out)
     return out
 
 
@@ -454,7 +455,7 @@ def read_forecasts(files: Sequence[Path], samples: Sequence[SceneSample], method
     keys = [(s.sample_id, s.track_ids[r]) for s in samples for r in np.flatnonzero(s.target_mask)]
     row_of = {key: i for i, key in enumerate(keys)}
     out = {}
-    for forecasts in (m for f in files for m in load_predictions(f) if m.name in methods):
+    for forecasts in (m for m in map(load_method, files) if m.name in methods):
         dense = np.full((len(keys), *forecasts.pred.shape[1:]), np.nan)
         for i, key in enumerate(zip(forecasts.sample_ids.tolist(), forecasts.track_ids.tolist(), strict=True)):
             if key in row_of:

@@ -1,10 +1,11 @@
-"""``logpipe score``: ADE/FDE reports for one or more prediction tables against a dataset's ground truth.
+"""``logpipe score``: ADE/FDE reports for one or more prediction runs against a dataset's ground truth.
 
-Reads top-down: load each predictions table (``schemas/predictions.json``; one method per ``predictor``
-value) → decide which agents count (the protocol flags: ``agents``, ``min_agents``, ``split``) → look up
+Reads top-down: open each input (a ``logpipe predict`` output folder, or a predictions file; one method each,
+read through ``logpipe.predictions`` with its protocol, K and horizon from its metadata) → check the protocol
+against the dataset's → decide which agents count (the protocol flags: ``agents``, ``min_agents``, ``split``) → look up
 their true futures in the dataset's track table with one join → per-step L2 errors → metrics per method,
-overall / per object type / per log, for every K asked → ``report.json``, ``report.md``, PNG plots →
-threshold gate for CI.
+overall / per object type / per log, for every K asked → ``report.json``, ``report.md``, PNG plots,
+committed as one artifact folder (``manifest.json``, ``logpipe.artifact``) → threshold gate for CI.
 
 Conventions are those of ``logpipe.metrics`` (ADE = mean Euclidean distance in metres; per-agent and joint
 best-of-K; the Argoverse min-FDE mode with its ADE and a 2.0 m miss rate). The protocol is written next to
@@ -13,6 +14,9 @@ every method's numbers so a number never travels without it.
 
 from __future__ import annotations
 
+import errno
+import io
+import json
 import math
 import time
 from collections.abc import Sequence
@@ -23,13 +27,13 @@ from typing import Any, Literal
 import numpy as np
 import pyarrow as pa
 import pyarrow.compute as pc
-import pyarrow.parquet as pq
 
-from logpipe import metrics
-from logpipe.contracts import arrow_schema
+from logpipe import __version__, metrics
+from logpipe.artifact import MANIFEST, ArtifactWriter, FileEntry, os_error_message, read_manifest
 from logpipe.dataset import Dataset
-from logpipe.errors import LogpipeError
-from logpipe.io import as_numpy, atomic_open, write_json
+from logpipe.errors import LogpipeError, OutputError
+from logpipe.io import as_numpy, atomic_path, read_table, sha256_bytes, sha256_file
+from logpipe.predictions import PredictionMeta, PredictionRun
 from logpipe.types import NDArrayFloat, NDArrayInt, SceneSample
 
 REPORT_VERSION = 1
@@ -59,13 +63,15 @@ class ScoreError(LogpipeError):
 
 @dataclass
 class MethodForecasts:
-    """One method's forecasts, as dense arrays.
+    """One method's forecasts (one prediction run folder or predictions file), as dense arrays.
 
     Attributes:
-        name: label in reports (the ``predictor`` value unless relabelled).
-        predictor: the ``predictor`` column value.
+        name: label in reports (the predictor unless relabelled or colliding).
+        predictor: the metadata's predictor.
         checkpoint_ids: distinct ``checkpoint_id`` values.
-        source: the Parquet file.
+        source: the folder or file.
+        run_name: the folder's name or the file's stem (the label when predictor names collide).
+        meta: what the forecasts were made with (protocol, K, horizon, seed, ...).
         sample_ids: (N,) sample of each agent row.
         track_ids: (N,) track of each agent row.
         object_types: (N,) normalised class of each agent row.
@@ -76,6 +82,8 @@ class MethodForecasts:
     predictor: str
     checkpoint_ids: list[str]
     source: str
+    run_name: str
+    meta: PredictionMeta
     sample_ids: Any
     track_ids: Any
     object_types: Any
@@ -87,115 +95,61 @@ class MethodForecasts:
         return int(self.pred.shape[1])
 
 
-def load_predictions(path: Path) -> list[MethodForecasts]:
-    """Read a predictions table; one ``MethodForecasts`` per distinct ``predictor``.
+def load_method(path: Path) -> MethodForecasts:
+    """Read one method: a ``logpipe predict`` output folder (its committed predictions) or a predictions file.
 
     Raises:
-        ScoreError: the file is missing, lacks contract columns, or is not one row per (agent, mode, step)
-            with steps 1..T and modes 0..K-1.
+        PredictionsError: missing, damaged, not a prediction run, or not one row per (agent, mode, step) with
+            the metadata's K and T.
     """
-    if not Path(path).is_file():
-        raise ScoreError(f"{path}: predictions file not found")
-    table = pq.read_table(path)
-    need = arrow_schema("predictions").names
-    missing = [c for c in need if c not in table.column_names]
-    if missing:
-        raise ScoreError(f"{path}: not a predictions table (schemas/predictions.json), missing columns {missing}")
-    meta = {k.decode(): v.decode() for k, v in (table.schema.metadata or {}).items()}
-    out = []
-    for predictor in sorted(set(table.column("predictor").to_pylist())):
-        part = table.filter(pc.equal(table.column("predictor"), predictor))
-        out.append(_dense(part, predictor, str(path), meta))
-    if not out:
-        raise ScoreError(f"{path}: the predictions table is empty")
-    return out
-
-
-def _dense(table: pa.Table, predictor: str, source: str, meta: dict[str, str]) -> MethodForecasts:
-    order = pc.sort_indices(table, sort_keys=[(c, "ascending") for c in ("sample_id", "track_id", "mode", "step")])
-    table = table.take(order)
-    steps = as_numpy(table.column("step")).astype(np.int64)
-    modes = as_numpy(table.column("mode")).astype(np.int64)
-    t = int(meta.get("pred_len", steps.max()))
-    k = int(meta.get("num_modes", modes.max() + 1))
-    n_rows = table.num_rows
-    if n_rows % (k * t):
-        raise ScoreError(f"{source}: predictor {predictor!r}: {n_rows} rows is not agents x {k} modes x {t} steps")
-    n = n_rows // (k * t)
-    # The sorted rows must form a full grid: steps 1..T inside modes 0..K-1 inside each agent.
-    grid_ok = np.array_equal(steps.reshape(n, k, t), np.broadcast_to(np.arange(1, t + 1), (n, k, t))) and \
-        np.array_equal(modes.reshape(n, k, t), np.broadcast_to(np.arange(k)[:, None], (n, k, t)))
-    sid = pc.dictionary_encode(table.column("sample_id")).combine_chunks()
-    tid = pc.dictionary_encode(table.column("track_id")).combine_chunks()
-    key = sid.indices.to_numpy().astype(np.int64) * (len(tid.dictionary) + 1) + tid.indices.to_numpy()
-    key = key.reshape(n, k * t)
-    if not grid_ok or not np.all(key == key[:, :1]):
-        raise ScoreError(f"{source}: predictor {predictor!r}: rows are not one per (sample, track, mode 0..{k - 1}, "
-                         f"step 1..{t}); duplicated or missing rows")
-    first = np.arange(n) * k * t
-    xy = np.stack([as_numpy(table.column("x")), as_numpy(table.column("y"))], axis=-1).astype(np.float64)
+    run = PredictionRun.open(Path(path))
+    dense = run.dense()
     return MethodForecasts(
-        name=predictor,
-        predictor=predictor,
-        checkpoint_ids=sorted(set(table.column("checkpoint_id").to_pylist())),
-        source=source,
-        sample_ids=as_numpy(table.column("sample_id"))[first].astype(str),
-        track_ids=as_numpy(table.column("track_id"))[first].astype(str),
-        object_types=as_numpy(table.column("object_type"))[first].astype(str),
-        pred=xy.reshape(n, k, t, 2),
+        name=run.meta.predictor, predictor=run.meta.predictor, checkpoint_ids=dense.checkpoint_ids,
+        source=str(path), run_name=run.name, meta=run.meta, sample_ids=dense.sample_ids, track_ids=dense.track_ids,
+        object_types=dense.object_types, pred=dense.pred,
     )
 
 
-def forecasts_to_table(
-    samples: Sequence[SceneSample], forecasts: Sequence[NDArrayFloat], *, predictor: str, checkpoint_id: str,
-    pred_len: int, sample_log: dict[str, str] | None = None,
-) -> pa.Table:
-    """The predictions table (``schemas/predictions.json``) for ``Predictor.predict`` outputs.
+def _name_methods(methods: list[MethodForecasts], labels: Sequence[str] | None) -> None:
+    """Labels given, else the predictor; methods whose predictors collide (two checkpoints of one method) are
+    named by their folder or file, and ``#N`` is added where even those collide."""
+    if labels:
+        if len(labels) != len(methods):
+            raise ScoreError(f"{len(labels)} labels for {len(methods)} methods (one per predictions folder or "
+                             f"file: {', '.join(m.source for m in methods)})")
+        for m, label in zip(methods, labels, strict=True):
+            m.name = label
+    else:
+        counts: dict[str, int] = {}
+        for m in methods:
+            counts[m.name] = counts.get(m.name, 0) + 1
+        for m in methods:
+            if counts[m.name] > 1:
+                m.name = m.run_name
+    seen: dict[str, int] = {}
+    for m in methods:
+        if m.name in seen:
+            seen[m.name] += 1
+            m.name = f"{m.name}#{seen[m.name]}"
+        else:
+            seen[m.name] = 1
 
-    ``logpipe predict`` is the normal producer; this exists so tests and the reproduction scripts can score
-    baselines without it. Scores are uniform (the baselines have none). ``sample_log`` maps sample id to log
-    id (default: the part of the id before the last ``:``).
-    """
-    cols: dict[str, list[Any]] = {name: [] for name in ("log_id", "sample_id", "track_id", "object_type")}
-    arrays: list[NDArrayFloat] = []
-    ts: list[NDArrayInt] = []
-    from logpipe.types import OBJECT_TYPES
 
-    for s, f in zip(samples, forecasts, strict=True):
-        idx = np.flatnonzero(s.target_mask)
-        if f.shape[0] != len(idx):
-            raise ScoreError(f"{s.sample_id}: {f.shape[0]} forecasts for {len(idx)} targets")
-        log = sample_log[s.sample_id] if sample_log else s.sample_id.rsplit(":", 1)[0]
-        for row, a in enumerate(idx):
-            cols["log_id"].append(log)
-            cols["sample_id"].append(s.sample_id)
-            cols["track_id"].append(s.track_ids[a])
-            cols["object_type"].append(OBJECT_TYPES[int(s.object_types[a])])
-            arrays.append(f[row])
-            ts.append(s.timestamps_ns[s.obs_len : s.obs_len + pred_len])
-    k = arrays[0].shape[0] if arrays else 1
-    per_agent = k * pred_len
-    data = np.stack(arrays) if arrays else np.zeros((0, k, pred_len, 2))
-    n = len(arrays)
-    table = pa.table({
-        **{c: pa.array(np.repeat(np.array(v, dtype=object), per_agent).tolist(), pa.string()) for c, v in cols.items()},
-        "mode": pa.array(np.tile(np.repeat(np.arange(k), pred_len), n).astype(np.int16)),
-        "step": pa.array(np.tile(np.arange(1, pred_len + 1), n * k).astype(np.int16)),
-        "timestamp_ns": pa.array(np.repeat(np.stack(ts) if ts else np.zeros((0, pred_len), np.int64), k, axis=0)
-                                 .reshape(-1).astype(np.int64)),
-        "x": pa.array(data[..., 0].reshape(-1)),
-        "y": pa.array(data[..., 1].reshape(-1)),
-        "score": pa.array(np.full(n * per_agent, 1.0 / k, np.float32)),
-        "predictor": pa.array([predictor] * (n * per_agent), pa.string()),
-        "checkpoint_id": pa.array([checkpoint_id] * (n * per_agent), pa.string()),
-    })
-    schema = arrow_schema("predictions")
-    table = table.select(schema.names).cast(schema)
-    obs_len = samples[0].obs_len if samples else 0
-    return table.replace_schema_metadata({
-        **(schema.metadata or {}),
-        b"obs_len": str(obs_len).encode(), b"pred_len": str(pred_len).encode(), b"num_modes": str(k).encode(),
-    })
+def _check_protocol(methods: Sequence[MethodForecasts], ds: Dataset) -> None:
+    """Every method was predicted under the dataset's protocol (name, observed and predicted steps)."""
+    p = ds.protocol
+    for m in methods:
+        meta = m.meta
+        wrong = []
+        if meta.protocol is not None and meta.protocol != p.name:
+            wrong.append(f"protocol {meta.protocol!r}, the dataset's is {p.name!r}")
+        if meta.obs_len and meta.obs_len != p.obs_len:
+            wrong.append(f"{meta.obs_len} observed steps, the dataset's protocol {p.obs_len}")
+        if meta.pred_len != p.pred_len:
+            wrong.append(f"horizon {meta.pred_len} steps, the dataset's protocol {p.pred_len}")
+        if wrong:
+            raise ScoreError(f"{m.source}: predicted with " + "; ".join(wrong) + f" ({ds.root})")
 
 
 # ---------------------------------------------------------------------------------------------- truth
@@ -268,8 +222,8 @@ def truth_futures(ds: Dataset, sample_table: pa.Table, sample_ids: Any, track_id
         "step": pa.array((cur[:, None] + np.arange(1, pred_len + 1)).reshape(-1).astype(np.int32)),
     })
     needed = sorted(set(log_ids.tolist()))
-    parts = [pq.read_table(p, columns=["log_id", "track_id", "step", "x", "y"],
-                           filters=[("log_id", "in", needed)]) for p in ds.shard_paths]
+    parts = [read_table(p, columns=["log_id", "track_id", "step", "x", "y"], filters=[("log_id", "in", needed)])
+             for p in ds.shard_paths]
     tracks = pa.concat_tables(parts)
     joined = keys.join(tracks, ["log_id", "track_id", "step"], join_type="left outer")
     if joined.num_rows != len(keys):
@@ -337,10 +291,10 @@ def score(
     """Score prediction tables against a dataset and write ``report.json``, ``report.md`` and PNG plots.
 
     Args:
-        predictions: predictions tables (``schemas/predictions.json``); each distinct ``predictor`` in them
-            is one method, shown side by side.
+        predictions: prediction run folders (``logpipe predict --out``) or predictions files
+            (``schemas/predictions.json``); each one is one method, shown side by side.
         truth: the dataset folder the predictions were made on (``logpipe ingest`` output).
-        out_dir: where the report files go (created).
+        out_dir: the report folder (created; a committed artifact, rerunning replaces its report).
         agents: ``all`` (every protocol target, e.g. all fully observed pedestrians) or ``focal``.
         min_agents: score only samples with at least this many targets (Social-GAN: 2).
         split: score exactly the samples of this split (``eth/test``, ``hash/test``); every agent that counts
@@ -348,7 +302,8 @@ def score(
         ks: the K values to report (first K modes by score); default 1 and each method's own K.
         miss_threshold_m: Argoverse miss threshold, metres.
         fail_above: ``{"k1.ade": 0.6, ...}``: the gate fails when any method's overall value is above.
-        labels: names for the methods in file order (one per predictor found), default the predictor names.
+        labels: names for the methods in input order (one per input), default the predictor names (the folder
+            or file names where predictors collide).
         allow_missing: score what is there when agents that count have no (or a NaN) forecast, instead of
             failing.
         plots: write ``horizon.png`` and ``scenes_<method>.png``.
@@ -356,11 +311,15 @@ def score(
         title: heading of ``report.md``.
 
     Returns:
-        the report (as written to ``report.json``); ``report["gate"]["failed"]`` tells the CLI its exit code.
+        the report (as written to ``report.json``) plus ``seconds``; ``report["gate"]["failed"]`` tells the CLI
+        its exit code.
 
     Raises:
-        ScoreError: unreadable or inconsistent predictions, missing agents (unless ``allow_missing``), bad
-            threshold names, or the truth folder is not a dataset.
+        ScoreError: predictions of another protocol or horizon, missing agents (unless ``allow_missing``), bad
+            threshold names.
+        PredictionsError: an input missing, damaged or inconsistent with its metadata.
+        DatasetError: the truth folder is not a dataset, or damaged.
+        OutputError: the report folder cannot be written (disk full, read-only); it keeps its last report.
     """
     t0 = time.perf_counter()
     fail_above = dict(fail_above or {})
@@ -368,25 +327,13 @@ def score(
     if agents not in ("all", "focal"):
         raise ScoreError(f"agents must be 'all' or 'focal', not {agents!r}")
     ds = Dataset.open(truth)
-    methods = [m for p in predictions for m in load_predictions(Path(p))]
-    if labels:
-        if len(labels) != len(methods):
-            raise ScoreError(f"{len(labels)} labels for {len(methods)} methods "
-                             f"({', '.join(m.predictor for m in methods)})")
-        for m, label in zip(methods, labels, strict=True):
-            m.name = label
-    seen: dict[str, int] = {}
-    for m in methods:  # the same predictor in two files (e.g. two checkpoints) stays two columns
-        if m.name in seen:
-            seen[m.name] += 1
-            m.name = f"{m.name}#{seen[m.name]}"
-        else:
-            seen[m.name] = 1
-    pred_lens = {m.pred.shape[2] for m in methods}
-    if len(pred_lens) != 1 or ds.protocol.pred_len not in pred_lens:
-        raise ScoreError(f"prediction horizons {sorted(pred_lens)} differ from the dataset protocol's pred_len "
-                         f"{ds.protocol.pred_len}")
+    methods = [load_method(Path(p)) for p in predictions]
+    if not methods:
+        raise ScoreError("no predictions given")
+    _name_methods(methods, labels)
+    _check_protocol(methods, ds)
     pred_len = ds.protocol.pred_len
+    truth_sha = sha256_file(ds.root / MANIFEST)
     dt_s = _step_seconds(ds)
     predicted = {s for m in methods for s in m.sample_ids.tolist()}
     sel = select_agents(ds, predicted, split=split, agents=agents, min_agents=min_agents)
@@ -419,6 +366,9 @@ def score(
         logs = log_ids[ok]
         entry: dict[str, Any] = {
             "predictor": m.predictor, "checkpoint_ids": m.checkpoint_ids, "source": m.source,
+            "metadata": dict(m.meta.to_dict()),
+            "same_dataset": None if m.meta.dataset_manifest_sha256 is None
+            else m.meta.dataset_manifest_sha256 == truth_sha,
             "num_modes": m.num_modes, "ks": method_ks, "protocol": protocol, "counts": counts,
             "overall": group_metrics(err, sample_idx, method_ks, miss_threshold_m),
             "by_type": {t: group_metrics(err[types == t], sample_idx[types == t], method_ks, miss_threshold_m)
@@ -429,16 +379,72 @@ def score(
         report["methods"][m.name] = entry
         scored[m.name] = (m, err, truth_xy[ok], sids)
     report["gate"] = _gate(report, fail_above)
-    out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
     report["plots"] = []
+    outputs: dict[str, bytes] = {}
     if plots:
-        report["plots"] = write_plots(report, scored, ds, out_dir, plot_samples)
-    report["seconds"] = round(time.perf_counter() - t0, 3)
-    write_json(report, out_dir / "report.json")
-    with atomic_open(out_dir / "report.md", "w") as fh:
-        fh.write(render_markdown(report, title))
-    return report
+        outputs = render_plots(report, scored, ds, plot_samples)
+        report["plots"] = list(outputs)
+    # Key-sorted, no timings: the same inputs give the same bytes.
+    outputs[REPORT_JSON] = (json.dumps(report, indent=2, sort_keys=True) + "\n").encode()
+    outputs[REPORT_MD] = render_markdown(report, title).encode()
+    write_report_folder(Path(out_dir), outputs, [m.source for m in methods], str(truth))
+    return {**report, "seconds": round(time.perf_counter() - t0, 3)}
+
+
+REPORT_ARTIFACT = "score_report"
+"""``manifest.json`` ``artifact`` value of a score report folder."""
+REPORT_JSON = "report.json"
+REPORT_MD = "report.md"
+OUTPUT_ERRNOS = frozenset({errno.ENOSPC, errno.EROFS, errno.EACCES, errno.EDQUOT, errno.EPERM})
+
+
+def report_owned(rel: str) -> bool:
+    """A report folder's own files: the reports and the plots at its top (never a report nested in it)."""
+    return "/" not in rel and (rel in (REPORT_JSON, REPORT_MD) or rel.endswith(".png"))
+
+
+def write_report_folder(out_dir: Path, outputs: dict[str, bytes], inputs: list[str], truth: str) -> None:
+    """Commit ``outputs`` (file name -> bytes) as the report folder's state (``logpipe.artifact``).
+
+    Files whose bytes are already committed are left alone (a rerun over the same inputs writes nothing). A
+    committed file about to get other bytes is first dropped from the manifest by a commit of its own, so the
+    manifest never names a file whose bytes differ from what it records, whenever a crash comes.
+
+    Raises:
+        ScoreError: ``out_dir`` holds another artifact (a dataset, a prediction run).
+        OutputError: the disk is full, read-only or not writable; the folder keeps its committed state.
+    """
+    _refuse_other_artifact(out_dir)
+    new: dict[str, FileEntry] = {name: {"bytes": len(data), "sha256": sha256_bytes(data)}
+                                 for name, data in outputs.items()}
+
+    def manifest(files: dict[str, FileEntry]) -> dict[str, Any]:
+        return {"artifact": REPORT_ARTIFACT, "report_version": REPORT_VERSION, "logpipe_version": __version__,
+                "inputs": inputs, "truth": truth, "files": files}
+
+    try:
+        with ArtifactWriter(out_dir, report_owned) as writer:
+            _refuse_other_artifact(out_dir)
+            old: dict[str, FileEntry] = dict((writer.manifest or {}).get("files", {}))
+            changed = [name for name in outputs if old.get(name) != new[name]]
+            if writer.manifest is not None and any(name in old for name in changed):
+                writer.commit(manifest({k: v for k, v in old.items() if k not in changed}))
+            for name in changed:
+                with atomic_path(out_dir / name) as tmp:
+                    tmp.write_bytes(outputs[name])
+            if writer.manifest != json.loads(json.dumps(manifest(new))):
+                writer.commit(manifest(new))
+    except OSError as exc:
+        if exc.errno in OUTPUT_ERRNOS:
+            raise OutputError(os_error_message(exc)) from None
+        raise
+
+
+def _refuse_other_artifact(out_dir: Path) -> None:
+    existing = read_manifest(out_dir, required=False) if out_dir.is_dir() else None
+    if existing is not None and existing.get("artifact") != REPORT_ARTIFACT:
+        raise ScoreError(f"{out_dir}: holds another logpipe artifact (a {existing.get('artifact') or 'dataset'}), "
+                         "not a score report; choose another --out")
 
 
 def _step_seconds(ds: Dataset) -> float:
@@ -568,16 +574,23 @@ def _horizon_steps(horizon_s: list[float]) -> list[int]:
 # ---------------------------------------------------------------------------------------------- plots
 
 
-def write_plots(report: dict[str, Any], scored: dict[str, tuple[MethodForecasts, NDArrayFloat, NDArrayFloat, Any]],
-                ds: Dataset, out_dir: Path, plot_samples: int) -> list[str]:
+def _png(fig: Any, dpi: int) -> bytes:
+    """The figure as PNG bytes (the report folder commits files it has whole, see ``write_report_folder``)."""
+    buffer = io.BytesIO()
+    fig.savefig(buffer, format="png", dpi=dpi)
+    return buffer.getvalue()
+
+
+def render_plots(report: dict[str, Any], scored: dict[str, tuple[MethodForecasts, NDArrayFloat, NDArrayFloat, Any]],
+                 ds: Dataset, plot_samples: int) -> dict[str, bytes]:
     """``horizon.png`` (error vs horizon per method) and ``scenes_<method>.png`` (a grid of samples: history,
-    truth and the K forecasts, over the map raster when the dataset has a raster run). Returns file names."""
+    truth and the K forecasts, over the map raster when the dataset has a raster run): file name -> PNG bytes."""
     import matplotlib
 
     matplotlib.use("Agg")  # files only, no display
     import matplotlib.pyplot as plt
 
-    files = []
+    files: dict[str, bytes] = {}
     horizon = report["protocol"]["horizon_s"]
     fig, ax = plt.subplots(figsize=(7, 4.5))
     colours = plt.rcParams["axes.prop_cycle"].by_key()["color"]
@@ -593,9 +606,8 @@ def write_plots(report: dict[str, Any], scored: dict[str, tuple[MethodForecasts,
     ax.grid(alpha=0.3)
     ax.legend(fontsize=7, ncol=2)
     fig.tight_layout()
-    fig.savefig(out_dir / "horizon.png", dpi=110)
+    files["horizon.png"] = _png(fig, 110)
     plt.close(fig)
-    files.append("horizon.png")
     if plot_samples <= 0 or not scored:
         return files
     # The same samples for every method: evenly spread over the sample ids all methods scored.
@@ -615,7 +627,8 @@ def write_plots(report: dict[str, Any], scored: dict[str, tuple[MethodForecasts,
     scenes = _scene_samples(ds, pick)
     rasters = _open_rasters(ds)
     for name, (m, _err, _truth, _sids) in scored.items():
-        files.append(_scene_grid(plt, name, m, pick, scenes, rasters, out_dir))
+        fname, data = _scene_grid(plt, name, m, pick, scenes, rasters)
+        files[fname] = data
     return files
 
 
@@ -626,21 +639,16 @@ def _scene_samples(ds: Dataset, ids: list[str]) -> dict[str, SceneSample]:
 
 def _open_rasters(ds: Dataset) -> Any:
     """The dataset's first finished raster run, or None (plots then show tracks only)."""
-    from logpipe.io import read_json
-    from logpipe.raster import RasterSpec
-    from logpipe.rasters import RasterShards
+    from logpipe.rasters import find_raster_run
 
-    for manifest in sorted((ds.root / "rasters").glob("*/manifest.json")):
-        try:
-            settings = read_json(manifest)["settings"]
-            return RasterShards.open(ds.root, RasterSpec.from_dict(settings["spec"]), settings["centre"])
-        except (LogpipeError, KeyError, TypeError, ValueError):
-            continue
-    return None
+    try:
+        return find_raster_run(ds.root, None, None)
+    except (LogpipeError, KeyError, TypeError, ValueError):
+        return None
 
 
 def _scene_grid(plt: Any, name: str, m: MethodForecasts, pick: list[str], scenes: dict[str, SceneSample],
-                rasters: Any, out_dir: Path) -> str:
+                rasters: Any) -> tuple[str, bytes]:
     cols = min(3, len(pick))
     rows = math.ceil(len(pick) / cols)
     fig, axes = plt.subplots(rows, cols, figsize=(4.2 * cols, 4.2 * rows), squeeze=False)
@@ -686,6 +694,6 @@ def _scene_grid(plt: Any, name: str, m: MethodForecasts, pick: list[str], scenes
     fig.tight_layout()
     safe = "".join(c if c.isalnum() or c in "-_" else "_" for c in name)
     fname = f"scenes_{safe}.png"
-    fig.savefig(out_dir / fname, dpi=75)
+    data = _png(fig, 75)
     plt.close(fig)
-    return fname
+    return fname, data

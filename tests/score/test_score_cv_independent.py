@@ -13,8 +13,9 @@ import pytest
 from logpipe.dataset import Dataset
 from logpipe.io import write_parquet
 from logpipe.model.baselines import ConstantVelocity
+from logpipe.predictions import PredictionMeta, samples_table
 from logpipe.stages.ingest import IngestOptions, ingest
-from logpipe.stages.score import forecasts_to_table, score
+from logpipe.stages.score import score
 from logpipe.stages.train import scene_samples
 
 OBS, PRED = 8, 12
@@ -64,8 +65,9 @@ def test_constant_velocity_matches_a_hand_loop_over_the_raw_file(shared: Path, t
     ingest([tmp_path / "raw"], IngestOptions(out=tmp_path / "ds", format="ethucy", write_mcap=False))
     ds = Dataset.open(tmp_path / "ds")
     samples = scene_samples(ds, f"{scene}/test")
-    table = forecasts_to_table(samples, ConstantVelocity(pred_len=PRED).predict(samples, 1, 0), predictor="cv",
-                               checkpoint_id="constant_velocity", pred_len=PRED)
+    meta = PredictionMeta(predictor="cv", checkpoint_id="constant_velocity", protocol="ethucy", obs_len=OBS,
+                          pred_len=PRED, num_modes=1)
+    table = samples_table(meta, samples, ConstantVelocity(pred_len=PRED).predict(samples, 1, 0))
     write_parquet(table, tmp_path / "cv.parquet")
     for min_peds in (1, 2):
         n, ade, fde = _cv_by_hand(shared / "ethucy" / scene / "test" / file, min_peds)

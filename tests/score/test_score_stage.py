@@ -11,11 +11,14 @@ import pyarrow.compute as pc
 import pytest
 
 from logpipe.dataset import Dataset
+from logpipe.errors import LogpipeError
 from logpipe.io import write_parquet
 from logpipe.model.baselines import ConstantVelocity, ConstantVelocitySampler
+from logpipe.predictions import PredictionMeta, samples_table
 from logpipe.stages.ingest import IngestOptions, ingest
-from logpipe.stages.score import ScoreError, forecasts_to_table, load_predictions, score
+from logpipe.stages.score import ScoreError, load_method, score
 from logpipe.stages.train import scene_samples
+from logpipe.types import SceneSample
 
 
 @pytest.fixture(scope="module")
@@ -37,6 +40,13 @@ def walkers(tmp_path_factory: pytest.TempPathFactory) -> Path:
     (folder / "walk.txt").write_text("".join(f"{f}\t{p}.0\t{x:.6f}\t{y:.6f}\n" for f, p, x, y in rows))
     ingest([root / "raw"], IngestOptions(out=root / "ds", format="ethucy", write_mcap=False))
     return root / "ds"
+
+
+def forecasts_to_table(samples: list[SceneSample], forecasts: list[np.ndarray], *, predictor: str,
+                       checkpoint_id: str, pred_len: int) -> pa.Table:
+    meta = PredictionMeta(predictor=predictor, checkpoint_id=checkpoint_id, protocol=None, obs_len=8 if pred_len == 12
+                          else 20, pred_len=pred_len, num_modes=forecasts[0].shape[1])
+    return samples_table(meta, samples, forecasts)
 
 
 def _write(table: pa.Table, path: Path) -> Path:
@@ -120,10 +130,10 @@ def test_missing_or_broken_forecasts_are_errors_not_silent(walkers: Path, tmp_pa
     assert report["methods"]["cv"]["counts"]["agents_missing"] == 1
     assert report["methods"]["cv"]["overall"]["agents"] == 13
     doubled = _write(pa.concat_tables([table, table.slice(0, 1)]), tmp_path / "dup.parquet")
-    with pytest.raises(ScoreError, match=r"not agents x 1 modes x 12 steps|duplicated or missing"):
-        load_predictions(doubled)
-    with pytest.raises(ScoreError, match="not found"):
-        load_predictions(tmp_path / "nope.parquet")
+    with pytest.raises(LogpipeError, match=r"not agents x 1 modes x 12 steps|duplicated or missing"):
+        load_method(doubled)
+    with pytest.raises(LogpipeError, match="not found"):
+        load_method(tmp_path / "nope.parquet")
 
 
 def test_focal_agents_on_argoverse_with_k1_and_k6(bundled: Path, tmp_path: Path) -> None:
