@@ -32,11 +32,11 @@ demo: setup
 	$(LP) rasterise $(DEMO)/argoverse1 --map MIA=$(M)/MIA_lane_centerlines_crop_2645.npz \
 		--map PIT=$(M)/PIT_lane_centerlines_crop_3861.npz --rotate --preview 2
 	$(LP) predict $(DEMO)/argoverse1 --predictor cv --out $(DEMO)/predict-argoverse1
-	$(LP) score $(DEMO)/predict-argoverse1/predictions/*.parquet --truth $(DEMO)/argoverse1 --agents focal \
+	$(LP) score $(DEMO)/predict-argoverse1 --truth $(DEMO)/argoverse1 --agents focal \
 		--out $(DEMO)/score-argoverse1
 	$(LP) ingest tests/data/ethucy --out $(DEMO)/ethucy
 	$(LP) predict $(DEMO)/ethucy --filter split=eth/test --out $(DEMO)/predict-ethucy
-	$(LP) score $(DEMO)/predict-ethucy/predictions/*.parquet --truth $(DEMO)/ethucy --split eth/test \
+	$(LP) score $(DEMO)/predict-ethucy --truth $(DEMO)/ethucy --split eth/test \
 		--out $(DEMO)/score-ethucy
 	$(LP) ingest tests/data/apolloscape --out $(DEMO)/apolloscape
 	$(LP) predict $(DEMO)/apolloscape --out $(DEMO)/predict-apolloscape
