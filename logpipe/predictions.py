@@ -360,8 +360,8 @@ class PredictionRun:
     def _open_folder(cls, root: Path) -> PredictionRun:
         if not (root / MANIFEST).is_file() and (root / LEGACY_RUN_FILE).is_file():
             raise PredictionsError(f"{root}: a prediction run of an older logpipe ({LEGACY_RUN_FILE}, no "
-                                   f"{MANIFEST}); score its predictions/*.parquet files one by one, or re-run "
-                                   "`logpipe predict` into a new folder")
+                                   f"{MANIFEST}); re-run `logpipe predict` into a new folder (or score its "
+                                   "predictions/*.parquet files one at a time)")
         try:
             manifest = read_manifest(root)
         except DatasetError as exc:
