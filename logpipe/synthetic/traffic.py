@@ -56,6 +56,7 @@ class SimConfig:
 
     Attributes:
         dt: step (0.1 s = AV1's 10 Hz). steps: recorded steps per window (AV1: 20 observed + 30 future).
+        obs_len: observed steps (the AGENT is picked among vehicles that meet a fork after step ``obs_len``).
         warmup: simulated steps before the first recorded one (speeds settle, gaps form).
         v_desired: range of each vehicle's free-road speed. a_max: largest acceleration.
         b_comfort: deceleration planned for ahead of curves. b_max: hardest braking (the clamp).
@@ -70,6 +71,7 @@ class SimConfig:
 
     dt: float = 0.1
     steps: int = 50
+    obs_len: int = 20
     warmup: int = 10
     v_desired: tuple[float, float] = (8.0, 16.0)
     a_max: float = 2.0
@@ -348,7 +350,8 @@ class SimWindow:
 
 def simulate_window(graph: LaneGraph, allowed: NDArrayBool, rng: np.random.Generator, cfg: SimConfig,
                     starts: NDArrayInt | None = None, tries: int = 20) -> SimWindow | None:
-    """Simulate one window on the allowed lanes (None when no ego route fits after ``tries`` start lanes).
+    """Simulate one window on the allowed lanes (None when no ego route fits after ``tries`` start lanes, or no
+    other vehicle could be placed near it).
 
     Args:
         graph: the city lane graph.
@@ -400,6 +403,8 @@ def simulate_window(graph: LaneGraph, allowed: NDArrayBool, rng: np.random.Gener
         routes.append(route)
         desired.append(v_des)
         s0.append(off)
+    if len(routes) < 2:
+        return None  # an AV1 file always has an AGENT besides the AV
     return _run(graph, routes, np.array(desired), np.array(s0), rng, cfg)
 
 
@@ -448,7 +453,7 @@ def _run(graph: LaneGraph, routes: list[Route], desired: NDArrayFloat, s_init: N
         pos += rng.normal(0.0, cfg.noise_sd, pos.shape)
     choices: list[tuple[str, str]] = []
     future_forks = np.zeros(n, dtype=bool)
-    obs_last = cfg.steps * 2 // 5 - 1  # step 19 of 50: the AV1 current step
+    obs_last = cfg.obs_len - 1  # the current step
     for i, r in enumerate(routes):
         first, last = r.lane_at(float(arcs[i, 0])), r.lane_at(float(arcs[i, -1]))
         for k, lane in r.forks:
@@ -460,7 +465,7 @@ def _run(graph: LaneGraph, routes: list[Route], desired: NDArrayFloat, s_init: N
     # The AGENT: a vehicle that meets a fork after the current step (where the map decides), nearest the AV.
     score = dist - 1000.0 * future_forks
     score[0] = math.inf
-    agent = int(np.argmin(score)) if n > 1 else 0
+    agent = int(np.argmin(score))
     return SimWindow(pos, speeds, accels, routes, arcs, agent, min_gap, choices)
 
 

@@ -104,6 +104,11 @@ def test_holdout_determinism_and_ingest(bundled: Path, tmp_path: Path) -> None:
     assert any((tmp_path / "a" / f).read_bytes() != (tmp_path / "c" / f).read_bytes() for f in a_files)
     assert all(f.name.startswith("synthetic_") for f in a_files)
     assert "SYNTHETIC" in (tmp_path / "a" / "README.md").read_text()
+    for f in a_files:  # the AV1 layout: one AV and one AGENT over all 50 steps, one city
+        frame = pd.read_csv(tmp_path / "a" / f)
+        kinds = frame.groupby("OBJECT_TYPE")["TRACK_ID"].agg(["nunique", "size"])
+        assert kinds.loc["AV"].tolist() == [1, 50] and kinds.loc["AGENT"].tolist() == [1, 50]
+        assert frame["TIMESTAMP"].nunique() == 50 and frame["CITY_NAME"].nunique() == 1
 
     for city, path in city_maps(maps).items():
         plan = plan_city(path, 0.35, 20.0)
