@@ -72,13 +72,11 @@ def build_samples(
     steps = as_numpy(tracks.column("step")).astype(np.int64)
     ts = as_numpy(tracks.column("timestamp_ns"))
     focal = as_numpy(pc.equal(tracks.column("role"), Role.FOCAL.value))
-    # Only computed for the rule that needs it, so the presets' index is built exactly as before.
-    ego = as_numpy(pc.equal(tracks.column("role"), Role.EGO.value)) if protocol.targets == "fully_observed_no_ego" \
-        else None
+    excluded = _excluded_rows(tracks, protocol)
     rate = {m.log_id: m.frame_rate_hz for m in logs}
     if protocol.window == "first":
         return conform(pa.table(_first_windows(log_code, log_names, track_code, track_names, steps, ts, focal,
-                                               protocol, rate, ego)), schema)
+                                               protocol, rate, excluded)), schema)
 
     bounds = np.flatnonzero(np.diff(log_code)) + 1
     starts = np.concatenate([[0], bounds])
@@ -88,9 +86,26 @@ def build_samples(
         log_id = log_names[log_code[lo]]
         _log_windows(
             columns, log_id, steps[lo:hi], ts[lo:hi], track_code[lo:hi], track_names, focal[lo:hi],
-            protocol, 1e9 / rate[log_id] if rate.get(log_id) else 0.0, None if ego is None else ego[lo:hi],
+            protocol, 1e9 / rate[log_id] if rate.get(log_id) else 0.0, None if excluded is None else excluded[lo:hi],
         )
     return conform(pa.table(columns), schema)
+
+
+def _excluded_rows(tracks: pa.Table, protocol: SampleProtocol) -> NDArrayBool | None:
+    """Rows of tracks that may not be targets under ``protocol`` (the ego for ``fully_observed_no_ego``, types
+    outside ``target_types``), or None when the rule excludes nobody: the presets' index is built as before."""
+    no_ego = protocol.targets == "fully_observed_no_ego"
+    if not no_ego and not protocol.target_types:
+        return None
+    excluded = np.zeros(tracks.num_rows, dtype=bool)
+    if no_ego:
+        excluded |= as_numpy(pc.equal(tracks.column("role"), Role.EGO.value))
+    if protocol.target_types:
+        kinds = tracks.column("object_type")
+        if pa.types.is_dictionary(kinds.type):
+            kinds = kinds.cast(pa.string())
+        excluded |= ~as_numpy(pc.is_in(kinds, value_set=pa.array(list(protocol.target_types), pa.string())))
+    return excluded
 
 
 def _log_windows(
@@ -103,7 +118,7 @@ def _log_windows(
     focal: np.ndarray,
     protocol: SampleProtocol,
     period_ns: float,
-    ego: NDArrayBool | None = None,
+    excluded: NDArrayBool | None = None,
 ) -> None:
     n_steps = int(steps[-1]) + 1
     seq = protocol.seq_len
@@ -129,9 +144,9 @@ def _log_windows(
         target_rows[focal_ids[0]] = full[focal_ids[0]]
     else:
         target_rows = full
-        if ego is not None and ego.any():
-            target_rows = full.copy()
-            target_rows[np.unique(local[ego])] = False
+    if excluded is not None and excluded.any():
+        target_rows = target_rows.copy()
+        target_rows[np.unique(local[excluded])] = False
     counts = target_rows.sum(axis=0)
     dt = np.diff(step_ts)
     if period_ns > 0:
@@ -168,7 +183,7 @@ def _first_windows(
     focal: np.ndarray,
     protocol: SampleProtocol,
     rate: dict[str, float],
-    ego: NDArrayBool | None = None,
+    excluded: NDArrayBool | None = None,
 ) -> dict[str, list[object]]:
     """One window at step 0 of every log, for all logs at once (Argoverse: one sample per file).
 
@@ -188,8 +203,8 @@ def _first_windows(
     key = log_of_row * n_tracks + track_code
     full_keys = _complete_keys(key, in_window, focal if protocol.targets == "focal" else None, n_logs * n_tracks,
                                seq)
-    if ego is not None and ego.any():
-        full_keys = np.setdiff1d(full_keys, np.unique(key[ego]), assume_unique=False)
+    if excluded is not None and excluded.any():
+        full_keys = np.setdiff1d(full_keys, np.unique(key[excluded]))
     target_log = full_keys // n_tracks
     target_names = track_names[full_keys % n_tracks]
     split_at = np.searchsorted(target_log, np.arange(n_logs + 1))

@@ -117,6 +117,9 @@ class SampleProtocol:
             ``fully_observed_no_ego`` (every fully observed agent but the ego: on Argoverse the AV's future is the
             model's planned-trajectory input, ETF, so it cannot also be a target).
         min_targets: keep a window only with at least this many targets (Social-GAN's loader keeps >= 2).
+        target_types: when not empty, only agents of these ``ObjectType`` values are targets (AV2 logs label
+            pedestrians, buses, ...; AV1 labels only the AV and AGENT as vehicles, its OTHERS are ``unknown``).
+            Written to the manifest only when set, so the presets' manifests are unchanged.
     """
 
     name: str
@@ -126,6 +129,11 @@ class SampleProtocol:
     window: str = "sliding"
     targets: str = "fully_observed"
     min_targets: int = 1
+    target_types: tuple[str, ...] = ()
+
+    def __post_init__(self) -> None:
+        # A manifest read back gives a JSON list; keep the dataclass hashable.
+        object.__setattr__(self, "target_types", tuple(self.target_types))
 
     @property
     def seq_len(self) -> int:
@@ -142,7 +150,7 @@ class SampleProtocol:
             "window": self.window,
             "targets": self.targets,
             "min_targets": self.min_targets,
-        }
+        } | ({"target_types": list(self.target_types)} if self.target_types else {})
 
 
 PROTOCOLS: dict[str, SampleProtocol] = {

@@ -12,7 +12,7 @@ import pytest
 
 from logpipe.dataset import Dataset
 from logpipe.stages.ingest import IngestOptions, ingest
-from logpipe.types import PROTOCOLS
+from logpipe.types import PROTOCOLS, SampleProtocol
 
 AV = "00000000-0000-0000-0000-000000000000"
 
@@ -62,3 +62,34 @@ def test_no_ego_rule_in_sliding_windows(bundled: Path, tmp_path: Path) -> None:
 def test_presets_keep_their_rule(name: str) -> None:
     # Shipped checkpoints and results were built with these; the new rule is opt-in only.
     assert PROTOCOLS[name].targets == ("focal" if name.startswith("argoverse") else "fully_observed")
+
+
+def test_target_types_keep_only_those_classes(bundled: Path, tmp_path: Path) -> None:
+    # AV1 labels only the AV and the AGENT as vehicles (OTHERS are "unknown"): vehicles but the ego = the AGENT.
+    proto = replace(PROTOCOLS["argoverse"], name="argoverse-custom", targets="fully_observed_no_ego",
+                    target_types=("vehicle",))
+    ingest([bundled / "argoverse1"], IngestOptions(out=tmp_path / "v", workers=1, write_mcap=False, protocol=proto))
+    focal = pq.read_table(tmp_path / "v" / "samples").column("focal_track_id").to_pylist()
+    assert _targets(tmp_path / "v") == [[f] for f in focal]
+    # The manifest round-trips the rule (a JSON list back to a tuple).
+    assert Dataset.open(tmp_path / "v").protocol == proto
+
+
+def test_target_types_stay_out_of_preset_manifests() -> None:
+    for proto in PROTOCOLS.values():
+        assert "target_types" not in proto.to_dict()
+        assert SampleProtocol(**proto.to_dict()) == proto
+
+
+@pytest.mark.shared
+def test_av2_sliding_windows_of_vehicles(shared: Path, tmp_path: Path) -> None:
+    # The AV2 scenario and sensor logs as 20 + 30-step windows every second (issue 33 item 1).
+    proto = replace(PROTOCOLS["rosbag"], name="custom", targets="fully_observed_no_ego", target_types=("vehicle",))
+    summary = ingest([shared / "av2"], IngestOptions(out=tmp_path / "av2", workers=1, write_mcap=False,
+                                                     protocol=proto))
+    assert summary["samples"] == 51
+    tracks = pq.read_table(tmp_path / "av2" / "tracks", columns=["log_id", "track_id", "object_type", "role"])
+    kind = {(r["log_id"], r["track_id"]): (r["object_type"], r["role"]) for r in tracks.to_pylist()}
+    rows = pq.read_table(tmp_path / "av2" / "samples").to_pylist()
+    labels = {kind[(r["log_id"], t)] for r in rows for t in r["target_track_ids"]}
+    assert {k for k, _ in labels} == {"vehicle"} and ("vehicle", "ego") not in labels
