@@ -28,7 +28,39 @@ def default_workers() -> int:
     return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
 
 
-def _init_worker() -> None:
+def _die_with(main_pid: int) -> None:
+    """End this worker when the stage process ``main_pid`` dies (a killed stage must leave no worker behind:
+    each holds ~100 MB and would wait forever for work).
+
+    A forked worker asks the kernel for SIGKILL when its parent dies. A forkserver worker's parent is the
+    server, which itself waits for its workers (each holds the server's keep-alive pipe), so there a daemon
+    thread waits on a pidfd of the stage process and exits when it ends.
+    """
+    if sys.platform != "linux":
+        return
+    import ctypes
+    import select
+    import signal
+
+    if os.getppid() == main_pid:
+        pr_set_pdeathsig = 1
+        ctypes.CDLL(None, use_errno=True).prctl(pr_set_pdeathsig, signal.SIGKILL, 0, 0, 0)
+    try:
+        pidfd = os.pidfd_open(main_pid)
+    except ProcessLookupError:  # the stage ended before this worker started
+        os._exit(1)
+    except (OSError, AttributeError):  # a kernel without pidfds: the parent-death signal must do
+        return
+
+    def watch() -> None:
+        select.select([pidfd], [], [])  # readable once the process has exited
+        os._exit(1)
+
+    threading.Thread(target=watch, name="logpipe-die-with-stage", daemon=True).start()
+
+
+def _init_worker(main_pid: int) -> None:
+    _die_with(main_pid)
     # One thread per worker process: the pool already uses every core.
     import pyarrow as pa
 
@@ -122,7 +154,7 @@ def run_ordered(
         return
     context = _context(fn)
     with ProcessPoolExecutor(max_workers=min(workers, len(items)), mp_context=context,
-                             initializer=_init_worker) as pool:
+                             initializer=_init_worker, initargs=(os.getpid(),)) as pool:
         # Bounded look-ahead keeps memory at ~2 batches per worker however many items there are.
         pending = []
         iterator = iter(items)

@@ -495,6 +495,11 @@ def reindex(dataset_dir: Path, protocol: SampleProtocol) -> dict[str, Any]:
         if writer.manifest is None:
             raise DatasetError(f"{dataset_dir}: not a logpipe dataset (no manifest.json); run `logpipe ingest` first")
         dataset = Dataset.open(dataset_dir)
+        if dataset.manifest["protocol"] == protocol.to_dict():
+            # The index is a function of the shards and the protocol: nothing to redo (a rerun after a crash
+            # that happened after the commit only had leftovers to clean, done on entering the writer).
+            return {"dataset": str(dataset_dir), "protocol": protocol.to_dict(),
+                    "samples": dataset.manifest["totals"]["samples"], "unchanged": True}
         logs = dataset.logs()
         metas = [
             LogMeta(log_id=r["log_id"], source_format=r["source_format"], source_file=r["source_file"],
