@@ -8,7 +8,7 @@ OUT ?= out
 SHARED ?= ../shared/data
 ETHUCY_SCENES := eth hotel univ zara1 zara2
 
-.PHONY: setup demo test bench lint clean train-ethucy train-apolloscape reproduce-ethucy reproduce-apolloscape reproduce-argoverse
+.PHONY: setup demo test bench lint clean train-ethucy train-apolloscape reproduce-ethucy reproduce-apolloscape reproduce-argoverse fuzz
 
 # torch first and pinned: a looser pin would pull a multi-GB CUDA build; 2.13.0 is a local CPU wheel here.
 $(STAMP): pyproject.toml
@@ -109,3 +109,8 @@ train-apolloscape/%:
 		--config configs/apolloscape.toml $(call preset_flag,$*) --seed $(SEED) --out $(RUNS)/apolloscape/$* \
 		--json > $(RUNS)/apolloscape/$*.json
 	$(call copy_best,$(RUNS)/apolloscape/$*,$(CKPT)/apolloscape/$*)
+
+# The damaged-input corpus (tests/fuzz/corpus.py, ~580 cases over every format and the map files; the
+# ../shared ones are skipped when it is absent): figures in $(OUT)/fuzz.json. A fast subset runs in `make test`.
+fuzz: setup
+	OUT=$(OUT) $(PY) -m pytest -q -p no:cacheprovider tests/fuzz -m fuzz

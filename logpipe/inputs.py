@@ -12,7 +12,7 @@ from pathlib import Path
 from typing import Any
 
 from logpipe.errors import LogpipeError
-from logpipe.formats.base import FormatAdapter
+from logpipe.formats.base import FormatAdapter, irregular_digest
 from logpipe.io import sha256_file, sha256_tree
 from logpipe.types import PENDING_SHA256, SourceFile
 
@@ -37,6 +37,8 @@ def _relpath(path: Path, base: Path, prefix: str) -> str:
 
 def _digest_and_size(path: Path) -> tuple[str, int]:
     """sha256 and size of an input, opening a file once (stat from the open descriptor)."""
+    if not _regular_or_folder(path):  # never opened: a FIFO blocks, /dev/zero never ends (the batch refuses it)
+        return irregular_digest(path), 0
     if path.is_dir():
         return sha256_tree(path), sum(p.stat().st_size for p in path.rglob("*") if p.is_file())
     with path.open("rb") as fh:
@@ -146,6 +148,8 @@ def read_ahead(sources: Sequence[SourceFile]) -> None:
     if advise is None:
         return
     for source in sources:
+        if not _regular_or_folder(Path(source.path)):  # opening a FIFO would block this process
+            continue
         try:
             fd = os.open(source.path, os.O_RDONLY)
         except OSError:
@@ -159,9 +163,25 @@ def read_ahead(sources: Sequence[SourceFile]) -> None:
 
 
 def _file_sizes(paths: Sequence[Path]) -> list[int]:
-    """Bytes of each path, -1 for a folder."""
-    stats = [os.stat(p) for p in paths]
-    return [-1 if stat.S_ISDIR(st.st_mode) else st.st_size for st in stats]
+    """Bytes of each path, -1 for a folder or anything that is not a regular file (hashed up front, where
+    ``_digest_and_size`` gives it a digest without opening it)."""
+    sizes = []
+    for p in paths:
+        try:
+            st = os.stat(p)
+        except OSError:  # a dangling link: refused with a clear error by the batch that gets it
+            sizes.append(-1)
+            continue
+        sizes.append(st.st_size if stat.S_ISREG(st.st_mode) else -1)
+    return sizes
+
+
+def _regular_or_folder(path: Path) -> bool:
+    try:
+        mode = os.stat(path).st_mode
+    except OSError:
+        return False
+    return stat.S_ISREG(mode) or stat.S_ISDIR(mode)
 
 
 def _head(path: Path) -> bytes:

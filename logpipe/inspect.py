@@ -16,6 +16,7 @@ from rich.console import Console
 from rich.table import Table
 
 from logpipe.formats.av2 import Av2Adapter
+from logpipe.formats.base import as_source_error, require_regular
 from logpipe.formats.mcapfile import McapAdapter, McapFile
 from logpipe.formats.ros_messages import (
     AmbiguousMappingError,
@@ -54,17 +55,30 @@ def expand(paths: Sequence[Path]) -> list[tuple[str, Path]]:
 def inspect_paths(paths: Sequence[Path]) -> list[dict[str, Any]]:
     """One report per input found under ``paths`` (see the module docstring); never raises for bad inputs."""
     reports = []
-    for fmt, path in expand(paths):
-        if fmt == "rosbag":
-            reports.append(inspect_rosbag(path))
-        elif fmt == "mcap":
-            reports.append(inspect_mcap(path))
-        elif fmt == "argoverse2":
-            reports.append(inspect_av2(path))
-        else:
-            what = "holds no" if path.is_dir() else "is not a"
-            reports.append(_report(path, "unknown", error=f"{what} ROS bag, MCAP file or Argoverse 2 input"))
+    for given in paths:
+        try:
+            require_regular(given, str(given), folder_ok=True)  # a FIFO would block, /dev/zero never end
+            found = expand([given])
+        except Exception as err:  # a damaged input is a report, never a traceback
+            reports.append(_report(given, "unknown", error=as_source_error(err, str(given)).describe()))
+            continue
+        for fmt, path in found:
+            try:
+                reports.append(_inspect_one(fmt, path))
+            except Exception as err:  # whatever a damaged file makes a reader raise
+                reports.append(_report(path, fmt, error=as_source_error(err, str(path)).describe()))
     return reports
+
+
+def _inspect_one(fmt: str, path: Path) -> dict[str, Any]:
+    if fmt == "rosbag":
+        return inspect_rosbag(path)
+    if fmt == "mcap":
+        return inspect_mcap(path)
+    if fmt == "argoverse2":
+        return inspect_av2(path)
+    what = "holds no" if path.is_dir() else "is not a"
+    return _report(path, "unknown", error=f"{what} ROS bag, MCAP file or Argoverse 2 input")
 
 
 def _report(path: Path, fmt: str, **kw: Any) -> dict[str, Any]:

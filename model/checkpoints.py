@@ -255,7 +255,11 @@ def _verified_weights(folder: Path, meta: CheckpointMeta) -> dict[str, torch.Ten
     weights = folder / "weights.safetensors"
     if not weights.is_file() or _sha256(weights) != meta.weights_sha256:
         raise CheckpointError(f"{weights}: missing or does not match the sha256 in meta.json")
-    return load_file(str(weights))
+    try:
+        return load_file(str(weights))
+    except Exception as exc:  # safetensors raises its own header/format errors: one line naming the file
+        first = str(exc).strip().splitlines()[0][:200] if str(exc).strip() else type(exc).__name__
+        raise CheckpointError(f"{weights}: not a readable safetensors file: {first}") from None
 
 
 def load_checkpoint(

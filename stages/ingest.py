@@ -191,14 +191,18 @@ def _ingest_new(
 
 def _ingest_batch(job: _BatchJob) -> _BatchResult:
     """Parse one batch and write its shard (and MCAPs) into the staging folder. Runs in a worker."""
+    from logpipe.formats.base import read_isolating, refuse_unsafe_log_ids, regular_sources, source_of
+
     adapter = get_adapter(job.adapter, **job.adapter_options)
-    sources = job.sources if adapter.hashes_while_reading else complete_hashes(job.sources)
-    parsed = adapter.read(sources, keep_going=job.keep_going)
+    # Irregular inputs (FIFO, device, dangling link) are refused before anything opens or hashes them.
+    sources, failures = regular_sources(job.sources, job.keep_going)
+    sources = sources if adapter.hashes_while_reading else complete_hashes(sources)
+    parsed = refuse_unsafe_log_ids(read_isolating(adapter, sources, job.keep_going), job.keep_going)
     # The digests the adapter computed; inputs it failed on before logging them are hashed here.
     digests = {m.source_file: m.source_sha256 for m in parsed.logs}
     sources = complete_hashes([replace(s, sha256=digests.get(s.relpath, s.sha256)) for s in sources])
     by_path = {s.relpath: s for s in sources}
-    failures = [(by_path[e.file], e) for e in parsed.failures]
+    failures += [(source_of(e.file, by_path), e) for e in parsed.failures]
     presorted = "step" in parsed.tracks.column_names
     tracks = _canonical_order(parsed.tracks)
     # The adapter's codes describe its row order, which a re-sort would break.

@@ -12,6 +12,7 @@ import itertools
 import math
 import os
 import re
+import stat
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from functools import cached_property
@@ -24,10 +25,12 @@ import pyarrow.compute as pc
 import pyarrow.csv as pacsv
 
 from logpipe.errors import SourceError
-from logpipe.formats.base import files_with_suffix
+from logpipe.formats.base import TIME_LIMIT_NS, files_with_suffix, require_regular
 from logpipe.io import as_numpy
 from logpipe.types import PENDING_SHA256, NDArrayBool, NDArrayByte, NDArrayInt, SourceFile
 
+ID_LIMIT = float(2**53)
+"""Largest |id| a numeric text format may hold: integers above it are not exact in the float64 they are parsed as."""
 _DECIMAL = re.compile(r"^[+-]?(\d+\.?\d*|\.\d+)$")
 
 
@@ -110,9 +113,28 @@ def read_bodies(
     good: list[SourceFile] = []
     failures: list[SourceError] = []
     for listed in sources:
-        fd = os.open(listed.path, os.O_RDONLY)
+        # O_NONBLOCK: opening a FIFO returns at once instead of waiting for a writer; the fstat below then
+        # refuses anything but a regular file, with no extra stat per file on the fast path.
+        fd = -1
         try:
-            size = os.fstat(fd).st_size
+            fd = os.open(listed.path, os.O_RDONLY | os.O_NONBLOCK)
+            st = os.fstat(fd)
+            if not stat.S_ISREG(st.st_mode):
+                raise OSError("not a regular file")
+        except OSError as exc:
+            if fd >= 0:
+                os.close(fd)
+            try:
+                require_regular(listed.path, listed.relpath)  # the error path: says what the input is
+                refused = SourceError(listed.relpath, f"not readable: {exc.strerror or exc}")
+            except SourceError as err:
+                refused = err
+            if not keep_going:
+                raise refused from None
+            failures.append(refused)
+            continue
+        try:
+            size = st.st_size
             head = _read_head(fd, size, header_lines)
             start = _header_end(head, header_lines)
             if len(buffer) < pos + size - start + 1:  # the file grew since it was listed
@@ -125,7 +147,8 @@ def read_bodies(
         finally:
             os.close(fd)
         end = _strip_end(buffer, pos, pos + got)
-        error = check_header(source, head[:start] if header_lines else head, end > pos)
+        error = _check_encoding(source, head) or check_header(source, head[:start] if header_lines else head,
+                                                               end > pos)
         if error is not None:
             if not keep_going:
                 raise error
@@ -141,6 +164,21 @@ def read_bodies(
             counts.append(0)
             spans.append((pos, pos))
     return TextBatch(buffer.data[:pos], counts, header_lines, spans), good, failures
+
+
+_BOM = b"\xef\xbb\xbf"
+
+
+def _check_encoding(source: SourceFile, head: bytes) -> SourceError | None:
+    """Refuse a byte-order mark and CR-only line endings up front: pyarrow skips a BOM only at the start of
+    the joined buffer and ends lines at a bare CR, so either would misalign rows with files and lines."""
+    if head.startswith(_BOM):
+        return SourceError(source.relpath, "starts with a UTF-8 byte-order mark (save the file without one)",
+                           line=1)
+    lines = head.rstrip(b"\r\n")
+    if b"\r" in lines and b"\n" not in lines:
+        return SourceError(source.relpath, "lines end in a bare CR (old Mac line endings); use LF or CRLF", line=1)
+    return None
 
 
 def _read_head(fd: int, size: int, header_lines: int) -> bytes:
@@ -258,6 +296,22 @@ def locate_bad_line(
     return SourceError(source.relpath, "could not be parsed (no single bad line found)")
 
 
+def check_range(
+    table: pa.Table, limits: dict[str, float], batch: TextBatch, sources: Sequence[SourceFile]
+) -> list[SourceError]:
+    """One error per file with a value of a column in ``limits`` whose magnitude is not below its limit: checked
+    on the floats, before they are converted to int64 (frames x period, ids) where they would wrap silently."""
+    errors: dict[int, SourceError] = {}
+    for name, limit in limits.items():
+        values = as_numpy(table.column(name))
+        bad = ~(np.abs(values) < limit)
+        for row in np.flatnonzero(bad)[:1000].tolist():
+            f = int(batch.file_index[row])
+            errors.setdefault(f, row_error(batch, sources, row, f"{values[row]!r} is out of range "
+                                           f"(|value| must be below {limit:.4g})", name))
+    return [errors[f] for f in sorted(errors)]
+
+
 def first_true(mask: NDArrayBool) -> int:
     """Index of the first True in ``mask`` (caller knows there is one)."""
     return int(np.flatnonzero(mask)[0])
@@ -319,8 +373,9 @@ def check_time_and_duplicates(
                 field=time_field,
             ),
         )
-    # Duplicates: equal (file, time, track) keys. Time rank within the batch keeps keys in int64.
+    # Duplicates: equal (file, time, track) keys. Ranks of time and track within the batch keep keys in int64.
     _, time_rank = np.unique(ts_ns, return_inverse=True)
+    _, track_codes = np.unique(track_codes, return_inverse=True)
     key = (files * (int(time_rank.max()) + 1) + time_rank) * (int(track_codes.max()) + 1) + track_codes
     order = np.argsort(key, kind="stable")
     dup_sorted = np.flatnonzero(key[order][1:] == key[order][:-1]) + 1
@@ -381,11 +436,15 @@ def decimal_seconds_to_ns(values: pa.Array, scale_ns: int = 1_000_000_000) -> tu
     encoded = pc.dictionary_encode(values) if not pa.types.is_dictionary(values.type) else values
     chunk = encoded.combine_chunks() if isinstance(encoded, pa.ChunkedArray) else encoded
     dictionary = chunk.dictionary
-    valid = pc.match_substring_regex(dictionary, r"^[+]?\d+(\.\d*)?$")
+    # At most 18 integer digits (cast to int64 cannot fail), then a bound so that x scale_ns cannot wrap.
+    valid = pc.match_substring_regex(dictionary, r"^[+]?\d{1,18}(\.\d*)?$")
     safe = pc.if_else(valid, dictionary, "0")
     # A trailing "." guarantees two parts ("123" -> "123." -> ["123", ""]) so no branch needs a guard.
     parts = pc.split_pattern(pc.binary_join_element_wise(safe, "", "."), ".", max_splits=1)
     whole = pc.cast(pc.list_element(parts, 0), pa.int64())
+    in_range = pc.less(whole, TIME_LIMIT_NS // scale_ns)
+    valid = pc.and_(valid, in_range)
+    whole = pc.if_else(in_range, whole, 0)
     fraction_text = pc.utf8_rtrim(pc.list_element(parts, 1), ".")
     digits = len(str(scale_ns)) - 1
     padded = pc.utf8_rpad(pc.utf8_slice_codeunits(fraction_text, 0, digits), digits, "0")
@@ -430,7 +489,9 @@ def parse_files(
             return empty, batch, good, failures
         try:
             table = parse_batch(batch, names, types, delimiter)
-        except pa.ArrowInvalid:
+            if table.num_rows != int(batch.row_starts[-1]):  # a bare CR or stray quote split lines differently
+                raise pa.ArrowInvalid("rows parsed do not match the lines read")
+        except pa.ArrowException:
             errors = _locate_parse_errors(good, names, types, delimiter, header_lines, numeric)
         else:
             table, found = validate(table, batch, good)
@@ -457,14 +518,38 @@ def _locate_parse_errors(
     """Slow path after a failed batch parse: every file that fails alone, with its first bad line."""
     errors = []
     splitter = None if delimiter == " " else delimiter
+    blobs = []
     for source in sources:
         with open(source.path, "rb") as fh:  # read again: the error path only
             blob = fh.read()
-        try:
-            parse_batch(join_bodies([blob], header_lines), names, types, delimiter)
-        except pa.ArrowInvalid:
+        blobs.append(blob)
+        if not _parses(blob, names, types, delimiter, header_lines):
             errors.append(locate_bad_line(source, blob, names, numeric, header_lines, splitter))
-    return errors or [SourceError(sources[0].relpath, "batch failed to parse but no single file does")]
+    if errors:
+        return errors
+    # Every file parses alone but not together: blame the first file whose addition breaks the batch (never
+    # a neighbour that is fine), found by parsing growing prefixes.
+    for k in range(1, len(blobs)):
+        if not _parses(b"".join(_with_newline(b) for b in blobs[:k + 1]), names, types, delimiter, header_lines,
+                       files=[_with_newline(b) for b in blobs[:k + 1]]):
+            return [SourceError(sources[k].relpath, "parses alone but not after the files before it in its batch "
+                                "(an odd first line or encoding)", line=1)]
+    return [SourceError(sources[0].relpath, "batch failed to parse but no file or prefix of files does")]
+
+
+def _with_newline(blob: bytes) -> bytes:
+    return blob if blob.endswith(b"\n") else blob + b"\n"
+
+
+def _parses(blob: bytes, names: list[str], types: dict[str, pa.DataType], delimiter: str, header_lines: int,
+            files: list[bytes] | None = None) -> bool:
+    """Whether ``blob`` (or the files ``files`` joined) parses, with one row per line."""
+    batch = join_bodies(files if files is not None else [blob], header_lines)
+    try:
+        table = parse_batch(batch, names, types, delimiter)
+    except pa.ArrowException:
+        return False
+    return bool(table.num_rows == int(batch.row_starts[-1]))
 
 
 def _first_per_file(errors: list[SourceError], sources: Sequence[SourceFile]) -> list[SourceError]:

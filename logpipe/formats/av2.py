@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import math
 import re
 from collections.abc import Sequence
 from decimal import Decimal
@@ -28,7 +29,14 @@ import pyarrow.parquet as pq
 from pyarrow import feather
 
 from logpipe.errors import SourceError
-from logpipe.formats.base import ParsedLogs
+from logpipe.formats.base import (
+    TIME_LIMIT_NS,
+    ParsedLogs,
+    as_source_error,
+    check_log_id,
+    check_tracks,
+    require_regular,
+)
 from logpipe.formats.ros_messages import conform_tracks, empty_tracks, quat_mul, quat_rotate, quat_yaw
 from logpipe.types import PROTOCOLS, LogMeta, NDArrayFloat, SampleProtocol, SourceFile
 
@@ -132,13 +140,17 @@ class Av2Adapter:
         failures: list[SourceError] = []
         for src in sources:
             try:
+                require_regular(src.path, src.relpath, folder_ok=True)
                 path = Path(src.path)
                 table, meta = self._read_sensor_log(src) if path.is_dir() else self._read_scenario(src)
                 if table.num_rows == 0 and not self.allow_empty:
                     raise SourceError(src.relpath, "no track rows")
-            except SourceError as err:
+                check_log_id(meta.log_id, src.relpath, "scenario_id" if not path.is_dir() else "log_id")
+                check_tracks(table, src.relpath)
+            except Exception as exc:  # whatever a damaged file makes pyarrow or numpy raise is this input's failure
+                err = as_source_error(exc, src.relpath)
                 if not keep_going:
-                    raise
+                    raise err from None
                 failures.append(err)
                 continue
             tables.append(table)
@@ -158,10 +170,17 @@ class Av2Adapter:
         _require(t, SCENARIO_COLUMNS, rel)
         if t.num_rows == 0:
             return empty_tracks(), self._scenario_meta(src, path, t, {})
-        scenario_id = str(t.column("scenario_id")[0].as_py())
+        scenario_id = check_log_id(str(t.column("scenario_id")[0].as_py()), rel, "scenario_id")
         start = float(t.column("start_timestamp")[0].as_py())
         end = float(t.column("end_timestamp")[0].as_py())
         n_steps = int(t.column("num_timestamps")[0].as_py())
+        # Checked before any int64 arithmetic: an absurd start/end would wrap the time grid silently.
+        for name, value in (("start_timestamp", start), ("end_timestamp", end)):
+            if not (math.isfinite(value) and 0 <= value < TIME_LIMIT_NS):
+                raise SourceError(rel, f"{value!r} ns is not a finite time in 0..2^62 ns", line=1, field=name)
+        if not 1 <= n_steps <= 1_000_000 or end < start:
+            raise SourceError(rel, f"{n_steps} timestamps from {start!r} to {end!r} ns is not a time grid",
+                              line=1, field="num_timestamps")
         # start/end are float64 ns (64 ns resolution at this magnitude); the grid is exact in whole periods
         period = round((end - start) / max(n_steps - 1, 1))
         # the shortest decimal that round-trips the float is the integer AV2 wrote (no 64 ns float noise)
@@ -171,6 +190,7 @@ class Av2Adapter:
             bad = int(np.flatnonzero((step < 0) | (step >= n_steps))[0])
             raise SourceError(rel, f"timestep outside 0..{n_steps - 1}", line=bad + 1, field="timestep")
         track = t.column("track_id").to_pylist()
+        _check_steps(track, step, rel)
         category = t.column("object_category").to_numpy()
         raw_type = t.column("object_type").to_pylist()
         role = np.where(category == FOCAL_CATEGORY, "focal", "other").astype(object)
@@ -239,6 +259,8 @@ class Av2Adapter:
             raise SourceError(rel, f"not a readable feather file: {err}") from None
         _require(ego, POSE_COLUMNS, f"{rel}/city_SE3_egovehicle.feather")
         _require(boxes, BOX_COLUMNS, f"{rel}/{ann_files[0].name}")
+        _check_poses(ego, f"{rel}/city_SE3_egovehicle.feather", increasing=True)
+        _check_poses(boxes, f"{rel}/{ann_files[0].name}", increasing=False)
         # the _with_ego variant has an identity EGO_VEHICLE box per sweep: only its size is news
         ego_box = boxes.filter(pc.equal(boxes.column("category"), "EGO_VEHICLE"))
         ego_size = (
@@ -298,6 +320,47 @@ class Av2Adapter:
             },
         )  # fmt: skip
         return conform_tracks(table), meta
+
+
+def _check_steps(track: list[Any], step: np.ndarray[Any, Any], rel: str) -> None:
+    """Each track's rows must come with strictly increasing ``timestep`` (AV2 writes them so): a repeat is a
+    duplicated row, a step back a damaged file."""
+    codes = np.unique(np.asarray(track, dtype=object).astype(str), return_inverse=True)[1].reshape(-1)
+    same = codes[1:] == codes[:-1]
+    bad = np.flatnonzero(same & (step[1:] <= step[:-1]))
+    if len(bad):
+        row = int(bad[0]) + 1
+        what = "duplicated" if step[row] == step[row - 1] else "goes backwards"
+        raise SourceError(rel, f"track {track[row]!r}: timestep {what} ({int(step[row - 1])} then {int(step[row])})",
+                          line=row + 1, field="timestep")
+
+
+def _check_poses(table: pa.Table, rel: str, *, increasing: bool) -> None:
+    """Poses usable as transforms: finite, a quaternion of non-zero length, a time in 0..2^62 ns (and, for the
+    ego trajectory, strictly increasing). A zero quaternion would turn every box it places into NaN."""
+    t = table.column("timestamp_ns").to_numpy(zero_copy_only=False)
+    if not np.issubdtype(t.dtype, np.integer):
+        raise SourceError(rel, f"timestamps are {t.dtype}, not integer nanoseconds", field="timestamp_ns")
+    t = t.astype(np.int64)
+    outside = (t < 0) | (t >= TIME_LIMIT_NS)
+    if outside.any():
+        row = int(np.flatnonzero(outside)[0])
+        raise SourceError(rel, f"timestamp {int(t[row])} ns is outside 0..2^62 ns", line=row + 1, field="timestamp_ns")
+    if increasing and len(t) > 1 and (np.diff(t) <= 0).any():
+        row = int(np.flatnonzero(np.diff(t) <= 0)[0]) + 1
+        what = "repeats" if t[row] == t[row - 1] else "goes backwards"
+        raise SourceError(rel, f"time {what} ({int(t[row - 1])} then {int(t[row])} ns)", line=row + 1,
+                          field="timestamp_ns")
+    for name in POSE_COLUMNS[1:]:
+        values = table.column(name).to_numpy(zero_copy_only=False).astype(np.float64)
+        if not np.isfinite(values).all():
+            row = int(np.flatnonzero(~np.isfinite(values))[0])
+            raise SourceError(rel, f"not finite: {values[row]!r}", line=row + 1, field=name)
+    norms = np.linalg.norm(_quat(table), axis=1)
+    if (norms < 1e-6).any():
+        row = int(np.flatnonzero(norms < 1e-6)[0])
+        raise SourceError(rel, f"{int((norms < 1e-6).sum())} rows have a zero-length rotation quaternion",
+                          line=row + 1, field="qw")
 
 
 def _pose_at(

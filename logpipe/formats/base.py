@@ -7,15 +7,20 @@ Adding a format is one new module in ``logpipe/formats/`` registered in ``logpip
 
 from __future__ import annotations
 
+import hashlib
+import math
 import os
+import stat
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import ClassVar, Protocol
 
+import numpy as np
 import pyarrow as pa
+import pyarrow.compute as pc
 
-from logpipe.errors import SourceError
+from logpipe.errors import LogpipeError, SourceError
 from logpipe.samples import TrackCodes
 from logpipe.types import LogMeta, SampleProtocol, SourceFile
 
@@ -23,6 +28,8 @@ from logpipe.types import LogMeta, SampleProtocol, SourceFile
 def read_head(path: Path, size: int) -> bytes | None:
     """The first ``size`` bytes of ``path`` (fewer if it is shorter), or None when it cannot be read: what
     ``sniff`` compares with a format's magic bytes."""
+    if not path.is_file():  # opening a FIFO would block, a device would never end
+        return None
     try:
         with path.open("rb") as f:
             return f.read(size)
@@ -45,6 +52,125 @@ def files_with_suffix(root: Path, suffixes: tuple[str, ...]) -> list[Path]:
         if name.lower().endswith(suffixes)
     ]
     return [Path(p) for p in sorted(found)]
+
+
+MAX_LOG_ID_CHARS = 200
+"""Longest log id accepted: ids become file names (``mcap/<log_id>.mcap``, predictions), and most file
+systems refuse names over 255 bytes."""
+TIME_LIMIT_NS = 1 << 62
+"""Largest |timestamp| accepted, in ns (~146 years): leaves int64 headroom for differences and grid steps, so a
+value near the int64 limit (a damaged or absurd time) is refused before any conversion could wrap it."""
+
+
+def require_regular(path: str | Path, relpath: str, *, folder_ok: bool = False) -> None:
+    """Refuse anything but a regular file (or a folder when ``folder_ok``) before it is opened.
+
+    Why: a FIFO blocks ``open`` forever, ``/dev/zero`` never ends, a dangling symlink fails deep in a reader.
+
+    Raises:
+        SourceError: missing / dangling link / FIFO / device / socket.
+    """
+    try:
+        mode = os.stat(path).st_mode
+    except FileNotFoundError:
+        what = "a dangling symbolic link" if os.path.islink(path) else "missing (removed since it was listed?)"
+        raise SourceError(relpath, f"not readable: {what}") from None
+    except OSError as err:
+        raise SourceError(relpath, f"not readable: {err.strerror or err}") from None
+    if stat.S_ISREG(mode) or (folder_ok and stat.S_ISDIR(mode)):
+        return
+    kind = ("a folder" if stat.S_ISDIR(mode) else "a FIFO (named pipe)" if stat.S_ISFIFO(mode)
+            else "a device" if stat.S_ISCHR(mode) or stat.S_ISBLK(mode)
+            else "a socket" if stat.S_ISSOCK(mode) else "not a regular file")
+    raise SourceError(relpath, f"not a regular file: {kind}; only regular files are read")
+
+
+def check_log_id(log_id: object, relpath: str, field: str = "log_id") -> str:
+    """``log_id`` when it is safe as one path component (ids become file names), else a ``SourceError``.
+
+    Refused: empty, ``.``/``..``, any ``/`` or ``\\``, NUL or other control characters, longer than
+    ``MAX_LOG_ID_CHARS``.
+    """
+    text = log_id if isinstance(log_id, str) else ""
+    if not isinstance(log_id, str) or not text:
+        return _bad_id(relpath, field, f"log id {log_id!r} is empty or not text")
+    if text in (".", "..") or "/" in text or "\\" in text:
+        return _bad_id(relpath, field, f"log id {text[:80]!r} is not a single file name (has '/' or is '.'/'..')")
+    if any(ord(c) < 32 or ord(c) == 127 for c in text):
+        return _bad_id(relpath, field, f"log id {text[:80]!r} holds NUL or control characters")
+    if len(text) > MAX_LOG_ID_CHARS:
+        return _bad_id(relpath, field, f"log id is {len(text)} characters long (at most {MAX_LOG_ID_CHARS})")
+    return text
+
+
+def _bad_id(relpath: str, field: str, reason: str) -> str:
+    raise SourceError(relpath, reason + "; log ids become file names", field=field)
+
+
+def as_source_error(err: BaseException, relpath: str) -> SourceError:
+    """Any failure while parsing one input, as that input's ``SourceError`` (a ``LogpipeError`` about a setting
+    keeps its words; anything else says what Python raised: a damaged file can make any library fail)."""
+    if isinstance(err, SourceError):
+        return err
+    text = str(err).strip()
+    first = text.splitlines()[0][:300] if text else ""
+    if isinstance(err, LogpipeError):
+        return SourceError(relpath, first or type(err).__name__)
+    if isinstance(err, MemoryError):
+        return SourceError(relpath, "damaged: a record claims more memory than is available (MemoryError)")
+    return SourceError(relpath, f"unreadable or damaged: {type(err).__name__}: {first}" if first
+                       else f"unreadable or damaged: {type(err).__name__}")
+
+
+_VALUE_COLUMNS = ("x", "y", "heading", "vx", "vy", "length", "width")
+
+
+def check_tracks(table: pa.Table, relpath: str) -> None:
+    """Checks on one input's canonical rows that the binary formats need as much as the text ones: every
+    value finite (a NaN quaternion or position must not land silently), times inside ``TIME_LIMIT_NS``, and no
+    (log, track, time) twice.
+
+    Raises:
+        SourceError: naming the field and the first offending row (1-based, in the adapter's row order).
+    """
+    if table.num_rows == 0:
+        return
+    for name in _VALUE_COLUMNS:
+        if name not in table.column_names:
+            continue
+        column = table.column(name)
+        values = column.to_numpy(zero_copy_only=False).astype(np.float64, copy=False)
+        valid = ~np.asarray(column.is_null().to_numpy(zero_copy_only=False), dtype=bool)
+        bad = valid & ~np.isfinite(values)
+        if bad.any():
+            row = int(np.flatnonzero(bad)[0])
+            raise SourceError(relpath, f"{int(bad.sum())} of {len(values)} rows are not finite "
+                              f"(first: {values[row]!r}, track {table.column('track_id')[row].as_py()!r})",
+                              line=row + 1, field=name)
+    ts = np.asarray(table.column("timestamp_ns").to_numpy(zero_copy_only=False), dtype=np.int64)
+    outside = np.abs(ts) >= TIME_LIMIT_NS
+    if outside.any():
+        row = int(np.flatnonzero(outside)[0])
+        raise SourceError(relpath, f"timestamp {int(ts[row])} ns is outside +-2^62 ns", line=row + 1,
+                          field="timestamp_ns")
+    keys = pa.table({"log": pc.cast(table.column("log_id"), pa.string()),
+                     "track": pc.cast(table.column("track_id"), pa.string()), "t": table.column("timestamp_ns")})
+    counts = keys.group_by(["log", "track", "t"]).aggregate([]).num_rows
+    if counts < keys.num_rows:  # the error path only: find the first repeat in Python
+        seen: dict[tuple[object, object, int], int] = {}
+        for row, key in enumerate(zip(keys.column("log").to_pylist(), keys.column("track").to_pylist(),
+                                      ts.tolist(), strict=True)):
+            if key in seen:
+                raise SourceError(relpath, f"duplicated (track, time) row: track {key[1]!r} at {key[2]} ns "
+                                  f"(rows {seen[key] + 1} and {row + 1})", line=row + 1, field="track_id")
+            seen[key] = row
+
+
+def finite_or_error(value: float, relpath: str, field: str, *, line: int | None = None) -> float:
+    """``value`` when finite, else a ``SourceError`` naming ``field``."""
+    if not math.isfinite(value):
+        raise SourceError(relpath, f"not finite: {value!r}", line=line, field=field)
+    return value
 
 
 @dataclass
@@ -78,10 +204,14 @@ def read_each(sources: Sequence[SourceFile], read_one: ReadOne, *, keep_going: b
     failures: list[SourceError] = []
     for source in sources:
         try:
+            require_regular(source.path, source.relpath, folder_ok=True)
             table, meta, problems = read_one(source)
-        except SourceError as err:
+            check_log_id(meta.log_id, source.relpath)
+            check_tracks(table, source.relpath)
+        except Exception as exc:  # whatever a damaged input makes a library raise is that input's failure
+            err = as_source_error(exc, source.relpath)
             if not keep_going:
-                raise
+                raise err from None
             failures.append(err)
             continue
         failures += problems
@@ -121,3 +251,85 @@ class FormatAdapter(Protocol):
             SourceError: the first bad input, naming file, line/record and field, when ``keep_going`` is False.
         """
         ...
+
+
+def irregular_digest(path: str | Path) -> str:
+    """The digest recorded for an input that is not a regular file (its bytes cannot be read): from its path."""
+    return hashlib.sha256(f"not a regular file: {path}".encode()).hexdigest()
+
+
+def _empty_tracks() -> pa.Table:
+    from logpipe.contracts import tracks_schema  # here: contracts is not needed by the adapters' fast paths
+
+    return tracks_schema().empty_table()
+
+
+def regular_sources(
+    sources: list[SourceFile], keep_going: bool
+) -> tuple[list[SourceFile], list[tuple[SourceFile, SourceError]]]:
+    """``sources`` that are regular files (or folders: bags, AV2 sensor logs), and a failure for each other one,
+    with a digest that names the path (its contents cannot be read: a FIFO blocks, a device never ends)."""
+    good: list[SourceFile] = []
+    refused: list[tuple[SourceFile, SourceError]] = []
+    for source in sources:
+        try:
+            require_regular(source.path, source.relpath, folder_ok=True)
+        except SourceError as err:
+            if not keep_going:
+                raise
+            refused.append((replace(source, sha256=irregular_digest(source.path), size=0), err))
+            continue
+        good.append(source)
+    return good, refused
+
+
+def read_isolating(adapter: FormatAdapter, sources: list[SourceFile], keep_going: bool) -> ParsedLogs:
+    """``adapter.read``, with the guarantee that a failure is the failure of exactly one input, whatever the
+    adapter raised: a batch that raises anything but a ``SourceError`` it was asked to raise is read again one
+    input at a time, and an input that still raises becomes that input's ``SourceError``."""
+    try:
+        return adapter.read(sources, keep_going=keep_going)
+    except Exception as err:
+        if (isinstance(err, SourceError) and not keep_going) or (
+                isinstance(err, LogpipeError) and not isinstance(err, SourceError)):
+            raise  # the error the caller asked for, or a setting (mapping, option) rather than an input
+        if len(sources) == 1:
+            error = as_source_error(err, sources[0].relpath)
+            if not keep_going:
+                raise error from None
+            return ParsedLogs(tracks=_empty_tracks(), logs=[], failures=[error])
+    parts = [read_isolating(adapter, [source], keep_going) for source in sources]
+    kept = [p.tracks for p in parts if p.logs]
+    tracks = pa.concat_tables(kept, promote_options="permissive") if kept else _empty_tracks()
+    return ParsedLogs(tracks=tracks, logs=[m for p in parts for m in p.logs],
+                      failures=[e for p in parts for e in p.failures])
+
+
+def refuse_unsafe_log_ids(parsed: ParsedLogs, keep_going: bool) -> ParsedLogs:
+    """``parsed`` without the logs whose id is not one safe file name (ids become ``mcap/<log_id>.mcap`` and
+    prediction files): ``../../x`` from a data column must not write outside the dataset."""
+    bad: dict[str, SourceError] = {}
+    for meta in parsed.logs:
+        try:
+            check_log_id(meta.log_id, meta.source_file)
+        except SourceError as err:
+            if not keep_going:
+                raise
+            bad[meta.log_id] = err
+    if not bad:
+        return parsed
+    tracks = parsed.tracks.filter(pc.invert(pc.is_in(pc.cast(parsed.tracks.column("log_id"), pa.string()),
+                                                     pa.array(list(bad), pa.string()))))
+    return ParsedLogs(tracks=tracks, logs=[m for m in parsed.logs if m.log_id not in bad],
+                      failures=[*parsed.failures, *bad.values()])  # codes dropped: rows were removed
+
+
+def source_of(file: str, by_path: dict[str, SourceFile]) -> SourceFile:
+    """The input an error names: its relpath, or the input folder holding the file it names (an AV2 sensor
+    log's ``<log>/annotations.feather``)."""
+    if file in by_path:
+        return by_path[file]
+    owners = [rel for rel in by_path if file.startswith(rel.rstrip("/") + "/")]
+    if owners:
+        return by_path[max(owners, key=len)]
+    return SourceFile(file, file, irregular_digest(file), 0)

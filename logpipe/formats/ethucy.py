@@ -19,15 +19,17 @@ import pyarrow.compute as pc
 
 from logpipe.errors import SourceError
 from logpipe.formats._text import (
+    ID_LIMIT,
     NumericTextFormat,
     TextBatch,
     check_finite,
+    check_range,
     check_time_and_duplicates,
     log_ids_column,
     parse_files,
     row_error,
 )
-from logpipe.formats.base import ParsedLogs
+from logpipe.formats.base import TIME_LIMIT_NS, ParsedLogs
 from logpipe.io import as_numpy
 from logpipe.samples import steps_from_sorted_times
 from logpipe.types import PROTOCOLS, LogMeta, ObjectType, Role, SampleProtocol, SourceFile
@@ -90,6 +92,10 @@ def _validate(table: pa.Table, batch: TextBatch, sources: Sequence[SourceFile]) 
 
 def _errors(table: pa.Table, batch: TextBatch, sources: Sequence[SourceFile]) -> list[SourceError]:
     errors = check_finite(table, COLUMNS, batch, sources)
+    if errors:
+        return errors
+    # Before any int64 conversion: frame x period must not wrap, ids must be exact integers in a float.
+    errors = check_range(table, {"frame_id": TIME_LIMIT_NS / FRAME_PERIOD_NS, "ped_id": ID_LIMIT}, batch, sources)
     if errors:
         return errors
     for name in ("frame_id", "ped_id"):

@@ -201,7 +201,7 @@ def read_mapping_document(path: Path) -> dict[str, Any]:
     try:
         text = path.read_text(encoding="utf-8")
         data = tomllib.loads(text) if path.suffix == ".toml" else yaml.safe_load(text)
-    except (OSError, tomllib.TOMLDecodeError, yaml.YAMLError) as err:
+    except (OSError, ValueError, tomllib.TOMLDecodeError, yaml.YAMLError) as err:  # ValueError: not UTF-8
         raise SourceError(str(path), f"cannot read mapping: {err}") from None
     if data is None:
         return {}

@@ -12,6 +12,7 @@ from __future__ import annotations
 import contextlib
 import io
 import json
+import os
 from collections.abc import Callable, Collection, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -22,7 +23,8 @@ import pyarrow as pa
 from mcap.decoder import DecoderFactory
 from mcap.exceptions import McapError
 from mcap.reader import NonSeekingReader, SeekingReader
-from mcap.records import Channel, Schema
+from mcap.records import Channel, Chunk, Schema
+from mcap.stream_reader import StreamReader
 from mcap_ros1.decoder import DecoderFactory as Ros1DecoderFactory
 from mcap_ros2.decoder import DecoderFactory as Ros2DecoderFactory
 
@@ -34,6 +36,34 @@ from logpipe.formats.ros_messages import TopicSummary, empty_tracks, normalize_t
 from logpipe.types import LogMeta, SampleProtocol, SourceFile
 
 MCAP_MAGIC = b"\x89MCAP0\r\n"
+MAX_CHUNK_BYTES = 1 << 30
+"""Largest decompressed chunk accepted (1 GiB): a damaged length field must not make the reader allocate it."""
+
+
+class LengthError(ValueError):
+    """A record or chunk claims a length no sane file of this size has (damage, not data)."""
+
+
+def _limits(size: int) -> tuple[int, int]:
+    """(record length limit, decompressed chunk limit) for a file of ``size`` bytes: a record cannot be longer
+    than the file; a chunk cannot inflate past MAX_CHUNK_BYTES or 1000x the file (zstd/lz4 rarely pass 100x)."""
+    return max(size, 64), min(MAX_CHUNK_BYTES, max(1000 * size, 1 << 20))
+
+
+def _check_chunk_sizes(stream: IO[bytes], size: int) -> None:
+    """Walk the records (chunks not opened) and refuse a chunk whose decompressed size is absurd; the rest of
+    the damage (a cut-short file...) is left to the reader, which reads up to it."""
+    record_limit, chunk_limit = _limits(size)
+    stream.seek(0)
+    try:
+        for record in StreamReader(stream, emit_chunks=True, record_size_limit=record_limit).records:
+            if isinstance(record, Chunk) and record.uncompressed_size > chunk_limit:
+                raise LengthError(f"a chunk claims {record.uncompressed_size} bytes decompressed "
+                                  f"(at most {chunk_limit} for a {size}-byte file)")
+    except LengthError:
+        raise
+    except Exception:  # other damage: reported by the reader that reads up to it
+        pass
 
 
 def _factories() -> list[DecoderFactory]:
@@ -111,7 +141,9 @@ class McapFile:
         """
         stream = path.open("rb")
         try:
-            reader = SeekingReader(stream)
+            size = os.fstat(stream.fileno()).st_size
+            record_limit, chunk_limit = _limits(size)
+            reader = SeekingReader(stream, record_size_limit=record_limit)
             header = reader.get_header()
             out = cls(path=path, stream=stream, profile=header.profile, library=header.library)
             try:
@@ -119,7 +151,13 @@ class McapFile:
             except Exception as err:  # a damaged tail: fall back to reading the file as a stream
                 summary = None
                 out.damage = f"summary/footer unreadable ({type(err).__name__}: {err})"
+            if summary is not None:
+                for index in summary.chunk_indexes:
+                    if index.uncompressed_size > chunk_limit or index.compressed_size > size:
+                        raise LengthError(f"a chunk index claims {index.uncompressed_size} bytes decompressed, "
+                                          f"{index.compressed_size} compressed (file: {size} bytes)")
             if summary is None or not summary.chunk_indexes:
+                _check_chunk_sizes(stream, size)
                 out.indexed = False
                 out._scan()
             else:
@@ -134,6 +172,9 @@ class McapFile:
         except BaseException:
             stream.close()
             raise
+
+    def _size(self) -> int:
+        return os.fstat(self.stream.fileno()).st_size
 
     def close(self) -> None:
         """Close the file."""
@@ -154,7 +195,7 @@ class McapFile:
     def _stream_records(self, topics: Collection[str] | None) -> Iterator[tuple[Channel, Any]]:
         """Messages in file order, read as a stream; stops at damage (recorded in ``self.damage``)."""
         self.stream.seek(0)
-        reader = NonSeekingReader(self.stream, record_size_limit=256 * 2**20)
+        reader = NonSeekingReader(self.stream, record_size_limit=min(256 * 2**20, _limits(self._size())[0]))
         try:
             for schema, channel, message in reader.iter_messages(topics, log_time_order=False):
                 if schema is not None:
@@ -181,7 +222,7 @@ class McapFile:
         """(channel, log_time, data) in log-time order."""
         if self.indexed:
             self.stream.seek(0)  # the reader checks the magic where the stream stands
-            reader = SeekingReader(self.stream)
+            reader = SeekingReader(self.stream, record_size_limit=_limits(self._size())[0])
             for _schema, channel, message in reader.iter_messages(topics, log_time_order=True):
                 yield channel, message.log_time, message.data
             return

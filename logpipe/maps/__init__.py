@@ -8,12 +8,13 @@ dataset and caches the loaded stores.
 
 from __future__ import annotations
 
+import zipfile
 from collections import OrderedDict
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from logpipe.errors import DatasetError
+from logpipe.errors import DatasetError, LogpipeError, SourceError
 from logpipe.maps import argoverse1, av2, lanelet2
 from logpipe.maps.store import KINDS, POLYGON_KINDS, FeatureKind, Layer, MapBuilder, MapStore, Window
 
@@ -120,11 +121,55 @@ def load_map(path_or_city: str | Path, roots: Sequence[Path] = (), map_id: str |
         if not files:
             raise DatasetError(f"no map named {path_or_city!r} under {[str(r) for r in roots]}")
         path = files[0]
-    return _adapter_for(path).load(path, map_id)
+    return _load(path, map_id)
 
 
 def _sniffs(path: Path) -> bool:
-    return any(a.sniff(path) for a in ADAPTERS)
+    """Whether ``path`` is a map file of a known format; a file that has a map's name and suffix but is damaged
+    (a corrupt zip, an unreadable file) raises instead, so a damaged map is never taken for "no map".
+
+    Raises:
+        SourceError: naming the file.
+    """
+    try:
+        if any(a.sniff(path) for a in ADAPTERS):
+            return True
+    except Exception as err:  # a sniff that cannot read the file at all
+        raise _map_error(path, err) from None
+    if path.suffix == ".npz":  # the npz sniff says False for a damaged archive: tell damage from "other npz"
+        try:
+            with zipfile.ZipFile(path) as z:
+                broken = z.testzip()
+        except Exception as err:
+            raise _map_error(path, err) from None
+        if broken is not None:
+            raise SourceError(str(path), f"damaged map archive: member {broken!r} fails its CRC check")
+    return False
+
+
+def _map_error(path: Path, err: BaseException) -> SourceError:
+    if isinstance(err, SourceError):
+        return err
+    text = str(err).strip().splitlines()[0][:200] if str(err).strip() else ""
+    what = f"{type(err).__name__}: {text}" if text else type(err).__name__
+    return SourceError(str(path), f"unreadable or damaged map file: {what}")
+
+
+def _load(path: Path, map_id: str | None) -> MapStore:
+    """``_adapter_for(path).load`` with any failure of a damaged file as one ``SourceError`` naming it."""
+    try:
+        adapter = _adapter_for(path)
+    except DatasetError:
+        _sniffs(path)  # a damaged map file says so rather than "not a map format"
+        raise
+    except Exception as err:  # a sniff that cannot read the file
+        raise _map_error(path, err) from None
+    try:
+        return adapter.load(path, map_id)
+    except Exception as err:
+        if isinstance(err, LogpipeError) and not isinstance(err, SourceError):
+            raise
+        raise _map_error(path, err) from None
 
 
 @dataclass
@@ -163,8 +208,12 @@ class MapSource:
             tail = log_id.rsplit("/", 1)[-1]
             for cand in self._candidates(tail):
                 # The archive must name exactly this log (AV1 log "1" must not pick up an AV2 uuid with a 1).
-                if av2.names_from_path(cand)[0] == tail and av2.sniff(cand):
-                    return cand
+                if av2.names_from_path(cand)[0] == tail:
+                    if _sniffs(cand):
+                        return cand
+                    # Named as this log's archive but not one: damage, which must not pass for "no map".
+                    raise SourceError(str(cand), "named like this log's AV2 map archive but does not start like one "
+                                      "(damaged or cut short?)")
         if map_id:
             for cand in self._candidates(map_id):
                 if _sniffs(cand):
@@ -178,7 +227,7 @@ class MapSource:
             return None
         store = self._cache.get(path)
         if store is None:
-            store = _adapter_for(path).load(path, None)
+            store = _load(path, None)
             self._cache[path] = store
             while len(self._cache) > self.cache_size:
                 self._cache.popitem(last=False)
