@@ -28,17 +28,19 @@ import errno
 import fcntl
 import json
 import os
+import re
 import shlex
 import shutil
 import signal
 import sys
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Iterable, Iterator, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from types import TracebackType
 from typing import Any, TypedDict
 
-from logpipe.errors import ArtifactBusyError, DatasetError, LogpipeError
+from logpipe.errors import ArtifactBusyError, DatasetError, LogpipeError, OutputError
 
 MANIFEST = "manifest.json"
 LOCK_FILE = ".logpipe.lock"
@@ -198,6 +200,9 @@ def read_manifest(root: Path, *, required: bool = True) -> dict[str, Any] | None
         raise DatasetError(f"{path}: damaged manifest ({exc}); `logpipe verify` lists what is wrong") from None
     if not isinstance(manifest, dict):
         raise DatasetError(f"{path}: damaged manifest (not a JSON object)")
+    if "checksum" in manifest and manifest["checksum"] != manifest_checksum(manifest):
+        raise DatasetError(f"{path}: damaged manifest (content differs from its checksum); "
+                           "`logpipe verify` lists what is wrong")
     return manifest
 
 
@@ -231,8 +236,59 @@ def check_files(root: Path, files: dict[str, Any]) -> None:
 # ---- the writer ----------------------------------------------------------------------------------------
 
 
-Owned = Callable[[str], bool]
-"""Whether a path relative to the folder (POSIX, no leading ``./``) belongs to the artifact's own files."""
+class Ownership:
+    """Which paths of a folder are the artifact's own files: patterns over paths relative to the folder (POSIX).
+
+    Patterns match the whole path with ``*`` / ``?`` not crossing ``/``; one ending in ``/`` owns everything
+    under the folders it matches. Written into the manifest (``owns``), so ``verify`` and a
+    later writer know, without code of the artifact's kind, which unnamed files are leftovers.
+    """
+
+    def __init__(self, patterns: Sequence[str]) -> None:
+        self.patterns = tuple(patterns)
+
+        def glob(p: str) -> str:
+            return "".join("[^/]*" if c == "*" else "[^/]" if c == "?" else re.escape(c) for c in p)
+
+        self._regex = re.compile("|".join(glob(p) + (".*" if p.endswith("/") else "") for p in self.patterns)
+                                 or "(?!)")
+
+    def __call__(self, rel: str) -> bool:
+        return self._regex.fullmatch(rel) is not None
+
+    @classmethod
+    def of(cls, manifest: dict[str, Any] | None, default: Ownership) -> Ownership:
+        """The ownership a committed manifest records (``default`` for manifests from before it did)."""
+        owns = (manifest or {}).get("owns")
+        return cls(owns) if isinstance(owns, list) and all(isinstance(p, str) for p in owns) else default
+
+
+EVERYTHING = Ownership(["*", "*/"])
+"""An artifact that owns its whole folder (nested artifacts aside)."""
+
+OUTPUT_ERRNOS = frozenset({errno.ENOSPC, errno.EROFS, errno.EACCES, errno.EDQUOT, errno.EPERM})
+"""OS errors on an output that are the user's to fix (disk full, read-only, permissions), not logpipe bugs."""
+
+
+@contextmanager
+def output_errors() -> Iterator[None]:
+    """Turn ``OUTPUT_ERRNOS`` raised inside into one-line ``OutputError``s (the writer leaves the committed
+    state as it was)."""
+    try:
+        yield
+    except OSError as exc:
+        if exc.errno in OUTPUT_ERRNOS:
+            raise OutputError(os_error_message(exc)) from None
+        raise
+
+
+def manifest_checksum(manifest: dict[str, Any]) -> str:
+    """sha256 of a manifest's content without its ``checksum`` key: a flipped byte in the manifest itself is
+    found like one in any file it names."""
+    import hashlib
+
+    body = {k: v for k, v in manifest.items() if k != "checksum"}
+    return hashlib.sha256(json.dumps(body, sort_keys=True, separators=(",", ":")).encode()).hexdigest()
 
 
 class ArtifactWriter:
@@ -246,9 +302,10 @@ class ArtifactWriter:
         manifest: the committed manifest when entering (None for a new folder).
     """
 
-    def __init__(self, root: Path, owned: Owned) -> None:
+    def __init__(self, root: Path, owned: Ownership, kind: str) -> None:
         self.root = Path(root)
         self.owned = owned
+        self.kind = kind
         self.manifest: dict[str, Any] | None = None
         self._lock = FolderLock(self.root)
         self._created = False
@@ -261,6 +318,10 @@ class ArtifactWriter:
         self._lock.acquire()
         try:
             self.manifest = read_manifest(self.root, required=False)
+            found = (self.manifest or {}).get("artifact", self.kind)
+            if found != self.kind:
+                raise DatasetError(f"{self.root}: holds a {str(found).replace('_', ' ')}, not a "
+                                   f"{self.kind.replace('_', ' ')}; choose another folder")
             self.clean()
         except BaseException:
             self._lock.release()
@@ -304,6 +365,16 @@ class ArtifactWriter:
         _remove_empty_owned_dirs(self.root, self.owned)
         return removed
 
+    def stamped(self, manifest: dict[str, Any]) -> dict[str, Any]:
+        """``manifest`` as ``commit`` writes it: with the artifact's kind, ownership and checksum."""
+        manifest = {**manifest, "artifact": self.kind, "owns": list(self.owned.patterns)}
+        manifest["checksum"] = manifest_checksum(manifest)
+        return manifest
+
+    def is_committed(self, manifest: dict[str, Any]) -> bool:
+        """Whether committing ``manifest`` would change nothing."""
+        return bool(self.manifest == json.loads(json.dumps(self.stamped(manifest))))
+
     def commit(self, manifest: dict[str, Any]) -> None:
         """Make ``manifest`` (whose ``files`` name every file of the new state) the folder's state."""
         from logpipe.io import atomic_path
@@ -311,6 +382,7 @@ class ArtifactWriter:
         files = manifest.get("files")
         if not isinstance(files, dict):
             raise LogpipeError("internal: a manifest must list its files")
+        manifest = self.stamped(manifest)
         missing = [rel for rel in files if not (self.root / rel).is_file()]
         if missing:
             raise LogpipeError(f"internal: {self.root}: commit names files that are not there: {missing[:3]}")
@@ -349,7 +421,7 @@ def _walk(root: Path) -> Iterable[tuple[str, Path]]:
             yield prefix + name, here / name
 
 
-def _remove_empty_owned_dirs(root: Path, owned: Owned) -> None:
+def _remove_empty_owned_dirs(root: Path, owned: Ownership) -> None:
     for folder, dirs, names in sorted(os.walk(root, topdown=False), key=lambda t: -len(t[0])):
         here = Path(folder)
         if here == root or dirs or names:
@@ -373,7 +445,8 @@ class Problem:
         return f"{self.path}: {self.what}"
 
 
-def verify_folder(root: Path, owned: Owned | None = None, *, deep: bool = True) -> tuple[list[Problem], list[str]]:
+def verify_folder(root: Path, owned: Ownership | None = None, *,
+                  deep: bool = True) -> tuple[list[Problem], list[str]]:
     """Check a committed folder against its manifest.
 
     Returns:
@@ -388,6 +461,9 @@ def verify_folder(root: Path, owned: Owned | None = None, *, deep: bool = True) 
     except DatasetError as exc:
         return [Problem(str(root / MANIFEST), str(exc).split(": ", 1)[-1])], []
     assert manifest is not None
+    if "checksum" in manifest and manifest["checksum"] != manifest_checksum(manifest):
+        return [Problem(str(root / MANIFEST), "content differs from its checksum (edited or damaged)")], []
+    owned = Ownership.of(manifest, owned or EVERYTHING)
     files = manifest.get("files")
     if not isinstance(files, dict):
         return [Problem(str(root / MANIFEST), "lists no files (written by logpipe < 0.2; re-create the folder)")], []
@@ -414,7 +490,7 @@ def verify_folder(root: Path, owned: Owned | None = None, *, deep: bool = True) 
         if rel in files or rel in (MANIFEST, LOCK_FILE):
             continue
         leftover = path.name.startswith(STAGING_PREFIX) or (path.name.startswith(".") and path.name.endswith(".tmp"))
-        mine = owned is not None and owned(rel)
+        mine = owned(rel)
         if (leftover and ("/" not in rel or mine)) or (mine and not path.is_dir()):
             leftovers.append(rel)
     return problems, leftovers
@@ -429,12 +505,9 @@ def _parquet_rows(path: Path) -> int | str:
         return f"unreadable ({type(exc).__name__})"
 
 
-def owned_by(prefixes: Sequence[str], names: Sequence[str] = ()) -> Owned:
-    """An ``Owned`` rule: paths under one of ``prefixes`` (folders, with ``/``) or equal to one of ``names``."""
-    def owned(rel: str) -> bool:
-        return rel in names or any(rel.startswith(p) for p in prefixes)
-
-    return owned
+def owned_by(prefixes: Sequence[str], names: Sequence[str] = ()) -> Ownership:
+    """An ``Ownership`` of the folders ``prefixes`` (each ending in ``/``) and the files ``names``."""
+    return Ownership([*prefixes, *names])
 
 
 def os_error_message(exc: OSError) -> str:

@@ -32,7 +32,7 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.compute as pc
 
-from logpipe.artifact import MANIFEST, check_files, read_manifest
+from logpipe.artifact import MANIFEST, Ownership, check_files, read_manifest
 from logpipe.errors import DatasetError
 from logpipe.io import as_numpy, read_table
 from logpipe.types import OBJECT_TYPES, Role, SampleProtocol, SceneSample
@@ -41,14 +41,12 @@ TRACKS_DIR = "tracks"
 LOGS_DIR = "logs"
 SAMPLES_DIR = "samples"
 MCAP_DIR = "mcap"
-_LEGACY_FILE = re.compile(r"(part-\d{5}\.parquet|logs\.parquet|samples\.parquet)")
-
-
-def dataset_owned(rel: str) -> bool:
-    """Whether a path inside a dataset folder is one of the dataset's own files (``logpipe.artifact.Owned``):
-    the table folders, the MCAP folder and the files of the previous layout; never ``rasters/``."""
-    return rel.startswith((f"{TRACKS_DIR}/", f"{LOGS_DIR}/", f"{SAMPLES_DIR}/", f"{MCAP_DIR}/")) \
-        or _LEGACY_FILE.fullmatch(rel) is not None
+DATASET_ARTIFACT = "dataset"
+"""``manifest.json`` ``artifact`` value of a dataset folder."""
+DATASET_OWNED = Ownership([f"{TRACKS_DIR}/", f"{LOGS_DIR}/", f"{SAMPLES_DIR}/", f"{MCAP_DIR}/",
+                           "part-?????.parquet", "logs.parquet", "samples.parquet"])
+"""A dataset's own files: the table and MCAP folders, and the top-level files of the previous layout; never
+``rasters/`` (raster runs are artifacts of their own)."""
 
 
 def table_file(table: str, generation: int) -> str:

@@ -22,6 +22,8 @@ from logpipe.raster import RasterSpec
 from logpipe.types import NDArrayByte, NDArrayFloat
 
 RASTER_DIR = "rasters"
+RASTER_ARTIFACT = "raster_run"
+"""``manifest.json`` ``artifact`` value of a raster run folder."""
 RUN_MANIFEST = "manifest.json"
 CENTRES = ("ego", "focal")
 MIN_HEADING_DISP_M = 0.5

@@ -1,26 +1,29 @@
 """``logpipe verify``: check artifact folders against their manifests, and optionally remove leftovers.
 
-Which files a folder owns (and so which unnamed files are leftovers) depends on its kind, read from the
-manifest: a dataset owns its table and MCAP folders, any other artifact everything but nested artifacts.
+Which files a folder owns (and so which unnamed files are leftovers) is recorded in its manifest (``owns``);
+datasets from before that are recognised by their keys.
 """
 
 from __future__ import annotations
 
+import contextlib
 from pathlib import Path
 from typing import Any
 
-from logpipe.artifact import MANIFEST, ArtifactWriter, Owned, verify_folder
-from logpipe.dataset import dataset_owned
+from logpipe.artifact import EVERYTHING, MANIFEST, ArtifactWriter, Ownership, read_manifest, verify_folder
+from logpipe.dataset import DATASET_ARTIFACT, DATASET_OWNED
 from logpipe.errors import DatasetError
 
 
-def _owned(manifest_path: Path) -> Owned:
-    from logpipe.artifact import read_manifest
-
-    manifest = read_manifest(manifest_path.parent, required=False) or {}
-    if "format" in manifest and "shards" in manifest and "tables" in manifest:
-        return dataset_owned
-    return lambda rel: True
+def _kind_and_owned(folder: Path) -> tuple[str, Ownership]:
+    """The artifact kind and ownership a folder's manifest records (older datasets: recognised by their keys)."""
+    try:
+        manifest = read_manifest(folder, required=False) or {}
+    except DatasetError:
+        manifest = {}
+    legacy_dataset = "format" in manifest and "shards" in manifest and "tables" in manifest
+    kind = str(manifest.get("artifact", DATASET_ARTIFACT if legacy_dataset else "unknown"))
+    return kind, Ownership.of(manifest, DATASET_OWNED if kind == DATASET_ARTIFACT else EVERYTHING)
 
 
 def artifact_folders(root: Path) -> list[Path]:
@@ -38,20 +41,19 @@ def verify_tree(roots: list[Path], *, repair: bool = False, deep: bool = True) -
     Returns:
         ``{"folders", "files_checked", "problems": [line...], "leftovers": [path...]}``.
     """
-    from logpipe.artifact import read_manifest
-
     folders = [f for root in roots for f in artifact_folders(root)]
     problems: list[str] = []
     leftovers: list[str] = []
     checked = 0
     for folder in folders:
-        owned = _owned(folder / MANIFEST)
+        kind, owned = _kind_and_owned(folder)
         found, left = verify_folder(folder, owned, deep=deep)
-        checked += len((read_manifest(folder, required=False) or {}).get("files", {}))
+        with contextlib.suppress(DatasetError):  # a damaged manifest is reported by verify_folder
+            checked += len((read_manifest(folder, required=False) or {}).get("files", {}))
         problems += [p.line() for p in found]
         leftovers += [str(folder / rel) for rel in left]
         if repair and left:
-            with ArtifactWriter(folder, owned):
+            with ArtifactWriter(folder, owned, kind):
                 pass  # entering the writer removes what no commit names
     return {"folders": [str(f) for f in folders], "files_checked": checked, "problems": problems,
             "leftovers": leftovers}

@@ -23,12 +23,13 @@ import pyarrow as pa
 import pyarrow.compute as pc
 
 from logpipe import __version__
-from logpipe.artifact import ArtifactWriter, FileEntry, crash_point, file_entry
+from logpipe.artifact import ArtifactWriter, FileEntry, crash_point, file_entry, output_errors
 from logpipe.contracts import arrow_schema, conform, schema_version, tracks_schema
 from logpipe.dataset import (
+    DATASET_ARTIFACT,
+    DATASET_OWNED,
     MCAP_DIR,
     SAMPLES_DIR,
-    dataset_owned,
     mcap_folder,
     shard_name,
     shard_number,
@@ -119,7 +120,7 @@ def ingest(roots: Sequence[Path], options: IngestOptions,
     fmt = options.format or detect(roots[0])
     adapter = get_adapter(fmt, **options.adapter_options)
     protocol = options.protocol or adapter.default_protocol
-    with ArtifactWriter(options.out, dataset_owned) as writer:
+    with output_errors(), ArtifactWriter(options.out, DATASET_OWNED, DATASET_ARTIFACT) as writer:
         return _ingest_locked(writer, roots, options, fmt, adapter, protocol, progress, started)
 
 
@@ -495,7 +496,7 @@ def reindex(dataset_dir: Path, protocol: SampleProtocol) -> dict[str, Any]:
     """Rebuild the sample index with ``protocol``, one shard in memory at a time, as one new commit."""
     from logpipe.dataset import Dataset
 
-    with ArtifactWriter(dataset_dir, dataset_owned) as writer:
+    with output_errors(), ArtifactWriter(dataset_dir, DATASET_OWNED, DATASET_ARTIFACT) as writer:
         if writer.manifest is None:
             raise DatasetError(f"{dataset_dir}: not a logpipe dataset (no manifest.json); run `logpipe ingest` first")
         dataset = Dataset.open(dataset_dir)

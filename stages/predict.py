@@ -27,7 +27,6 @@ from __future__ import annotations
 
 import base64
 import dataclasses
-import errno
 import json
 import queue
 import sys
@@ -45,7 +44,16 @@ import pyarrow.compute as pc
 import pyarrow.parquet as pq
 
 from logpipe import __version__
-from logpipe.artifact import MANIFEST, ArtifactWriter, FileEntry, file_entry, os_error_message, owned_by, read_manifest
+from logpipe.artifact import (
+    MANIFEST,
+    OUTPUT_ERRNOS,
+    ArtifactWriter,
+    FileEntry,
+    file_entry,
+    os_error_message,
+    owned_by,
+    read_manifest,
+)
 from logpipe.contracts import json_schema
 from logpipe.dataset import Dataset
 from logpipe.errors import DatasetError, LogpipeError, OutputError
@@ -82,7 +90,6 @@ except ImportError:  # pragma: no cover - orjson is a dependency; keep working w
 MCAP_DIR = "mcap"
 OWNED = owned_by([f"{PREDICTIONS_DIR}/", f"{MCAP_DIR}/"])
 """The run's own paths (``ArtifactWriter`` removes those its manifest does not name)."""
-OUTPUT_ERRNOS = frozenset({errno.ENOSPC, errno.EROFS, errno.EACCES, errno.EDQUOT, errno.EPERM})
 """OS errors on writing that are the output's fault (full, read-only, no permission): one line, not a traceback."""
 MAX_LOG_ID_CHARS = 200
 """Longest log id that becomes a file name (most file systems refuse names over 255 bytes)."""
@@ -477,7 +484,7 @@ def predict_dataset(
     previous_threads = torch.get_num_threads()
     previous_switch = sys.getswitchinterval()
     try:
-        with ArtifactWriter(out_dir, OWNED) as writer:
+        with ArtifactWriter(out_dir, OWNED, RUN_ARTIFACT) as writer:
             shards, files = _committed_state(writer, settings)
             load_net(chosen, dataset, batch_size, noise_scale, constant_velocity_modes, context_max_neighbours)
             run = _Run(dataset, chosen, modes, seed, batch_size, sample_filter, rasters, raster_images, write_mcap,

@@ -42,7 +42,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from logpipe import __version__
-from logpipe.artifact import ArtifactWriter, file_entry
+from logpipe.artifact import EVERYTHING, ArtifactWriter, file_entry, output_errors
 from logpipe.contracts import arrow_schema
 from logpipe.dataset import Dataset
 from logpipe.errors import DatasetError
@@ -54,6 +54,7 @@ from logpipe.rasters import (
     CENTRES,
     LANE_HEADING_MAX_DIST_M,
     MIN_HEADING_DISP_M,
+    RASTER_ARTIFACT,
     RASTER_DIR,
     index_file,
     inputs_tag,
@@ -186,7 +187,7 @@ def rasterise_dataset(
     map_hashes = {str(p): sha256_file(p) for p in sorted({p for p in map_files.values() if p is not None})}
     identity = {"samples_sha256": ds.manifest["tables"]["samples"]["sha256"], "maps": map_hashes,
                 "shard_size": shard_size}
-    with ArtifactWriter(out, lambda rel: True) as writer:
+    with output_errors(), ArtifactWriter(out, EVERYTHING, RASTER_ARTIFACT) as writer:
         return _rasterise_locked(writer, ds, spec, centre, identity, map_files, map_hashes, preview,
                                  shard_size, force, progress, workers, backend, started)
 

@@ -14,7 +14,6 @@ every method's numbers so a number never travels without it.
 
 from __future__ import annotations
 
-import errno
 import io
 import json
 import math
@@ -29,9 +28,9 @@ import pyarrow as pa
 import pyarrow.compute as pc
 
 from logpipe import __version__, metrics
-from logpipe.artifact import MANIFEST, ArtifactWriter, FileEntry, os_error_message, read_manifest
+from logpipe.artifact import MANIFEST, ArtifactWriter, FileEntry, Ownership, output_errors, read_manifest
 from logpipe.dataset import Dataset
-from logpipe.errors import LogpipeError, OutputError
+from logpipe.errors import LogpipeError
 from logpipe.io import as_numpy, atomic_path, read_table, sha256_bytes, sha256_file
 from logpipe.predictions import PredictionMeta, PredictionRun
 from logpipe.types import NDArrayFloat, NDArrayInt, SceneSample
@@ -395,12 +394,10 @@ REPORT_ARTIFACT = "score_report"
 """``manifest.json`` ``artifact`` value of a score report folder."""
 REPORT_JSON = "report.json"
 REPORT_MD = "report.md"
-OUTPUT_ERRNOS = frozenset({errno.ENOSPC, errno.EROFS, errno.EACCES, errno.EDQUOT, errno.EPERM})
 
 
-def report_owned(rel: str) -> bool:
-    """A report folder's own files: the reports and the plots at its top (never a report nested in it)."""
-    return "/" not in rel and (rel in (REPORT_JSON, REPORT_MD) or rel.endswith(".png"))
+REPORT_OWNED = Ownership([REPORT_JSON, REPORT_MD, "*.png"])
+"""A report folder's own files: the reports and the plots at its top (never a report nested in it)."""
 
 
 def write_report_folder(out_dir: Path, outputs: dict[str, bytes], inputs: list[str], truth: str) -> None:
@@ -422,22 +419,17 @@ def write_report_folder(out_dir: Path, outputs: dict[str, bytes], inputs: list[s
         return {"artifact": REPORT_ARTIFACT, "report_version": REPORT_VERSION, "logpipe_version": __version__,
                 "inputs": inputs, "truth": truth, "files": files}
 
-    try:
-        with ArtifactWriter(out_dir, report_owned) as writer:
-            _refuse_other_artifact(out_dir)
-            old: dict[str, FileEntry] = dict((writer.manifest or {}).get("files", {}))
-            changed = [name for name in outputs if old.get(name) != new[name]]
-            if writer.manifest is not None and any(name in old for name in changed):
-                writer.commit(manifest({k: v for k, v in old.items() if k not in changed}))
-            for name in changed:
-                with atomic_path(out_dir / name) as tmp:
-                    tmp.write_bytes(outputs[name])
-            if writer.manifest != json.loads(json.dumps(manifest(new))):
-                writer.commit(manifest(new))
-    except OSError as exc:
-        if exc.errno in OUTPUT_ERRNOS:
-            raise OutputError(os_error_message(exc)) from None
-        raise
+    with output_errors(), ArtifactWriter(out_dir, REPORT_OWNED, REPORT_ARTIFACT) as writer:
+        _refuse_other_artifact(out_dir)
+        old: dict[str, FileEntry] = dict((writer.manifest or {}).get("files", {}))
+        changed = [name for name in outputs if old.get(name) != new[name]]
+        if writer.manifest is not None and any(name in old for name in changed):
+            writer.commit(manifest({k: v for k, v in old.items() if k not in changed}))
+        for name in changed:
+            with atomic_path(out_dir / name) as tmp:
+                tmp.write_bytes(outputs[name])
+        if not writer.is_committed(manifest(new)):
+            writer.commit(manifest(new))
 
 
 def _refuse_other_artifact(out_dir: Path) -> None:

@@ -178,6 +178,7 @@ def test_pool_workers_and_parent_never_import_pandas(bundled: Path, tmp_path: Pa
     import sys
 
     script = """
+import os
 import sys
 from dataclasses import replace
 from pathlib import Path
@@ -188,7 +189,7 @@ if __name__ == "__main__":
     summary = ingest([Path(sys.argv[1])], IngestOptions(out=Path(sys.argv[2]), batch_files=2, workers=2))
     assert summary["shards_written"] and summary["rows"] > 0, summary
     parent_has_pandas = "pandas" in sys.modules
-    _init_worker()
+    _init_worker(os.getpid())
     import pyarrow as pa
     assert pa.array([1.5]).to_pylist() == [1.5]  # pyarrow works with pandas refused
     print(parent_has_pandas, "pandas" in sys.modules)

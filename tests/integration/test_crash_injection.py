@@ -23,7 +23,7 @@ from pathlib import Path
 import pytest
 
 from logpipe.artifact import MANIFEST, verify_folder
-from logpipe.dataset import Dataset, dataset_owned
+from logpipe.dataset import Dataset
 
 REPO = Path(__file__).resolve().parents[2]
 DATA = REPO / "tests" / "data"
@@ -131,8 +131,7 @@ def _assert_consistent(stage: Stage, work: Path) -> None:
     for folder in folders:
         if not (folder / MANIFEST).exists():
             continue
-        owned = dataset_owned if stage.name in ("ingest", "index") else (lambda rel: True)
-        problems, _ = verify_folder(folder, owned)
+        problems, _ = verify_folder(folder)
         assert not problems, [p.line() for p in problems]
         if stage.name in ("ingest", "index"):
             ds = Dataset.open(folder)
