@@ -26,10 +26,35 @@ def _kind_and_owned(folder: Path) -> tuple[str, Ownership]:
     return kind, Ownership.of(manifest, DATASET_OWNED if kind == DATASET_ARTIFACT else EVERYTHING)
 
 
+CHECKPOINT_META = "meta.json"
+"""A checkpoint folder's metadata (``logpipe.model.checkpoints``): it names the weights' sha256."""
+
+
+def _verify_checkpoint(folder: Path) -> list[str]:
+    """Problems of a checkpoint folder: unreadable metadata, or weights whose sha256 is not the recorded one."""
+    import json
+
+    from logpipe.io import sha256_file
+
+    try:
+        meta = json.loads((folder / CHECKPOINT_META).read_text(encoding="utf-8"))
+        expected = str(meta["weights_sha256"])
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        return [f"{folder / CHECKPOINT_META}: unreadable checkpoint metadata ({type(exc).__name__})"]
+    weights = folder / "weights.safetensors"
+    if not weights.is_file():
+        return [f"{weights}: missing"]
+    if sha256_file(weights) != expected:
+        return [f"{weights}: sha256 differs from {CHECKPOINT_META} (content changed)"]
+    return []
+
+
 def artifact_folders(root: Path) -> list[Path]:
     """``root`` and every artifact folder nested in it (a dataset's raster runs), outer first."""
     root = Path(root)
     if not (root / MANIFEST).is_file():
+        if (root / CHECKPOINT_META).is_file():
+            return [root]
         raise DatasetError(f"{root}: no {MANIFEST}; not a logpipe output folder")
     nested = sorted(p.parent for p in root.glob(f"*/*/{MANIFEST}") if p.parent.parent.name == "rasters")
     return [root, *nested]
@@ -46,6 +71,10 @@ def verify_tree(roots: list[Path], *, repair: bool = False, deep: bool = True) -
     leftovers: list[str] = []
     checked = 0
     for folder in folders:
+        if not (folder / MANIFEST).is_file():  # a checkpoint
+            problems += _verify_checkpoint(folder)
+            checked += 1
+            continue
         kind, owned = _kind_and_owned(folder)
         found, left = verify_folder(folder, owned, deep=deep)
         with contextlib.suppress(DatasetError):  # a damaged manifest is reported by verify_folder

@@ -18,6 +18,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import shutil
 import time
 from dataclasses import dataclass
 from importlib import metadata
@@ -27,6 +28,7 @@ from typing import Any
 import torch
 from safetensors.torch import load_file, save_file
 
+from logpipe.artifact import recover_folder, replace_folder, staging_folder_for
 from logpipe.errors import LogpipeError
 
 from .config import (
@@ -157,9 +159,38 @@ def save_checkpoint(
     train_state: dict[str, Any] | None = None,
     averaged: dict[str, torch.Tensor] | None = None,
 ) -> Path:
-    """Write a checkpoint folder (created if needed); with ``optimizer`` it is resumable, and ``averaged``
-    (the state dict of the run's weight average, ``TrainConfig.ema_decay``) goes to ``averaged.safetensors``."""
-    folder.mkdir(parents=True, exist_ok=True)
+    """Write a checkpoint folder (replacing one that is there); with ``optimizer`` it is resumable, and
+    ``averaged`` (the state dict of the run's weight average, ``TrainConfig.ema_decay``) goes to
+    ``averaged.safetensors``.
+
+    The files are only valid together (``meta.json`` names the weights' sha256), so the whole folder is built
+    beside the old one and swapped in at once: a crash leaves the previous checkpoint or the new one.
+    """
+    recover_folder(folder)
+    staging = staging_folder_for(folder)
+    try:
+        _write_checkpoint_files(staging, net, config, dataset_kind=dataset_kind, manifest_hash=manifest_hash,
+                                step=step, metrics=metrics, optimizer=optimizer, train_state=train_state,
+                                averaged=averaged)
+        replace_folder(staging, folder)
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
+    return folder
+
+
+def _write_checkpoint_files(
+    folder: Path,
+    net: TrajectoryNet,
+    config: TrainConfig,
+    *,
+    dataset_kind: str,
+    manifest_hash: str,
+    step: int,
+    metrics: dict[str, float] | None,
+    optimizer: torch.optim.Optimizer | None,
+    train_state: dict[str, Any] | None,
+    averaged: dict[str, torch.Tensor] | None,
+) -> None:
     weights = folder / "weights.safetensors"
     _atomic_tensors(weights, dict(net.state_dict()))
     if averaged is not None:
@@ -183,7 +214,6 @@ def save_checkpoint(
         created_unix=time.time(),
     )
     _atomic_json(folder / "meta.json", meta.to_dict())
-    return folder
 
 
 def read_meta(folder: Path) -> CheckpointMeta:
@@ -276,6 +306,7 @@ def load_checkpoint(
         CheckpointMismatchError: dataset kind, manifest hash or config differ from the expected ones.
     """
     folder = path.parent if path.name == "meta.json" else path
+    recover_folder(folder)
     meta = read_meta(folder)
     check_meta(
         meta, folder, expect_kind=expect_kind, expect_config=expect_config, expect_manifest_hash=expect_manifest_hash

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import os
 import time
 from collections.abc import Iterable, Sequence
 from pathlib import Path
@@ -17,6 +18,7 @@ from typing import TYPE_CHECKING, Any
 import pyarrow as pa
 import pyarrow.compute as pc
 
+from logpipe.artifact import FolderLock
 from logpipe.dataset import Dataset
 from logpipe.errors import LogpipeError
 from logpipe.io import sha256_file
@@ -107,17 +109,26 @@ def train(
     else:
         train_samples = scene_samples(dataset, train_split, rasters=rasters)
     val_samples = scene_samples(dataset, val_split, rasters=rasters) if val_split else None
-    result = fit(
-        train_samples,
-        val_samples,
-        config,
-        out_dir,
-        resume=resume,
-        progress=progress,
-        dataset_kind=dataset.kind,
-        manifest_hash=sha256_file(dataset.root / "manifest.json"),
-        init_from=init_from,
-    )
+    # One training per run folder: under torchrun only process 0 writes, so only it holds the lock.
+    lock = FolderLock(out_dir) if os.environ.get("RANK", "0") == "0" else None
+    if lock is not None:
+        out_dir.mkdir(parents=True, exist_ok=True)
+        lock.acquire()
+    try:
+        result = fit(
+            train_samples,
+            val_samples,
+            config,
+            out_dir,
+            resume=resume,
+            progress=progress,
+            dataset_kind=dataset.kind,
+            manifest_hash=sha256_file(dataset.root / "manifest.json"),
+            init_from=init_from,
+        )
+    finally:
+        if lock is not None:
+            lock.release()
     return {
         "dataset": str(dataset_dir),
         "run": str(out_dir),

@@ -184,3 +184,18 @@ def test_verify_repair_removes_leftovers_only(artifacts: dict[str, Path], tmp_pa
     assert not (copy / ".staging-0123456789ab").exists() and not (copy / "tracks" / "part-00009.parquet").exists()
     assert (copy / "notes.txt").read_text() == "the user's own file"
     assert json.loads(_cli("verify", str(copy), "--json").stdout)["leftovers"] == []
+
+
+def test_verify_finds_a_flipped_byte_in_a_checkpoint(tmp_path: Path) -> None:
+    copy = tmp_path / "eth"
+    shipped = REPO / "model" / "checkpoints" / "ethucy" / "eth"
+    copy.mkdir()
+    for name in ("meta.json", "weights.safetensors"):
+        shutil.copy(shipped / name, copy / name)
+    assert _cli("verify", str(copy)).returncode == 0
+    data = bytearray((copy / "weights.safetensors").read_bytes())
+    data[len(data) // 2] ^= 0x01
+    (copy / "weights.safetensors").write_bytes(bytes(data))
+    found = _cli("verify", str(copy), check=False)
+    assert found.returncode == 1 and found.stdout.strip() == (
+        f"{copy / 'weights.safetensors'}: sha256 differs from meta.json (content changed)")
