@@ -22,19 +22,10 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.compute as pc
 
-from logpipe import __version__
-from logpipe.artifact import ArtifactWriter, FileEntry, crash_point, file_entry, output_errors
-from logpipe.contracts import arrow_schema, conform, schema_version, tracks_schema
-from logpipe.dataset import (
-    DATASET_ARTIFACT,
-    DATASET_OWNED,
-    MCAP_DIR,
-    SAMPLES_DIR,
-    mcap_folder,
-    shard_name,
-    shard_number,
-    table_file,
-)
+from logpipe.artifact import FileEntry, file_entry, output_errors
+from logpipe.contracts import arrow_schema, conform, tracks_schema
+from logpipe.dataset import mcap_folder, shard_name, shard_number
+from logpipe.dataset_writer import DatasetManifest, DatasetWriter, InputEntry, NewShard, QuarantineEntry, ShardEntry
 from logpipe.errors import DatasetError, SourceError
 from logpipe.executor import Backend, default_workers, run_ordered, warm_up
 from logpipe.formats import detect, get_adapter
@@ -45,7 +36,6 @@ from logpipe.samples import TrackCodes, build_samples, steps_from_sorted_times
 from logpipe.types import LogMeta, NDArrayBool, NDArrayInt, Role, SampleProtocol, SourceFile
 
 OnError = Literal["fail", "skip"]
-SCHEMAS = ("tracks", "logs", "samples")
 
 
 @dataclass
@@ -88,7 +78,7 @@ class _BatchJob:
 
 @dataclass
 class _BatchResult:
-    shard: dict[str, Any] | None
+    shard: ShardEntry | None
     logs: pa.Table
     samples: pa.Table
     ingested: list[SourceFile]
@@ -120,17 +110,17 @@ def ingest(roots: Sequence[Path], options: IngestOptions,
     fmt = options.format or detect(roots[0])
     adapter = get_adapter(fmt, **options.adapter_options)
     protocol = options.protocol or adapter.default_protocol
-    with output_errors(), ArtifactWriter(options.out, DATASET_OWNED, DATASET_ARTIFACT) as writer:
+    with output_errors(), DatasetWriter(options.out) as writer:
         return _ingest_locked(writer, roots, options, fmt, adapter, protocol, progress, started)
 
 
-def _ingest_locked(writer: ArtifactWriter, roots: Sequence[Path], options: IngestOptions, fmt: str,
+def _ingest_locked(writer: DatasetWriter, roots: Sequence[Path], options: IngestOptions, fmt: str,
                    adapter: FormatAdapter, protocol: SampleProtocol, progress: Callable[[int], None] | None,
                    started: float) -> dict[str, Any]:
     """``ingest`` while holding the dataset folder's lock."""
     default_batch = adapter.batch_files
     out = options.out
-    manifest = _compatible_manifest(writer.manifest, out, fmt, protocol)
+    manifest = writer.start(fmt, protocol)
     found = find_inputs(roots, adapter)
     known_sizes = _known_sizes(manifest)
     # A first ingest hashes nothing up front when twins are unlikely; a run that finds some is redone below.
@@ -159,7 +149,7 @@ def _ingest_locked(writer: ArtifactWriter, roots: Sequence[Path], options: Inges
 
 
 def _ingest_new(
-    writer: ArtifactWriter, new: list[SourceFile], manifest: dict[str, Any], fmt: str, default_batch: int,
+    writer: DatasetWriter, new: list[SourceFile], manifest: DatasetManifest, fmt: str, default_batch: int,
     protocol: SampleProtocol, options: IngestOptions, summary: dict[str, Any],
     progress: Callable[[int], None] | None, *, reject_twins: bool = False,
 ) -> bool:
@@ -229,8 +219,8 @@ def _ingest_batch(job: _BatchJob) -> _BatchResult:
         options.pop("compression_level", None)
         write_parquet(tracks, path, options, dictionaries_as_values=True)
         files[job.shard_file] = file_entry(path, rows=tracks.num_rows)
-        shard = {"file": job.shard_file, "rows": tracks.num_rows, "sha256": files[job.shard_file]["sha256"],
-                 "logs": logs.num_rows}
+        shard = ShardEntry(file=job.shard_file, rows=tracks.num_rows, sha256=files[job.shard_file]["sha256"],
+                           logs=logs.num_rows)
         kept = [m for m in parsed.logs if m not in empty]
         samples = build_samples(tracks, kept, job.protocol, codes)
         if job.write_mcap:
@@ -377,114 +367,31 @@ def _write_mcaps(tracks: pa.Table, metas: list[LogMeta], folder: Path) -> int:
     return messages
 
 
-def _known_sizes(manifest: dict[str, Any]) -> set[int] | None:
+def _known_sizes(manifest: DatasetManifest) -> set[int] | None:
     """Sizes of every input the dataset already holds or quarantined; None when a quarantine entry predates
     recording sizes (then every new input is hashed before the skip check)."""
-    entries = manifest["inputs"] + manifest["quarantined"]
+    entries = [*manifest["inputs"], *manifest["quarantined"]]
     if any("bytes" not in e for e in entries):
         return None
     return {int(e["bytes"]) for e in entries}
 
 
-def _empty_manifest(fmt: str, protocol: SampleProtocol) -> dict[str, Any]:
-    return {
-        "logpipe_version": __version__,
-        "schemas": {name: schema_version(name) for name in SCHEMAS},
-        "format": fmt,
-        "protocol": protocol.to_dict(),
-        "input_roots": [],
-        "inputs": [],
-        "quarantined": [],
-        "shards": [],
-        "tables": {},
-        "totals": {"logs": 0, "rows": 0, "samples": 0, "inputs": 0, "quarantined": 0},
-        "generation": 0,
-        "files": {},
-    }
-
-
-def _compatible_manifest(manifest: dict[str, Any] | None, out: Path, fmt: str,
-                         protocol: SampleProtocol) -> dict[str, Any]:
-    """The committed manifest (a new one for an empty folder), refused when made with other settings."""
-    if manifest is None:
-        return _empty_manifest(fmt, protocol)
-    if "format" not in manifest or "protocol" not in manifest:
-        raise DatasetError(f"{out}: holds a manifest.json that is not a logpipe dataset's")
-    manifest = dict(manifest)
-    manifest.setdefault("files", {})
-    problems = []
-    if manifest["format"] != fmt:
-        problems.append(f"format {manifest['format']!r} (now {fmt!r})")
-    if manifest["protocol"] != protocol.to_dict():
-        problems.append(f"protocol {manifest['protocol']} (now {protocol.to_dict()})")
-    versions = {name: schema_version(name) for name in SCHEMAS}
-    if manifest["schemas"] != versions:
-        problems.append(f"schema versions {manifest['schemas']} (now {versions})")
-    if problems:
-        raise DatasetError(f"{out}: existing dataset was written with " + "; ".join(problems)
-                           + ". Ingest into a new folder (or `logpipe index` to change the protocol).")
-    return manifest
-
-
-def _commit(writer: ArtifactWriter, results: list[_BatchResult], manifest: dict[str, Any], staging: Path,
+def _commit(writer: DatasetWriter, results: list[_BatchResult], manifest: DatasetManifest, staging: Path,
             summary: dict[str, Any]) -> None:
-    """Move the batches' shards and MCAPs into place, write the new generation's tables, swap the manifest."""
-    out = writer.root
-    old_logs = [read_table(out / manifest["tables"]["logs"]["file"])] if "logs" in manifest["tables"] else []
-    new_logs = [r.logs for r in results if r.logs.num_rows]
-    all_logs = pa.concat_tables(old_logs + new_logs) if old_logs or new_logs else arrow_schema("logs").empty_table()
-    # Arrow kernels on Arrow values only: a first conversion from numpy or Python (a numpy view, a Python 1
-    # in a comparison) would make pyarrow import pandas, ~1 s of CPU, where no work is left to overlap it.
-    counts = pc.value_counts(all_logs.column("log_id"))
-    if all_logs.num_rows and pc.max(counts.field("counts")).as_py() > 1:
-        clash = next(v["values"] for v in counts.to_pylist() if v["counts"] > 1)
-        sources = all_logs.filter(pc.equal(all_logs.column("log_id"), clash)).column("source_file").to_pylist()
-        raise DatasetError(f"log id {clash!r} comes from different inputs {sources}: ingest them into separate "
-                           "datasets (log ids are file stems)")
-    files: dict[str, Any] = dict(manifest.get("files", {}))
-    for result in results:
-        if result.shard is not None:
-            (out / result.shard["file"]).parent.mkdir(exist_ok=True)
-            crash_point(f"move {result.shard['file']}")
-            (staging / result.shard["file"]).replace(out / result.shard["file"])
-            manifest["shards"].append(result.shard)
-            summary["shards_written"].append(result.shard["file"])
-        files.update(result.files)
-    if (staging / MCAP_DIR).is_dir():
-        (out / MCAP_DIR).mkdir(exist_ok=True)
-        for folder in sorted((staging / MCAP_DIR).iterdir()):  # one rename per shard, not per log
-            crash_point(f"move {MCAP_DIR}/{folder.name}")
-            folder.replace(out / MCAP_DIR / folder.name)
-    old_samples = [read_table(out / manifest["tables"]["samples"]["file"])] if "samples" in manifest["tables"] else []
-    all_samples = pa.concat_tables(old_samples + [r.samples for r in results])
-    generation = int(manifest.get("generation", 0)) + 1
-    tables = {}
-    for name, table in (("logs", all_logs), ("samples", all_samples)):
-        if name in manifest["tables"]:
-            files.pop(manifest["tables"][name]["file"], None)
-        rel = table_file(name, generation)
-        write_parquet(table, out / rel)
-        files[rel] = file_entry(out / rel, rows=table.num_rows)
-        tables[name] = {"file": rel, "rows": table.num_rows, "sha256": files[rel]["sha256"]}
-    for result in results:
-        for source in result.ingested:
-            manifest["inputs"].append({"path": source.relpath, "sha256": source.sha256, "bytes": source.size,
-                                       "memberships": list(source.memberships)})
-        for source, error in result.failures:
-            entry = {"path": source.relpath, "sha256": source.sha256, "bytes": source.size, "error": error.to_dict()}
-            manifest["quarantined"].append(entry)
-            summary["quarantined"].append(entry)
-    manifest["tables"] = tables
-    manifest["generation"] = generation
-    manifest["files"] = files
-    manifest["totals"] = {
-        "logs": all_logs.num_rows,
-        "rows": sum(s["rows"] for s in manifest["shards"]),
-        "samples": all_samples.num_rows,
-        "inputs": len(manifest["inputs"]),
-        "quarantined": len(manifest["quarantined"]),
-    }
-    writer.commit(manifest)
+    """Commit the batches (``DatasetWriter.commit_shards``) and count them into ``summary``."""
+    batches = [
+        NewShard(
+            shard=r.shard, logs=r.logs, samples=r.samples, files=r.files,
+            inputs=[InputEntry(path=s.relpath, sha256=s.sha256, bytes=s.size, memberships=list(s.memberships))
+                    for s in r.ingested],
+            quarantined=[QuarantineEntry(path=s.relpath, sha256=s.sha256, bytes=s.size, error=e.to_dict())
+                         for s, e in r.failures],
+        )
+        for r in results
+    ]
+    writer.commit_shards(manifest, batches, staging)
+    summary["shards_written"] = [b.shard["file"] for b in batches if b.shard is not None]
+    summary["quarantined"] = [q for b in batches for q in b.quarantined]
     summary["inputs_ingested"] = sum(len(r.ingested) for r in results)
     summary["logs"] = sum(r.logs.num_rows for r in results)
     summary["rows"] = sum(r.shard["rows"] for r in results if r.shard)
@@ -496,7 +403,7 @@ def reindex(dataset_dir: Path, protocol: SampleProtocol) -> dict[str, Any]:
     """Rebuild the sample index with ``protocol``, one shard in memory at a time, as one new commit."""
     from logpipe.dataset import Dataset
 
-    with output_errors(), ArtifactWriter(dataset_dir, DATASET_OWNED, DATASET_ARTIFACT) as writer:
+    with output_errors(), DatasetWriter(dataset_dir) as writer:
         if writer.manifest is None:
             raise DatasetError(f"{dataset_dir}: not a logpipe dataset (no manifest.json); run `logpipe ingest` first")
         dataset = Dataset.open(dataset_dir)
@@ -514,22 +421,5 @@ def reindex(dataset_dir: Path, protocol: SampleProtocol) -> dict[str, Any]:
         ]
         parts = [build_samples(read_table(path), metas, protocol) for path in dataset.shard_paths]
         samples = pa.concat_tables(parts) if parts else arrow_schema("samples").empty_table()
-        manifest = dict(dataset.manifest)
-        files = dict(manifest.get("files", {}))
-        files.pop(manifest["tables"]["samples"]["file"], None)
-        generation = int(manifest.get("generation", 0)) + 1
-        rel = table_file(SAMPLES_DIR, generation)
-        write_parquet(samples, dataset_dir / rel)
-        files[rel] = file_entry(dataset_dir / rel, rows=samples.num_rows)
-        if "logs" in manifest["tables"] and manifest["tables"]["logs"]["file"] not in files:
-            # A dataset of the previous layout: name its files so the commit keeps them.
-            for rel_old in [manifest["tables"]["logs"]["file"], *(s["file"] for s in manifest["shards"])]:
-                files[rel_old] = file_entry(dataset_dir / rel_old)
-        manifest["tables"] = {**manifest["tables"], "samples": {"file": rel, "rows": samples.num_rows,
-                                                                 "sha256": files[rel]["sha256"]}}
-        manifest["protocol"] = protocol.to_dict()
-        manifest["totals"] = {**manifest["totals"], "samples": samples.num_rows}
-        manifest["generation"] = generation
-        manifest["files"] = files
-        writer.commit(manifest)
+        writer.commit_index(samples, protocol)
     return {"dataset": str(dataset_dir), "protocol": protocol.to_dict(), "samples": samples.num_rows}

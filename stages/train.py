@@ -111,6 +111,7 @@ def train(
     val_samples = scene_samples(dataset, val_split, rasters=rasters) if val_split else None
     # One training per run folder: under torchrun only process 0 writes, so only it holds the lock.
     lock = FolderLock(out_dir) if os.environ.get("RANK", "0") == "0" else None
+    created = not out_dir.exists()
     if lock is not None:
         out_dir.mkdir(parents=True, exist_ok=True)
         lock.acquire()
@@ -129,6 +130,8 @@ def train(
     finally:
         if lock is not None:
             lock.release()
+            if created and not any(out_dir.iterdir()):
+                out_dir.rmdir()  # a run that could not start leaves no folder
     return {
         "dataset": str(dataset_dir),
         "run": str(out_dir),
