@@ -89,10 +89,10 @@ def _emit(summary: dict[str, Any], as_json: bool, human: Callable[[dict[str, Any
 
 
 def _protocol(preset: str | None, obs: int | None, pred: int | None, stride: int | None,
-              min_targets: int | None, targets: str | None,
+              min_targets: int | None, targets: str | None, target_types: str | None = None,
               default: SampleProtocol | None = None) -> SampleProtocol | None:
     """The protocol the options describe: a preset (or ``default``) with overrides; None when none given."""
-    if preset is None and all(v is None for v in (obs, pred, stride, min_targets, targets)):
+    if preset is None and all(v is None for v in (obs, pred, stride, min_targets, targets, target_types)):
         return None
     if preset is not None and preset not in PROTOCOLS:
         raise LogpipeError(f"unknown protocol {preset!r}; presets: {', '.join(PROTOCOLS)}")
@@ -105,6 +105,8 @@ def _protocol(preset: str | None, obs: int | None, pred: int | None, stride: int
                        ("targets", targets)):
         if value is not None:
             changes[key] = value
+    if target_types is not None:
+        changes["target_types"] = tuple(t.strip() for t in target_types.split(",") if t.strip())
     if changes and base.name != "custom":
         changes["name"] = f"{base.name.removesuffix('-custom')}-custom"
     return replace(base, **changes)
@@ -117,7 +119,10 @@ PredOpt = Annotated[int | None, typer.Option("--pred", help="Predicted steps per
 StrideOpt = Annotated[int | None, typer.Option("--stride", help="Steps between sliding windows.")]
 MinTargetsOpt = Annotated[int | None, typer.Option(
     "--min-targets", help="Keep windows with at least this many fully observed agents (Social-GAN: 2).")]
-TargetsOpt = Annotated[str | None, typer.Option("--targets", help="fully_observed | focal")]
+TargetsOpt = Annotated[str | None, typer.Option(
+    "--targets", help="fully_observed | fully_observed_no_ego (the ego's future is an input) | focal")]
+TargetTypesOpt = Annotated[str | None, typer.Option(
+    "--target-types", help="Only agents of these types are targets, comma-separated (vehicle,bus_truck).")]
 JsonOpt = Annotated[bool, typer.Option("--json", help="Print a JSON summary on stdout (for CI).")]
 DatasetArg = Annotated[Path, typer.Argument(help="Dataset folder written by `logpipe ingest`.")]
 
@@ -138,6 +143,7 @@ def ingest(
     stride: StrideOpt = None,
     min_targets: MinTargetsOpt = None,
     targets: TargetsOpt = None,
+    target_types: TargetTypesOpt = None,
     on_error: Annotated[str, typer.Option(
         "--on-error", help="fail: stop at the first bad input, write nothing. skip: quarantine bad inputs.")
     ] = "fail",
@@ -172,7 +178,7 @@ def ingest(
         raise typer.BadParameter("--backend must be local or ray")
     with _user_errors():
         options = IngestOptions(
-            out=out, format=fmt, protocol=_protocol(protocol, obs, pred, stride, min_targets, targets),
+            out=out, format=fmt, protocol=_protocol(protocol, obs, pred, stride, min_targets, targets, target_types),
             on_error=on_error,
             write_mcap=mcap, workers=workers, backend=backend,
             batch_files=batch_files,
@@ -221,6 +227,7 @@ def index(
     stride: StrideOpt = None,
     min_targets: MinTargetsOpt = None,
     targets: TargetsOpt = None,
+    target_types: TargetTypesOpt = None,
     as_json: JsonOpt = False,
 ) -> None:
     """Rebuild the sample index of a dataset with another protocol (no re-ingest).
@@ -232,9 +239,10 @@ def index(
 
     with _user_errors():
         current = Dataset.open(dataset).protocol
-        chosen = _protocol(protocol, obs, pred, stride, min_targets, targets, default=current)
+        chosen = _protocol(protocol, obs, pred, stride, min_targets, targets, target_types, default=current)
         if chosen is None:
-            raise LogpipeError("give --protocol or at least one of --obs/--pred/--stride/--min-targets/--targets")
+            raise LogpipeError("give --protocol or at least one of --obs/--pred/--stride/--min-targets/--targets"
+                               "/--target-types")
         summary = reindex(dataset, chosen)
     _emit(summary, as_json, lambda s: err.print(f"{s['dataset']}: {s['samples']} samples ({s['protocol']})",
                                                 highlight=False))
@@ -409,7 +417,8 @@ def predict(
 
 @app.command()
 def score(
-    predictions: Annotated[list[Path], typer.Argument(help="Predictions tables (schemas/predictions.json).",
+    predictions: Annotated[list[Path], typer.Argument(help="Prediction run folders (logpipe predict --out) or "
+                                                      "predictions files; one method each.",
                                                       show_default=False)],
     truth: Annotated[Path, typer.Option("--truth", help="Dataset folder the predictions were made on.")],
     out: Annotated[Path, typer.Option("--out", "-o", help="Report folder.")] = Path("out/score"),
@@ -428,7 +437,8 @@ def score(
         "--fail-above", help="Gate kN.METRIC=VALUE, repeatable (k1.ade=0.6, k6.miss_rate=0.2): exit 1 when any "
                              "method's overall value is above.")] = None,
     label: Annotated[list[str] | None, typer.Option(
-        "--label", help="Method names in file order, repeatable (default: the predictor column).")] = None,
+        "--label", help="Method names in input order, one per folder/file (default: the predictor; the folder "
+                        "name where predictors collide).")] = None,
     allow_missing: Annotated[bool, typer.Option(
         "--allow-missing", help="Score what is there when counted agents lack a forecast.")] = False,
     plots: Annotated[bool, typer.Option("--plots/--no-plots", help="Write horizon.png and scenes_*.png.")] = True,
@@ -438,7 +448,7 @@ def score(
     """Score predictions against a dataset: report.json, report.md and PNG plots; exit 1 when a --fail-above
     threshold is crossed.
 
-    Example: logpipe score out/pred/cv.parquet out/pred/zhu.parquet --truth out/ethucy --split eth/test --min-agents 2
+    Example: logpipe score out/pred/cv out/pred/eth --truth out/ethucy --split eth/test --min-agents 2
     """
     from logpipe.stages.score import score as run_score
 
