@@ -112,5 +112,7 @@ train-apolloscape/%:
 
 # The damaged-input corpus (tests/fuzz/corpus.py, ~580 cases over every format and the map files; the
 # ../shared ones are skipped when it is absent): figures in $(OUT)/fuzz.json. A fast subset runs in `make test`.
+# Then the crash injection with 20 random-time kills per stage (make test runs 6).
 fuzz: setup
 	OUT=$(OUT) $(PY) -m pytest -q -p no:cacheprovider tests/fuzz -m fuzz
+	LOGPIPE_RANDOM_KILLS=20 $(PY) -m pytest -q -p no:cacheprovider tests/integration/test_crash_injection.py
