@@ -22,7 +22,7 @@ import json
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
-from typing import Any, TypedDict, cast
+from typing import Any
 
 import numpy as np
 import pyarrow as pa
@@ -48,24 +48,6 @@ LEGACY_RUN_FILE = "predict.json"
 
 class PredictionsError(LogpipeError):
     """A predictions table or run folder is missing, damaged or inconsistent with its metadata."""
-
-
-class PredictionMetaDict(TypedDict):
-    """``PredictionMeta`` as stored (JSON)."""
-
-    predictor: str
-    checkpoint_id: str
-    protocol: str | None
-    obs_len: int
-    pred_len: int
-    num_modes: int
-    checkpoint_sha256: str | None
-    seed: int | None
-    dataset_manifest_sha256: str | None
-    noise_scale: float
-    constant_velocity_modes: int | None
-    context_max_neighbours: int | None
-    logpipe_version: str
 
 
 @dataclass(frozen=True)
@@ -103,9 +85,9 @@ class PredictionMeta:
     context_max_neighbours: int | None = None
     logpipe_version: str = __version__
 
-    def to_dict(self) -> PredictionMetaDict:
+    def to_dict(self) -> dict[str, Any]:
         """The JSON form (manifest ``metadata``, Parquet ``logpipe.predictions``)."""
-        return cast(PredictionMetaDict, asdict(self))
+        return asdict(self)
 
     @classmethod
     def from_dict(cls, data: Any, where: str) -> PredictionMeta:

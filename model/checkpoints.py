@@ -15,6 +15,7 @@ detected on load instead of silently mixing old and new files.
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
 import os
@@ -169,28 +170,20 @@ def save_checkpoint(
     recover_folder(folder)
     staging = staging_folder_for(folder)
     try:
-        _write_checkpoint_files(staging, net, config, dataset_kind=dataset_kind, manifest_hash=manifest_hash,
-                                step=step, metrics=metrics, optimizer=optimizer, train_state=train_state,
-                                averaged=averaged)
+        _write_checkpoint_files(staging, net, CheckpointMeta(
+            config=config, dataset_kind=dataset_kind, manifest_hash=manifest_hash, logpipe_version=logpipe_version(),
+            step=step, metrics=dict(metrics or {}), weights_sha256="", created_unix=time.time()),
+            optimizer, train_state, averaged)
         replace_folder(staging, folder)
     finally:
         shutil.rmtree(staging, ignore_errors=True)
     return folder
 
 
-def _write_checkpoint_files(
-    folder: Path,
-    net: TrajectoryNet,
-    config: TrainConfig,
-    *,
-    dataset_kind: str,
-    manifest_hash: str,
-    step: int,
-    metrics: dict[str, float] | None,
-    optimizer: torch.optim.Optimizer | None,
-    train_state: dict[str, Any] | None,
-    averaged: dict[str, torch.Tensor] | None,
-) -> None:
+def _write_checkpoint_files(folder: Path, net: TrajectoryNet, meta: CheckpointMeta,
+                            optimizer: torch.optim.Optimizer | None, train_state: dict[str, Any] | None,
+                            averaged: dict[str, torch.Tensor] | None) -> None:
+    """The files of a checkpoint into ``folder``; ``meta`` gets the weights' sha256 once they are written."""
     weights = folder / "weights.safetensors"
     _atomic_tensors(weights, dict(net.state_dict()))
     if averaged is not None:
@@ -203,16 +196,7 @@ def _write_checkpoint_files(
                 tensors[f"state.{idx}.{key}"] = torch.as_tensor(value)
         _atomic_tensors(folder / "optimizer.safetensors", tensors)
         _atomic_json(folder / "train_state.json", {"param_groups": state["param_groups"], **(train_state or {})})
-    meta = CheckpointMeta(
-        config=config,
-        dataset_kind=dataset_kind,
-        manifest_hash=manifest_hash,
-        logpipe_version=logpipe_version(),
-        step=step,
-        metrics=dict(metrics or {}),
-        weights_sha256=_sha256(weights),
-        created_unix=time.time(),
-    )
+    meta = dataclasses.replace(meta, weights_sha256=_sha256(weights))
     _atomic_json(folder / "meta.json", meta.to_dict())
 
 
