@@ -55,6 +55,23 @@ class FileEntry(TypedDict, total=False):
     rows: int
 
 
+MAX_NAME_CHARS = 200
+"""Longest id taken from data that may become a file name (``mcap/<log_id>.mcap``); most file systems refuse
+names over 255 bytes."""
+
+
+def unsafe_file_name(name: str) -> str | None:
+    """Why ``name`` (an id taken from data) cannot be one file name inside an output folder, or None when it can:
+    empty, ``.``/``..``, a ``/`` or ``\\``, NUL or control characters, or longer than ``MAX_NAME_CHARS``."""
+    if not name or name in (".", "..") or "/" in name or "\\" in name:
+        return "is not a single file name (empty, '.', '..' or has '/')"
+    if any(ord(c) < 32 or ord(c) == 127 for c in name):
+        return "holds NUL or control characters"
+    if len(name) > MAX_NAME_CHARS:
+        return f"is {len(name)} characters long (at most {MAX_NAME_CHARS})"
+    return None
+
+
 # ---- crash injection -----------------------------------------------------------------------------------
 
 

@@ -22,7 +22,8 @@ import json
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
-from typing import Any
+from types import TracebackType
+from typing import Any, TypedDict
 
 import numpy as np
 import pyarrow as pa
@@ -30,7 +31,7 @@ import pyarrow.compute as pc
 import pyarrow.parquet as pq
 
 from logpipe import __version__
-from logpipe.artifact import MANIFEST, check_files, read_manifest
+from logpipe.artifact import MANIFEST, ArtifactWriter, FileEntry, Ownership, check_files, read_manifest
 from logpipe.contracts import arrow_schema
 from logpipe.errors import DatasetError, LogpipeError
 from logpipe.io import as_numpy
@@ -419,3 +420,90 @@ def dense_forecasts(table: pa.Table, k: int, t: int, where: str) -> DenseForecas
         pred=xy.reshape(n, k, t, 2),
         checkpoint_ids=sorted(set(table.column("checkpoint_id").to_pylist())),
     )
+
+
+# ---- the write side of a prediction run folder ---------------------------------------------------------
+
+MCAP_DIR = "mcap"
+RUN_OWNED = Ownership([f"{PREDICTIONS_DIR}/", f"{MCAP_DIR}/"])
+"""A prediction run's own paths (its writer removes those its manifest does not name)."""
+
+
+class RunSettings(TypedDict):
+    """What a run was made with; a rerun resumes only with equal settings."""
+
+    dataset_manifest_sha256: str
+    predictor: str
+    checkpoint_id: str
+    num_modes: int
+    seed: int
+    batch_size: int
+    filter: dict[str, Any]
+    protocol: dict[str, Any]
+    write_mcap: bool
+    raster_run: str | None
+
+
+class RunShardEntry(TypedDict):
+    """A finished dataset shard in the run manifest (``file`` None when none of its logs was selected)."""
+
+    shard: str
+    logs: int
+    samples: int
+    rows: int
+    file: str | None
+
+
+class PredictionRunWriter:
+    """Writes a prediction run folder (``PredictionRun`` reads it): locked, one commit per finished dataset
+    shard, so an interrupted run resumes from its committed shards (``logpipe.artifact``)."""
+
+    def __init__(self, root: Path) -> None:
+        self.root = Path(root)
+        self._writer = ArtifactWriter(self.root, RUN_OWNED, RUN_ARTIFACT)
+
+    def __enter__(self) -> PredictionRunWriter:
+        self._writer.__enter__()
+        return self
+
+    def __exit__(self, kind: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None) -> None:
+        self._writer.__exit__(kind, exc, tb)
+
+    @property
+    def manifest(self) -> dict[str, Any] | None:
+        return self._writer.manifest
+
+    @staticmethod
+    def refuse_other_folders(out_dir: Path) -> None:
+        """Never adopt a folder that holds another artifact (a dataset: its ``mcap/`` would look like ours) or a
+        run of an older logpipe: entering the writer would remove their files."""
+        if not out_dir.is_dir():
+            return
+        existing = read_manifest(out_dir, required=False)
+        if existing is not None and existing.get("artifact") != RUN_ARTIFACT:
+            raise DatasetError(f"{out_dir}: holds another logpipe artifact ({MANIFEST} of a "
+                               f"{existing.get('artifact') or 'dataset'}), not a prediction run; choose another --out")
+        if existing is None and (out_dir / LEGACY_RUN_FILE).is_file():
+            raise DatasetError(f"{out_dir}: holds a prediction run of an older logpipe ({LEGACY_RUN_FILE}); "
+                               "choose another --out or delete it")
+
+    def committed(self, settings: RunSettings) -> tuple[list[RunShardEntry], dict[str, FileEntry]]:
+        """The committed shards and files (none for a new folder), refused when made with other settings."""
+        committed = self.manifest
+        if committed is None:
+            return [], {}
+        self.refuse_other_folders(self.root)
+        wanted = json.loads(json.dumps(settings))
+        if committed.get("settings") != wanted:
+            old = committed.get("settings") or {}
+            diff = sorted(k for k in wanted if old.get(k) != wanted[k])
+            raise DatasetError(f"{self.root}: holds predictions made with other settings ({', '.join(diff)}); "
+                               "use another --out or delete it")
+        return list(committed.get("shards", [])), dict(committed.get("files", {}))
+
+    def commit(self, settings: RunSettings, meta: PredictionMeta, shards: list[RunShardEntry],
+               files: dict[str, FileEntry]) -> None:
+        """Commit the run's state. Nothing in the manifest depends on time, pid or machine, so a resumed run
+        equals a whole one."""
+        self._writer.commit({"format_version": RUN_FORMAT_VERSION, "logpipe_version": __version__,
+                             "settings": settings, "metadata": meta.to_dict(), "shards": shards, "files": files})

@@ -10,12 +10,13 @@ from __future__ import annotations
 import hashlib
 import json
 from pathlib import Path
+from types import TracebackType
 from typing import Any
 
 import numpy as np
 import pyarrow as pa
 
-from logpipe.artifact import check_files, read_manifest
+from logpipe.artifact import EVERYTHING, ArtifactWriter, check_files, read_manifest
 from logpipe.errors import DatasetError
 from logpipe.io import read_table
 from logpipe.raster import RasterSpec
@@ -146,3 +147,58 @@ def find_raster_run(dataset_dir: Path, run: str | None, channels: int | None) ->
                            "name one with --raster-run")
     _, chosen = fitting[0]
     return RasterShards.open(dataset_dir, RasterSpec.from_dict(chosen["spec"]), chosen["centre"])
+
+
+class RasterRunWriter:
+    """Writes a raster run folder (``RasterShards`` reads it): locked; a commit after every rendered shard with
+    ``complete`` false until the last, so an interrupted run resumes and readers never take it for finished."""
+
+    def __init__(self, root: Path) -> None:
+        self.root = Path(root)
+        self._writer = ArtifactWriter(self.root, EVERYTHING, RASTER_ARTIFACT)
+
+    def __enter__(self) -> RasterRunWriter:
+        self._writer.__enter__()
+        return self
+
+    def __exit__(self, kind: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None) -> None:
+        self._writer.__exit__(kind, exc, tb)
+
+    def commit(self, manifest: dict[str, Any]) -> None:
+        self._writer.commit(manifest)
+
+    def manifest_of(self, spec: RasterSpec, centre: str, identity: dict[str, Any], samples: int, shard_size: int,
+                    shards: list[dict[str, Any]], files: dict[str, Any], complete: bool,
+                    counts: dict[str, Any]) -> dict[str, Any]:
+        """The run manifest: settings (hashed into the folder name), input identity, shards and files."""
+        from logpipe import __version__
+
+        return {"logpipe_version": __version__, "run_id": self.root.name, "settings": run_settings(spec, centre),
+                "fingerprint": spec.fingerprint(), "identity": identity, "samples": samples,
+                "shard_size": shard_size, "shards": shards, "complete": complete, "counts": counts, "files": files}
+
+    def committed_shards(self, identity: dict[str, Any], force: bool) -> dict[str, dict[str, Any]]:
+        """Shards a previous run of the same inputs committed (by ``.npy`` name), with their files and whether
+        their previews were written; refuses a run of other inputs unless ``force`` (then nothing is reused).
+
+        Raises:
+            DatasetError: the folder holds a run of other samples, maps or shard size, and not ``force``.
+        """
+        manifest, out = self._writer.manifest, self.root
+        if manifest is None:
+            return {}
+        old = manifest.get("identity")
+        if old != json.loads(json.dumps(identity)):
+            if force:
+                return {}
+            changed = sorted(k for k in identity if (old or {}).get(k) != identity[k])
+            was = f" (shard size was {(old or {}).get('shard_size')})" if "shard_size" in changed else ""
+            raise DatasetError(f"{out} holds rasters made with other {', '.join(changed) or 'inputs'}{was}; "
+                               "rerun with --force to replace them")
+        files = manifest.get("files", {})
+        previews = {rel: e for rel, e in files.items() if rel.startswith("previews/")}
+        committed = {}
+        for entry in manifest.get("shards", []):
+            own = {rel: files[rel] for rel in (entry["file"], entry["index"]) if rel in files}
+            committed[entry["file"]] = {"entry": entry, "files": {**own, **previews}, "previews": bool(previews)}
+        return committed

@@ -36,7 +36,7 @@ from collections.abc import Callable, Iterable, Iterator, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, TypedDict
+from typing import Any
 
 import numpy as np
 import pyarrow as pa
@@ -44,29 +44,21 @@ import pyarrow.compute as pc
 import pyarrow.parquet as pq
 
 from logpipe import __version__
-from logpipe.artifact import (
-    MANIFEST,
-    OUTPUT_ERRNOS,
-    ArtifactWriter,
-    FileEntry,
-    file_entry,
-    os_error_message,
-    owned_by,
-    read_manifest,
-)
+from logpipe.artifact import MANIFEST, FileEntry, file_entry, output_errors, unsafe_file_name
 from logpipe.contracts import json_schema
 from logpipe.dataset import Dataset
-from logpipe.errors import DatasetError, LogpipeError, OutputError
+from logpipe.errors import DatasetError, LogpipeError
 from logpipe.executor import default_workers
 from logpipe.io import PARQUET_OPTIONS, as_numpy, atomic_path, read_json, read_table, sha256_file, sha256_tree
 from logpipe.mcap_merge import NewChannel, NewMessage, Source, write_merged
 from logpipe.mcapio import WORLD_FRAME
 from logpipe.predictions import (
-    LEGACY_RUN_FILE,
+    MCAP_DIR,
     PREDICTIONS_DIR,
-    RUN_ARTIFACT,
-    RUN_FORMAT_VERSION,
     PredictionMeta,
+    PredictionRunWriter,
+    RunSettings,
+    RunShardEntry,
     SampleForecast,
     build_table,
 )
@@ -87,12 +79,6 @@ except ImportError:  # pragma: no cover - orjson is a dependency; keep working w
         return json.dumps(obj, separators=(",", ":"), default=lambda a: a.tolist()).encode()
 
 
-MCAP_DIR = "mcap"
-OWNED = owned_by([f"{PREDICTIONS_DIR}/", f"{MCAP_DIR}/"])
-"""The run's own paths (``ArtifactWriter`` removes those its manifest does not name)."""
-"""OS errors on writing that are the output's fault (full, read-only, no permission): one line, not a traceback."""
-MAX_LOG_ID_CHARS = 200
-"""Longest log id that becomes a file name (most file systems refuse names over 255 bytes)."""
 PREDICTIONS_TOPIC = "/logpipe/predictions"
 SCENE_TOPIC = "/logpipe/predictions/scene"
 RASTER_TOPIC = "/logpipe/raster"
@@ -471,7 +457,7 @@ def predict_dataset(
         dataset_manifest_sha256=manifest_sha, noise_scale=noise_scale, constant_velocity_modes=constant_velocity_modes,
         context_max_neighbours=context_max_neighbours,
     )
-    _refuse_other_folders(out_dir)
+    PredictionRunWriter.refuse_other_folders(out_dir)
     summary: dict[str, Any] = {
         "dataset": str(dataset_dir), "out": str(out_dir), "predictor": chosen.name,
         "checkpoint_id": chosen.checkpoint_id, "num_modes": modes, "seed": seed,
@@ -484,8 +470,8 @@ def predict_dataset(
     previous_threads = torch.get_num_threads()
     previous_switch = sys.getswitchinterval()
     try:
-        with ArtifactWriter(out_dir, OWNED, RUN_ARTIFACT) as writer:
-            shards, files = _committed_state(writer, settings)
+        with output_errors(), PredictionRunWriter(out_dir) as writer:
+            shards, files = writer.committed(settings)
             load_net(chosen, dataset, batch_size, noise_scale, constant_velocity_modes, context_max_neighbours)
             run = _Run(dataset, chosen, modes, seed, batch_size, sample_filter, rasters, raster_images, write_mcap,
                        logs, samples_by_log, originals, manifest_sha, meta,
@@ -507,14 +493,10 @@ def predict_dataset(
                 files.update(new_files)
                 uncommitted = True
                 if new_files:  # one commit per shard with outputs; empty shards ride along with the next one
-                    writer.commit(_manifest(settings, meta, shards, files))
+                    writer.commit(settings, meta, shards, files)
                     uncommitted = False
             if uncommitted:
-                writer.commit(_manifest(settings, meta, shards, files))
-    except OSError as exc:
-        if exc.errno in OUTPUT_ERRNOS:
-            raise OutputError(os_error_message(exc)) from None
-        raise
+                writer.commit(settings, meta, shards, files)
     finally:
         torch.set_num_threads(previous_threads)
         sys.setswitchinterval(previous_switch)
@@ -529,86 +511,14 @@ def predict_dataset(
     return summary
 
 
-def _unsafe_name(name: str) -> str | None:
-    """Why ``name`` cannot be one file name inside an output folder, or None when it can."""
-    if not name or name in (".", "..") or "/" in name or "\\" in name:
-        return "is not a single file name (empty, '.', '..' or has '/')"
-    if any(ord(c) < 32 or ord(c) == 127 for c in name):
-        return "holds NUL or control characters"
-    if len(name) > MAX_LOG_ID_CHARS:
-        return f"is {len(name)} characters long (at most {MAX_LOG_ID_CHARS})"
-    return None
-
-
 def _check_log_ids(dataset: Dataset, logs: dict[str, dict[str, Any]]) -> None:
     """Refuse, before any output, a selected log whose id cannot be a file name: MCAPs are named after log ids,
     and an id like ``../../x`` would put one outside ``--out``."""
     for log_id in logs:
-        reason = _unsafe_name(log_id)
+        reason = unsafe_file_name(log_id)
         if reason:
             raise DatasetError(f"{dataset.root}: log id {log_id[:80]!r} {reason}; log ids become file names, so "
                                "predict refuses it (damaged or hand-made dataset? re-ingest it)")
-
-
-class RunSettings(TypedDict):
-    """What a run was made with; a rerun resumes only with equal settings."""
-
-    dataset_manifest_sha256: str
-    predictor: str
-    checkpoint_id: str
-    num_modes: int
-    seed: int
-    batch_size: int
-    filter: dict[str, Any]
-    protocol: dict[str, Any]
-    write_mcap: bool
-    raster_run: str | None
-
-
-class ShardEntry(TypedDict):
-    """A finished dataset shard in the run manifest (``file`` None when none of its logs was selected)."""
-
-    shard: str
-    logs: int
-    samples: int
-    rows: int
-    file: str | None
-
-
-def _refuse_other_folders(out_dir: Path) -> None:
-    """Never adopt a folder that holds another artifact (a dataset: its ``mcap/`` would look like ours) or a
-    run of an older logpipe: entering the writer would remove their files."""
-    if not out_dir.is_dir():
-        return
-    existing = read_manifest(out_dir, required=False)
-    if existing is not None and existing.get("artifact") != RUN_ARTIFACT:
-        raise DatasetError(f"{out_dir}: holds another logpipe artifact ({MANIFEST} of a "
-                           f"{existing.get('artifact') or 'dataset'}), not a prediction run; choose another --out")
-    if existing is None and (out_dir / LEGACY_RUN_FILE).is_file():
-        raise DatasetError(f"{out_dir}: holds a prediction run of an older logpipe ({LEGACY_RUN_FILE}); "
-                           "choose another --out or delete it")
-
-
-def _committed_state(writer: ArtifactWriter, settings: RunSettings) -> tuple[list[ShardEntry], dict[str, FileEntry]]:
-    """The committed shards and files of ``writer``'s folder (none when new), when made with ``settings``."""
-    committed = writer.manifest
-    if committed is None:
-        return [], {}
-    _refuse_other_folders(writer.root)
-    wanted = json.loads(json.dumps(settings))
-    if committed.get("settings") != wanted:
-        old = committed.get("settings") or {}
-        diff = sorted(k for k in wanted if old.get(k) != wanted[k])
-        raise DatasetError(f"{writer.root}: holds predictions made with other settings ({', '.join(diff)}); "
-                           "use another --out or delete it")
-    return list(committed.get("shards", [])), dict(committed.get("files", {}))
-
-
-def _manifest(settings: RunSettings, meta: PredictionMeta, shards: list[ShardEntry],
-              files: dict[str, FileEntry]) -> dict[str, Any]:
-    """The run manifest: nothing in it depends on time, pid or machine, so a resumed run equals a whole one."""
-    return {"artifact": RUN_ARTIFACT, "format_version": RUN_FORMAT_VERSION, "logpipe_version": __version__,
-            "settings": settings, "metadata": meta.to_dict(), "shards": shards, "files": files}
 
 
 def _selected_logs(dataset: Dataset, f: SampleFilter) -> pa.Table:
@@ -698,7 +608,7 @@ class _ShardWriter:
     ``_ROW_GROUP_ROWS`` rows (the last one shorter), whatever the batching.
     """
 
-    def __init__(self, run: _Run, parquet: pq.ParquetWriter, mcap_dir: Path, entry: ShardEntry) -> None:
+    def __init__(self, run: _Run, parquet: pq.ParquetWriter, mcap_dir: Path, entry: RunShardEntry) -> None:
         self._run, self._parquet, self._mcap_dir, self._entry = run, parquet, mcap_dir, entry
         self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="logpipe-predict-write")
         self._jobs: list[Future[None]] = []
@@ -816,14 +726,14 @@ class _ShardWriter:
 
 
 def _predict_shard(run: _Run, index: int, key: str, path: Path, out_dir: Path, summary: dict[str, Any],
-                   progress: Callable[[int], None] | None) -> tuple[ShardEntry, dict[str, FileEntry]]:
+                   progress: Callable[[int], None] | None) -> tuple[RunShardEntry, dict[str, FileEntry]]:
     """Predict one dataset shard (``path``, named ``key`` in the run manifest) into new files; returns its
     manifest entry and the files to commit with it.
 
     Files are written under the shard's index (``part-NNNNN``): names no committed shard uses, so a reader of
     the folder never sees them change; a crash leaves them uncommitted and the next writer removes them.
     """
-    entry: ShardEntry = {"shard": key, "logs": 0, "samples": 0, "rows": 0, "file": None}
+    entry: RunShardEntry = {"shard": key, "logs": 0, "samples": 0, "rows": 0, "file": None}
     t0 = time.perf_counter()
     in_shard = set(pc.unique(read_table(path, columns=["log_id"]).column("log_id")).to_pylist())
     shard_logs = [log_id for log_id in run.logs if log_id in in_shard]  # logs-table order, as batches were cut

@@ -25,7 +25,6 @@ and the index says ``heading_source="none"``.
 
 from __future__ import annotations
 
-import json
 import logging
 import math
 import re
@@ -41,8 +40,7 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from logpipe import __version__
-from logpipe.artifact import EVERYTHING, ArtifactWriter, file_entry, output_errors
+from logpipe.artifact import file_entry, output_errors
 from logpipe.contracts import arrow_schema
 from logpipe.dataset import Dataset
 from logpipe.errors import DatasetError
@@ -54,12 +52,11 @@ from logpipe.rasters import (
     CENTRES,
     LANE_HEADING_MAX_DIST_M,
     MIN_HEADING_DISP_M,
-    RASTER_ARTIFACT,
     RASTER_DIR,
+    RasterRunWriter,
     index_file,
     inputs_tag,
     run_id,
-    run_settings,
     shard_file,
 )
 from logpipe.types import NDArrayByte, NDArrayFloat, NDArrayInt
@@ -187,13 +184,13 @@ def rasterise_dataset(
     map_hashes = {str(p): sha256_file(p) for p in sorted({p for p in map_files.values() if p is not None})}
     identity = {"samples_sha256": ds.manifest["tables"]["samples"]["sha256"], "maps": map_hashes,
                 "shard_size": shard_size}
-    with output_errors(), ArtifactWriter(out, EVERYTHING, RASTER_ARTIFACT) as writer:
+    with output_errors(), RasterRunWriter(out) as writer:
         return _rasterise_locked(writer, ds, spec, centre, identity, map_files, map_hashes, preview,
                                  shard_size, force, progress, workers, backend, started)
 
 
 def _rasterise_locked(
-    writer: ArtifactWriter, ds: Dataset, spec: RasterSpec, centre: str, identity: dict[str, Any],
+    writer: RasterRunWriter, ds: Dataset, spec: RasterSpec, centre: str, identity: dict[str, Any],
     map_files: dict[str, Path | None], map_hashes: dict[str, str], preview: int, shard_size: int, force: bool,
     progress: Callable[[int], None] | None, workers: int, backend: Backend, started: float,
 ) -> dict[str, Any]:
@@ -201,7 +198,7 @@ def _rasterise_locked(
     the manifest after each (so an interrupted run resumes), the last commit marking the run complete."""
     out = writer.root
     rid = out.name
-    committed = _committed_shards(writer.manifest, out, identity, force)
+    committed = writer.committed_shards(identity, force)
     tag = inputs_tag(identity)
     samples = ds.samples()
     logs = ds.logs()
@@ -266,19 +263,8 @@ def _rasterise_locked(
 
     def manifest(complete: bool) -> dict[str, Any]:
         done = [m for m in shard_meta if m]
-        return {
-            "logpipe_version": __version__,
-            "run_id": rid,
-            "settings": run_settings(spec, centre),
-            "fingerprint": spec.fingerprint(),
-            "identity": identity,
-            "samples": n,
-            "shard_size": shard_size,
-            "shards": done,
-            "complete": complete,
-            "counts": _index_counts(out, done) if complete else {},
-            "files": files,
-        }
+        return writer.manifest_of(spec, centre, identity, n, shard_size, done, files, complete,
+                                  _index_counts(out, done) if complete else {})
 
     try:
         for res in run_ordered(_render_shard, tasks, workers=workers, backend=backend):
@@ -490,33 +476,6 @@ def _spec_kwargs(spec: RasterSpec) -> dict[str, Any]:
         "direction_bins": spec.direction_bins,
         "shift": spec.shift,
     }
-
-
-def _committed_shards(manifest: dict[str, Any] | None, out: Path, identity: dict[str, Any],
-                      force: bool) -> dict[str, dict[str, Any]]:
-    """Shards a previous run of the same inputs committed (by ``.npy`` name), with their files and whether
-    their previews were written; refuses a run of other inputs unless ``force`` (then nothing is reused).
-
-    Raises:
-        DatasetError: the folder holds a run of other samples, maps or shard size, and not ``force``.
-    """
-    if manifest is None:
-        return {}
-    old = manifest.get("identity")
-    if old != json.loads(json.dumps(identity)):
-        if force:
-            return {}
-        changed = sorted(k for k in identity if (old or {}).get(k) != identity[k])
-        was = f" (shard size was {(old or {}).get('shard_size')})" if "shard_size" in changed else ""
-        raise DatasetError(f"{out} holds rasters made with other {', '.join(changed) or 'inputs'}{was}; "
-                           "rerun with --force to replace them")
-    files = manifest.get("files", {})
-    previews = {rel: e for rel, e in files.items() if rel.startswith("previews/")}
-    committed = {}
-    for entry in manifest.get("shards", []):
-        own = {rel: files[rel] for rel in (entry["file"], entry["index"]) if rel in files}
-        committed[entry["file"]] = {"entry": entry, "files": {**own, **previews}, "previews": bool(previews)}
-    return committed
 
 
 def _shard_entry(npy: Path, idx: Path, rows: int) -> dict[str, Any]:

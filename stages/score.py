@@ -27,15 +27,15 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.compute as pc
 
-from logpipe import __version__, metrics
-from logpipe.artifact import MANIFEST, ArtifactWriter, FileEntry, Ownership, output_errors, read_manifest
+from logpipe import metrics
+from logpipe.artifact import MANIFEST
 from logpipe.dataset import Dataset
 from logpipe.errors import LogpipeError
-from logpipe.io import as_numpy, atomic_path, read_table, sha256_bytes, sha256_file
+from logpipe.io import as_numpy, read_table, sha256_file
 from logpipe.predictions import PredictionMeta, PredictionRun
+from logpipe.reports import REPORT_JSON, REPORT_MD, REPORT_VERSION, write_report_folder
 from logpipe.types import NDArrayFloat, NDArrayInt, SceneSample
 
-REPORT_VERSION = 1
 """Bumped when a key of ``report.json`` changes meaning or disappears."""
 
 Agents = Literal["all", "focal"]
@@ -388,55 +388,6 @@ def score(
     outputs[REPORT_MD] = render_markdown(report, title).encode()
     write_report_folder(Path(out_dir), outputs, [m.source for m in methods], str(truth))
     return {**report, "seconds": round(time.perf_counter() - t0, 3)}
-
-
-REPORT_ARTIFACT = "score_report"
-"""``manifest.json`` ``artifact`` value of a score report folder."""
-REPORT_JSON = "report.json"
-REPORT_MD = "report.md"
-
-
-REPORT_OWNED = Ownership([REPORT_JSON, REPORT_MD, "*.png"])
-"""A report folder's own files: the reports and the plots at its top (never a report nested in it)."""
-
-
-def write_report_folder(out_dir: Path, outputs: dict[str, bytes], inputs: list[str], truth: str) -> None:
-    """Commit ``outputs`` (file name -> bytes) as the report folder's state (``logpipe.artifact``).
-
-    Files whose bytes are already committed are left alone (a rerun over the same inputs writes nothing). A
-    committed file about to get other bytes is first dropped from the manifest by a commit of its own, so the
-    manifest never names a file whose bytes differ from what it records, whenever a crash comes.
-
-    Raises:
-        ScoreError: ``out_dir`` holds another artifact (a dataset, a prediction run).
-        OutputError: the disk is full, read-only or not writable; the folder keeps its committed state.
-    """
-    _refuse_other_artifact(out_dir)
-    new: dict[str, FileEntry] = {name: {"bytes": len(data), "sha256": sha256_bytes(data)}
-                                 for name, data in outputs.items()}
-
-    def manifest(files: dict[str, FileEntry]) -> dict[str, Any]:
-        return {"artifact": REPORT_ARTIFACT, "report_version": REPORT_VERSION, "logpipe_version": __version__,
-                "inputs": inputs, "truth": truth, "files": files}
-
-    with output_errors(), ArtifactWriter(out_dir, REPORT_OWNED, REPORT_ARTIFACT) as writer:
-        _refuse_other_artifact(out_dir)
-        old: dict[str, FileEntry] = dict((writer.manifest or {}).get("files", {}))
-        changed = [name for name in outputs if old.get(name) != new[name]]
-        if writer.manifest is not None and any(name in old for name in changed):
-            writer.commit(manifest({k: v for k, v in old.items() if k not in changed}))
-        for name in changed:
-            with atomic_path(out_dir / name) as tmp:
-                tmp.write_bytes(outputs[name])
-        if not writer.is_committed(manifest(new)):
-            writer.commit(manifest(new))
-
-
-def _refuse_other_artifact(out_dir: Path) -> None:
-    existing = read_manifest(out_dir, required=False) if out_dir.is_dir() else None
-    if existing is not None and existing.get("artifact") != REPORT_ARTIFACT:
-        raise ScoreError(f"{out_dir}: holds another logpipe artifact (a {existing.get('artifact') or 'dataset'}), "
-                         "not a score report; choose another --out")
 
 
 def _step_seconds(ds: Dataset) -> float:

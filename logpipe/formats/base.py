@@ -20,6 +20,7 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.compute as pc
 
+from logpipe.artifact import unsafe_file_name
 from logpipe.errors import LogpipeError, SourceError
 from logpipe.samples import TrackCodes
 from logpipe.types import LogMeta, SampleProtocol, SourceFile
@@ -54,9 +55,6 @@ def files_with_suffix(root: Path, suffixes: tuple[str, ...]) -> list[Path]:
     return [Path(p) for p in sorted(found)]
 
 
-MAX_LOG_ID_CHARS = 200
-"""Longest log id accepted: ids become file names (``mcap/<log_id>.mcap``, predictions), and most file
-systems refuse names over 255 bytes."""
 TIME_LIMIT_NS = 1 << 62
 """Largest |timestamp| accepted, in ns (~146 years): leaves int64 headroom for differences and grid steps, so a
 value near the int64 limit (a damaged or absurd time) is refused before any conversion could wrap it."""
@@ -86,25 +84,14 @@ def require_regular(path: str | Path, relpath: str, *, folder_ok: bool = False) 
 
 
 def check_log_id(log_id: object, relpath: str, field: str = "log_id") -> str:
-    """``log_id`` when it is safe as one path component (ids become file names), else a ``SourceError``.
-
-    Refused: empty, ``.``/``..``, any ``/`` or ``\\``, NUL or other control characters, longer than
-    ``MAX_LOG_ID_CHARS``.
-    """
-    text = log_id if isinstance(log_id, str) else ""
-    if not isinstance(log_id, str) or not text:
-        return _bad_id(relpath, field, f"log id {log_id!r} is empty or not text")
-    if text in (".", "..") or "/" in text or "\\" in text:
-        return _bad_id(relpath, field, f"log id {text[:80]!r} is not a single file name (has '/' or is '.'/'..')")
-    if any(ord(c) < 32 or ord(c) == 127 for c in text):
-        return _bad_id(relpath, field, f"log id {text[:80]!r} holds NUL or control characters")
-    if len(text) > MAX_LOG_ID_CHARS:
-        return _bad_id(relpath, field, f"log id is {len(text)} characters long (at most {MAX_LOG_ID_CHARS})")
-    return text
-
-
-def _bad_id(relpath: str, field: str, reason: str) -> str:
-    raise SourceError(relpath, reason + "; log ids become file names", field=field)
+    """``log_id`` when it is safe as one path component (ids become file names), else a ``SourceError``
+    (the rule: ``logpipe.artifact.unsafe_file_name``)."""
+    if not isinstance(log_id, str):
+        raise SourceError(relpath, f"log id {log_id!r} is not text; log ids become file names", field=field)
+    reason = unsafe_file_name(log_id)
+    if reason:
+        raise SourceError(relpath, f"log id {log_id[:80]!r} {reason}; log ids become file names", field=field)
+    return log_id
 
 
 def as_source_error(err: BaseException, relpath: str) -> SourceError:
