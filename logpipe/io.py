@@ -37,6 +37,9 @@ PARQUET_OPTIONS: dict[str, Any] = {
     "compression_level": 1,
     "write_statistics": True,
     "row_group_size": 256 * 1024,
+    # A CRC per page, checked by ``read_table``: a flipped bit inside a shard is an error on read instead of
+    # silently other values (decompression does not always fail), at the cost of one CRC32 per page.
+    "write_page_checksum": True,
 }
 
 
@@ -177,7 +180,7 @@ def read_table(path: Path, **kwargs: Any) -> pa.Table:
     """``pq.read_table`` whose failures (missing, truncated or damaged file) are one ``DatasetError`` line
     naming the file."""
     try:
-        return pq.read_table(path, **kwargs)
+        return pq.read_table(path, page_checksum_verification=True, **kwargs)
     except FileNotFoundError:
         raise DatasetError(f"{path}: missing; `logpipe verify` on its folder lists every problem") from None
     except (pa.ArrowException, OSError) as exc:

@@ -284,7 +284,7 @@ def read_table_file(path: Path, expect_rows: int | None = None) -> pa.Table:
         PredictionsError: unreadable, truncated, columns missing, or another row count than ``expect_rows``.
     """
     try:
-        table = pq.read_table(path)
+        table = pq.read_table(path, page_checksum_verification=True)
     except FileNotFoundError:
         raise PredictionsError(f"{path}: predictions file not found") from None
     except (OSError, pa.ArrowException) as exc:

@@ -118,7 +118,12 @@ class RasterShards:
         shard, row = self._where[sample_id]
         arr = self._mmaps.get(shard)
         if arr is None:
-            arr = self._mmaps[shard] = np.load(self.run_dir / shard, mmap_mode="r", allow_pickle=False)
+            try:
+                arr = np.load(self.run_dir / shard, mmap_mode="r", allow_pickle=False)
+            except (OSError, ValueError) as exc:
+                raise DatasetError(f"{self.run_dir / shard}: unreadable raster shard ({exc}); `logpipe verify` "
+                                   "lists what is wrong") from None
+            self._mmaps[shard] = arr
         return arr[row], np.asarray(self._affine[sample_id], dtype=np.float64).reshape(2, 3)
 
 

@@ -38,14 +38,13 @@ from typing import Any
 import cv2
 import numpy as np
 import pyarrow as pa
-import pyarrow.parquet as pq
 
 from logpipe.artifact import file_entry, output_errors
 from logpipe.contracts import arrow_schema
 from logpipe.dataset import Dataset
 from logpipe.errors import DatasetError
 from logpipe.executor import Backend, run_ordered
-from logpipe.io import as_numpy, atomic_path, sha256_file, write_parquet
+from logpipe.io import as_numpy, atomic_path, read_table, sha256_file, write_parquet
 from logpipe.maps import MapSource, MapStore, load_map
 from logpipe.raster import Rasteriser, RasterSpec, direction_values, heading_from_motion
 from logpipe.rasters import (
@@ -434,9 +433,9 @@ class _TrackReader:
     def get(self, log_id: str) -> pa.Table:
         shard = self.shard_of.get(log_id)
         if shard is None:
-            raise DatasetError(f"{self.root}: no log {log_id!r} in logs.parquet")
+            raise DatasetError(f"{self.root}: no log {log_id!r} in the logs table")
         if shard != self._shard:
-            table = pq.read_table(self.root / shard)
+            table = read_table(self.root / shard)
             ids = as_numpy(table.column("log_id"))
             cuts = np.flatnonzero(ids[1:] != ids[:-1]) + 1
             starts = [0, *cuts.tolist()]
@@ -453,7 +452,7 @@ class _TrackReader:
 def _index_counts(out: Path, shard_meta: list[dict[str, Any]]) -> dict[str, Any]:
     """Counts over the whole run's index (not just this invocation), so the manifest is the same however
     many reruns it took to finish."""
-    index = pa.concat_tables([pq.read_table(out / s["index"]) for s in shard_meta])
+    index = pa.concat_tables([read_table(out / s["index"]) for s in shard_meta])
 
     def tally(col: str) -> dict[str, int]:
         vals = [v if v is not None else "null" for v in index.column(col).to_pylist()]

@@ -199,3 +199,18 @@ def test_verify_finds_a_flipped_byte_in_a_checkpoint(tmp_path: Path) -> None:
     found = _cli("verify", str(copy), check=False)
     assert found.returncode == 1 and found.stdout.strip() == (
         f"{copy / 'weights.safetensors'}: sha256 differs from meta.json (content changed)")
+
+
+def test_a_flipped_bit_in_a_shard_is_an_error_on_read_not_other_values(artifacts: dict[str, Path],
+                                                                       tmp_path: Path) -> None:
+    """Readers do not recompute sha256 on open (too slow for big shards), but every Parquet page carries a
+    CRC they check: the damage is one error line naming the file, never silently other positions."""
+    copy = tmp_path / "ds"
+    shutil.copytree(artifacts["dataset"], copy)
+    shard = copy / Dataset.open(copy).manifest["shards"][0]["file"]
+    data = bytearray(shard.read_bytes())
+    data[len(data) // 3] ^= 0x01
+    shard.write_bytes(bytes(data))
+    failed = _cli("predict", str(copy), "--predictor", "cv", "--out", str(tmp_path / "pred"), check=False)
+    lines = [ln for ln in failed.stderr.splitlines() if ln.strip()]
+    assert failed.returncode == 2 and len(lines) == 1 and str(shard) in lines[0] and "CRC" in lines[0], failed.stderr
