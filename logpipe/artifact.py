@@ -147,6 +147,8 @@ class FolderLock:
     def __init__(self, root: Path) -> None:
         self.root = root
         self._fd: int | None = None
+        self.found_stale = False
+        """Whether a holder's ``.logpipe.lock`` was there when this one took the lock: a writer was killed."""
 
     def acquire(self) -> None:
         fd = os.open(self.root, os.O_RDONLY | os.O_DIRECTORY | os.O_CLOEXEC)
@@ -164,6 +166,7 @@ class FolderLock:
             os.close(fd)
             raise
         self._fd = fd
+        self.found_stale = (self.root / LOCK_FILE).exists()
         try:
             info = json.dumps({"pid": os.getpid(), "command": shlex.join(sys.argv)})
             (self.root / LOCK_FILE).write_text(info + "\n", encoding="utf-8")
@@ -364,15 +367,20 @@ class ArtifactWriter:
         return set((self.manifest or {}).get("files", {}))
 
     def clean(self) -> list[str]:
-        """Remove owned paths the committed manifest does not name (and any staging or temp file)."""
+        """Remove owned paths the committed manifest does not name (and any staging or temp file).
+
+        In a folder without a manifest, owned paths are removed only when a killed writer left its lock file
+        there: otherwise they may be the user's own files (``--out`` pointed at a folder with PNGs in it).
+        """
         keep = self.committed_files()
+        ours = self.manifest is not None or self._lock.found_stale
         removed = []
         for rel, path in _walk(self.root):
             if rel in keep or rel in (MANIFEST, LOCK_FILE):
                 continue
             name = path.name
             leftover = name.startswith(STAGING_PREFIX) or (name.startswith(".") and name.endswith(".tmp"))
-            if (leftover and ("/" not in rel or self.owned(rel))) or (self.owned(rel) and not path.is_dir()):
+            if (leftover and ("/" not in rel or self.owned(rel))) or (ours and self.owned(rel) and not path.is_dir()):
                 crash_point(f"clean {rel}")
                 if path.is_dir() and not path.is_symlink():
                     shutil.rmtree(path)

@@ -19,7 +19,7 @@ REPORT_JSON = "report.json"
 REPORT_MD = "report.md"
 
 
-REPORT_OWNED = Ownership([REPORT_JSON, REPORT_MD, "*.png"])
+REPORT_OWNED = Ownership([REPORT_JSON, REPORT_MD, "horizon.png", "scenes_*.png"])
 """A report folder's own files: the reports and the plots at its top (never a report nested in it)."""
 
 

@@ -214,3 +214,17 @@ def test_a_flipped_bit_in_a_shard_is_an_error_on_read_not_other_values(artifacts
     failed = _cli("predict", str(copy), "--predictor", "cv", "--out", str(tmp_path / "pred"), check=False)
     lines = [ln for ln in failed.stderr.splitlines() if ln.strip()]
     assert failed.returncode == 2 and len(lines) == 1 and str(shard) in lines[0] and "CRC" in lines[0], failed.stderr
+
+
+def test_a_new_output_folder_keeps_the_users_own_files(artifacts: dict[str, Path], tmp_path: Path) -> None:
+    """--out pointed at a folder that already holds files of the names a report owns (PNGs), never written by
+    logpipe: they are not leftovers, so they stay."""
+    out = tmp_path / "pictures"
+    out.mkdir()
+    (out / "holiday.png").write_bytes(b"not ours")
+    _cli("score", str(artifacts["prediction_run"]), "--truth", str(artifacts["dataset"]), "--out", str(out),
+         "--no-plots")
+    assert (out / "holiday.png").read_bytes() == b"not ours"
+    assert (out / "report.json").is_file()
+    _cli("score", str(artifacts["prediction_run"]), "--truth", str(artifacts["dataset"]), "--out", str(out))
+    assert (out / "holiday.png").read_bytes() == b"not ours"  # still not a leftover once the folder is ours
