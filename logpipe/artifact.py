@@ -38,7 +38,7 @@ from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from types import TracebackType
-from typing import Any, TypedDict
+from typing import Any, Self, TypedDict
 
 from logpipe.errors import ArtifactBusyError, DatasetError, LogpipeError, OutputError
 
@@ -607,3 +607,29 @@ def recover_folder(target: Path) -> None:
     aside = target.parent / f".{target.name}.old"
     if not target.exists() and aside.is_dir():
         aside.rename(target)
+
+
+# ---- the base of the typed writers ---------------------------------------------------------------------
+
+
+class FolderWriter:
+    """Base of each artifact's typed writer (``DatasetWriter``, ``RasterRunWriter``, ``PredictionRunWriter``):
+    a context manager over an ``ArtifactWriter`` of the subclass's ``ownership`` and ``kind``.
+
+    Attributes:
+        root: the folder.
+    """
+
+    ownership: Ownership
+    kind: str
+
+    def __init__(self, root: Path) -> None:
+        self.root = Path(root)
+        self._writer = ArtifactWriter(self.root, self.ownership, self.kind)
+
+    def __enter__(self) -> Self:
+        self._writer.__enter__()
+        return self
+
+    def __exit__(self, kind: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None) -> None:
+        self._writer.__exit__(kind, exc, tb)

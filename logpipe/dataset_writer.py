@@ -9,14 +9,13 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from types import TracebackType
 from typing import Any, TypedDict, cast
 
 import pyarrow as pa
 import pyarrow.compute as pc
 
 from logpipe import __version__
-from logpipe.artifact import ArtifactWriter, FileEntry, crash_point, file_entry
+from logpipe.artifact import FileEntry, FolderWriter, crash_point, file_entry
 from logpipe.contracts import arrow_schema, schema_version
 from logpipe.dataset import DATASET_ARTIFACT, DATASET_OWNED, MCAP_DIR, SAMPLES_DIR, table_file
 from logpipe.errors import DatasetError
@@ -101,7 +100,7 @@ class NewShard:
     files: dict[str, FileEntry]
 
 
-class DatasetWriter:
+class DatasetWriter(FolderWriter):
     """Writes a dataset folder. Use as a context manager: entering locks the folder and cleans what no commit
     names; ``manifest`` is the committed state (None for a new folder).
 
@@ -109,16 +108,8 @@ class DatasetWriter:
         root: the dataset folder.
     """
 
-    def __init__(self, root: Path) -> None:
-        self.root = Path(root)
-        self._writer = ArtifactWriter(self.root, DATASET_OWNED, DATASET_ARTIFACT)
-
-    def __enter__(self) -> DatasetWriter:
-        self._writer.__enter__()
-        return self
-
-    def __exit__(self, kind: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None) -> None:
-        self._writer.__exit__(kind, exc, tb)
+    ownership = DATASET_OWNED
+    kind = DATASET_ARTIFACT
 
     @property
     def manifest(self) -> DatasetManifest | None:

@@ -22,7 +22,6 @@ import json
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
-from types import TracebackType
 from typing import Any, TypedDict
 
 import numpy as np
@@ -31,7 +30,7 @@ import pyarrow.compute as pc
 import pyarrow.parquet as pq
 
 from logpipe import __version__
-from logpipe.artifact import MANIFEST, ArtifactWriter, FileEntry, Ownership, check_files, read_manifest
+from logpipe.artifact import MANIFEST, FileEntry, FolderWriter, Ownership, check_files, read_manifest
 from logpipe.contracts import arrow_schema
 from logpipe.errors import DatasetError, LogpipeError
 from logpipe.io import as_numpy
@@ -454,20 +453,12 @@ class RunShardEntry(TypedDict):
     file: str | None
 
 
-class PredictionRunWriter:
+class PredictionRunWriter(FolderWriter):
     """Writes a prediction run folder (``PredictionRun`` reads it): locked, one commit per finished dataset
     shard, so an interrupted run resumes from its committed shards (``logpipe.artifact``)."""
 
-    def __init__(self, root: Path) -> None:
-        self.root = Path(root)
-        self._writer = ArtifactWriter(self.root, RUN_OWNED, RUN_ARTIFACT)
-
-    def __enter__(self) -> PredictionRunWriter:
-        self._writer.__enter__()
-        return self
-
-    def __exit__(self, kind: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None) -> None:
-        self._writer.__exit__(kind, exc, tb)
+    ownership = RUN_OWNED
+    kind = RUN_ARTIFACT
 
     @property
     def manifest(self) -> dict[str, Any] | None:

@@ -10,13 +10,12 @@ from __future__ import annotations
 import hashlib
 import json
 from pathlib import Path
-from types import TracebackType
 from typing import Any
 
 import numpy as np
 import pyarrow as pa
 
-from logpipe.artifact import EVERYTHING, ArtifactWriter, check_files, read_manifest
+from logpipe.artifact import EVERYTHING, FolderWriter, check_files, read_manifest
 from logpipe.errors import DatasetError
 from logpipe.io import read_table
 from logpipe.raster import RasterSpec
@@ -154,20 +153,12 @@ def find_raster_run(dataset_dir: Path, run: str | None, channels: int | None) ->
     return RasterShards.open(dataset_dir, RasterSpec.from_dict(chosen["spec"]), chosen["centre"])
 
 
-class RasterRunWriter:
+class RasterRunWriter(FolderWriter):
     """Writes a raster run folder (``RasterShards`` reads it): locked; a commit after every rendered shard with
     ``complete`` false until the last, so an interrupted run resumes and readers never take it for finished."""
 
-    def __init__(self, root: Path) -> None:
-        self.root = Path(root)
-        self._writer = ArtifactWriter(self.root, EVERYTHING, RASTER_ARTIFACT)
-
-    def __enter__(self) -> RasterRunWriter:
-        self._writer.__enter__()
-        return self
-
-    def __exit__(self, kind: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None) -> None:
-        self._writer.__exit__(kind, exc, tb)
+    ownership = EVERYTHING
+    kind = RASTER_ARTIFACT
 
     def commit(self, manifest: dict[str, Any]) -> None:
         self._writer.commit(manifest)
