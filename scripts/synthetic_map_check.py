@@ -204,9 +204,9 @@ def render(result: dict[str, Any], args: argparse.Namespace, seconds: float) -> 
     met = overall["low"] >= TARGET_GAIN
     lines += ["", f"**Target** (issue 33: the full model beats it by >= {100 * TARGET_GAIN:.0f} % minFDE@6 on the "
               f"held-out regions): {'met' if met else 'NOT met'} on all targets ({100 * overall['gain']:.1f} %, "
-              f"interval [{100 * overall['low']:.1f}, {100 * overall['high']:.1f}] %). The turning rows are a diagnosis "
-              f"(threshold fixed before the run), not the target: they show where the raster is read. One training "
-              "seed; the interval covers test sampling only."]
+              f"interval [{100 * overall['low']:.1f}, {100 * overall['high']:.1f}] %). The turning rows are a "
+              "diagnosis (threshold fixed before the run), not the target: they show where the raster is read. One "
+              "training seed; the interval covers test sampling only."]
     lines += ["", "## Checkpoints", ""]
     for name, c in result["checkpoints"].items():
         lines.append(f"- {name}: `{c['path']}`, step {c['step']}, validation {c['val']}, EN "
