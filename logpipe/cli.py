@@ -177,8 +177,15 @@ def ingest(
     if backend not in ("local", "ray"):
         raise typer.BadParameter("--backend must be local or ray")
     with _user_errors():
+        # Overrides without --protocol change the input format's own preset (not a generic 8 + 12 one).
+        own = None
+        if protocol is None:
+            from logpipe.formats import adapter_class, detect
+
+            own = adapter_class(fmt or detect(inputs[0])).default_protocol
         options = IngestOptions(
-            out=out, format=fmt, protocol=_protocol(protocol, obs, pred, stride, min_targets, targets, target_types),
+            out=out, format=fmt,
+            protocol=_protocol(protocol, obs, pred, stride, min_targets, targets, target_types, default=own),
             on_error=on_error,
             write_mcap=mcap, workers=workers, backend=backend,
             batch_files=batch_files,

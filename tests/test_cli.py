@@ -56,6 +56,17 @@ def test_index_changes_protocol(bundled: Path, tmp_path: Path) -> None:
     assert 0 < strict["samples"] < loose["samples"]
 
 
+def test_protocol_overrides_change_the_formats_own_preset(bundled: Path, tmp_path: Path) -> None:
+    """`--targets` alone keeps Argoverse's 20 + 30 steps (it used to fall back to a generic 8 + 12 preset)."""
+    result = runner.invoke(app, ["ingest", str(bundled / "argoverse1"), "--out", str(tmp_path / "a"), "--no-mcap",
+                                 "--targets", "fully_observed_no_ego", "--json"])
+    assert result.exit_code == 0, result.output
+    protocol = json.loads(result.stdout)["protocol"]
+    assert (protocol["name"], protocol["obs_len"], protocol["pred_len"], protocol["window"]) == \
+        ("argoverse-custom", 20, 30, "first")
+    assert protocol["targets"] == "fully_observed_no_ego"
+
+
 def test_inspect_json_names_the_track_topics(bundled: Path) -> None:
     result = runner.invoke(app, ["inspect", str(bundled / "rosbags" / "datmo" / "intersection.bag"), "--json"])
     assert result.exit_code == 0, result.output
