@@ -6,7 +6,6 @@ datasets from before that are recognised by their keys.
 
 from __future__ import annotations
 
-import contextlib
 from pathlib import Path
 from typing import Any
 
@@ -15,15 +14,18 @@ from logpipe.dataset import DATASET_ARTIFACT, DATASET_OWNED
 from logpipe.errors import DatasetError
 
 
-def _kind_and_owned(folder: Path) -> tuple[str, Ownership]:
-    """The artifact kind and ownership a folder's manifest records (older datasets: recognised by their keys)."""
+def _kind_and_owned(folder: Path) -> tuple[str, Ownership, int]:
+    """The artifact kind, ownership and number of files a folder's manifest records (older datasets: recognised
+    by their keys; a damaged manifest counts no file, ``verify_folder`` reports it)."""
     try:
         manifest = read_manifest(folder, required=False) or {}
     except DatasetError:
         manifest = {}
     legacy_dataset = "format" in manifest and "shards" in manifest and "tables" in manifest
     kind = str(manifest.get("artifact", DATASET_ARTIFACT if legacy_dataset else "unknown"))
-    return kind, Ownership.of(manifest, DATASET_OWNED if kind == DATASET_ARTIFACT else EVERYTHING)
+    files = manifest.get("files")
+    return (kind, Ownership.of(manifest, DATASET_OWNED if kind == DATASET_ARTIFACT else EVERYTHING),
+            len(files) if isinstance(files, dict) else 0)
 
 
 CHECKPOINT_META = "meta.json"
@@ -75,10 +77,9 @@ def verify_tree(roots: list[Path], *, repair: bool = False, deep: bool = True) -
             problems += _verify_checkpoint(folder)
             checked += 1
             continue
-        kind, owned = _kind_and_owned(folder)
+        kind, owned, files = _kind_and_owned(folder)
         found, left = verify_folder(folder, owned, deep=deep)
-        with contextlib.suppress(DatasetError):  # a damaged manifest is reported by verify_folder
-            checked += len((read_manifest(folder, required=False) or {}).get("files", {}))
+        checked += files
         problems += [p.line() for p in found]
         leftovers += [str(folder / rel) for rel in left]
         if repair and left:
