@@ -7,20 +7,22 @@ concern the user's input print one line naming file, line/record and field, and 
 from __future__ import annotations
 
 import json
+import logging
+import os
 import sys
 from collections.abc import Callable, Iterator
-from contextlib import contextmanager
-from dataclasses import replace
+from contextlib import contextmanager, nullcontext
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Annotated, Any
+from typing import Annotated, Any, TextIO
 
 import typer
 from rich.console import Console
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
 from logpipe import __version__
 from logpipe.errors import LogpipeError
-from logpipe.types import PROTOCOLS, SampleProtocol
+from logpipe.progress import Mode, ProgressReporter
+from logpipe.types import PROTOCOLS
 
 app = typer.Typer(
     name="logpipe",
@@ -28,8 +30,22 @@ app = typer.Typer(
     no_args_is_help=True,
     add_completion=False,
     pretty_exceptions_enable=False,
+    # Rich help panels only on a terminal: piped (CI logs, `| less`) rich cuts option names to fit 80
+    # columns (`--constant-velo…`); click's plain help wraps the text and never cuts a name.
+    rich_markup_mode="rich" if sys.stdout.isatty() else None,
 )
 err = Console(stderr=True)
+
+
+@dataclass
+class _Output:
+    """What the global ``-q`` / ``-v`` options chose (set by the app callback before every command)."""
+
+    quiet: bool = False
+    verbose: int = 0
+
+
+_output = _Output()
 
 
 def _version(value: bool) -> None:
@@ -42,8 +58,48 @@ def _version(value: bool) -> None:
 def main(
     version: Annotated[bool, typer.Option("--version", callback=_version, is_eager=True,
                                           help="Print the version and exit.")] = False,
+    quiet: Annotated[bool, typer.Option(
+        "--quiet", "-q", help="No progress and no human summary; errors and warnings are still shown.")] = False,
+    verbose: Annotated[int, typer.Option(
+        "--verbose", "-v", count=True, help="Also log details (per-batch timings); -vv for debug logging.")] = 0,
 ) -> None:
-    """Offline pipeline for multi-agent trajectory forecasting."""
+    """Offline pipeline for multi-agent trajectory forecasting.
+
+    Progress goes to stderr: a bar on a terminal, elsewhere one line every 5 s (LOGPIPE_PROGRESS_INTERVAL
+    seconds). stdout carries only --json output.
+    """
+    if quiet and verbose:
+        raise typer.BadParameter("--quiet and --verbose exclude each other")
+    _output.quiet, _output.verbose = quiet, verbose
+    _configure_logging(logging.DEBUG if verbose > 1 else logging.INFO if verbose else logging.WARNING)
+
+
+class _StderrHandler(logging.StreamHandler[TextIO]):
+    """Writes to the current ``sys.stderr``: a progress bar redirects it to print above the bar."""
+
+    def emit(self, record: logging.LogRecord) -> None:
+        # Assigned, not ``setStream``: that flushes the previous stream, which may be closed by now (a test
+        # runner's captured stderr from an earlier command in this process).
+        self.stream = sys.stderr
+        super().emit(record)
+
+
+def _configure_logging(level: int) -> None:
+    """logpipe's own loggers at ``level`` on stderr, one plain line per record (never wrapped)."""
+    logger = logging.getLogger("logpipe")
+    for handler in [h for h in logger.handlers if isinstance(h, _StderrHandler)]:
+        logger.removeHandler(handler)  # one handler, however often the app runs in this process (tests)
+    handler = _StderrHandler()
+    handler.setFormatter(logging.Formatter("%(levelname)s %(name)s: %(message)s"))
+    logger.addHandler(handler)
+    logger.setLevel(level)
+
+
+def _progress_mode() -> Mode:
+    """``off`` with -q; a bar when stderr is a terminal that can redraw; else plain lines (CI, pipes)."""
+    if _output.quiet:
+        return "off"
+    return "bar" if sys.stderr.isatty() and os.environ.get("TERM") != "dumb" else "lines"
 
 
 @contextmanager
@@ -63,53 +119,19 @@ def _user_errors() -> Iterator[None]:
         raise typer.Exit(code=2) from None
 
 
-@contextmanager
-def _progress(total: int, label: str, enabled: bool) -> Iterator[Callable[[int], None]]:
-    if not enabled:
-        yield lambda _n: None
-        return
-    columns = (TextColumn(label), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn())
-    # Redrawn on each advance instead of by rich's refresh thread: with no thread running, the stage's
-    # worker pool can fork from this process (see ``logpipe.executor``), ~0.4 s of a core less per run.
-    with Progress(*columns, console=err, transient=True, auto_refresh=False) as bar:
-        task = bar.add_task(label, total=total or None)
-
-        def advance(n: int) -> None:
-            bar.advance(task, n)
-            bar.refresh()
-
-        yield advance
+def _progress(label: str, unit: str) -> ProgressReporter:
+    """The progress callback of one stage run (the stage reports the total once it knows it). On stderr, so
+    it runs with --json too: a CI job that parses stdout still shows progress in its log. The bar is redrawn
+    by the reporter, not by rich's refresh thread: with no thread running, the stage's worker pool can fork
+    from this process (see ``logpipe.executor``), ~0.4 s of a core less per run."""
+    return ProgressReporter(label, unit, _progress_mode(), console=err)
 
 
 def _emit(summary: dict[str, Any], as_json: bool, human: Callable[[dict[str, Any]], None]) -> None:
     if as_json:
         typer.echo(json.dumps(summary, indent=2, sort_keys=True))
-    else:
+    elif not _output.quiet:
         human(summary)
-
-
-def _protocol(preset: str | None, obs: int | None, pred: int | None, stride: int | None,
-              min_targets: int | None, targets: str | None, target_types: str | None = None,
-              default: SampleProtocol | None = None) -> SampleProtocol | None:
-    """The protocol the options describe: a preset (or ``default``) with overrides; None when none given."""
-    if preset is None and all(v is None for v in (obs, pred, stride, min_targets, targets, target_types)):
-        return None
-    if preset is not None and preset not in PROTOCOLS:
-        raise LogpipeError(f"unknown protocol {preset!r}; presets: {', '.join(PROTOCOLS)}")
-    base = PROTOCOLS[preset] if preset else default
-    if base is None:
-        base = SampleProtocol("custom", obs_len=obs or 8, pred_len=pred or 12)
-        preset = None
-    changes: dict[str, Any] = {}
-    for key, value in (("obs_len", obs), ("pred_len", pred), ("stride", stride), ("min_targets", min_targets),
-                       ("targets", targets)):
-        if value is not None:
-            changes[key] = value
-    if target_types is not None:
-        changes["target_types"] = tuple(t.strip() for t in target_types.split(",") if t.strip())
-    if changes and base.name != "custom":
-        changes["name"] = f"{base.name.removesuffix('-custom')}-custom"
-    return replace(base, **changes)
 
 
 ProtocolOpt = Annotated[str | None, typer.Option("--protocol", help=f"Sample preset: {', '.join(PROTOCOLS)} "
@@ -128,8 +150,9 @@ DatasetArg = Annotated[Path, typer.Argument(help="Dataset folder written by `log
 
 
 def _print_summary(summary: dict[str, Any]) -> None:
-    """The human form of a summary that has no shorter one: indented JSON on stderr."""
-    err.print(json.dumps(summary, indent=2, default=str), highlight=False)
+    """The human form of a summary that has no shorter one: indented JSON on stderr, written as is (rich
+    would wrap long lines at the console width, 80 columns off a terminal, and break the JSON)."""
+    typer.echo(json.dumps(summary, indent=2, default=str), err=True)
 
 
 @app.command()
@@ -169,46 +192,16 @@ def ingest(
     Example: logpipe ingest ../shared/data/argoverse1/data --out out/av1
     Example: logpipe ingest run.bag --out out/run --set ego=/odom --set agent=/red_pose --hz 10
     """
-    from logpipe.stages.ingest import IngestOptions
-    from logpipe.stages.ingest import ingest as run_ingest
+    from logpipe import api
 
-    if on_error not in ("fail", "skip"):
-        raise typer.BadParameter("--on-error must be fail or skip")
-    if backend not in ("local", "ray"):
-        raise typer.BadParameter("--backend must be local or ray")
-    with _user_errors():
-        # Overrides without --protocol change the input format's own preset (not a generic 8 + 12 one).
-        own = None
-        if protocol is None:
-            from logpipe.formats import adapter_class, detect
-
-            own = adapter_class(fmt or detect(inputs[0])).default_protocol
-        options = IngestOptions(
-            out=out, format=fmt,
-            protocol=_protocol(protocol, obs, pred, stride, min_targets, targets, target_types, default=own),
-            on_error=on_error,
-            write_mcap=mcap, workers=workers, backend=backend,
-            batch_files=batch_files,
-            adapter_options=_adapter_options(mapping, overrides, hz, allow_empty),
+    with _user_errors(), _progress("ingest", "inputs") as advance:
+        summary = api.ingest(
+            inputs, out=out, format=fmt, protocol=protocol, obs=obs, pred=pred, stride=stride,
+            min_targets=min_targets, targets=targets, target_types=target_types, on_error=on_error, mcap=mcap,
+            workers=workers, backend=backend, batch_files=batch_files, mapping=mapping, overrides=overrides or (),
+            hz=hz, allow_empty=allow_empty, progress=advance,
         )
-        with _progress(0, "ingest", enabled=not as_json and sys.stderr.isatty()) as advance:
-            summary = run_ingest(inputs, options, progress=advance)
-    _emit(summary, as_json, _print_ingest)
-
-
-def _adapter_options(mapping: Path | None, overrides: list[str] | None, hz: float | None,
-                     allow_empty: bool) -> dict[str, Any]:
-    """Only the options the user gave, so formats that do not take them are not handed them."""
-    options: dict[str, Any] = {}
-    if mapping is not None:
-        options["mapping"] = str(mapping)
-    if overrides:
-        options["mapping_overrides"] = tuple(overrides)
-    if hz is not None:
-        options["hz"] = hz
-    if allow_empty:
-        options["allow_empty"] = True
-    return options
+    _emit(dict(summary), as_json, _print_ingest)
 
 
 def _print_ingest(s: dict[str, Any]) -> None:
@@ -217,12 +210,26 @@ def _print_ingest(s: dict[str, Any]) -> None:
         f"{s['inputs_skipped_already_ingested']} already there, {len(s['quarantined'])} quarantined; "
         f"{s['logs']} logs, {s['rows']} rows, {s['samples']} samples in {s['seconds']} s. "
         f"Dataset totals: {s['totals']['logs']} logs, {s['totals']['rows']} rows, {s['totals']['samples']} samples.",
-        highlight=False,
+        highlight=False, soft_wrap=True,  # one line in a CI log, not cut at 80 columns
     )
     for q in s["quarantined"]:
         e = q["error"]
         where = e["file"] + (f":{e['line']}" if e["line"] else "") + (f" field '{e['field']}'" if e["field"] else "")
-        err.print(f"  quarantined {where}: {e['reason']}", highlight=False)
+        err.print(f"  quarantined {where}: {e['reason']}", highlight=False, soft_wrap=True)
+    _print_notes(s)
+
+
+def _print_notes(s: dict[str, Any]) -> None:
+    """The lines that explain the counts: inputs that were copies, and why logs gave no sample."""
+    from logpipe.api import summary_notes
+
+    for line in summary_notes(s):
+        err.print(f"  {line}", highlight=False, soft_wrap=True)
+
+
+def _print_index(s: dict[str, Any]) -> None:
+    err.print(f"{s['dataset']}: {s['samples']} samples ({s['protocol']})", highlight=False, soft_wrap=True)
+    _print_notes(s)
 
 
 @app.command()
@@ -241,18 +248,12 @@ def index(
 
     Example: logpipe index out/ethucy --min-targets 2
     """
-    from logpipe.dataset import Dataset
-    from logpipe.stages.ingest import reindex
+    from logpipe import api
 
-    with _user_errors():
-        current = Dataset.open(dataset).protocol
-        chosen = _protocol(protocol, obs, pred, stride, min_targets, targets, target_types, default=current)
-        if chosen is None:
-            raise LogpipeError("give --protocol or at least one of --obs/--pred/--stride/--min-targets/--targets"
-                               "/--target-types")
-        summary = reindex(dataset, chosen)
-    _emit(summary, as_json, lambda s: err.print(f"{s['dataset']}: {s['samples']} samples ({s['protocol']})",
-                                                highlight=False))
+    with _user_errors(), _progress("index", "logs") as advance:
+        summary = api.index(dataset, protocol=protocol, obs=obs, pred=pred, stride=stride, min_targets=min_targets,
+                            targets=targets, target_types=target_types, progress=advance)
+    _emit(dict(summary), as_json, _print_index)
 
 
 @app.command()
@@ -285,27 +286,12 @@ def rasterise(
 
     Example: logpipe rasterise out/av1 --maps ../shared/data/argoverse1/maps --rotate --preview 4
     """
-    from logpipe.maps import MapSource
-    from logpipe.raster import DEFAULT_CHANNELS, RasterSpec
-    from logpipe.stages.rasterise import rasterise_dataset
+    from logpipe import api
 
-    if backend not in ("local", "ray"):
-        raise typer.BadParameter("--backend must be local or ray")
-    with _user_errors():
-        files = {}
-        for item in map_file or []:
-            if "=" not in item:
-                raise LogpipeError(f"--map expects MAP_ID=FILE, got {item!r}")
-            key, value = item.split("=", 1)
-            files[key] = Path(value)
-        spec = RasterSpec(size_px=size, extent_m=extent, rotate=rotate,
-                          channels=tuple(channels.split(",")) if channels else DEFAULT_CHANNELS)
-        with _progress(0, "rasterise", enabled=not as_json and sys.stderr.isatty()) as advance:
-            summary = rasterise_dataset(dataset, MapSource(roots=tuple(maps or ()), files=files), centre=centre,
-                                        rotate=rotate, preview=preview, spec=spec, shard_size=shard_size,
-                                        force=force, progress=advance,
-                                        workers=workers if workers is not None else (0 if backend == "ray" else 1),
-                                        backend="ray" if backend == "ray" else "local")
+    with _user_errors(), _progress("rasterise", "samples") as advance:
+        summary = api.rasterise(dataset, maps=maps, map_file=map_file, centre=centre, rotate=rotate, preview=preview,
+                                size=size, extent=extent, channels=channels, shard_size=shard_size, force=force,
+                                workers=workers, backend=backend, progress=advance)
     _emit(summary, as_json, _print_summary)
 
 
@@ -347,25 +333,16 @@ def train(
 
     Example: logpipe train out/ethucy --scene eth --out runs/eth --config configs/ethucy.toml
     """
-    from logpipe.dataset import is_split_expression
-    from logpipe.stages.train import train as run_train
+    from logpipe import api
 
-    with _user_errors():
-        chosen_train = train_split or (f"{scene}/train" if scene else "hash/train")
-        if val_split is None and is_split_expression(chosen_train):
-            raise typer.BadParameter(f"--train-split {chosen_train!r} has no matching /val split: give --val-split "
-                                     "(e.g. the held-out logs) or 'none'")
-        chosen_val = val_split or ("none" if chosen_train == "all" else chosen_train.rsplit("/", 1)[0] + "/val")
-        overrides: dict[str, Any] = {}
-        if steps is not None:
-            overrides["steps"] = steps
-        if seed is not None:
-            overrides["seed"] = seed
-        summary = run_train(dataset, out, train_split=chosen_train,
-                            val_split=None if chosen_val == "none" else chosen_val, config_path=config,
-                            overrides=overrides, preset=preset, resume=resume, raster_run=raster_run,
-                            loader_workers=loader_workers, init_from=init_from,
-                            progress=not as_json and sys.stderr.isatty())
+    # On a terminal the training loop draws its own bar (with loss and val ADE/FDE), on stdout: not under --json.
+    # Elsewhere it reports steps to the plain progress lines.
+    terminal = _progress_mode() == "bar"
+    with _user_errors(), (nullcontext(None) if terminal else _progress("train", "steps")) as advance:
+        summary = api.train(dataset, out=out, scene=scene, train_split=train_split, val_split=val_split,
+                            config=config, steps=steps, seed=seed, preset=preset, resume=resume,
+                            raster_run=raster_run, loader_workers=loader_workers, init_from=init_from,
+                            progress=(not as_json) if advance is None else advance)
     _emit(summary, as_json, _print_summary)
 
 
@@ -380,16 +357,19 @@ def predict(
     modes: Annotated[int | None, typer.Option(
         "--modes", "-k", help="K futures per agent (default 20 for pedestrians, 6 for vehicles).")] = None,
     seed: Annotated[int, typer.Option("--seed", help="Seed of the sampled futures.")] = 0,
-    noise_scale: Annotated[float, typer.Option(
-        "--noise-scale", help="Std of the network's noise z (1 = as trained); the spread of the K futures. "
-        "Choose it on a validation split (make reproduce-ethucy does).")] = 1.0,
+    noise_scale: Annotated[float | None, typer.Option(
+        "--noise-scale", help="Std of the network's noise z (1 = as trained); the spread of the K futures. Default: "
+        "the checkpoint's inference settings (chosen on validation by make reproduce-*), else 1.")] = None,
     constant_velocity_modes: Annotated[int | None, typer.Option(
         "--constant-velocity-modes", help="How many of the K futures are the constant-velocity forecast (the "
-        "network's corrections held at zero; default: the checkpoint's, 0 unless trained with it). Choose it on a "
-        "validation split (make reproduce-ethucy does).")] = None,
+        "network's corrections held at zero). Default: the checkpoint's inference settings, else its training "
+        "config (0 unless trained with it).")] = None,
     context_max_neighbours: Annotated[int | None, typer.Option(
         "--context-max-neighbours", help="At most this many of the agents within the checkpoint's context radius "
-        "(the nearest) in each target's context (default: all); make reproduce-ethucy sets it per fold.")] = None,
+        "(the nearest) in each target's context. Default: the checkpoint's inference settings, else all.")] = None,
+    as_trained: Annotated[bool, typer.Option(
+        "--as-trained", help="Ignore the checkpoint's stored inference settings: noise scale 1 and its training "
+        "config (the results files' 'as trained' rows).")] = False,
     filters: Annotated[list[str] | None, typer.Option(
         "--filter", help="log=ID[,ID] | split=eth/test | time=START_NS:END_NS | type=pedestrian[,..]; repeatable.")
     ] = None,
@@ -409,16 +389,18 @@ def predict(
 
     Example: logpipe predict out/ethucy --filter split=eth/test --out out/pred/eth
     """
-    from logpipe.stages.predict import parse_filter, predict_dataset
+    from logpipe import api
 
-    with _user_errors(), _progress(0, "predict", enabled=not as_json and sys.stderr.isatty()) as advance:
-        summary = predict_dataset(
-            dataset, out, checkpoint=checkpoint, predictor=predictor, modes=modes, seed=seed, noise_scale=noise_scale,
-            constant_velocity_modes=constant_velocity_modes, context_max_neighbours=context_max_neighbours,
-            sample_filter=parse_filter(filters or []),
-            inputs=inputs or [], raster_run=raster_run, raster_images=raster_images, write_mcap=mcap,
-            batch_size=batch_size, threads=threads, progress=advance,
+    with _user_errors(), _progress("predict", "samples") as advance:
+        summary = api.predict(
+            dataset, out=out, checkpoint=checkpoint, predictor=predictor, modes=modes, seed=seed,
+            noise_scale=noise_scale, constant_velocity_modes=constant_velocity_modes,
+            context_max_neighbours=context_max_neighbours, as_trained=as_trained, filters=filters or (),
+            inputs=inputs, raster_run=raster_run, raster_images=raster_images, mcap=mcap, batch_size=batch_size,
+            threads=threads, progress=advance,
         )
+    for warning in summary["warnings"]:  # shown with --json and -q too: a leak must not pass unnoticed
+        typer.echo(f"warning: {warning}", err=True)
     _emit(summary, as_json, _print_summary)
 
 
@@ -457,34 +439,23 @@ def score(
 
     Example: logpipe score out/pred/cv out/pred/eth --truth out/ethucy --split eth/test --min-agents 2
     """
-    from logpipe.stages.score import score as run_score
+    from logpipe import api
 
-    thresholds: dict[str, float] = {}
-    for item in fail_above or []:
-        key, sep, value = item.partition("=")
-        try:
-            thresholds[key.strip()] = float(value)
-        except ValueError:
-            raise typer.BadParameter(f"--fail-above {item!r}: expected kN.METRIC=NUMBER") from None
-        if not sep:
-            raise typer.BadParameter(f"--fail-above {item!r}: expected kN.METRIC=NUMBER")
-    if agents not in ("all", "focal"):
-        raise typer.BadParameter("--agents must be all or focal")
     with _user_errors():
-        report = run_score(predictions, truth, out, agents=agents, min_agents=min_agents,
-                           split=split, ks=k or None, miss_threshold_m=miss_threshold, fail_above=thresholds,
-                           labels=label or None, allow_missing=allow_missing, plots=plots,
-                           plot_samples=plot_samples)
+        report = api.score(predictions, truth=truth, out=out, split=split, agents=agents, min_agents=min_agents,
+                           k=k, miss_threshold=miss_threshold, fail_above=fail_above, label=label,
+                           allow_missing=allow_missing, plots=plots, plot_samples=plot_samples)
     if as_json:
         typer.echo(json.dumps(report, indent=2, sort_keys=True))
     else:
-        for name, e in report["methods"].items():
+        for name, e in report["methods"].items() if not _output.quiet else ():
             o = e["overall"]
             cells = ", ".join(f"K={kk} {o[f'k{kk}']['ade']:.3f}/{o[f'k{kk}']['fde']:.3f}" for kk in e["ks"]
                               if o.get(f"k{kk}"))
             print(f"{name}: {o['samples']} samples, {o['agents']} agents, ADE/FDE {cells}", file=sys.stderr)
-        print(f"report: {out / 'report.md'}", file=sys.stderr)
-        for v in report["gate"]["violations"]:
+        if not _output.quiet:
+            print(f"report: {out / 'report.md'}", file=sys.stderr)
+        for v in report["gate"]["violations"]:  # errors: shown with -q too
             print(f"FAILED: {v['method']} {v['metric']} = {v['value']:.4f} > {v['limit']}", file=sys.stderr)
     if report["gate"]["failed"]:
         raise typer.Exit(code=1)
@@ -503,10 +474,10 @@ def verify(
 ) -> None:
     """Check folders against their manifests: every committed file's size, sha256 and row count. Prints one line
     per problem and exits 1 when any is found. A dataset's raster runs are checked with it."""
-    from logpipe.verify import verify_tree
+    from logpipe import api
 
     with _user_errors():
-        report = verify_tree(folders, repair=repair, deep=not shallow)
+        report = api.verify(folders, repair=repair, shallow=shallow)
     if as_json:
         typer.echo(json.dumps(report, indent=2, sort_keys=True))
     else:
@@ -514,8 +485,10 @@ def verify(
             typer.echo(line)
         for line in report["leftovers"]:
             typer.echo(f"{line}: uncommitted leftover" + (" (removed)" if repair else " (--repair removes it)"))
-        err.print(f"{report['files_checked']} files checked in {len(report['folders'])} folders: "
-                  f"{len(report['problems'])} problems, {len(report['leftovers'])} leftovers", highlight=False)
+        if not _output.quiet:  # the problems above are shown with -q too
+            err.print(f"{report['files_checked']} files checked in {len(report['folders'])} folders: "
+                      f"{len(report['problems'])} problems, {len(report['leftovers'])} leftovers", highlight=False,
+                      soft_wrap=True)
     if report["problems"]:
         raise typer.Exit(code=1)
 
@@ -523,18 +496,29 @@ def verify(
 @app.command()
 def inspect(
     paths: Annotated[list[Path], typer.Argument(help="Bags (ROS1 .bag, ROS2 folders), MCAP files, AV2 logs.")],
+    output: Annotated[str, typer.Option(
+        "--format", help="human: tables | toml: the detected mapping as the file `logpipe ingest --mapping` takes "
+        "(on stdout) | json: as --json.")] = "human",
     as_json: JsonOpt = False,
 ) -> None:
     """List topics/channels with types, counts, time span and rate, and which of them logpipe can turn
-    into tracks with which mapping (like `ros2 bag info` / `mcap info`). Exit code 2 if any input is unreadable.
+    into tracks with which mapping (like `ros2 bag info` / `mcap info`). Exit code 2 if any input is unreadable
+    (with --format toml: if no mapping is detected).
 
     Example: logpipe inspect ../shared/data/rosbags/datmo/intersection.bag
+    Example: logpipe inspect run.bag --format toml > map.toml && logpipe ingest run.bag --mapping map.toml -o out/run
     """
-    from logpipe.inspect import inspect_paths, render
+    from logpipe import api
+    from logpipe.inspect import mapping_toml, render
 
+    if output not in ("human", "toml", "json"):
+        raise typer.BadParameter("--format must be human, toml or json")
     with _user_errors():
-        reports = inspect_paths(paths)
-    if as_json:
+        reports = api.inspect(paths)
+        if output == "toml":
+            typer.echo(mapping_toml(reports), nl=False)
+            return
+    if as_json or output == "json":
         typer.echo(json.dumps(reports, indent=2, sort_keys=True, default=str))
     else:
         render(reports)

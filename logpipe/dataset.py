@@ -16,6 +16,13 @@ Only what the manifest names is read, so files of an interrupted run are never s
 its tables under a new generation's name, so a reader holding the previous manifest reads a consistent state.
 Datasets written before this layout (``part-*.parquet``, ``logs.parquet`` at the top) are read the same way:
 the manifest names their files.
+
+Each table folder holds that table only, so engines read one table with one glob
+(``read_parquet('DATASET/samples/*.parquet')`` in DuckDB, ``pl.scan_parquet``, ``pyarrow.dataset.dataset``).
+The logs and samples files store their ids and labels as dictionaries (``dictionary<int32,string>`` in
+schemas/logs.json and samples.json: Polars reads them as Categorical); ``Dataset`` hands them to logpipe's
+stages as plain strings (the kernels they use, ``is_in`` against another table's column and ``sort_by``, refuse
+dictionaries), as in tables written before, which stored strings.
 """
 
 from __future__ import annotations
@@ -33,6 +40,7 @@ import pyarrow as pa
 import pyarrow.compute as pc
 
 from logpipe.artifact import MANIFEST, Ownership, check_files, read_manifest
+from logpipe.contracts import decode_dictionaries
 from logpipe.errors import DatasetError
 from logpipe.io import as_numpy, read_table
 from logpipe.types import OBJECT_TYPES, Role, SampleProtocol, SceneSample
@@ -143,8 +151,8 @@ class Dataset:
         return [self.root / s["file"] for s in self.manifest["shards"]]
 
     def logs(self) -> pa.Table:
-        """The logs table."""
-        return read_table(self._table_path("logs"))
+        """The logs table, ids and labels as strings."""
+        return decode_dictionaries(read_table(self._table_path("logs")))
 
     def logs_in_split(self, split: str) -> list[str]:
         """Log ids of a split, in log-table order.
@@ -188,8 +196,8 @@ class Dataset:
         return {i for i, m in zip(ids, memberships, strict=True) if term in m or term == i}
 
     def samples(self) -> pa.Table:
-        """The sample index."""
-        return read_table(self._table_path("samples"))
+        """The sample index, ids as strings."""
+        return decode_dictionaries(read_table(self._table_path("samples")))
 
     def tracks(self, columns: list[str] | None = None) -> pa.Table:
         """All track rows (fine for ETH/UCY-sized data; stream with ``iter_logs`` for large sets)."""
@@ -200,7 +208,7 @@ class Dataset:
 
     @cached_property
     def _shard_of_log(self) -> dict[str, str]:
-        logs = read_table(self._table_path("logs"), columns=["log_id", "shard"])
+        logs = decode_dictionaries(read_table(self._table_path("logs"), columns=["log_id", "shard"]))
         return dict(zip(logs.column("log_id").to_pylist(), logs.column("shard").to_pylist(), strict=True))
 
     def mcap_path(self, log_id: str) -> Path:
@@ -260,7 +268,9 @@ def scene_sample(tracks: pa.Table, sample: dict[str, Any], protocol: SampleProto
         pc.and_(pc.greater_equal(tracks.column("step"), start), pc.less_equal(tracks.column("step"), end))
     )
     steps = as_numpy(window.column("step")) - start
-    track_col = pc.dictionary_encode(window.column("track_id")).combine_chunks()
+    # Agents numbered by first appearance in the window: from the values (an encoded column would keep its
+    # file's dictionary, every track of the row group).
+    track_col = pc.dictionary_encode(decode_dictionaries(window.select(["track_id"])).column(0)).combine_chunks()
     names = track_col.dictionary.to_pylist()
     codes = track_col.indices.to_numpy()
     seq = end - start + 1

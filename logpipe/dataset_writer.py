@@ -16,7 +16,7 @@ import pyarrow.compute as pc
 
 from logpipe import __version__
 from logpipe.artifact import FileEntry, FolderWriter, crash_point, file_entry
-from logpipe.contracts import arrow_schema, schema_version
+from logpipe.contracts import arrow_schema, decode_dictionaries, encode_dictionaries, schema_version, value_schema
 from logpipe.dataset import DATASET_ARTIFACT, DATASET_OWNED, MCAP_DIR, SAMPLES_DIR, table_file
 from logpipe.errors import DatasetError
 from logpipe.io import read_table, write_parquet
@@ -156,10 +156,11 @@ class DatasetWriter(FolderWriter):
         """
         out = self.root
         tables = manifest["tables"]
+        # As values: the committed file may be of an older writer (strings), the batches' dictionaries differ.
         old_logs = [read_table(out / tables["logs"]["file"])] if "logs" in tables else []
         new_logs = [b.logs for b in batches if b.logs.num_rows]
-        all_logs = pa.concat_tables(old_logs + new_logs) if old_logs or new_logs \
-            else arrow_schema("logs").empty_table()
+        all_logs = pa.concat_tables([decode_dictionaries(t) for t in old_logs + new_logs]) if old_logs or new_logs \
+            else value_schema(arrow_schema("logs")).empty_table()
         _refuse_log_id_clash(all_logs)
         files = dict(manifest["files"])
         for batch in batches:
@@ -175,7 +176,7 @@ class DatasetWriter(FolderWriter):
                 crash_point(f"move {MCAP_DIR}/{folder.name}")
                 folder.replace(out / MCAP_DIR / folder.name)
         old_samples = [read_table(out / tables["samples"]["file"])] if "samples" in tables else []
-        all_samples = pa.concat_tables(old_samples + [b.samples for b in batches])
+        all_samples = pa.concat_tables([decode_dictionaries(t) for t in old_samples + [b.samples for b in batches]])
         generation = int(manifest.get("generation", 0)) + 1
         new_tables: dict[str, TableEntry] = {}
         for name, table in (("logs", all_logs), ("samples", all_samples)):
@@ -218,7 +219,7 @@ class DatasetWriter(FolderWriter):
         """Write ``table`` as the generation's file of table ``name`` (``logs`` or ``samples``, also its folder)
         and add it to ``files``."""
         rel = table_file(name if name != "samples" else SAMPLES_DIR, generation)
-        write_parquet(table, self.root / rel)
+        write_parquet(encode_dictionaries(table, arrow_schema(name)), self.root / rel)
         files[rel] = file_entry(self.root / rel, rows=table.num_rows)
         return TableEntry(file=rel, rows=table.num_rows, sha256=files[rel]["sha256"])
 

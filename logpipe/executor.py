@@ -8,11 +8,13 @@ item is a Ray task; outputs must then go to a file system all nodes share.
 from __future__ import annotations
 
 import importlib.abc
+import logging
 import multiprocessing
 import os
 import sys
 import threading
-from collections.abc import Callable, Iterator, Sequence
+import time
+from collections.abc import Callable, Generator, Iterator, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from typing import Any, Literal, TypeVar
 
@@ -21,6 +23,8 @@ from logpipe.errors import LogpipeError
 T = TypeVar("T")
 R = TypeVar("R")
 Backend = Literal["local", "ray"]
+
+logger = logging.getLogger(__name__)
 
 
 def default_workers() -> int:
@@ -137,8 +141,30 @@ def run_ordered(
     """Yield ``fn(item)`` for each item, in item order, computing up to ``workers`` at once.
 
     ``queued(item)``, when given, runs in this process as each item is queued, a batch or two before a
-    worker starts it (e.g. to have the OS read the item's input files ahead); locally only.
+    worker starts it (e.g. to have the OS read the item's input files ahead); locally only. At INFO level
+    (``logpipe -v``) each result is logged with the seconds since the previous one.
     """
+    results = _run_ordered(fn, items, workers=workers, backend=backend, queued=queued)
+    if not logger.isEnabledFor(logging.INFO):
+        yield from results
+        return
+    started = last = time.perf_counter()
+    try:
+        for i, result in enumerate(results, 1):
+            now = time.perf_counter()
+            logger.info("%s: %d/%d done, %.2f s after the previous (%.1f s in all)",
+                        getattr(fn, "__name__", "work"), i, len(items), now - last, now - started)
+            last = now
+            yield result
+    finally:
+        results.close()  # a consumer that stops early ends the pool now, as without the logging
+
+
+def _run_ordered(
+    fn: Callable[[T], R], items: Sequence[T], *, workers: int, backend: Backend,
+    queued: Callable[[T], None] | None,
+) -> Generator[R]:
+    """``run_ordered`` without the logging."""
     workers = workers or default_workers()
     if backend == "ray":
         yield from _run_ray(fn, items, workers)

@@ -3,7 +3,8 @@
 Like ``ros2 bag info`` / ``mcap info``: topics (channels), types, message counts, time span and frequency, plus
 whether the first message of each topic decodes, and the mapping logpipe would use without one (or why it
 cannot choose). ``inspect_paths`` returns plain dicts (the ``--json`` output); ``render`` prints them as rich
-tables.
+tables; ``mapping_toml`` gives the detected mapping as the TOML file ``logpipe ingest --mapping`` takes
+(``--format toml``).
 """
 
 from __future__ import annotations
@@ -267,6 +268,36 @@ def inspect_av2(path: Path) -> dict[str, Any]:
         ego=sorted({tr for tr, r in zip(tracks, roles, strict=True) if r == "ego"}),
     )  # fmt: skip
     return report
+
+
+def mapping_toml(reports: Sequence[dict[str, Any]]) -> str:
+    """The mapping detected in ``reports`` as a TOML mapping file for ``logpipe ingest --mapping FILE``.
+
+    One ``--mapping`` applies to every input of an ingest, so inputs that detect different mappings give none.
+
+    Raises:
+        LogpipeError: no report, an input without a detected mapping (unreadable, ambiguous, no usable topic,
+            or an Argoverse 2 input, which needs none), or inputs whose detected mappings differ.
+    """
+    from logpipe.errors import LogpipeError
+    from logpipe.formats.mapping import mapping_from_dict
+
+    if not reports:
+        raise LogpipeError("no input found to take a mapping from")
+    for rep in reports:
+        if rep["format"] == "argoverse2":
+            raise LogpipeError(f"{rep['path']}: Argoverse 2 inputs need no mapping")
+        if rep["mapping"] is None:
+            why = rep["mapping_error"] or rep["error"] or "no topic logpipe can turn into tracks"
+            raise LogpipeError(f"{rep['path']}: no mapping detected: {why}")
+    first = reports[0]["mapping"]
+    other = next((rep["path"] for rep in reports if rep["mapping"] != first), None)
+    if other is not None:
+        raise LogpipeError(f"{reports[0]['path']} and {other} detect different mappings; inspect them one at a time")
+    # The file starts with comments naming its source; a path is one line of the comment whatever it holds.
+    sources = "".join(f"#   {' '.join(str(rep['path']).splitlines())}\n" for rep in reports)
+    return ("# logpipe mapping detected by `logpipe inspect` in:\n" + sources
+            + "# use: logpipe ingest INPUT --mapping THIS_FILE\n" + mapping_from_dict(first).to_toml())
 
 
 def _fmt_time(ns: int | None) -> str:

@@ -57,10 +57,10 @@ class NewChannel:
 
     Attributes:
         topic: channel topic.
-        schema_name: e.g. ``foxglove.SceneUpdate``.
-        schema_encoding: e.g. ``jsonschema``.
+        schema_name: e.g. ``foxglove.SceneUpdate`` (``logpipe.foxglove.new_channel`` makes Foxglove channels).
+        schema_encoding: e.g. ``protobuf`` (a ``FileDescriptorSet``) or ``jsonschema``.
         schema_data: the schema document (bytes).
-        message_encoding: e.g. ``json``.
+        message_encoding: e.g. ``protobuf`` or ``json``.
         metadata: channel metadata.
     """
 

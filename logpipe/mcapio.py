@@ -1,10 +1,17 @@
-"""MCAP output: each ingested log as a file a log viewer opens (Foxglove), with JSON-encoded channels.
+"""MCAP output: each ingested log as a file a log viewer opens (Foxglove; ``logpipe.foxglove`` says what it
+draws and why the frames are what they are).
 
 Channels:
-* ``/logpipe/agents`` (``logpipe.AgentStates``): every agent at each step, column-wise — one JSON message
-  per step instead of one per agent keeps files small and writing fast.
-* ``/logpipe/ego_pose`` (``foxglove.PoseInFrame``): the ego, so the 3D panel can follow it.
-Message log times are the true timestamps of the steps.
+* ``/logpipe/agents`` (``logpipe.AgentStates``, JSON): every agent at each step, column-wise — one JSON
+  message per step instead of one per agent keeps files small and writing fast.
+* ``/logpipe/scene`` (``foxglove.SceneUpdate``, Protobuf): per step a box (and heading arrow) per agent,
+  entity id = track id, in frame ``world``.
+* ``/logpipe/tf`` (``foxglove.FrameTransform``, Protobuf): ``log_centre`` → ``world`` once (``world``'s
+  origin at minus the centre of the log's positions, so the 3D panel opens on the log), and ``world`` →
+  ``ego`` at each ego row.
+* ``/logpipe/ego_pose`` (``foxglove.PoseInFrame``, Protobuf): the ego in ``world``.
+Message log times are the true timestamps of the steps; the ``logpipe`` metadata record names the frames
+and the centre.
 """
 
 from __future__ import annotations
@@ -19,16 +26,27 @@ from typing import Any
 import numpy as np
 import orjson
 import pyarrow as pa
+import pyarrow.compute as pc
+from foxglove_schemas_protobuf.FrameTransform_pb2 import FrameTransform
+from foxglove_schemas_protobuf.PoseInFrame_pb2 import PoseInFrame
+from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
 from mcap.writer import CompressionType, Writer
 
 from logpipe import __version__
+from logpipe import foxglove as fx
 from logpipe.contracts import json_schema
 from logpipe.io import as_numpy
 from logpipe.types import Role
 
 AGENTS_TOPIC = "/logpipe/agents"
+SCENE_TOPIC = "/logpipe/scene"
+TF_TOPIC = "/logpipe/tf"
 EGO_TOPIC = "/logpipe/ego_pose"
 WORLD_FRAME = "world"
+"""The frame of the tracks' x/y (and of every agent entity)."""
+LOG_FRAME = "log_centre"
+"""Root of an ingest MCAP's transform tree, at the centre of the log's positions."""
+EGO_FRAME = "ego"
 
 
 @cache
@@ -39,6 +57,18 @@ def _schema_bytes(schema_name: str) -> bytes:
 def _register(writer: Writer, topic: str, schema_name: str) -> int:
     schema_id = writer.register_schema(name=schema_name, encoding="jsonschema", data=_schema_bytes(schema_name))
     return writer.register_channel(topic=topic, message_encoding="json", schema_id=schema_id)
+
+
+def _register_protobuf(writer: Writer, topic: str, message_class: Any) -> int:
+    schema_id = writer.register_schema(name=fx.schema_name(message_class), encoding=fx.SCHEMA_ENCODING,
+                                       data=fx.schema_data(message_class))
+    return writer.register_channel(topic=topic, message_encoding=fx.MESSAGE_ENCODING, schema_id=schema_id)
+
+
+def _codes(column: pa.ChunkedArray) -> tuple[np.ndarray, list[str]]:
+    """Integer codes of a string (or dictionary) column and the names they index."""
+    encoded = pc.dictionary_encode(column).combine_chunks()
+    return as_numpy(encoded.indices).astype(np.int64), [str(v) for v in encoded.dictionary.to_pylist()]
 
 
 def _python_list(column: pa.ChunkedArray) -> list[Any]:
@@ -81,6 +111,8 @@ class LogRows:
         heading: (rows,) heading in radians or None per row; None when the column is all null.
         roles: (rows,) role of each row.
         track_ids, object_types, role_texts, xs, ys: JSON texts of each row's values.
+        heading_values: (rows,) heading in radians, NaN where null.
+        track_codes, kind_codes: (rows,) codes into ``track_names`` and ``kinds`` ((object type, role) pairs).
     """
 
     steps: np.ndarray
@@ -94,6 +126,11 @@ class LogRows:
     role_texts: list[str]
     xs: list[str]
     ys: list[str]
+    heading_values: np.ndarray
+    track_codes: np.ndarray
+    track_names: list[str]
+    kind_codes: np.ndarray
+    kinds: list[tuple[str, str]]
 
     @classmethod
     def of(cls, tracks: pa.Table) -> LogRows:
@@ -101,20 +138,28 @@ class LogRows:
         heading_col = tracks.column("heading")
         roles = _python_list(tracks.column("role"))
         x, y = as_numpy(tracks.column("x")), as_numpy(tracks.column("y"))
+        track_codes, track_names = _codes(tracks.column("track_id"))
+        type_codes, type_names = _codes(tracks.column("object_type"))
+        role_codes, role_names = _codes(tracks.column("role"))
+        kind_codes = type_codes * max(len(role_names), 1) + role_codes
+        kinds = [(t, r) for t in type_names for r in role_names]
         return cls(
             steps=as_numpy(tracks.column("step")), ts=as_numpy(tracks.column("timestamp_ns")), x=x, y=y,
             heading=_python_list(heading_col) if heading_col.null_count < len(heading_col) else None,
             roles=roles, track_ids=_json_texts(_python_list(tracks.column("track_id"))),
             object_types=_json_texts(_python_list(tracks.column("object_type"))), role_texts=_json_texts(roles),
             xs=_json_floats(x), ys=_json_floats(y),
+            heading_values=as_numpy(pc.fill_null(heading_col.cast(pa.float64()), math.nan)).astype(np.float64),
+            track_codes=track_codes, track_names=track_names, kind_codes=kind_codes, kinds=kinds,
         )
 
     def slice(self, lo: int, hi: int) -> LogRows:
-        """Rows ``lo:hi`` (views of the arrays, copies of the lists)."""
+        """Rows ``lo:hi`` (views of the arrays, copies of the lists; names shared)."""
         heading = None if self.heading is None else self.heading[lo:hi]
         return LogRows(self.steps[lo:hi], self.ts[lo:hi], self.x[lo:hi], self.y[lo:hi], heading, self.roles[lo:hi],
                        self.track_ids[lo:hi], self.object_types[lo:hi], self.role_texts[lo:hi], self.xs[lo:hi],
-                       self.ys[lo:hi])
+                       self.ys[lo:hi], self.heading_values[lo:hi], self.track_codes[lo:hi], self.track_names,
+                       self.kind_codes[lo:hi], self.kinds)
 
     def __len__(self) -> int:
         return len(self.steps)
@@ -139,15 +184,30 @@ def write_log_mcap(log_id: str, tracks: pa.Table | LogRows, target: Path, map_id
     ego_rows = [i for i, r in enumerate(rows.roles) if r == ego_role]
     log_text, frame_text = json.dumps(log_id), json.dumps(WORLD_FRAME)
     track_ids, object_types, role_texts, xs, ys = rows.track_ids, rows.object_types, rows.role_texts, rows.xs, rows.ys
+    tracks_local, track_index = np.unique(rows.track_codes, return_inverse=True)
+    yaw, has_heading = fx.display_headings(track_index, ts, rows.x, rows.y, rows.heading_values)
+    agents = fx.LogAgents(steps=steps, ts=ts, x=rows.x, y=rows.y, yaw=yaw, has_heading=has_heading,
+                          track=track_index, track_names=[rows.track_names[c] for c in tracks_local.tolist()],
+                          kind=rows.kind_codes, kinds=rows.kinds)
+    scenes = fx.agent_scene_updates(agents, WORLD_FRAME)
+    cx, cy = fx.log_centre(rows.x, rows.y)
     count = 0
     target.parent.mkdir(parents=True, exist_ok=True)
     with target.open("wb") as fh:
         writer = Writer(fh, compression=CompressionType.ZSTD)
         writer.start(profile="", library=f"logpipe {__version__}")
-        writer.add_metadata("logpipe", {"log_id": log_id, "map_id": map_id or "", "frame_id": WORLD_FRAME})
-        agents = _register(writer, AGENTS_TOPIC, "logpipe.AgentStates")
-        ego = _register(writer, EGO_TOPIC, "foxglove.PoseInFrame") if ego_rows else None
-        for lo, hi in zip(starts, ends, strict=True):
+        writer.add_metadata("logpipe", {"log_id": log_id, "map_id": map_id or "", "frame_id": WORLD_FRAME,
+                                        "root_frame_id": LOG_FRAME, "centre_x": repr(cx), "centre_y": repr(cy)})
+        agents_channel = _register(writer, AGENTS_TOPIC, "logpipe.AgentStates")
+        scene_channel = _register_protobuf(writer, SCENE_TOPIC, SceneUpdate)
+        tf_channel = _register_protobuf(writer, TF_TOPIC, FrameTransform)
+        ego = _register_protobuf(writer, EGO_TOPIC, PoseInFrame) if ego_rows else None
+        if len(ts):
+            t0 = int(ts[0])
+            writer.add_message(tf_channel, log_time=t0, publish_time=t0, sequence=0,
+                               data=fx.frame_transform(LOG_FRAME, WORLD_FRAME, t0, (-cx, -cy, 0.0)))
+            count += 1
+        for i, (lo, hi) in enumerate(zip(starts, ends, strict=True)):
             t = int(ts[lo])
             parts = [
                 f'{{"log_id":{log_text},"timestamp_ns":{t},"step":{int(steps[lo])},"frame_id":{frame_text}',
@@ -158,38 +218,23 @@ def write_log_mcap(log_id: str, tracks: pa.Table | LogRows, target: Path, map_id
             if headings is not None:
                 parts += [',"heading":[', ",".join(headings[lo:hi]), "]"]
             parts.append("}")
-            writer.add_message(agents, log_time=t, publish_time=t, data="".join(parts).encode(), sequence=count)
-            count += 1
+            writer.add_message(agents_channel, log_time=t, publish_time=t, data="".join(parts).encode(), sequence=i)
+            writer.add_message(scene_channel, log_time=t, publish_time=t, data=scenes[i], sequence=i)
+            count += 2
         if ego is not None:
-            count += _write_ego(writer, ego, ego_rows, ts, rows.x, rows.y, rows.heading)
+            count += _write_ego(writer, ego, tf_channel, np.asarray(ego_rows), ts, rows.x, rows.y, yaw, has_heading)
         writer.finish()  # type: ignore[no-untyped-call]
     return count
 
 
-def _write_ego(
-    writer: Writer, channel: int, rows: list[int], ts: np.ndarray, x: np.ndarray, y: np.ndarray,
-    heading: list[Any] | None,
-) -> int:
-    ex, ey = x[rows], y[rows]
-    # Heading from the source when given, else from motion (forward difference, last one repeated).
-    if heading is not None and all(heading[r] is not None for r in rows):
-        yaw = np.array([heading[r] for r in rows], dtype=np.float64)
-    else:
-        dx = np.diff(ex, append=ex[-1:]) if len(rows) > 1 else np.zeros(1)
-        dy = np.diff(ey, append=ey[-1:]) if len(rows) > 1 else np.zeros(1)
-        if len(rows) > 1:
-            dx[-1], dy[-1] = dx[-2], dy[-2]
-        yaw = np.arctan2(dy, dx)
-    # json.dumps of {"timestamp", "frame_id", "pose": {"position", "orientation"}} written as a template.
-    px, py = _json_floats(ex), _json_floats(ey)
-    halves = [a / 2.0 for a in yaw.tolist()]  # a rotation about z: (0, 0, sin(yaw/2), cos(yaw/2))
-    qz = _json_floats(np.array([math.sin(a) for a in halves], dtype=np.float64))
-    qw = _json_floats(np.array([math.cos(a) for a in halves], dtype=np.float64))
-    frame = json.dumps(WORLD_FRAME)
-    for i, row in enumerate(rows):
-        t = int(ts[row])
-        pose = (f'{{"timestamp":{{"sec":{t // 1_000_000_000},"nsec":{t % 1_000_000_000}}},"frame_id":{frame},'
-                f'"pose":{{"position":{{"x":{px[i]},"y":{py[i]},"z":0.0}},'
-                f'"orientation":{{"x":0.0,"y":0.0,"z":{qz[i]},"w":{qw[i]}}}}}}}')
-        writer.add_message(channel, log_time=t, publish_time=t, data=pose.encode(), sequence=i)
-    return len(rows)
+def _write_ego(writer: Writer, pose_channel: int, tf_channel: int, rows: np.ndarray, ts: np.ndarray, x: np.ndarray,
+               y: np.ndarray, yaw: np.ndarray, has_heading: np.ndarray) -> int:
+    """The ego's pose and ``world`` → ``ego`` transform at each ego row (not turned where it has no heading)."""
+    times, ex, ey = ts[rows], x[rows], y[rows]
+    heading = np.where(has_heading[rows], yaw[rows], np.nan)
+    poses = fx.poses_in_frame(WORLD_FRAME, times, ex, ey, heading)
+    transforms = fx.frame_transforms(WORLD_FRAME, EGO_FRAME, times, ex, ey, heading)
+    for i, (t, pose, tf) in enumerate(zip(times.tolist(), poses, transforms, strict=True)):
+        writer.add_message(pose_channel, log_time=t, publish_time=t, data=pose, sequence=i)
+        writer.add_message(tf_channel, log_time=t, publish_time=t, data=tf, sequence=i + 1)
+    return 2 * len(poses)

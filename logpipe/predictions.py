@@ -3,9 +3,14 @@
 Every producer (``logpipe predict``, the reproduction scripts, tests) and every reader (``logpipe score``, the
 scripts) goes through this module, so the table's layout and its metadata keys are decided here only.
 
-Layout (``schemas/predictions.json``): one row per (sample, target track, mode, future step), ordered sample
-by sample, target by target (``target_mask`` order), mode 0..K-1, step 1..T. The table's Parquet metadata
-holds ``PredictionMeta`` as JSON under ``logpipe.predictions``.
+Layout (``schemas/predictions.json``, version 2): one row per (sample, target track, mode), ordered sample by
+sample, target by target (``target_mask`` order), mode 0..K-1; the horizon is fixed-size lists of T values
+(``x``, ``y`` in metres, ``timestamp_ns``), as Argoverse 2's submission format keeps ``predicted_trajectory_x/y``.
+Ids and the object type are dictionaries (Polars: Categorical). What is constant over a table (predictor,
+checkpoint, protocol, K, T, seed, ...) is only its metadata: ``PredictionMeta`` as JSON under the Parquet key
+``logpipe.predictions``. Version 1 tables (one row per future step, ``step`` column, constant ``predictor`` and
+``checkpoint_id`` columns; run manifests of ``format_version`` 1) are still read: ``PredictionRun.table`` turns
+them into this layout.
 
 A prediction run folder (``logpipe predict --out``) is a committed artifact (``logpipe.artifact``)::
 
@@ -20,7 +25,7 @@ from __future__ import annotations
 
 import json
 from collections.abc import Sequence
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict, dataclass, fields, replace
 from pathlib import Path
 from typing import Any, TypedDict
 
@@ -31,19 +36,25 @@ import pyarrow.parquet as pq
 
 from logpipe import __version__
 from logpipe.artifact import MANIFEST, FileEntry, FolderWriter, Ownership, check_files, read_manifest
-from logpipe.contracts import arrow_schema
+from logpipe.contracts import arrow_schema, decode_dictionaries, field_names
 from logpipe.errors import DatasetError, LogpipeError
 from logpipe.io import as_numpy
 from logpipe.types import OBJECT_TYPES, NDArrayFloat, NDArrayInt, SceneSample
 
 RUN_ARTIFACT = "prediction_run"
 """``manifest.json`` ``artifact`` value of a prediction run folder."""
-RUN_FORMAT_VERSION = 1
+RUN_FORMAT_VERSION = 2
+"""2: tables of schemas/predictions.json version 2 (a row per mode); 1: a row per future step (read only)."""
 PREDICTIONS_DIR = "predictions"
 META_KEY = "logpipe.predictions"
 """Parquet schema-metadata key holding ``PredictionMeta`` as JSON."""
 LEGACY_RUN_FILE = "predict.json"
 """Run state of prediction folders written before they were committed artifacts."""
+LONG_COLUMNS = ("log_id", "sample_id", "track_id", "object_type", "mode", "step", "timestamp_ns", "x", "y", "score",
+                "predictor", "checkpoint_id")
+"""Columns of version 1 tables: one row per (sample, track, mode, step), constants as columns."""
+_IDS = ("log_id", "sample_id", "track_id")
+_DICT = pa.dictionary(pa.int32(), pa.string())
 
 
 class PredictionsError(LogpipeError):
@@ -111,8 +122,8 @@ class PredictionMeta:
         return meta
 
     def schema(self) -> pa.Schema:
-        """The contract schema with this metadata attached."""
-        schema = arrow_schema("predictions")
+        """The contract schema (lists of ``pred_len`` values) with this metadata attached."""
+        schema = arrow_schema("predictions", pred_len=self.pred_len)
         extra = {META_KEY.encode(): json.dumps(self.to_dict(), sort_keys=True).encode()}
         return schema.with_metadata({**(schema.metadata or {}), **extra})
 
@@ -146,8 +157,12 @@ class SampleForecast:
 def build_table(meta: PredictionMeta, forecasts: Sequence[SampleForecast]) -> pa.Table:
     """The predictions rows of ``forecasts`` in the table's order, built column-wise (no per-row Python).
 
+    The id columns get one dictionary per sample (the sample's own targets): a writer that cuts row groups at
+    fixed row counts then writes the same file however the forecasts were batched into tables.
+
     Raises:
-        PredictionsError: a forecast whose shape is not (N, K, T, 2) with the metadata's K and T.
+        PredictionsError: a forecast whose shape is not (N, K, T, 2) with the metadata's K and T, step times
+            that are not (T,), or an object type outside ``logpipe.types.OBJECT_TYPES``.
     """
     schema = meta.schema()
     k, t = meta.num_modes, meta.pred_len
@@ -156,36 +171,54 @@ def build_table(meta: PredictionMeta, forecasts: Sequence[SampleForecast]) -> pa
         if f.futures.shape != (len(f.track_ids), k, t, 2):
             raise PredictionsError(f"{f.sample_id}: forecasts of shape {f.futures.shape}, expected "
                                    f"({len(f.track_ids)}, {k}, {t}, 2) (targets, K, T, xy)")
+        if np.shape(f.step_ns) != (t,):
+            raise PredictionsError(f"{f.sample_id}: {np.shape(f.step_ns)} step times, expected ({t},)")
     if not done:
         return schema.empty_table()
-    per_target = k * t
-    n_targets = np.array([len(f.track_ids) for f in done])
-    total = int(n_targets.sum()) * per_target
-    track_names = [str(n) for f in done for n in f.track_ids]
-    type_names = [str(n) for f in done for n in f.object_types]
-    futures = np.concatenate([np.asarray(f.futures, np.float64) for f in done]).reshape(-1, 2)
-    step_ns = np.concatenate([np.tile(np.asarray(f.step_ns, np.int64), len(f.track_ids) * k) for f in done])
+    n_targets = [len(f.track_ids) for f in done]
+    futures = np.concatenate([np.asarray(f.futures, np.float64) for f in done])  # (agents, K, T, 2)
+    step_ns = np.concatenate([np.broadcast_to(np.asarray(f.step_ns, np.int64), (n * k, t))
+                              for f, n in zip(done, n_targets, strict=True)])
     uniform = np.full(k, 1.0 / k)
-    scores = np.concatenate([np.repeat((np.broadcast_to(uniform, (len(f.track_ids), k)) if f.scores is None
-                                        else np.asarray(f.scores)).reshape(-1), t) for f in done])
-    per_sample = n_targets * per_target
-    target_index = pa.array(np.repeat(np.arange(len(track_names)), per_target))
-    sample_index = pa.array(np.repeat(np.arange(len(done)), per_sample))
+    scores = np.concatenate([(np.broadcast_to(uniform, (n, k)) if f.scores is None else np.asarray(f.scores))
+                             .reshape(-1) for f, n in zip(done, n_targets, strict=True)])
+    type_code = {name: i for i, name in enumerate(OBJECT_TYPES)}
+    try:
+        type_codes = np.repeat(np.array([type_code[str(c)] for f in done for c in f.object_types], np.int32), k)
+    except KeyError as exc:
+        raise PredictionsError(f"object type {exc.args[0]!r} is not one of {list(OBJECT_TYPES)}") from None
+    ids = _sample_dictionaries(done, n_targets, k)
     columns = {
-        "log_id": pa.array([f.log_id for f in done], pa.string()).take(sample_index),
-        "sample_id": pa.array([f.sample_id for f in done], pa.string()).take(sample_index),
-        "track_id": pa.array(track_names, pa.string()).take(target_index),
-        "object_type": pa.array(type_names, pa.string()).take(target_index),
-        "mode": pa.array(np.tile(np.repeat(np.arange(k, dtype=np.int16), t), len(track_names))),
-        "step": pa.array(np.tile(np.arange(1, t + 1, dtype=np.int16), len(track_names) * k)),
-        "timestamp_ns": pa.array(step_ns.astype(np.int64)),
-        "x": pa.array(futures[:, 0]),
-        "y": pa.array(futures[:, 1]),
+        **ids,
+        "object_type": pa.DictionaryArray.from_arrays(pa.array(type_codes), pa.array(OBJECT_TYPES, pa.string())),
+        "mode": pa.array(np.tile(np.arange(k, dtype=np.int16), len(type_codes) // k)),
         "score": pa.array(scores.astype(np.float32)),
-        "predictor": pa.repeat(pa.scalar(meta.predictor, pa.string()), total),
-        "checkpoint_id": pa.repeat(pa.scalar(meta.checkpoint_id, pa.string()), total),
+        "timestamp_ns": pa.FixedSizeListArray.from_arrays(pa.array(step_ns.reshape(-1)), t),
+        "x": pa.FixedSizeListArray.from_arrays(pa.array(np.ascontiguousarray(futures[..., 0]).reshape(-1)), t),
+        "y": pa.FixedSizeListArray.from_arrays(pa.array(np.ascontiguousarray(futures[..., 1]).reshape(-1)), t),
     }
     return pa.Table.from_arrays([columns[f.name] for f in schema], schema=schema)
+
+
+def _sample_dictionaries(done: Sequence[SampleForecast], n_targets: Sequence[int],
+                         k: int) -> dict[str, pa.ChunkedArray]:
+    """``log_id``, ``sample_id``, ``track_id`` as one dictionary-encoded chunk per sample: the sample's log, its
+    id, its targets in order. Chunks cut anywhere keep these dictionaries, so what a Parquet writer stores does
+    not depend on which forecasts shared a table (it writes a chunk's dictionary as given)."""
+    logs = pa.array([f.log_id for f in done], pa.string())
+    samples = pa.array([f.sample_id for f in done], pa.string())
+    tracks = pa.array([str(n) for f in done for n in f.track_ids], pa.string())
+    starts = np.concatenate([[0], np.cumsum(n_targets)]).tolist()
+    longest = max(n_targets)
+    zeros = pa.array(np.zeros(longest * k, np.int32))
+    local = pa.array(np.repeat(np.arange(longest, dtype=np.int32), k))
+    out: dict[str, list[pa.Array]] = {name: [] for name in _IDS}
+    for i, n in enumerate(n_targets):
+        same = zeros.slice(0, n * k)
+        out["log_id"].append(pa.DictionaryArray.from_arrays(same, logs.slice(i, 1)))
+        out["sample_id"].append(pa.DictionaryArray.from_arrays(same, samples.slice(i, 1)))
+        out["track_id"].append(pa.DictionaryArray.from_arrays(local.slice(0, n * k), tracks.slice(starts[i], n)))
+    return {name: pa.chunked_array(chunks, _DICT) for name, chunks in out.items()}
 
 
 def samples_table(meta: PredictionMeta, samples: Sequence[SceneSample], forecasts: Sequence[NDArrayFloat], *,
@@ -213,6 +246,101 @@ def samples_table(meta: PredictionMeta, samples: Sequence[SceneSample], forecast
 
 
 # ---- reading -------------------------------------------------------------------------------------------
+
+
+def read_table_file(path: Path, expect_rows: int | None = None) -> pa.Table:
+    """One predictions file of either layout, checked against its contract (a damaged file is a one-line error).
+
+    Raises:
+        PredictionsError: unreadable, truncated, columns missing, or another row count than ``expect_rows``.
+    """
+    try:
+        table = pq.read_table(path, page_checksum_verification=True)
+    except FileNotFoundError:
+        raise PredictionsError(f"{path}: predictions file not found") from None
+    except (OSError, pa.ArrowException) as exc:
+        first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        raise PredictionsError(f"{path}: unreadable predictions file ({first}); truncated or damaged? "
+                               "`logpipe verify` checks a run folder") from None
+    wanted = LONG_COLUMNS if "step" in table.column_names else field_names("predictions")
+    missing = [c for c in wanted if c not in table.column_names]
+    if missing:
+        raise PredictionsError(f"{path}: not a predictions table (schemas/predictions.json), missing columns "
+                               f"{missing}")
+    if expect_rows is not None and table.num_rows != expect_rows:
+        raise PredictionsError(f"{path}: {table.num_rows} rows, the manifest says {expect_rows}")
+    return table
+
+
+def is_long(table: pa.Table) -> bool:
+    """Whether ``table`` has the version 1 layout (one row per future step)."""
+    return "step" in table.column_names
+
+
+def as_current(table: pa.Table, meta: PredictionMeta, where: str) -> pa.Table:
+    """A table of either layout in the current one (``meta.schema()``); a version 1 table is checked to hold one
+    predictor and checkpoint, the metadata's, and one row per (sample, track, mode 0..K-1, step 1..T).
+
+    Raises:
+        PredictionsError: columns of other types or another horizon than the metadata's, or (version 1) other
+            constants or a broken grid.
+    """
+    schema = meta.schema()
+    if is_long(table):
+        return _from_long(table, meta, where)
+    for name in ("timestamp_ns", "x", "y"):
+        kind = table.schema.field(name).type
+        if not pa.types.is_fixed_size_list(kind) or kind.list_size != meta.pred_len:
+            raise PredictionsError(f"{where}: column {name} is {kind}, expected lists of the metadata's "
+                                   f"{meta.pred_len} steps")
+    try:
+        return table.select(schema.names).cast(schema)
+    except (pa.ArrowInvalid, pa.ArrowNotImplementedError, pa.ArrowTypeError) as exc:
+        raise PredictionsError(f"{where}: columns not as schemas/predictions.json says ({exc})") from None
+
+
+def _from_long(table: pa.Table, meta: PredictionMeta, where: str) -> pa.Table:
+    """A version 1 table (a row per step) → the current layout, rows sorted by sample, track, mode."""
+    k, t = meta.num_modes, meta.pred_len
+    for column, want in (("predictor", meta.predictor), ("checkpoint_id", meta.checkpoint_id)):
+        seen = set(pc.unique(table.column(column)).to_pylist())
+        if seen - {want}:
+            raise PredictionsError(f"{where}: {column} values {sorted(seen)[:3]} differ from the metadata's {want!r}")
+    n_rows = table.num_rows
+    if n_rows % (k * t):
+        raise PredictionsError(f"{where}: {n_rows} rows is not agents x {k} modes x {t} steps")
+    # Only the sort keys are reordered whole; the wide rows take their ids from each run's first row.
+    keys = decode_dictionaries(table.select(["sample_id", "track_id", "mode", "step"]))
+    order = pc.sort_indices(keys, sort_keys=[(c, "ascending") for c in keys.column_names])
+    keys = keys.take(order)
+    n = n_rows // (k * t)
+    steps = as_numpy(keys.column("step")).astype(np.int64).reshape(n, k, t)
+    modes = as_numpy(keys.column("mode")).astype(np.int64).reshape(n, k, t)
+    if not (np.array_equal(steps, np.broadcast_to(np.arange(1, t + 1), (n, k, t)))
+            and np.array_equal(modes, np.broadcast_to(np.arange(k)[:, None], (n, k, t)))
+            and _one_per_group(keys.select(["sample_id", "track_id", "mode"]), t)):
+        raise PredictionsError(f"{where}: rows are not one per (sample, track, mode 0..{k - 1}, step 1..{t}); "
+                               "duplicated or missing rows")
+    first = order.take(pa.array(np.arange(n * k) * t))
+    wide = table.select(["log_id", "sample_id", "track_id", "object_type", "mode", "score"]).take(first)
+    columns = {name: wide.column(name) for name in wide.column_names}
+    for name in ("timestamp_ns", "x", "y"):
+        values = table.column(name).take(order).combine_chunks()
+        columns[name] = pa.chunked_array([pa.FixedSizeListArray.from_arrays(values, t)])
+    schema = meta.schema()
+    return pa.Table.from_arrays([columns[f.name].cast(f.type) for f in schema], schema=schema)
+
+
+def _one_per_group(keys: pa.Table, group: int) -> bool:
+    """Whether ``keys`` rows (sorted by their columns) come in runs of ``group`` rows with one key each, and no
+    two runs share a key (a duplicated agent is refused even when K = 1)."""
+    same = True
+    differs = np.zeros(keys.num_rows // group - 1, dtype=bool) if keys.num_rows else np.zeros(0, dtype=bool)
+    for column in keys.columns:
+        codes = as_numpy(pc.dictionary_encode(column).combine_chunks().indices).reshape(-1, group)
+        same = same and bool(np.all(codes == codes[:, :1]))
+        differs |= codes[1:, 0] != codes[:-1, 0]
+    return same and bool(differs.all())
 
 
 @dataclass(frozen=True)
@@ -247,7 +375,7 @@ def meta_from_table(schema: pa.Schema, table: pa.Table | None, where: str) -> Pr
             return PredictionMeta.from_dict(json.loads(raw[META_KEY]), where)
         except ValueError:
             raise PredictionsError(f"{where}: damaged {META_KEY} metadata (not JSON)") from None
-    if table is None:
+    if table is None or not is_long(table):
         raise PredictionsError(f"{where}: no {META_KEY} metadata")
     protocol: dict[str, Any] = {}
     if "logpipe.protocol" in raw:  # logpipe predict before this module
@@ -274,29 +402,6 @@ def meta_from_table(schema: pa.Schema, table: pa.Table | None, where: str) -> Pr
         dataset_manifest_sha256=raw.get("logpipe.dataset_manifest_sha256"),
         logpipe_version=raw.get("logpipe.version", "unknown"),
     )
-
-
-def read_table_file(path: Path, expect_rows: int | None = None) -> pa.Table:
-    """One predictions file, checked against the contract (a damaged file is a one-line error).
-
-    Raises:
-        PredictionsError: unreadable, truncated, columns missing, or another row count than ``expect_rows``.
-    """
-    try:
-        table = pq.read_table(path, page_checksum_verification=True)
-    except FileNotFoundError:
-        raise PredictionsError(f"{path}: predictions file not found") from None
-    except (OSError, pa.ArrowException) as exc:
-        first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-        raise PredictionsError(f"{path}: unreadable predictions file ({first}); truncated or damaged? "
-                               "`logpipe verify` checks a run folder") from None
-    missing = [c for c in arrow_schema("predictions").names if c not in table.column_names]
-    if missing:
-        raise PredictionsError(f"{path}: not a predictions table (schemas/predictions.json), missing columns "
-                               f"{missing}")
-    if expect_rows is not None and table.num_rows != expect_rows:
-        raise PredictionsError(f"{path}: {table.num_rows} rows, the manifest says {expect_rows}")
-    return table
 
 
 @dataclass(frozen=True)
@@ -366,24 +471,18 @@ class PredictionRun:
                    tuple(int(files[rel].get("rows", -1)) for rel in tables))
 
     def table(self) -> pa.Table:
-        """Every row, checked: contract columns, committed row counts, one predictor and checkpoint as the
-        metadata says."""
-        parts = [read_table_file(p, None if self.rows is None else self.rows[i]) for i, p in enumerate(self.files)]
-        schema = self.meta.schema()
-        table = pa.concat_tables([t.select(schema.names).cast(schema) for t in parts]) if parts \
-            else schema.empty_table()
-        for column, want in (("predictor", self.meta.predictor), ("checkpoint_id", self.meta.checkpoint_id)):
-            seen = set(pc.unique(table.column(column)).to_pylist())
-            if seen - {want}:
-                raise PredictionsError(f"{self.source}: {column} values {sorted(seen)[:3]} differ from the metadata's "
-                                       f"{want!r}")
-        return table
+        """Every row in the current layout (``meta.schema()``; version 1 files converted), checked: contract
+        columns, committed row counts, the metadata's horizon (and for version 1 files its predictor and
+        checkpoint)."""
+        parts = [as_current(read_table_file(p, None if self.rows is None else self.rows[i]), self.meta, str(p))
+                 for i, p in enumerate(self.files)]
+        return pa.concat_tables(parts) if parts else self.meta.schema().empty_table()
 
     def dense(self) -> DenseForecasts:
         """The rows as (agents, K, T, 2), K and T from the metadata.
 
         Raises:
-            PredictionsError: empty, or not one row per (sample, track, mode 0..K-1, step 1..T).
+            PredictionsError: empty, or not one row per (sample, track, mode 0..K-1).
         """
         table = self.table()
         if table.num_rows == 0:
@@ -392,32 +491,44 @@ class PredictionRun:
 
 
 def dense_forecasts(table: pa.Table, k: int, t: int, where: str) -> DenseForecasts:
-    """Rows of one method → arrays (see ``DenseForecasts``); the rows must form a full grid."""
-    order = pc.sort_indices(table, sort_keys=[(c, "ascending") for c in ("sample_id", "track_id", "mode", "step")])
-    table = table.take(order)
-    steps = as_numpy(table.column("step")).astype(np.int64)
-    modes = as_numpy(table.column("mode")).astype(np.int64)
+    """Rows of one method (either layout; a version 1 table needs its ``logpipe.predictions`` metadata) →
+    arrays (see ``DenseForecasts``); the rows must be one per (sample, track, mode 0..K-1).
+
+    Raises:
+        PredictionsError: another horizon than ``t``, or missing or duplicated rows.
+    """
+    raw = (table.schema.metadata or {}).get(META_KEY.encode())
+    meta = PredictionMeta.from_dict(json.loads(raw), where) if raw is not None else None
+    if is_long(table):
+        if meta is None:
+            meta = meta_from_table(table.schema, table, where)
+        table = _from_long(table, replace(meta, num_modes=k, pred_len=t), where)
     n_rows = table.num_rows
-    if n_rows % (k * t):
-        raise PredictionsError(f"{where}: {n_rows} rows is not agents x {k} modes x {t} steps")
-    n = n_rows // (k * t)
-    grid_ok = np.array_equal(steps.reshape(n, k, t), np.broadcast_to(np.arange(1, t + 1), (n, k, t))) and \
-        np.array_equal(modes.reshape(n, k, t), np.broadcast_to(np.arange(k)[:, None], (n, k, t)))
-    sid = pc.dictionary_encode(table.column("sample_id")).combine_chunks()
-    tid = pc.dictionary_encode(table.column("track_id")).combine_chunks()
-    key = sid.indices.to_numpy().astype(np.int64) * (len(tid.dictionary) + 1) + tid.indices.to_numpy()
-    key = key.reshape(n, k * t)
-    if not grid_ok or not np.all(key == key[:, :1]):
-        raise PredictionsError(f"{where}: rows are not one per (sample, track, mode 0..{k - 1}, step 1..{t}); "
-                               "duplicated or missing rows")
-    first = np.arange(n) * k * t
-    xy = np.stack([as_numpy(table.column("x")), as_numpy(table.column("y"))], axis=-1).astype(np.float64)
+    if n_rows % k:
+        raise PredictionsError(f"{where}: {n_rows} rows is not agents x {k} modes")
+    for name in ("x", "y"):
+        kind = table.schema.field(name).type
+        if not pa.types.is_fixed_size_list(kind) or kind.list_size != t or table.column(name).null_count:
+            raise PredictionsError(f"{where}: column {name} is {kind} (nulls: {table.column(name).null_count}), "
+                                   f"expected lists of {t} values")
+    # Sorted by the values (as strings: ``sort_indices`` refuses dictionaries), as version 1 readers sorted.
+    keys = decode_dictionaries(table.select(["sample_id", "track_id", "object_type", "mode"]))
+    order = pc.sort_indices(keys, sort_keys=[(c, "ascending") for c in ("sample_id", "track_id", "mode")])
+    keys = keys.take(order)
+    n = n_rows // k
+    modes = as_numpy(keys.column("mode")).astype(np.int64).reshape(n, k)
+    if not (np.array_equal(modes, np.broadcast_to(np.arange(k), (n, k)))
+            and _one_per_group(keys.select(["sample_id", "track_id"]), k)):
+        raise PredictionsError(f"{where}: rows are not one per (sample, track, mode 0..{k - 1}); duplicated or "
+                               "missing rows")
+    x, y = (as_numpy(table.column(name).take(order).combine_chunks().flatten()) for name in ("x", "y"))
+    first = np.arange(n) * k
     return DenseForecasts(
-        sample_ids=as_numpy(table.column("sample_id"))[first].astype(str),
-        track_ids=as_numpy(table.column("track_id"))[first].astype(str),
-        object_types=as_numpy(table.column("object_type"))[first].astype(str),
-        pred=xy.reshape(n, k, t, 2),
-        checkpoint_ids=sorted(set(table.column("checkpoint_id").to_pylist())),
+        sample_ids=as_numpy(keys.column("sample_id"))[first].astype(str),
+        track_ids=as_numpy(keys.column("track_id"))[first].astype(str),
+        object_types=as_numpy(keys.column("object_type"))[first].astype(str),
+        pred=np.stack([x, y], axis=-1).astype(np.float64).reshape(n, k, t, 2),
+        checkpoint_ids=[meta.checkpoint_id] if meta is not None else [],
     )
 
 
@@ -484,6 +595,11 @@ class PredictionRunWriter(FolderWriter):
         if committed is None:
             return [], {}
         self.refuse_other_folders(self.root)
+        version = committed.get("format_version", 1)
+        if version != RUN_FORMAT_VERSION:
+            # Shards of another table layout cannot be resumed into; the folder stays readable by `score`.
+            raise DatasetError(f"{self.root}: holds predictions of run format {version} (this logpipe writes "
+                               f"{RUN_FORMAT_VERSION}); use another --out or delete it")
         wanted = json.loads(json.dumps(settings))
         if committed.get("settings") != wanted:
             old = committed.get("settings") or {}

@@ -127,26 +127,12 @@ def _log_windows(
     # Timestamp of each step (rows are sorted by step, so the first row of each step carries it).
     first_rows = np.flatnonzero(np.diff(steps, prepend=-1))
     step_ts = ts[first_rows]
-    last_start = 0 if protocol.window == "first" else n_steps - seq
-    window_starts = np.arange(0, last_start + 1, protocol.stride)
-    local_ids, local = np.unique(tracks, return_inverse=True)
-    presence = np.zeros((len(local_ids), n_steps + 1), dtype=np.int32)
-    presence[local, steps + 1] = 1
-    cumulative = np.cumsum(presence, axis=1)
-    # full[t, w]: track t is present at all ``seq`` steps of window w.
-    full = (cumulative[:, window_starts + seq] - cumulative[:, window_starts]) == seq
-    focal_ids = np.unique(local[focal])
+    windows = _window_targets(steps, tracks, focal, protocol, excluded)
+    focal_ids = windows.focal_ids
+    if protocol.targets == "focal" and not len(focal_ids):
+        return
+    window_starts, local_ids, target_rows = windows.starts, windows.local_ids, windows.targets
     focal_name = str(track_names[local_ids[focal_ids[0]]]) if len(focal_ids) else None
-    if protocol.targets == "focal":
-        if not len(focal_ids):
-            return
-        target_rows = np.zeros_like(full)
-        target_rows[focal_ids[0]] = full[focal_ids[0]]
-    else:
-        target_rows = full
-    if excluded is not None and excluded.any():
-        target_rows = target_rows.copy()
-        target_rows[np.unique(local[excluded])] = False
     counts = target_rows.sum(axis=0)
     dt = np.diff(step_ts)
     if period_ns > 0:
@@ -171,6 +157,108 @@ def _log_windows(
         out["focal_track_id"].append(focal_name)
         out["target_track_ids"].append(names)
         out["regular"].append(bool(bad_cumulative[end] - bad_cumulative[start] == 0))
+
+
+@dataclass
+class _Windows:
+    """The windows of one log and who is observed over each.
+
+    Attributes:
+        starts: (W,) first step of each window.
+        local_ids: (T,) track codes of the log's tracks (row t of the matrices below).
+        focal_ids: indices into ``local_ids`` of the focal track(s).
+        full: (T, W) track t has a row at every step of window w.
+        targets: (T, W) ``full`` narrowed by the protocol's target rules (focal only, excluded types / ego).
+    """
+
+    starts: NDArrayInt
+    local_ids: NDArrayInt
+    focal_ids: NDArrayInt
+    full: NDArrayBool
+    targets: NDArrayBool
+
+
+def _window_targets(steps: NDArrayInt, tracks: NDArrayInt, focal: np.ndarray, protocol: SampleProtocol,
+                    excluded: NDArrayBool | None) -> _Windows:
+    """The windows of one log (at least ``seq_len`` steps long) and its targets in each."""
+    n_steps = int(steps[-1]) + 1
+    seq = protocol.seq_len
+    last_start = 0 if protocol.window == "first" else n_steps - seq
+    window_starts = np.arange(0, last_start + 1, protocol.stride)
+    local_ids, local = np.unique(tracks, return_inverse=True)
+    presence = np.zeros((len(local_ids), n_steps + 1), dtype=np.int32)
+    presence[local, steps + 1] = 1
+    cumulative = np.cumsum(presence, axis=1)
+    # full[t, w]: track t is present at all ``seq`` steps of window w.
+    full = (cumulative[:, window_starts + seq] - cumulative[:, window_starts]) == seq
+    focal_ids = np.unique(local[focal])
+    if protocol.targets == "focal":
+        target_rows = np.zeros_like(full)
+        if len(focal_ids):
+            target_rows[focal_ids[0]] = full[focal_ids[0]]
+    else:
+        target_rows = full
+    if excluded is not None and excluded.any():
+        target_rows = target_rows.copy()
+        target_rows[np.unique(local[excluded])] = False
+    return _Windows(window_starts, local_ids, focal_ids, full, target_rows)
+
+
+def no_sample_reasons(tracks: pa.Table, protocol: SampleProtocol, samples: pa.Table,
+                      codes: TrackCodes | None = None) -> dict[str, str]:
+    """Why each log of ``tracks`` without a row in ``samples`` gives no sample: ``{log_id: reason}``.
+
+    The reason is the first rule of the protocol the log fails, in the order the index applies them: too few
+    steps for one window, no focal track (``targets="focal"``), no agent with a row at every step of any
+    window, no such agent the target rules allow (``target_types``, the ego), fewer than ``min_targets``.
+    Only the logs without samples are looked at again, so this costs nothing when every log gives some.
+
+    Args:
+        tracks: canonical track rows of whole logs, as given to ``build_samples``.
+        protocol: the protocol ``samples`` was built with.
+        samples: ``build_samples``' result for ``tracks``.
+        codes: ``TrackCodes.of(tracks)`` when the caller has them already.
+    """
+    if tracks.num_rows == 0:
+        return {}
+    codes = codes or TrackCodes.of(tracks)
+    sampled = set(pc.unique(samples.column("log_id")).to_pylist())
+    if sampled.issuperset(codes.log_names):
+        return {}
+    steps = as_numpy(tracks.column("step")).astype(np.int64)
+    focal = as_numpy(pc.equal(tracks.column("role"), Role.FOCAL.value))
+    excluded = _excluded_rows(tracks, protocol)
+    bounds = np.flatnonzero(np.diff(codes.log_code)) + 1
+    reasons: dict[str, str] = {}
+    for lo, hi in zip(np.concatenate([[0], bounds]).tolist(), np.append(bounds, len(codes.log_code)).tolist(),
+                      strict=True):
+        log_id = codes.log_names[codes.log_code[lo]]
+        if log_id not in sampled:
+            reasons[log_id] = _no_sample_reason(steps[lo:hi], codes.track_code[lo:hi], focal[lo:hi], protocol,
+                                                None if excluded is None else excluded[lo:hi])
+    return reasons
+
+
+def _no_sample_reason(steps: NDArrayInt, tracks: NDArrayInt, focal: np.ndarray, protocol: SampleProtocol,
+                      excluded: NDArrayBool | None) -> str:
+    """The first protocol rule a log without samples fails (see ``no_sample_reasons``), in words."""
+    if int(steps[-1]) + 1 < protocol.seq_len:
+        return f"too short for {protocol.obs_len}+{protocol.pred_len} steps"
+    w = _window_targets(steps, tracks, focal, protocol, excluded)
+    if protocol.targets == "focal":
+        if not len(w.focal_ids):
+            # AV2 sensor logs: their annotations mark no agent of interest, and the argoverse2 preset predicts
+            # only the focal track.
+            return "no focal track (targets=focal; --targets fully_observed predicts every agent seen throughout)"
+        if not w.full[w.focal_ids[0]].any():
+            return "the focal track is not observed over the whole window"
+    elif not w.full.any():
+        return "no agent observed over the whole window"
+    if not w.targets.any():
+        if protocol.target_types:
+            return f"no target of the selected types ({','.join(protocol.target_types)})"
+        return "no agent but the ego observed over the whole window"
+    return f"fewer than {protocol.min_targets} targets in every window"
 
 
 def _first_windows(

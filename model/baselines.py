@@ -14,6 +14,8 @@ import numpy as np
 
 from logpipe.types import NDArrayBool, NDArrayFloat, SceneSample
 
+from .seeding import sample_seed
+
 
 def _observed(sample: SceneSample) -> tuple[NDArrayFloat, NDArrayBool]:
     """Observed target tracks (N_t, T_obs, 2) world metres and their validity (N_t, T_obs)."""
@@ -165,11 +167,12 @@ class ConstantVelocitySampler:
     name: str = "cv_sampler"
 
     def predict(self, samples: Sequence[SceneSample], num_modes: int, seed: int) -> list[NDArrayFloat]:
-        """Random per (sample, target, mode), reproducible from ``seed``."""
-        rng = np.random.default_rng(seed)
+        """Random per (sample, target, mode), reproducible from ``seed``; each sample draws from its own stream
+        (``sample_seed``), so its forecasts do not depend on the other samples or their order."""
         steps = np.arange(1, self.pred_len + 1, dtype=np.float64)[None, None, :, None]
         out = []
         for s in samples:
+            rng = np.random.default_rng(sample_seed(seed, s.sample_id))
             cur, vel = _last_velocity(*_observed(s))
             n = len(cur)
             dtheta = rng.normal(0.0, self.heading_std_rad, size=(n, num_modes))

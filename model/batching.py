@@ -67,6 +67,8 @@ class Batch:
         sample_targets: per input sample, the rows of its targets in ``target_mask`` order. With
             ``ModelConfig.context_radius_m`` each target is its own scene (``context_scenes``), so the scenes
             are not the input samples.
+        sample: (N,) int64 input sample of each row (``scene`` unless scenes are per target), so the noise of a
+            sample's rows can be drawn from that sample's own generator (``TrajectoryNet.forward``).
     """
 
     positions: Tensor
@@ -87,6 +89,7 @@ class Batch:
     offsets: NDArrayInt
     obs_len: int
     sample_targets: list[NDArrayInt]
+    sample: NDArrayInt
 
     @property
     def size(self) -> int:
@@ -303,6 +306,7 @@ def collate(
         offsets=offsets,
         obs_len=config.obs_len,
         sample_targets=[lo + np.flatnonzero(s.target_mask) for lo, s in zip(offsets[:-1], samples, strict=True)],
+        sample=scene,
     )
 
 
@@ -330,6 +334,7 @@ def _collate_in_context(samples: Sequence[SceneSample], config: ModelConfig, rot
     own = [int(rows[0]) for rows in batch.sample_targets]  # a target's scene has that one target
     firsts = np.cumsum([0] + [len(part) for part in parts])
     batch.sample_targets = [np.array(own[lo:hi], np.int64) for lo, hi in itertools.pairwise(firsts)]
+    batch.sample = np.repeat(np.arange(len(parts)), [len(part) for part in parts])[batch.scene.numpy()]
     return batch
 
 

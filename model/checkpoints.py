@@ -4,7 +4,9 @@ Layout of a checkpoint folder::
 
     weights.safetensors   model parameters and buffers
     meta.json             format, full TrainConfig, normalisation, dataset kind, dataset manifest hash,
-                          logpipe version, step, metrics, sha256 of weights.safetensors
+                          logpipe version, step, metrics, sha256 of weights.safetensors; optionally the data it
+                          was trained and validated on (``training_data``) and the inference settings chosen on
+                          validation (``inference``, ``logpipe predict``'s defaults for it)
     optimizer.safetensors (resumable "last" checkpoints only) Adam moments + torch RNG state
     averaged.safetensors  (resumable checkpoints of a run with ``ema_decay``) the weight average
     train_state.json      (resumable only) optimiser param groups, loop counters, numpy RNG state
@@ -29,8 +31,10 @@ from typing import Any
 import torch
 from safetensors.torch import load_file, save_file
 
-from logpipe.artifact import recover_folder, replace_folder, staging_folder_for
+from logpipe.artifact import FolderLock, recover_folder, replace_folder, staging_folder_for
+from logpipe.dataset import Dataset
 from logpipe.errors import LogpipeError
+from logpipe.io import atomic_path
 
 from .config import (
     ConfigError,
@@ -67,6 +71,105 @@ def logpipe_version() -> str:
         return "unknown"
 
 
+@dataclass(frozen=True)
+class InferenceSettings:
+    """Inference settings chosen on validation data for a checkpoint: ``logpipe predict``'s defaults for it.
+
+    Attributes:
+        num_modes: K the settings were chosen at (predict's default ``--modes``).
+        noise_scale: standard deviation of the noise z (1 = as trained, eq. 21).
+        constant_velocity_modes: modes held to constant velocity (None = the training config's).
+        context_max_neighbours: at most this many neighbours in each target's context (None = all within
+            ``ModelConfig.context_radius_m``).
+        chosen_on: how they were chosen (split, criterion, grid, seed), shown in predict's summary.
+    """
+
+    num_modes: int
+    noise_scale: float = 1.0
+    constant_velocity_modes: int | None = None
+    context_max_neighbours: int | None = None
+    chosen_on: str = ""
+
+    @classmethod
+    def from_dict(cls, data: Any, where: Path) -> InferenceSettings:
+        """Parse the ``inference`` block of ``meta.json``.
+
+        Raises:
+            CheckpointError: not an object, or a value of the wrong type or range.
+        """
+        if not isinstance(data, dict):
+            raise CheckpointError(f"{where}: 'inference' is not a JSON object")
+        try:
+            settings = cls(num_modes=int(data["num_modes"]), noise_scale=float(data.get("noise_scale", 1.0)),
+                           constant_velocity_modes=_optional_int(data.get("constant_velocity_modes")),
+                           context_max_neighbours=_optional_int(data.get("context_max_neighbours")),
+                           chosen_on=str(data.get("chosen_on", "")))
+        except (KeyError, TypeError, ValueError) as exc:
+            raise CheckpointError(f"{where}: malformed 'inference' block: {exc}") from None
+        cv, cap = settings.constant_velocity_modes, settings.context_max_neighbours
+        bad_cv = cv is not None and not 0 <= cv <= settings.num_modes
+        if settings.num_modes < 1 or not settings.noise_scale > 0 or bad_cv or (cap is not None and cap < 0):
+            raise CheckpointError(f"{where}: 'inference' values out of range: {data}")
+        return settings
+
+
+@dataclass(frozen=True)
+class TrainingData:
+    """What a checkpoint was trained and validated on, so predicting over it can be flagged.
+
+    Attributes:
+        train_split: the dataset split trained on (``zara1/train``, ``hash/train``...).
+        val_split: the split validated (and early-stopped) on, if any.
+        train_sources: sha256 of each recording file the training logs came from (content, not names, so a
+            re-ingested or renamed copy is still recognised).
+        val_sources: the same for the validation logs.
+    """
+
+    train_split: str
+    val_split: str | None
+    train_sources: tuple[str, ...]
+    val_sources: tuple[str, ...]
+
+    @classmethod
+    def of(cls, dataset: Dataset, train_split: str, val_split: str | None) -> TrainingData:
+        """The recordings behind the logs of ``train_split`` and ``val_split`` of ``dataset``."""
+        logs = dataset.logs()
+        source = dict(zip(logs.column("log_id").to_pylist(), logs.column("source_sha256").to_pylist(), strict=True))
+
+        def sources(split: str | None) -> tuple[str, ...]:
+            return tuple(sorted({str(source[log]) for log in dataset.logs_in_split(split)})) if split else ()
+
+        return cls(train_split, val_split, sources(train_split), sources(val_split))
+
+    def to_dict(self) -> dict[str, Any]:
+        """The ``training_data`` block of ``meta.json``."""
+        return {"train_split": self.train_split, "val_split": self.val_split,
+                "train_sources": list(self.train_sources), "val_sources": list(self.val_sources)}
+
+    @classmethod
+    def from_dict(cls, data: Any, where: Path) -> TrainingData:
+        """Parse the ``training_data`` block of ``meta.json``.
+
+        Raises:
+            CheckpointError: not an object, or a field of the wrong type.
+        """
+        try:
+            val = data["val_split"]
+            out = cls(str(data["train_split"]), None if val is None else str(val),
+                      tuple(str(s) for s in data["train_sources"]), tuple(str(s) for s in data["val_sources"]))
+        except (KeyError, TypeError) as exc:
+            raise CheckpointError(f"{where}: malformed 'training_data' block: {exc}") from None
+        return out
+
+
+def _optional_int(value: Any) -> int | None:
+    if value is None:
+        return None
+    if isinstance(value, bool) or not isinstance(value, int):
+        raise TypeError(f"expected an integer or null, got {value!r}")
+    return value
+
+
 @dataclass
 class CheckpointMeta:
     """Contents of ``meta.json``.
@@ -80,6 +183,8 @@ class CheckpointMeta:
         metrics: e.g. ``val_ade``/``val_fde`` (metres) at this step.
         weights_sha256: digest of ``weights.safetensors``.
         created_unix: wall-clock seconds when written.
+        training_data: the splits and recordings trained / validated on (None in older checkpoints).
+        inference: settings chosen on validation, predict's defaults (None: as trained).
     """
 
     config: TrainConfig
@@ -90,6 +195,8 @@ class CheckpointMeta:
     metrics: dict[str, float]
     weights_sha256: str
     created_unix: float
+    training_data: TrainingData | None = None
+    inference: InferenceSettings | None = None
 
     @property
     def normalisation(self) -> dict[str, Any]:
@@ -112,6 +219,8 @@ class CheckpointMeta:
             "metrics": self.metrics,
             "weights_sha256": self.weights_sha256,
             "created_unix": self.created_unix,
+            **({"training_data": self.training_data.to_dict()} if self.training_data is not None else {}),
+            **({"inference": dataclasses.asdict(self.inference)} if self.inference is not None else {}),
         }
 
 
@@ -159,6 +268,7 @@ def save_checkpoint(
     optimizer: torch.optim.Optimizer | None = None,
     train_state: dict[str, Any] | None = None,
     averaged: dict[str, torch.Tensor] | None = None,
+    training_data: TrainingData | None = None,
 ) -> Path:
     """Write a checkpoint folder (replacing one that is there); with ``optimizer`` it is resumable, and
     ``averaged`` (the state dict of the run's weight average, ``TrainConfig.ema_decay``) goes to
@@ -172,7 +282,8 @@ def save_checkpoint(
     try:
         _write_checkpoint_files(staging, net, CheckpointMeta(
             config=config, dataset_kind=dataset_kind, manifest_hash=manifest_hash, logpipe_version=logpipe_version(),
-            step=step, metrics=dict(metrics or {}), weights_sha256="", created_unix=time.time()),
+            step=step, metrics=dict(metrics or {}), weights_sha256="", created_unix=time.time(),
+            training_data=training_data),
             optimizer, train_state, averaged)
         replace_folder(staging, folder)
     finally:
@@ -224,9 +335,38 @@ def read_meta(folder: Path) -> CheckpointMeta:
             metrics={str(k): float(v) for k, v in data["metrics"].items()},
             weights_sha256=str(data["weights_sha256"]),
             created_unix=float(data["created_unix"]),
+            training_data=TrainingData.from_dict(data["training_data"], path) if "training_data" in data else None,
+            inference=InferenceSettings.from_dict(data["inference"], path) if data.get("inference") else None,
         )
     except (KeyError, TypeError, ValueError, ConfigError) as exc:
         raise CheckpointError(f"{path}: malformed checkpoint metadata: {exc}") from exc
+
+
+AMENDABLE = frozenset({"inference", "training_data"})
+"""``meta.json`` entries that may change after training: neither touches the weights or what they mean."""
+
+
+def amend_meta(folder: Path, **changes: InferenceSettings | TrainingData | None) -> CheckpointMeta:
+    """Record (or with None, clear) the inference settings chosen on validation (``inference=``) or the data a
+    checkpoint was trained on (``training_data=``, for checkpoints older than that record) in ``meta.json``.
+
+    Only ``meta.json`` changes (the weights and their sha256 stay); it is replaced whole, under the folder's lock.
+
+    Raises:
+        CheckpointError: not a checkpoint folder, or another entry named; ArtifactBusyError: another writer.
+    """
+    unknown = sorted(set(changes) - AMENDABLE)
+    if unknown:
+        raise CheckpointError(f"{folder}: only {sorted(AMENDABLE)} may be amended, not {unknown}")
+    lock = FolderLock(folder)
+    lock.acquire()
+    try:
+        meta = dataclasses.replace(read_meta(folder), **changes)  # type: ignore[arg-type]
+        with atomic_path(folder / "meta.json", durable=True) as tmp:
+            tmp.write_text(json.dumps(meta.to_dict(), indent=2, sort_keys=True) + "\n", encoding="utf-8")
+    finally:
+        lock.release()
+    return meta
 
 
 def _diff(expected: dict[str, Any], found: dict[str, Any], prefix: str = "") -> list[str]:

@@ -23,9 +23,11 @@ inputs: the ego row is not predicted but follows its given future in the decoder
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
 import torch
 from torch import Tensor, nn
 from torch.nn import functional as F  # noqa: N812
@@ -684,18 +686,38 @@ class TrajectoryNet(nn.Module):
         keep = (torch.arange(num_modes) >= constant_velocity_modes).to(h0.dtype).view(shape)
         return keep if gate is None else gate * keep
 
+    def _noise_per_sample(self, batch: Batch, num_modes: int, sample_seeds: Sequence[int]) -> Tensor:
+        """(M, R, noise_dim) z of the active rows, each sample's rows (in row order) from its own seed."""
+        of_row = batch.sample[batch.active.numpy()]
+        noise = torch.empty(num_modes, len(of_row), self.config.noise_dim)
+        if len(sample_seeds) != len(batch.sample_targets):
+            raise ValueError(f"{len(sample_seeds)} sample seeds for {len(batch.sample_targets)} samples")
+        bounds = np.searchsorted(of_row, np.arange(len(sample_seeds) + 1))  # rows are grouped by sample, in order
+        for i, seed in enumerate(sample_seeds):
+            lo, hi = int(bounds[i]), int(bounds[i + 1])
+            if hi > lo:
+                gen = torch.Generator().manual_seed(seed)
+                noise[:, lo:hi] = torch.randn(num_modes, hi - lo, self.config.noise_dim, generator=gen)
+        return noise
+
     def forward(
         self, batch: Batch, num_modes: int, generator: torch.Generator | None = None, *, fast: bool = False,
         noise_scale: float = 1.0, constant_velocity_modes: int | None = None,
+        sample_seeds: Sequence[int] | None = None,
     ) -> Prediction:
         """Predictions for ``num_modes`` noise draws z (one per mode and agent); ``fast``: ``decode_fast``
         (inference only). ``noise_scale``: z ~ N(0, noise_scale^2 I) instead of eq. 21's N(0, I), a sampling
         setting (spread of the K futures) for inference, chosen on validation data like a sampler's.
         ``constant_velocity_modes``: the first this many modes are held to constant velocity (their step
         outputs zeroed; see ``_mode_open``; None: ``ModelConfig.constant_velocity_modes``, also used in
-        training), an inference setting to choose on validation data."""
+        training), an inference setting to choose on validation data. ``sample_seeds``: one seed per input
+        sample (``Batch.sample``); each sample's z is drawn from its own generator, so its forecasts do not
+        depend on which other samples share the batch (else z comes from ``generator``)."""
         r = int(batch.active.sum())
-        noise = torch.randn(num_modes, r, self.config.noise_dim, generator=generator)
+        if sample_seeds is None:
+            noise = torch.randn(num_modes, r, self.config.noise_dim, generator=generator)
+        else:
+            noise = self._noise_per_sample(batch, num_modes, sample_seeds)
         if noise_scale != 1.0:
             noise = noise * noise_scale
         enc = self.encode(batch)

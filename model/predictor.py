@@ -18,6 +18,7 @@ from .batching import collate
 from .checkpoints import load_checkpoint
 from .config import ModelConfig
 from .nets import TrajectoryNet
+from .seeding import sample_seed
 
 
 @runtime_checkable
@@ -120,15 +121,16 @@ class NetPredictor:
 
     @torch.no_grad()
     def predict(self, samples: Sequence[SceneSample], num_modes: int, seed: int) -> list[NDArrayFloat]:
-        """Batched inference; noise z is drawn from a generator seeded with ``seed``."""
-        gen = torch.Generator().manual_seed(seed)
+        """Batched inference; each sample's noise z is drawn from its own generator (``sample_seed`` of ``seed`` and
+        its id), so a sample's forecasts do not depend on the batch size or on the other samples."""
         out: list[NDArrayFloat] = []
         t_pred = self.config.pred_len
         for lo in range(0, len(samples), self.batch_size):
             chunk = samples[lo : lo + self.batch_size]
             batch = collate(chunk, self.config)
-            pred = self.net(batch, num_modes, gen, fast=True, noise_scale=self.noise_scale,
-                            constant_velocity_modes=self.constant_velocity_modes)
+            pred = self.net(batch, num_modes, fast=True, noise_scale=self.noise_scale,
+                            constant_velocity_modes=self.constant_velocity_modes,
+                            sample_seeds=[sample_seed(seed, s.sample_id) for s in chunk])
             n = batch.positions.shape[0]
             world = np.full((n, num_modes, t_pred, 2), np.nan)
             rows = pred.rows

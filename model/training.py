@@ -35,11 +35,13 @@ import numpy as np
 import torch
 
 from logpipe.errors import LogpipeError
+from logpipe.progress import report_total
 from logpipe.types import SceneSample
 
 from .batching import Batch, collate
 from .checkpoints import (
     CheckpointMismatchError,
+    TrainingData,
     check_meta,
     load_averaged,
     load_training_state,
@@ -353,10 +355,11 @@ def fit(
     out_dir: Path,
     *,
     resume: bool = False,
-    progress: bool = True,
+    progress: bool | Callable[[int], None] = True,
     dataset_kind: str = "unknown",
     manifest_hash: str = "",
     init_from: Path | None = None,
+    training_data: TrainingData | None = None,
 ) -> TrainResult:
     """Train ``TrajectoryNet`` and write checkpoints and the log into ``out_dir``.
 
@@ -369,12 +372,15 @@ def fit(
         out_dir: run folder; created if needed.
         resume: continue from ``out_dir/last`` (whose model config, dataset kind and manifest hash must
             match); without it an existing run in ``out_dir`` is an error.
-        progress: show a rich progress bar with loss and validation ADE/FDE.
+        progress: True: a rich progress bar with loss and validation ADE/FDE (on a terminal); a callable: called
+            with the steps each optimiser step adds (``logpipe.progress``: the total is reported first).
         dataset_kind: stored in checkpoints and checked on load.
         manifest_hash: hash of the dataset manifest, stored in checkpoints.
         init_from: a checkpoint folder to start a new run from (``checkpoints.warm_start``: e.g. a Noise-LSTM
             checkpoint into the full model, whose extra inputs start at zero); ignored on resume, where the
             weights come from ``last/``. Logged in the ``start`` event.
+        training_data: the splits and recordings of ``train`` / ``val``, stored in every checkpoint so predicting
+            over them can be flagged.
     """
     start_time = time.perf_counter()
     ranks = _Ranks.from_env()
@@ -451,6 +457,7 @@ def fit(
             manifest_hash=manifest_hash,
             step=step,
             metrics=metrics,
+            training_data=training_data,
             optimizer=optimizer if resumable else None,
             averaged=dict(average.state_dict()) if resumable and average is not None else None,
             train_state={
@@ -491,9 +498,13 @@ def fit(
         MofNCompleteColumn(),
         TextColumn("loss {task.fields[loss]:.4f}  val ADE {task.fields[ade]:.3f} FDE {task.fields[fde]:.3f}"),
         TimeRemainingColumn(),
-        disable=not progress or not ranks.main,
+        disable=progress is not True or not ranks.main,
     )
     task = bar.add_task("train", total=cfg.steps, completed=step, loss=math.nan, ade=best_ade, fde=best_fde)
+    advance = progress if callable(progress) and ranks.main else None
+    if advance is not None:
+        report_total(advance, cfg.steps)
+        advance(step)  # a resumed run starts where it stopped
     train_time, train_samples, stopped_early = 0.0, 0, False
     loss_sum, loss_n = 0.0, 0
     net.train()
@@ -538,6 +549,8 @@ def fit(
                 )
                 loss_sum, loss_n = 0.0, 0
             bar.update(task, completed=step, loss=loss.item())
+            if advance is not None:
+                advance(1)
             if step % cfg.eval_every == 0 or step == cfg.steps:
                 metrics = validate()
                 if metrics:

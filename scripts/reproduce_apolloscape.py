@@ -33,6 +33,7 @@ from reproduce_ethucy import (
     SEED_METHODS,
     across_seeds_table,
     checkpoint_paths,
+    chosen_on,
     ensure_dataset,
     find_checkpoint,
     grid_row,
@@ -75,6 +76,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--results", type=Path, default=REPO / "docs" / "results")
     ap.add_argument("--checkpoint", action="append", default=[], metavar="METHOD=DIR")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--no-store-settings", dest="store_settings", action="store_false",
+                    help="do not record the inference settings chosen on validation in the checkpoints' meta.json "
+                         "(where they become `logpipe predict`'s defaults)")
     args = ap.parse_args(argv)
     t0 = time.perf_counter()
     templates = checkpoint_paths(ap, args.checkpoint, {m: t for m, (t, _) in LEARNED.items()})
@@ -94,7 +98,9 @@ def main(argv: Sequence[str] | None = None) -> int:
             skipped.append(f"{method}: no checkpoint at {templates[method]}")
             continue
         written, chosen = write_learned(ckpt, ds.kind, val, test, k, args.seed, pred_len, pdir, method,
-                                        AS_TRAINED if method == "zhu2020" else None)
+                                        AS_TRAINED if method == "zhu2020" else None,
+                                        store_as=chosen_on("hash/val", k, args.seed, "make reproduce-apolloscape")
+                                        if args.store_settings else None)
         files += written
         if chosen is not None:
             noise[method] = chosen

@@ -36,7 +36,7 @@ from logpipe.formats.ethucy import FRAME_PERIOD_NS
 from logpipe.io import atomic_open, write_parquet
 from logpipe.model.baselines import ConstantVelocity, ConstantVelocitySampler, KalmanCV, LinearFit
 from logpipe.model.batching import neighbour_counts
-from logpipe.model.checkpoints import read_meta
+from logpipe.model.checkpoints import InferenceSettings, amend_meta, read_meta
 from logpipe.model.predictor import NetPredictor, Predictor, inference_id
 from logpipe.predictions import PredictionMeta, samples_table
 from logpipe.resample import ResampleSpec, resample_track
@@ -169,6 +169,15 @@ def tune_inference(net: NetPredictor, val: Sequence[SceneSample], pred_len: int,
     return {"noise_scale": scale, "constant_velocity_modes": held}, grid
 
 
+def chosen_on(val_split: str, k: int, seed: int, command: str, cap_split: str | None = None) -> str:
+    """How ``tune_inference`` (and ``neighbour_cap`` on ``cap_split``) chose a checkpoint's inference settings, as
+    stored in its ``meta.json``."""
+    cap = (f"; neighbour cap (methods that pool neighbours): {NEIGHBOUR_CAP_PERCENTILE}th percentile of "
+           f"{cap_split} neighbour counts" if cap_split else "")
+    return (f"{val_split}, per-agent best-of-{k} ADE (FDE breaks ties) over constant-velocity modes "
+            f"{list(CV_MODES_GRID)} x noise scale {list(NOISE_SCALE_GRID)}, seed {seed}{cap} ({command})")
+
+
 def tuned(net: NetPredictor, choice: dict[str, Any]) -> NetPredictor:
     """``net`` at the inference settings ``tune_inference`` chose; a neighbour cap the choice does not name stays
     ``net``'s."""
@@ -243,12 +252,14 @@ def rate_shifted_dataset(data: Path, work: Path) -> Dataset:
 def write_learned(checkpoint: Path, kind: str, val: Sequence[SceneSample], test: Sequence[SceneSample], k: int,
                   seed: int, pred_len: int, pdir: Path, method: str, as_trained: str | None = None,
                   speed_shift: bool = False, rate_val: Sequence[SceneSample] | None = None,
-                  train: Sequence[SceneSample] | None = None) -> tuple[list[Path], dict[str, Any] | None]:
+                  train: Sequence[SceneSample] | None = None,
+                  store_as: str | None = None) -> tuple[list[Path], dict[str, Any] | None]:
     """Test predictions of a learned method: with K > 1 at the inference settings chosen on ``val`` (and, named
     ``as_trained``, at the checkpoint's own too); with K = 1 as it is. A network that pools each target's
     neighbourhood gets the fold's neighbour cap from ``train`` (``neighbour_cap``) in every run but the as-trained
     one. Returns the files and the choice (None for K = 1), with the speed-shift check's val ADE/FDE when
-    ``speed_shift`` and the frame-rate check's on ``rate_val``."""
+    ``speed_shift`` and the frame-rate check's on ``rate_val``. ``store_as``: record the choice in the checkpoint's
+    ``meta.json`` (``logpipe predict``'s defaults for it) with this description of how it was chosen."""
     sha = read_meta(checkpoint).weights_sha256
     net = NetPredictor.from_checkpoint(checkpoint, expect_kind=kind)
     cap = None
@@ -261,6 +272,8 @@ def write_learned(checkpoint: Path, kind: str, val: Sequence[SceneSample], test:
     choice, grid = tune_inference(net, val, pred_len, k, seed)
     if cap is not None:
         choice["context_max_neighbours"] = cap
+    if store_as is not None:
+        amend_meta(checkpoint, inference=InferenceSettings(num_modes=k, chosen_on=store_as, **choice))
     best = tuned(net, choice)
     files = [write_predictions(best, test, k, seed, pred_len, inference_id(sha, **choice),
                                pdir / f"{method}.parquet", method)]
@@ -583,6 +596,9 @@ def main(argv: Sequence[str] | None = None) -> int:
                          + ", ".join(f"{m}={t}" for m, (t, _) in LEARNED.items()) + ")")
     ap.add_argument("--scenes", nargs="+", default=list(SCENES), choices=SCENES)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--no-store-settings", dest="store_settings", action="store_false",
+                    help="do not record the inference settings chosen on validation in the checkpoints' meta.json "
+                         "(where they become `logpipe predict`'s defaults)")
     args = ap.parse_args(argv)
     t0 = time.perf_counter()
     templates = checkpoint_paths(ap, args.checkpoint, {m: t for m, (t, _) in LEARNED.items()})
@@ -619,7 +635,9 @@ def main(argv: Sequence[str] | None = None) -> int:
                 continue
             written, noise = write_learned(ckpt, ds.kind, val, test, k, args.seed, pred_len, pdir, method,
                                            AS_TRAINED if method == "zhu2020" else None, speed_shift=True,
-                                           rate_val=rate_val, train=train)
+                                           rate_val=rate_val, train=train,
+                                           store_as=chosen_on(f"{scene}/val", k, args.seed, "make reproduce-ethucy",
+                                                             f"{scene}/train") if args.store_settings else None)
             files += written
             if noise is not None:
                 results["noise"].setdefault(scene, {})[method] = noise

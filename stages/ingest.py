@@ -13,7 +13,8 @@ from __future__ import annotations
 import json
 import shutil
 import time
-from collections.abc import Callable, Sequence
+from collections import Counter
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Literal
@@ -31,9 +32,10 @@ from logpipe.executor import Backend, default_workers, run_ordered, warm_up
 from logpipe.formats import detect, get_adapter
 from logpipe.formats.base import FormatAdapter
 from logpipe.inputs import complete_hashes, find_inputs, fingerprint_inputs, read_ahead, unhashed_inputs
-from logpipe.io import as_numpy, parquet_options, read_table, write_parquet
-from logpipe.samples import TrackCodes, build_samples, steps_from_sorted_times
-from logpipe.types import LogMeta, NDArrayBool, NDArrayInt, Role, SampleProtocol, SourceFile
+from logpipe.io import as_numpy, parquet_options, read_table, sha256_file, sha256_tree, write_parquet
+from logpipe.progress import report_total
+from logpipe.samples import TrackCodes, build_samples, no_sample_reasons, steps_from_sorted_times
+from logpipe.types import PENDING_SHA256, LogMeta, NDArrayBool, NDArrayInt, Role, SampleProtocol, SourceFile
 
 OnError = Literal["fail", "skip"]
 
@@ -86,6 +88,8 @@ class _BatchResult:
     mcap_messages: int
     files: dict[str, FileEntry] = field(default_factory=dict)
     """Entries of the files written into staging (paths relative to the dataset), hashed by the worker."""
+    no_samples: dict[str, str] = field(default_factory=dict)
+    """Why each log of the batch that gives no sample gives none (``samples.no_sample_reasons``)."""
 
 
 def ingest(roots: Sequence[Path], options: IngestOptions,
@@ -136,16 +140,48 @@ def _ingest_locked(writer: DatasetWriter, roots: Sequence[Path], options: Ingest
     summary: dict[str, Any] = {
         "dataset": str(out), "format": fmt, "protocol": protocol.to_dict(), "inputs_found": len(sources),
         "inputs_skipped_already_ingested": len(sources) - len(new), "inputs_ingested": 0, "quarantined": [],
-        "logs": 0, "rows": 0, "samples": 0, "shards_written": [],
+        "logs": 0, "rows": 0, "samples": 0, "shards_written": [], "logs_without_samples": {},
     }
     if new and not _ingest_new(writer, new, manifest, fmt, default_batch, protocol, options, summary, progress,
                                reject_twins=optimistic is not None):
-        new = fingerprint_inputs(found, known_sizes, threads=default_workers())  # merges the twins found
+        new = sources = fingerprint_inputs(found, known_sizes, threads=default_workers())  # merges the twins found
         summary["inputs_found"] = len(new)
         _ingest_new(writer, new, manifest, fmt, default_batch, protocol, options, summary, progress)
+    copies = duplicate_inputs(found, sources)
+    summary["duplicates"] = len(copies)
+    summary["duplicate_inputs"] = copies
     summary["seconds"] = round(time.perf_counter() - started, 3)
     summary["totals"] = manifest["totals"]
     return summary
+
+
+def duplicate_inputs(found: Sequence[tuple[Path, str]], sources: Sequence[SourceFile]) -> list[dict[str, str]]:
+    """``{"path", "same_as"}`` (relative paths) for every input found that ``fingerprint_inputs`` merged into
+    an identical one it kept, so a summary can say why fewer inputs than files were ingested.
+
+    The merge keeps no record of the copies; a copy is matched to the kept input of its size, and hashed again
+    only when several kept inputs have that size or when it is a folder (a bag).
+    """
+    kept = {s.relpath for s in sources}
+    copies = [(path, rel) for path, rel in found if rel not in kept]
+    if not copies:
+        return []
+    by_size: dict[int, list[SourceFile]] = {}
+    for s in sources:
+        if s.sha256 != PENDING_SHA256:  # a pending digest means no other input could equal it
+            by_size.setdefault(s.size, []).append(s)
+    out = []
+    for path, rel in copies:
+        if path.is_dir():  # a bag folder: matched by its digest, which every folder input has
+            digest = sha256_tree(path)
+            candidates = [s for s in sources if s.sha256 == digest]
+        else:
+            candidates = by_size.get(path.stat().st_size, [])
+            if len(candidates) != 1:
+                digest = sha256_file(path)
+                candidates = [s for s in candidates if s.sha256 == digest]
+        out.append({"path": rel, "same_as": candidates[0].relpath if candidates else "?"})
+    return out
 
 
 def _ingest_new(
@@ -157,6 +193,7 @@ def _ingest_new(
     out to have equal contents (their digests were left to the workers)."""
     per_batch = options.batch_files or default_batch
     first_shard = 1 + max((shard_number(s["file"]) for s in manifest["shards"]), default=-1)
+    report_total(progress, len(new))
     staging = writer.staging()
     jobs = [
         _BatchJob(fmt, options.adapter_options, new[i:i + per_batch], shard_name(first_shard + n), str(staging),
@@ -209,6 +246,7 @@ def _ingest_batch(job: _BatchJob) -> _BatchResult:
     shard = None
     files: dict[str, FileEntry] = {}
     samples = arrow_schema("samples").empty_table()
+    no_samples: dict[str, str] = {}
     messages = 0
     if tracks.num_rows:
         path = staging / job.shard_file
@@ -223,6 +261,7 @@ def _ingest_batch(job: _BatchJob) -> _BatchResult:
                            logs=logs.num_rows)
         kept = [m for m in parsed.logs if m not in empty]
         samples = build_samples(tracks, kept, job.protocol, codes)
+        no_samples = no_sample_reasons(tracks, job.protocol, samples, codes)
         if job.write_mcap:
             folder = mcap_folder(job.shard_file)
             messages = _write_mcaps(tracks, kept, staging / folder)
@@ -230,7 +269,7 @@ def _ingest_batch(job: _BatchJob) -> _BatchResult:
                 files[f"{folder}/{mcap.name}"] = file_entry(mcap)
     failed = {s.relpath for s, _ in failures}
     ingested = [s for s in sources if s.relpath not in failed]
-    return _BatchResult(shard, logs, samples, ingested, failures, messages, files)
+    return _BatchResult(shard, logs, samples, ingested, failures, messages, files, no_samples)
 
 
 def _canonical_order(tracks: pa.Table) -> pa.Table:
@@ -397,10 +436,18 @@ def _commit(writer: DatasetWriter, results: list[_BatchResult], manifest: Datase
     summary["rows"] = sum(r.shard["rows"] for r in results if r.shard)
     summary["samples"] = sum(r.samples.num_rows for r in results)
     summary["mcap_messages"] = sum(r.mcap_messages for r in results)
+    summary["logs_without_samples"] = _reason_counts(reason for r in results for reason in r.no_samples.values())
 
 
-def reindex(dataset_dir: Path, protocol: SampleProtocol) -> dict[str, Any]:
-    """Rebuild the sample index with ``protocol``, one shard in memory at a time, as one new commit."""
+def _reason_counts(reasons: Iterable[str]) -> dict[str, int]:
+    """How many logs give no sample for each reason, the most frequent first."""
+    return dict(Counter(reasons).most_common())
+
+
+def reindex(dataset_dir: Path, protocol: SampleProtocol,
+            progress: Callable[[int], None] | None = None) -> dict[str, Any]:
+    """Rebuild the sample index with ``protocol``, one shard in memory at a time, as one new commit;
+    ``progress`` is called with the number of logs each shard held."""
     from logpipe.dataset import Dataset
 
     with output_errors(), DatasetWriter(dataset_dir) as writer:
@@ -419,7 +466,17 @@ def reindex(dataset_dir: Path, protocol: SampleProtocol) -> dict[str, Any]:
             for r in logs.select(["log_id", "source_format", "source_file", "source_sha256", "map_id",
                                   "frame_rate_hz"]).to_pylist()
         ]
-        parts = [build_samples(read_table(path), metas, protocol) for path in dataset.shard_paths]
+        report_total(progress, len(metas))
+        parts = []
+        reasons: list[str] = []
+        for path in dataset.shard_paths:
+            tracks = read_table(path)
+            codes = TrackCodes.of(tracks) if tracks.num_rows else None
+            parts.append(build_samples(tracks, metas, protocol, codes))
+            reasons += no_sample_reasons(tracks, protocol, parts[-1], codes).values()
+            if progress:
+                progress(int(dataset.manifest["shards"][len(parts) - 1]["logs"]))
         samples = pa.concat_tables(parts) if parts else arrow_schema("samples").empty_table()
         writer.commit_index(samples, protocol)
-    return {"dataset": str(dataset_dir), "protocol": protocol.to_dict(), "samples": samples.num_rows}
+    return {"dataset": str(dataset_dir), "protocol": protocol.to_dict(), "samples": samples.num_rows,
+            "logs_without_samples": _reason_counts(reasons)}

@@ -46,6 +46,7 @@ from logpipe.errors import DatasetError
 from logpipe.executor import Backend, run_ordered
 from logpipe.io import as_numpy, atomic_path, read_table, sha256_file, write_parquet
 from logpipe.maps import MapSource, MapStore, load_map
+from logpipe.progress import report_total
 from logpipe.raster import Rasteriser, RasterSpec, direction_values, heading_from_motion
 from logpipe.rasters import (
     CENTRES,
@@ -205,6 +206,7 @@ def _rasterise_locked(
 
     no_map = sorted(lid for lid, p in map_files.items() if p is None)
     n = samples.num_rows
+    report_total(progress, n)
     n_shards = max(1, math.ceil(n / shard_size))
     rows = samples.to_pylist()
     summary: dict[str, Any] = {

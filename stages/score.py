@@ -98,8 +98,8 @@ def load_method(path: Path) -> MethodForecasts:
     """Read one method: a ``logpipe predict`` output folder (its committed predictions) or a predictions file.
 
     Raises:
-        PredictionsError: missing, damaged, not a prediction run, or not one row per (agent, mode, step) with
-            the metadata's K and T.
+        PredictionsError: missing, damaged, not a prediction run, or not one row per (agent, mode) with the
+            metadata's K and lists of its T steps (version 1 tables: one row per (agent, mode, step)).
     """
     run = PredictionRun.open(Path(path))
     dense = run.dense()

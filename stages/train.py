@@ -11,7 +11,7 @@ import dataclasses
 import math
 import os
 import time
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -60,7 +60,7 @@ def train(
     raster_run: str | None = None,
     loader_workers: int = 0,
     resume: bool = False,
-    progress: bool = True,
+    progress: bool | Callable[[int], None] = True,
     init_from: Path | None = None,
 ) -> dict[str, Any]:
     """Train on ``train_split`` of ``dataset_dir``, validating on ``val_split``; returns the run summary.
@@ -80,10 +80,11 @@ def train(
             the shards through a torch DataLoader with N worker processes (memory bounded by a shard per worker,
             shuffled through a buffer).
         resume: continue from ``out_dir/last``.
-        progress: show the progress bar.
+        progress: True: ``fit``'s progress bar (a terminal); a callable: ``logpipe.progress`` callback (steps).
         init_from: start a new run from this checkpoint folder (e.g. a Noise-LSTM checkpoint into the full
             model; see ``logpipe.model.checkpoints.warm_start``).
     """
+    from logpipe.model.checkpoints import TrainingData
     from logpipe.model.config import TrainConfig, load_config
     from logpipe.model.training import fit
 
@@ -126,6 +127,7 @@ def train(
             dataset_kind=dataset.kind,
             manifest_hash=sha256_file(dataset.root / "manifest.json"),
             init_from=init_from,
+            training_data=TrainingData.of(dataset, train_split, val_split),
         )
     finally:
         if lock is not None:

@@ -4,10 +4,15 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import os
+import re
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
+import typer
 from typer.testing import CliRunner
 
 from logpipe import __version__
@@ -26,6 +31,39 @@ def test_every_command_has_help(command: str) -> None:
     result = runner.invoke(app, [command, "--help"])
     assert result.exit_code == 0
     assert "Example:" in result.stdout
+
+
+def _piped(*args: str, columns: str) -> subprocess.CompletedProcess[str]:
+    """``logpipe ARGS`` with stdout and stderr pipes (as in CI) and a terminal width of ``columns``."""
+    return subprocess.run([sys.executable, "-m", "logpipe.cli", *args], capture_output=True, text=True, check=False,
+                          env={**os.environ, "COLUMNS": columns}, timeout=600)
+
+
+@pytest.mark.parametrize("columns", ["40", "80"])
+def test_piped_help_never_cuts_an_option_name(columns: str) -> None:
+    result = _piped("predict", "--help", columns=columns)
+    assert result.returncode == 0, result.stderr
+    command = typer.main.get_command(app).commands["predict"]  # type: ignore[attr-defined]
+    names = [name for param in command.params for name in (*param.opts, *param.secondary_opts)
+             if name.startswith("-")]
+    assert {"--constant-velocity-modes", "--context-max-neighbours", "--no-raster-images"} <= set(names)
+    for name in names:
+        assert re.search(rf"(?<![\w-]){re.escape(name)}(?![\w-])", result.stdout), f"{name} cut or missing"
+    assert "…" not in result.stdout
+
+
+def test_human_summary_is_valid_json_at_any_width(bundled: Path, tmp_path: Path) -> None:
+    ingest = _piped("ingest", str(bundled / "apolloscape"), "--out", str(tmp_path / "a"), "--no-mcap", columns="40")
+    assert ingest.returncode == 0, ingest.stderr
+    # one line however narrow the terminal (it names a long tmp path)
+    assert len([line for line in ingest.stderr.splitlines() if "inputs ingested" in line]) == 1
+    result = _piped("predict", str(tmp_path / "a"), "--predictor", "cv", "--out", str(tmp_path / "p"),
+                    "--no-mcap", columns="40")
+    assert result.returncode == 0, result.stderr
+    assert result.stdout == ""
+    summary = json.loads(result.stderr[result.stderr.index("\n{") :])
+    assert summary["out"] == str(tmp_path / "p") and summary["samples"] == summary["samples_selected"] > 0
+    assert max(len(line) for line in result.stderr.splitlines()) > 40  # long lines were not wrapped
 
 
 def test_ingest_json_summary_and_rerun(bundled: Path, tmp_path: Path) -> None:

@@ -15,6 +15,7 @@ from mcap.reader import make_reader
 
 from logpipe.contracts import arrow_schema, json_schema, tracks_schema
 from logpipe.dataset import Dataset
+from logpipe.foxglove import MESSAGE_CLASSES
 from logpipe.stages.ingest import IngestOptions, ingest, reindex
 from logpipe.types import PROTOCOLS
 
@@ -132,21 +133,26 @@ def test_mcap_channels_decode_and_validate(bundled: Path, tmp_path: Path) -> Non
     ingest([bundled / "argoverse1"], IngestOptions(out=tmp_path / "av1"))
     ds = Dataset.open(tmp_path / "av1")
     tracks = ds.log_tracks("2645")
-    validators = {"logpipe.AgentStates": Draft202012Validator(json_schema("logpipe.AgentStates")),
-                  "foxglove.PoseInFrame": Draft202012Validator(json_schema("foxglove.PoseInFrame"))}
+    agents = Draft202012Validator(json_schema("logpipe.AgentStates"))
     counts: dict[str, int] = {}
-    rows = 0
+    rows = entities = 0
     assert ds.mcap_path("2645") == tmp_path / "av1" / "mcap" / "part-00000" / "2645.mcap"
     with ds.mcap_path("2645").open("rb") as fh:
         for schema, channel, message in make_reader(fh).iter_messages():
-            data = json.loads(message.data)
-            validators[schema.name].validate(data)
             counts[channel.topic] = counts.get(channel.topic, 0) + 1
             if schema.name == "logpipe.AgentStates":
+                data = json.loads(message.data)
+                agents.validate(data)
                 rows += len(data["track_id"])
                 assert message.log_time == data["timestamp_ns"]
-    assert counts == {"/logpipe/agents": 50, "/logpipe/ego_pose": 50}
-    assert rows == tracks.num_rows
+                continue
+            # Foxglove channels: Protobuf, decoded by Foxglove's own classes (tests/test_foxglove.py checks more).
+            assert (schema.encoding, channel.message_encoding) == ("protobuf", "protobuf")
+            decoded = MESSAGE_CLASSES[schema.name].FromString(message.data)
+            if schema.name == "foxglove.SceneUpdate":
+                entities += len(decoded.entities)
+    assert counts == {"/logpipe/agents": 50, "/logpipe/scene": 50, "/logpipe/ego_pose": 50, "/logpipe/tf": 51}
+    assert rows == entities == tracks.num_rows
 
 
 def test_rerun_skips_and_fresh_runs_are_byte_identical(bundled: Path, tmp_path: Path) -> None:

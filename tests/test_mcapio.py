@@ -1,4 +1,5 @@
-"""Ingest's per-log MCAP: the JSON it writes is exactly ``json.dumps`` of the documented message."""
+"""Ingest's per-log MCAP: the agents' JSON is exactly ``json.dumps`` of the documented message; the ego's pose
+and frame are Foxglove Protobuf messages (tests/test_foxglove.py checks every channel on real logs)."""
 
 from __future__ import annotations
 
@@ -9,8 +10,9 @@ from pathlib import Path
 import pyarrow as pa
 from mcap.reader import make_reader
 
+from logpipe import foxglove as fx
 from logpipe.contracts import conform, tracks_schema
-from logpipe.mcapio import AGENTS_TOPIC, EGO_TOPIC, WORLD_FRAME, write_log_mcap
+from logpipe.mcapio import AGENTS_TOPIC, EGO_TOPIC, LOG_FRAME, SCENE_TOPIC, TF_TOPIC, WORLD_FRAME, write_log_mcap
 
 COMPACT = (",", ":")
 
@@ -42,7 +44,8 @@ def _messages(path: Path) -> dict[str, list[bytes]]:
 def test_messages_equal_json_dumps_of_the_documented_dicts(tmp_path: Path) -> None:
     for encoded in (False, True):
         target = tmp_path / f"{encoded}.mcap"
-        assert write_log_mcap("L", _log(encoded), target, "MIA") == 4
+        # Per step agents + scene, the root transform, per ego row its pose + transform.
+        assert write_log_mcap("L", _log(encoded), target, "MIA") == 2 * 2 + 1 + 2 * 2
         got = _messages(target)
         expected_agents = [
             {"log_id": "L", "timestamp_ns": 10, "step": 0, "frame_id": WORLD_FRAME, "track_id": ["ego", "a"],
@@ -53,12 +56,19 @@ def test_messages_equal_json_dumps_of_the_documented_dicts(tmp_path: Path) -> No
              "x": [2.5, 123456.789, -3.0], "y": [0.5, 2.0, 7.25], "heading": [0.75, 1.0, -2.0]},
         ]
         assert got[AGENTS_TOPIC] == [json.dumps(m, separators=COMPACT).encode() for m in expected_agents]
-        poses = [json.loads(d) for d in got[EGO_TOPIC]]
-        assert [p["timestamp"] for p in poses] == [{"sec": 0, "nsec": 10}, {"sec": 0, "nsec": 20}]
-        assert [p["pose"]["position"] for p in poses] == [{"x": 0.1, "y": 0.0, "z": 0.0},
-                                                          {"x": 2.5, "y": 0.5, "z": 0.0}]
-        assert poses[0]["pose"]["orientation"]["z"] == math.sin(0.25)  # the source heading, halved
-        assert got[EGO_TOPIC][0] == json.dumps(poses[0], separators=COMPACT).encode()
+        poses = [fx.MESSAGE_CLASSES["foxglove.PoseInFrame"].FromString(d) for d in got[EGO_TOPIC]]
+        assert [(p.timestamp.seconds, p.timestamp.nanos) for p in poses] == [(0, 10), (0, 20)]
+        # Drawn positions and rotations are snapped (foxglove.POSITION_QUANTUM: 0.1 m is drawn at 102/1024 m).
+        assert [(p.frame_id, p.pose.position.x, p.pose.position.y) for p in poses] == [
+            (WORLD_FRAME, 102 / 1024, 0.0), (WORLD_FRAME, 2.5, 0.5)]
+        assert abs(poses[0].pose.orientation.z - math.sin(0.25)) <= fx.ROTATION_QUANTUM / 2  # the heading, halved
+        transforms = [fx.MESSAGE_CLASSES["foxglove.FrameTransform"].FromString(d) for d in got[TF_TOPIC]]
+        assert [(t.parent_frame_id, t.child_frame_id) for t in transforms] == [
+            (LOG_FRAME, WORLD_FRAME), (WORLD_FRAME, "ego"), (WORLD_FRAME, "ego")]
+        # The root sits at the centre of the positions' box: x in [-3, 123456.789], y in [0, 7.25].
+        assert (transforms[0].translation.x, transforms[0].translation.y) == (-(123456.789 - 3.0) / 2, -3.625)
+        scenes = [fx.MESSAGE_CLASSES["foxglove.SceneUpdate"].FromString(d) for d in got[SCENE_TOPIC]]
+        assert [[e.id for e in s.entities] for s in scenes] == [["ego", "a"], ["ego", "a", "b"]]
 
 
 def test_float_texts_equal_json_dumps_across_exponent_ranges() -> None:

@@ -7,8 +7,9 @@ import sys
 from pathlib import Path
 
 import numpy as np
-import pyarrow.parquet as pq
 import pytest
+
+from logpipe.predictions import PredictionRun
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO / "scripts"))
@@ -293,7 +294,7 @@ def test_the_neighbour_cap_is_the_training_percentile_and_only_for_pooling_nets(
     assert capped.context_max_neighbours == cap
     np.testing.assert_allclose(best_of_k(np.concatenate(capped.predict(val, 20, 0)), truth_of(val, 12)), row[2:],
                                rtol=1e-12)
-    ids = {m: set(pq.read_table(tmp_path / "p" / f"{m}.parquet", columns=["checkpoint_id"]).column(0).to_pylist())
+    ids = {m: {PredictionRun.open(tmp_path / "p" / f"{m}.parquet").meta.checkpoint_id}  # the file's metadata
            for m in ("zhu2020", "as_trained")}
     assert all(f"context_max_neighbours={cap}" in i for i in ids["zhu2020"])
     assert not any("context_max_neighbours" in i for i in ids["as_trained"])

@@ -20,6 +20,8 @@ A mapping is a small TOML or YAML document; every key is optional::
     topic = "/objects"          #     Detection3DArray): one track per object id
     object_type = "vehicle"     # only used when the message carries no class
 
+``logpipe inspect INPUT --format toml`` prints the mapping detected in an input as such a file.
+
 CLI overrides are ``key=value`` strings merged over the file: ``map=lab``, ``world_frame=odom``,
 ``ego=/odom`` (ego topic), ``ego.tf=odom:base_link``, ``ego.object_type=vehicle``, ``agent=/red_pose``
 (appends an agent; ``agent=/red_pose:red:vehicle`` also sets its track id and type), ``time=log``.
@@ -124,6 +126,13 @@ class Mapping:
             for a in self.agents
         ]
         return out
+
+    def to_toml(self) -> str:
+        """The mapping as a TOML mapping file: ``read_mapping_document`` + ``mapping_from_dict`` give it back
+        (what ``logpipe inspect --format toml`` prints for ``logpipe ingest --mapping``)."""
+        import tomli_w  # only this writes TOML (the standard library reads it only)
+
+        return tomli_w.dumps(self.to_dict())
 
 
 def _check_type(value: Any, where: str, source: str) -> str:

@@ -116,3 +116,66 @@ def test_protobuf_channels_decode() -> None:
     assert len(keelson["topics"]) == 649 and all(t["decodes"] for t in keelson["topics"])
     assert {t["message_encoding"] for t in keelson["topics"]} == {"protobuf"}
     assert by_topic(coscene)["/log"]["decodes"] is True
+
+
+def _mapping_round_trip(source: Path, tmp_path: Path) -> int:
+    """``inspect --format toml`` → file → ``ingest --mapping FILE`` gives the tracks the detected mapping gives
+    (track shards byte for byte); returns the number of track rows."""
+    import tomllib
+
+    from typer.testing import CliRunner
+
+    from logpipe.cli import app
+    from logpipe.dataset import Dataset
+    from logpipe.formats.mapping import mapping_from_dict, read_mapping_document
+
+    runner = CliRunner()
+    shown = runner.invoke(app, ["inspect", str(source), "--format", "toml"])
+    assert shown.exit_code == 0, shown.output
+    mapping_file = tmp_path / "map.toml"
+    mapping_file.write_text(shown.stdout)
+    (report,) = inspect_paths([source])
+    assert mapping_from_dict(read_mapping_document(mapping_file)) == mapping_from_dict(report["mapping"])
+    assert tomllib.loads(shown.stdout) == report["mapping"]
+    auto, mapped = tmp_path / "auto", tmp_path / "mapped"
+    for out, extra in ((auto, []), (mapped, ["--mapping", str(mapping_file)])):
+        done = runner.invoke(app, ["ingest", str(source), "--out", str(out), "--no-mcap", "--json", *extra])
+        assert done.exit_code == 0, done.output
+    a, m = Dataset.open(auto), Dataset.open(mapped)
+    assert m.tracks().equals(a.tracks())
+    assert [p.read_bytes() for p in m.shard_paths] == [p.read_bytes() for p in a.shard_paths]
+    rows: int = a.tracks().num_rows
+    return rows
+
+
+def test_toml_mapping_round_trip_on_a_bag(tmp_path: Path) -> None:
+    assert _mapping_round_trip(LOCAL / "datmo" / "intersection.bag", tmp_path) > 0
+
+
+@needs_shared
+def test_toml_mapping_round_trip_on_an_mcap(tmp_path: Path) -> None:
+    """The one real MCAP with a detectable mapping (nav2 odometry: the ego only); GPL-3.0 test data of evo, so
+    read from ../shared rather than copied into tests/data."""
+    assert _mapping_round_trip(SHARED / "mcap" / "evo" / "nav2_turtlebot.mcap", tmp_path) > 0
+
+
+def test_toml_refused_without_a_mapping(tmp_path: Path) -> None:
+    from typer.testing import CliRunner
+
+    from logpipe.cli import app
+
+    (tmp_path / "notes.txt").write_text("hello")
+    result = CliRunner().invoke(app, ["inspect", str(tmp_path / "notes.txt"), "--format", "toml"])
+    assert result.exit_code == 2 and "no mapping detected" in result.output and result.stdout == ""
+
+
+@needs_shared
+def test_toml_refused_when_the_mapping_is_ambiguous() -> None:
+    from logpipe.errors import LogpipeError
+    from logpipe.inspect import mapping_toml
+
+    with pytest.raises(LogpipeError, match="could be the ego"):
+        mapping_toml(inspect_paths([SHARED / "rosbags" / "datmo" / "two_robots.bag"]))
+    with pytest.raises(LogpipeError, match="detect different mappings"):
+        mapping_toml(inspect_paths([LOCAL / "datmo" / "intersection.bag",
+                                    SHARED / "rosbags" / "evo" / "tf_example.bag"]))

@@ -26,6 +26,7 @@ MAPS = ["--map", f"MIA={DATA / 'maps/MIA_lane_centerlines_crop_2645.npz'}",
 
 
 def _cli(*args: str, check: bool = True) -> subprocess.CompletedProcess[str]:
+    """``logpipe ARGS`` in a subprocess; tests of error output pass ``-q`` so progress lines do not mix in."""
     result = subprocess.run([*LOGPIPE, *args], capture_output=True, text=True, cwd=REPO, timeout=300, check=False)
     if check:
         assert result.returncode == 0, result.stderr[-2000:]
@@ -40,7 +41,7 @@ def test_a_second_writer_is_refused_at_once_naming_the_holder(tmp_path: Path) ->
     holder.acquire()
     try:
         started = time.perf_counter()
-        refused = _cli("ingest", str(DATA / "apolloscape"), "--out", str(out), check=False)
+        refused = _cli("-q", "ingest", str(DATA / "apolloscape"), "--out", str(out), check=False)
         assert time.perf_counter() - started < 30  # refused, not queued
         assert refused.returncode == 2
         lines = [ln for ln in refused.stderr.splitlines() if ln.strip()]
@@ -104,7 +105,7 @@ def test_disk_full_is_one_line_and_keeps_the_committed_state(tmp_path: Path) -> 
         stats = os.statvfs(disk)
         (disk / "filler").write_bytes(b"\0" * (stats.f_bavail * stats.f_frsize - 16 * 1024))
         before = {p.relative_to(out).as_posix(): p.read_bytes() for p in out.rglob("*") if p.is_file()}
-        full = _cli("ingest", str(DATA / "argoverse1"), "--out", str(out), check=False)
+        full = _cli("-q", "ingest", str(DATA / "argoverse1"), "--out", str(out), check=False)
         assert full.returncode == 2, full.stdout + full.stderr
         lines = [ln for ln in full.stderr.splitlines() if ln.strip()]
         assert len(lines) == 1 and "disk full" in lines[0] and "Traceback" not in full.stderr, full.stderr
@@ -211,7 +212,7 @@ def test_a_flipped_bit_in_a_shard_is_an_error_on_read_not_other_values(artifacts
     data = bytearray(shard.read_bytes())
     data[len(data) // 3] ^= 0x01
     shard.write_bytes(bytes(data))
-    failed = _cli("predict", str(copy), "--predictor", "cv", "--out", str(tmp_path / "pred"), check=False)
+    failed = _cli("-q", "predict", str(copy), "--predictor", "cv", "--out", str(tmp_path / "pred"), check=False)
     lines = [ln for ln in failed.stderr.splitlines() if ln.strip()]
     assert failed.returncode == 2 and len(lines) == 1 and str(shard) in lines[0] and "CRC" in lines[0], failed.stderr
 

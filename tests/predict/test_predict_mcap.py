@@ -1,5 +1,6 @@
-"""The per-log MCAP of ``logpipe predict``: originals copied byte for byte, prediction channels that
-validate against their JSON Schemas (the official Foxglove ones, vendored in tests/data/foxglove_schemas)."""
+"""The per-log MCAP of ``logpipe predict``: originals copied byte for byte, ``logpipe.Predictions`` valid
+against its JSON Schema, the Foxglove channels Protobuf messages of Foxglove's own classes (what they draw:
+tests/test_foxglove.py)."""
 
 from __future__ import annotations
 
@@ -13,18 +14,12 @@ import pytest
 from mcap.reader import make_reader
 from mcap.writer import Writer
 
-from logpipe.contracts import json_schema
+from logpipe import foxglove as fx
 from logpipe.mcap_merge import NewChannel, NewMessage, Source, write_merged
 from logpipe.model.synthetic import make_scene
 from logpipe.stages.ingest import IngestOptions, ingest
-from logpipe.stages.predict import point_lists, raster_rgb, raw_image_json, scene_update_json
 
 REPO = Path(__file__).resolve().parents[2]
-FOXGLOVE = REPO / "tests" / "data" / "foxglove_schemas"
-
-
-def official(name: str) -> jsonschema.Draft202012Validator:
-    return jsonschema.Draft202012Validator(json.loads((FOXGLOVE / f"{name}.json").read_text()))
 
 
 def read_all(path: Path) -> tuple[dict[str, Any], list[tuple[str, int, int, int, bytes]]]:
@@ -42,35 +37,23 @@ def read_all(path: Path) -> tuple[dict[str, Any], list[tuple[str, int, int, int,
     return channels, messages
 
 
-def test_runtime_foxglove_schemas_are_the_vendored_official_ones() -> None:
-    for name in ("SceneUpdate", "RawImage"):
-        assert json_schema(f"foxglove.{name}") == json.loads((FOXGLOVE / f"{name}.json").read_text())
-
-
-def test_point_lists_match_plain_json() -> None:
+def test_forecast_points_are_the_samples_and_forecasts_numbers_to_a_millimetre() -> None:
     rng = np.random.default_rng(0)
-    arrays = [rng.normal(size=(n, 2)) * 10.0 ** rng.integers(-6, 6) for n in (1, 3, 1, 13)]
-    for got, arr in zip(point_lists(arrays), arrays, strict=True):
-        assert json.loads(b"[" + got + b"]") == [{"x": x, "y": y, "z": 0.0} for x, y in arr.tolist()]
-    assert point_lists([]) == []
-
-
-def test_scene_update_and_raw_image_validate_against_official_schemas() -> None:
-    sample = make_scene(np.random.default_rng(1), 4, obs_len=8, pred_len=12, with_raster=True)
+    sample = make_scene(rng, 4, obs_len=8, pred_len=12)
+    sample.positions += rng.uniform(-5e3, 5e3, size=(4, 1, 2))  # city-frame metres
     targets = np.flatnonzero(sample.target_mask)
-    futures = np.cumsum(np.ones((len(targets), 5, 12, 2)), axis=2)
-    scores = np.full((len(targets), 5), 0.2)
-    doc = json.loads(scene_update_json("map", 1_700_000_000_123_456_789, 4_800_000_000, sample, targets, futures,
-                                       scores))
-    official("SceneUpdate").validate(doc)
-    assert len(doc["entities"]) == len(targets) and len(doc["entities"][0]["lines"]) == 1 + 5
-    assert doc["entities"][0]["timestamp"] == {"sec": 1_700_000_000, "nsec": 123_456_789}
-    assert sample.raster is not None
-    image = json.loads(raw_image_json(5, sample.raster, None))
-    official("RawImage").validate(image)
-    assert image["width"] * image["height"] * 3 == len(__import__("base64").b64decode(image["data"]))
-    rgb = raster_rgb(np.stack([np.full((2, 2), 9, np.uint8)] * 3), ("drivable_area", "lane_up", "crossing"))
-    assert rgb.shape == (2, 2, 3) and (rgb == 9).all()
+    futures = rng.normal(size=(len(targets), 5, 12, 2)) * 1e3
+    update = fx.MESSAGE_CLASSES["foxglove.SceneUpdate"].FromString(fx.forecast_scene_update(
+        "map", 1_700_000_000_123_456_789, 4_800_000_000, sample, targets, futures, np.full((len(targets), 5), 0.2)))
+    assert len(update.entities) == len(targets)
+    drawn = fx.snap(sample.positions, fx.POSITION_QUANTUM)
+    assert np.abs(drawn - sample.positions).max() <= fx.POSITION_QUANTUM / 2
+    for j, entity in enumerate(update.entities):
+        lines = [[(p.x, p.y) for p in line.points] for line in entity.lines]
+        window = [tuple(p) for p in drawn[targets[j]].tolist()]
+        assert lines[0] == window[:8] and lines[1] == window[7:]  # history, then the current point + truth
+        modes = fx.snap(futures[j], fx.POSITION_QUANTUM)
+        assert lines[2:] == [[window[7], *map(tuple, f.tolist())] for f in modes]
 
 
 def test_merge_copies_every_record_of_an_mcap(tmp_path: Path) -> None:
@@ -123,7 +106,7 @@ def test_text_logs_keep_the_ingest_mcap_and_gain_valid_prediction_channels(eth_p
 
     ds, out = eth_predicted
     dataset = Dataset.open(ds)
-    scene, raw_schema = official("SceneUpdate"), None
+    raw_schema = None
     for log_id in dataset.logs().column("log_id").to_pylist():
         original = dataset.mcap_path(log_id)
         written = out / "mcap" / original.parent.name / original.name
@@ -134,11 +117,16 @@ def test_text_logs_keep_the_ingest_mcap_and_gain_valid_prediction_channels(eth_p
         added = messages_out[len(messages_in):]
         assert {t for t, *_ in added} == {"/logpipe/predictions", "/logpipe/predictions/scene"}
         raw_schema = jsonschema.Draft202012Validator(json.loads(channels_out["/logpipe/predictions"][2][2]))
-        assert channels_out["/logpipe/predictions/scene"][2][:2] == ("foxglove.SceneUpdate", "jsonschema")
+        assert channels_out["/logpipe/predictions/scene"][2][:2] == ("foxglove.SceneUpdate", "protobuf")
+        assert channels_out["/logpipe/predictions/scene"][2][2] == fx.schema_data(
+            fx.MESSAGE_CLASSES["foxglove.SceneUpdate"])
         for topic, log_time, _, _, data in added[::7]:  # validating every message of a log takes seconds
+            if topic == "/logpipe/predictions/scene":
+                update = fx.MESSAGE_CLASSES["foxglove.SceneUpdate"].FromString(data)
+                assert update.entities and all(e.frame_id == "world" for e in update.entities)
+                continue
             doc = json.loads(data)
-            (raw_schema if topic == "/logpipe/predictions" else scene).validate(doc)
-            if topic == "/logpipe/predictions":
-                assert doc["timestamp_ns"] == log_time and doc["frame_id"] == "world"
-                assert np.asarray(doc["x"]).shape == (len(doc["track_id"]), 5, 12)
+            raw_schema.validate(doc)
+            assert doc["timestamp_ns"] == log_time and doc["frame_id"] == "world"
+            assert np.asarray(doc["x"]).shape == (len(doc["track_id"]), 5, 12)
     assert raw_schema is not None

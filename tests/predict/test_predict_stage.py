@@ -52,14 +52,15 @@ def test_constant_velocity_predictions_of_straight_tracks_are_exact(lines_datase
     summary = predict_dataset(lines_dataset, tmp_path / "out", predictor="cv", write_mcap=False)
     assert summary["samples"] == 11 and summary["num_modes"] == 20  # 30 steps, windows of 8 + 12
     table = pq.read_table(tmp_path / "out" / "predictions" / "part-00000.parquet")
-    assert table.schema.equals(arrow_schema("predictions"))  # the contract exactly (metadata aside)
-    assert table.num_rows == 11 * 3 * 20 * 12 == summary["rows"]
+    assert table.schema.equals(arrow_schema("predictions", pred_len=12))  # the contract exactly (metadata aside)
+    assert table.num_rows == 11 * 3 * 20 == summary["rows"]  # a row per (sample, agent, mode)
     run = PredictionRun.open(tmp_path / "out")
     assert (run.meta.protocol, run.meta.obs_len, run.meta.pred_len, run.meta.num_modes) == ("ethucy", 8, 12, 20)
     assert PredictionRun.open(tmp_path / "out" / "predictions" / "part-00000.parquet").meta == run.meta
+    assert run.meta.predictor == "cv" and run.meta.checkpoint_id.startswith("cv:")  # constants: metadata only
     rows = table.to_pydict()
     # Positions were written with 2 decimals: the expected line is through those exact observed values.
-    for i in range(0, table.num_rows, 97):
+    for i, step in ((i, step) for i in range(0, table.num_rows, 7) for step in range(1, 13)):
         start_step = int(rows["sample_id"][i].split(":")[1])
         ped = rows["track_id"][i]
         start, vel = {"1": ([1.5, -2.25], [0.5, 0.25]), "2": ([-3.0, 4.0], [-0.3, 0.0]),
@@ -67,13 +68,12 @@ def test_constant_velocity_predictions_of_straight_tracks_are_exact(lines_datase
         now = start_step + 7
         cur = np.round(np.array(start) + now * np.array(vel), 2)
         prev = np.round(np.array(start) + (now - 1) * np.array(vel), 2)
-        expected = cur + (cur - prev) * rows["step"][i]
-        assert rows["x"][i] == pytest.approx(expected[0], abs=1e-9)
-        assert rows["y"][i] == pytest.approx(expected[1], abs=1e-9)
-        assert rows["timestamp_ns"][i] == (now + rows["step"][i]) * 400_000_000  # true step times
+        expected = cur + (cur - prev) * step
+        assert rows["x"][i][step - 1] == pytest.approx(expected[0], abs=1e-9)
+        assert rows["y"][i][step - 1] == pytest.approx(expected[1], abs=1e-9)
+        assert rows["timestamp_ns"][i][step - 1] == (now + step) * 400_000_000  # true step times
         assert rows["score"][i] == pytest.approx(1 / 20)
-        assert rows["predictor"][i] == "cv" and rows["checkpoint_id"][i].startswith("cv:")
-    assert sorted(set(rows["mode"])) == list(range(20)) and sorted(set(rows["step"])) == list(range(1, 13))
+    assert sorted(set(rows["mode"])) == list(range(20))
 
 
 def test_rerun_resumes_and_other_settings_are_refused(lines_dataset: Path, tmp_path: Path) -> None:
@@ -95,7 +95,7 @@ def test_same_seed_same_output_other_seed_differs(lines_dataset: Path, tmp_path:
         predict_dataset(lines_dataset, tmp_path / name, predictor="cv_sampler", seed=seed, write_mcap=False)
         tables.append(pq.read_table(tmp_path / name / "predictions" / "part-00000.parquet"))
     assert tables[0].equals(tables[1])
-    assert not np.array_equal(tables[0].column("x").to_numpy(), tables[2].column("x").to_numpy())
+    assert not np.array_equal(*(t.column("x").combine_chunks().flatten().to_numpy() for t in (tables[0], tables[2])))
 
 
 def test_filters_select_logs_times_and_types(lines_dataset: Path, tmp_path: Path) -> None:
@@ -129,10 +129,9 @@ def test_checkpoint_runs_and_mismatches_fail_before_any_output(lines_dataset: Pa
     good = _checkpoint(tmp_path / "good", _small_net_config(), "ethucy")
     summary = predict_dataset(lines_dataset, tmp_path / "out", checkpoint=good, modes=3, write_mcap=False)
     table = pq.read_table(tmp_path / "out" / "predictions" / "part-00000.parquet")
-    assert summary["predictor"] == "zhu2020" and table.num_rows == 11 * 3 * 3 * 12
-    assert set(table.column("checkpoint_id").to_pylist()) == {json.loads((good / "meta.json").read_text())[
-        "weights_sha256"]}
-    assert np.isfinite(table.column("x").to_numpy()).all()
+    assert summary["predictor"] == "zhu2020" and table.num_rows == 11 * 3 * 3
+    assert _recorded_ids(tmp_path / "out") == {json.loads((good / "meta.json").read_text())["weights_sha256"]}
+    assert np.isfinite(table.column("x").combine_chunks().flatten().to_numpy()).all()
 
     wrong = _checkpoint(tmp_path / "wrong", _small_net_config(obs_len=20, pred_len=30), "argoverse1")
     with pytest.raises(LogpipeError, match=r"dataset kind.*obs/pred lengths"):
@@ -141,11 +140,11 @@ def test_checkpoint_runs_and_mismatches_fail_before_any_output(lines_dataset: Pa
                       "ethucy")
     with pytest.raises(LogpipeError, match="environment net"):
         predict_dataset(lines_dataset, tmp_path / "never", checkpoint=env)
-    import logpipe.stages.predict as stage
+    from logpipe.model import registry
 
     shipped: list[Path] = []
     with pytest.MonkeyPatch.context() as mp:
-        mp.setattr(stage, "shipped_checkpoints", lambda kind: shipped)
+        mp.setattr(registry, "shipped_checkpoints", lambda kind: shipped)
         with pytest.raises(LogpipeError, match=r"no shipped checkpoint.*--predictor"):
             predict_dataset(lines_dataset, tmp_path / "never")
         shipped += [tmp_path / "eth", good.rename(tmp_path / "lines")]
@@ -200,20 +199,9 @@ def test_background_writer_output_does_not_depend_on_batching(lines_dataset: Pat
         assert names == mcaps[0]
 
 
-def test_shipped_defaults_are_the_papers_method_never_a_baseline() -> None:
-    from logpipe.stages.predict import COMPARISON_FOLDERS, default_checkpoint, shipped_checkpoints
-
-    eth = shipped_checkpoints("ethucy")
-    assert sorted(p.name for p in eth) == ["eth", "hotel", "univ", "zara1", "zara2"]
-    # the baselines and the ablation are shipped beside, just not candidates
-    assert all((eth[0] / name / "meta.json").is_file() for name in ("lstm", "noise_lstm", "no_position"))
-    assert default_checkpoint("ethucy", "hotel/test").name == "hotel"
-    apollo = default_checkpoint("apolloscape", None)
-    assert apollo.name == "zhu2020" and not COMPARISON_FOLDERS & set(apollo.parts)
-
-
 def _recorded_ids(run: Path) -> set[str]:
-    return set(pq.read_table(run / "predictions" / "part-00000.parquet").column("checkpoint_id").to_pylist())
+    """The checkpoint id the predictions file's own metadata records."""
+    return {PredictionRun.open(run / "predictions" / "part-00000.parquet").meta.checkpoint_id}
 
 
 def _weights_sha(checkpoint: Path) -> str:
@@ -230,8 +218,8 @@ def test_constant_velocity_modes_are_the_cv_forecast_and_are_recorded(lines_data
 
     def positions(run: str, mode: int) -> dict[tuple[str, str, int], tuple[float, float]]:
         t = pq.read_table(tmp_path / run / "predictions" / "part-00000.parquet").to_pydict()
-        return {(t["sample_id"][i], t["track_id"][i], t["step"][i]): (t["x"][i], t["y"][i])
-                for i in range(len(t["x"])) if t["mode"][i] == mode}
+        return {(t["sample_id"][i], t["track_id"][i], s + 1): (t["x"][i][s], t["y"][i][s])
+                for i in range(len(t["x"])) if t["mode"][i] == mode for s in range(len(t["x"][i]))}
 
     cv, held, learned = positions("cv", 0), positions("held", 0), positions("held", 1)
     assert held.keys() == cv.keys() and len(cv) == 11 * 3 * 12
@@ -295,3 +283,33 @@ def test_context_max_neighbours_is_recorded_and_refused_where_it_cannot_apply(li
     with pytest.raises(LogpipeError, match="context_radius_m"):
         predict_dataset(lines_dataset, tmp_path / "never", checkpoint=whole, context_max_neighbours=1)
     assert not (tmp_path / "never").exists()
+
+
+def test_checkpoint_settings_are_predicts_defaults_and_training_logs_warn(lines_dataset: Path,
+                                                                         tmp_path: Path) -> None:
+    from logpipe.dataset import Dataset
+    from logpipe.model.checkpoints import InferenceSettings, TrainingData, amend_meta
+
+    folder = _checkpoint(tmp_path / "ck", _small_net_config(step_output="velocity_change"), "ethucy")
+    amend_meta(folder, inference=InferenceSettings(num_modes=4, noise_scale=0.5, constant_velocity_modes=1,
+                                                   chosen_on="lines/val"),
+               training_data=TrainingData.of(Dataset.open(lines_dataset), "lines/test", None))
+    stored = predict_dataset(lines_dataset, tmp_path / "stored", checkpoint=folder, write_mcap=False)
+    assert stored["num_modes"] == 4  # the K the settings were chosen at
+    assert stored["inference"] == {"noise_scale": 0.5, "constant_velocity_modes": 1, "context_max_neighbours": None,
+                                   "source": "checkpoint", "chosen_on": "lines/val"}
+    assert stored["warnings"] and "trained on (split lines/test): lines" in stored["warnings"][0]
+    meta = PredictionRun.open(tmp_path / "stored").meta
+    assert (meta.noise_scale, meta.constant_velocity_modes, meta.num_modes) == (0.5, 1, 4)
+    assert meta.checkpoint_id.endswith(" noise_scale=0.5 constant_velocity_modes=1")
+
+    # the same settings given as options give the same forecasts; --as-trained does not
+    explicit = predict_dataset(lines_dataset, tmp_path / "explicit", checkpoint=folder, write_mcap=False,
+                               as_trained=True, modes=4, noise_scale=0.5, constant_velocity_modes=1)
+    assert explicit["inference"]["source"] == "as trained + options"
+    same = PredictionRun.open(tmp_path / "explicit").dense().pred
+    np.testing.assert_array_equal(same, PredictionRun.open(tmp_path / "stored").dense().pred)
+    plain = predict_dataset(lines_dataset, tmp_path / "plain", checkpoint=folder, write_mcap=False, as_trained=True,
+                            modes=4)
+    assert plain["inference"]["noise_scale"] == 1.0 and plain["checkpoint_id"] == meta.checkpoint_sha256
+    assert not np.array_equal(PredictionRun.open(tmp_path / "plain").dense().pred, same)

@@ -1,0 +1,543 @@
+"""The Python API: one function per ``logpipe`` command, taking the command's options as keyword arguments.
+
+Each function does what its command does and returns the summary the command prints with ``--json`` (a dict);
+it raises a ``logpipe.errors.LogpipeError`` subclass where the command prints one error line and exits with
+code 2 (``SourceError`` for a bad input, naming file, line and field; ``DatasetError``, ``OutputError``, ...).
+The CLI (``logpipe.cli``) is a thin layer over these functions, so both check and resolve options the same way.
+
+Every path may be a ``str`` or a ``pathlib.Path``; options that repeat on the command line take a sequence.
+Names follow the CLI's options (``--min-targets`` is ``min_targets``); ``--set`` is ``overrides``, ``--map``
+is ``map_file``, ``--filter`` is ``filters``. ``ingest``, ``index``, ``rasterise``, ``train``, ``predict`` and
+``score`` are also ``logpipe.<name>``; ``verify`` and ``inspect`` share their names with modules of the package,
+so they are called as ``logpipe.api.verify`` and ``logpipe.api.inspect``.
+
+Example::
+
+    import logpipe
+
+    summary = logpipe.ingest("tests/data/ethucy", out="out/ethucy", mcap=False)
+    print(summary["inputs_ingested"], summary["duplicates"], summary["samples"])
+    logpipe.predict("out/ethucy", out="out/pred/cv", predictor="cv", mcap=False)
+    report = logpipe.score(["out/pred/cv"], truth="out/ethucy", out="out/score")
+    print(report["methods"]["cv"]["overall"]["k1"]["ade"])  # metres
+
+Importing this module is cheap: the stages (and torch, pyarrow) are imported by the function that needs them.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import replace
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, NotRequired, TypedDict, cast
+
+from logpipe.errors import LogpipeError
+
+if TYPE_CHECKING:
+    from logpipe.types import SampleProtocol
+
+StrPath = str | os.PathLike[str]
+"""A path given as ``str`` or ``pathlib.Path``."""
+
+Progress = Callable[[int], None]
+"""Called with the number of items (inputs, samples) each finished batch covered."""
+
+
+class IngestSummary(TypedDict):
+    """What ``ingest`` returns (``logpipe ingest --json``). Counts are of this run unless under ``totals``.
+
+    ``inputs_found`` counts distinct inputs: ``duplicates`` more files were identical copies of one of them
+    (listed in ``duplicate_inputs`` as ``{"path", "same_as"}``, relative paths) and were ingested once, as
+    that input (their folders are added to its memberships). ``logs_without_samples`` counts the logs that
+    give no prediction sample, by reason (e.g. ``"too short for 8+12 steps"``).
+    """
+
+    dataset: str
+    format: str
+    protocol: dict[str, Any]
+    inputs_found: int
+    inputs_skipped_already_ingested: int
+    inputs_ingested: int
+    duplicates: int
+    duplicate_inputs: list[dict[str, str]]
+    quarantined: list[dict[str, Any]]
+    logs: int
+    rows: int
+    samples: int
+    logs_without_samples: dict[str, int]
+    shards_written: list[str]
+    mcap_messages: NotRequired[int]
+    seconds: float
+    totals: dict[str, int]
+
+
+class IndexSummary(TypedDict):
+    """What ``index`` returns (``logpipe index --json``); ``unchanged`` when the protocol was the dataset's
+    already (then nothing was recounted, and ``logs_without_samples`` is absent)."""
+
+    dataset: str
+    protocol: dict[str, Any]
+    samples: int
+    logs_without_samples: NotRequired[dict[str, int]]
+    unchanged: NotRequired[bool]
+
+
+class VerifyReport(TypedDict):
+    """What ``verify`` returns: the folders checked, how many files, one line per problem, leftover paths."""
+
+    folders: list[str]
+    files_checked: int
+    problems: list[str]
+    leftovers: list[str]
+
+
+def _path(value: StrPath) -> Path:
+    return Path(os.fspath(value))
+
+
+def _paths(values: StrPath | Sequence[StrPath] | None) -> list[Path]:
+    """One path or several (a lone ``str`` is one path, not a sequence of characters)."""
+    if values is None:
+        return []
+    if isinstance(values, str | os.PathLike):
+        return [_path(values)]
+    return [_path(v) for v in values]
+
+
+def _choice(option: str, value: str, allowed: Sequence[str]) -> None:
+    if value not in allowed:
+        raise LogpipeError(f"{option} must be {' or '.join(allowed)}, got {value!r}")
+
+
+def _names(value: str | Sequence[str] | None) -> tuple[str, ...] | None:
+    """Comma-separated names (``"vehicle,bus_truck"``) or a sequence of them; None when not given."""
+    if value is None:
+        return None
+    parts = value.split(",") if isinstance(value, str) else list(value)
+    return tuple(p.strip() for p in parts if p.strip())
+
+
+def sample_protocol(preset: str | None = None, *, obs: int | None = None, pred: int | None = None,
+                    stride: int | None = None, min_targets: int | None = None, targets: str | None = None,
+                    target_types: str | Sequence[str] | None = None,
+                    default: SampleProtocol | None = None) -> SampleProtocol | None:
+    """The protocol the ``--protocol/--obs/--pred/...`` options describe: ``preset`` (or ``default``) with the
+    overrides; None when nothing is given. Overrides of a preset are named ``<preset>-custom``.
+
+    Raises:
+        LogpipeError: an unknown preset.
+    """
+    from logpipe.types import PROTOCOLS, SampleProtocol
+
+    types = _names(target_types)
+    if preset is None and all(v is None for v in (obs, pred, stride, min_targets, targets, types)):
+        return None
+    if preset is not None and preset not in PROTOCOLS:
+        raise LogpipeError(f"unknown protocol {preset!r}; presets: {', '.join(PROTOCOLS)}")
+    base = PROTOCOLS[preset] if preset else default
+    if base is None:
+        base = SampleProtocol("custom", obs_len=obs or 8, pred_len=pred or 12)
+    changes: dict[str, Any] = {}
+    for key, value in (("obs_len", obs), ("pred_len", pred), ("stride", stride), ("min_targets", min_targets),
+                       ("targets", targets), ("target_types", types)):
+        if value is not None:
+            changes[key] = value
+    if changes and base.name != "custom":
+        changes["name"] = f"{base.name.removesuffix('-custom')}-custom"
+    return replace(base, **changes)
+
+
+def ingest(
+    inputs: StrPath | Sequence[StrPath],
+    *,
+    out: StrPath,
+    format: str | None = None,
+    protocol: str | None = None,
+    obs: int | None = None,
+    pred: int | None = None,
+    stride: int | None = None,
+    min_targets: int | None = None,
+    targets: str | None = None,
+    target_types: str | Sequence[str] | None = None,
+    on_error: str = "fail",
+    mcap: bool = True,
+    workers: int = 0,
+    backend: str = "local",
+    batch_files: int | None = None,
+    mapping: StrPath | None = None,
+    overrides: Sequence[str] = (),
+    hz: float | None = None,
+    allow_empty: bool = False,
+    progress: Progress | None = None,
+) -> IngestSummary:
+    """``logpipe ingest``: input logs → the dataset folder ``out`` (track shards, logs and samples tables,
+    one MCAP per log unless ``mcap=False``). Rerunning skips inputs already ingested (by sha256).
+
+    Args:
+        inputs: input files or folders.
+        out: dataset folder to create or extend.
+        format: input format (default: detected from the first input).
+        protocol: sample preset (``ethucy``, ``apolloscape``, ``argoverse``, ``argoverse2``; default: the
+            format's own); ``obs``/``pred``/``stride``/``min_targets``/``targets``/``target_types`` override it.
+        on_error: ``fail`` (the first bad input stops the run, nothing is written) or ``skip`` (quarantine).
+        mcap: also write each log as an MCAP file.
+        workers: processes (0 = all cores); ``backend``: ``local`` or ``ray``; ``batch_files``: inputs per shard.
+        mapping: bags/MCAP: TOML or YAML mapping file (``logpipe inspect --format toml`` writes one);
+            ``overrides``: ``KEY=VALUE`` strings merged over it (the CLI's ``--set``).
+        hz: bags/MCAP: resample tracks to this rate (default 10; 0 keeps the original times).
+        allow_empty: bags/MCAP/AV2: keep a log without tracks empty instead of failing.
+        progress: called with the number of inputs each finished batch covered.
+
+    Raises:
+        SourceError: a bad input (with ``on_error="fail"``), naming file, line and field.
+        LogpipeError: a bad option, no inputs found; ``DatasetError`` when ``out`` holds another dataset.
+
+    Example::
+
+        s = logpipe.ingest("tests/data/ethucy", out="/tmp/ethucy", mcap=False)
+        s["inputs_found"], s["duplicates"]          # (3, 1): hotel/train holds a copy of an eth/train file
+        s["duplicate_inputs"][0]["same_as"]         # 'eth/train/crowds_zara01_train.txt'
+    """
+    from logpipe.stages.ingest import IngestOptions
+    from logpipe.stages.ingest import ingest as run_ingest
+
+    roots = _paths(inputs)
+    if not roots:
+        raise LogpipeError("give at least one input file or folder")
+    _choice("--on-error", on_error, ("fail", "skip"))
+    _choice("--backend", backend, ("local", "ray"))
+    own = None
+    if protocol is None:  # overrides alone change the input format's own preset, not a generic 8 + 12 one
+        from logpipe.formats import adapter_class, detect
+
+        own = adapter_class(format or detect(roots[0])).default_protocol
+    options = IngestOptions(
+        out=_path(out), format=format,
+        protocol=sample_protocol(protocol, obs=obs, pred=pred, stride=stride, min_targets=min_targets,
+                                 targets=targets, target_types=target_types, default=own),
+        on_error="skip" if on_error == "skip" else "fail", write_mcap=mcap, workers=workers,
+        backend="ray" if backend == "ray" else "local", batch_files=batch_files,
+        adapter_options=_adapter_options(mapping, overrides, hz, allow_empty),
+    )
+    return cast(IngestSummary, run_ingest(roots, options, progress=progress))
+
+
+def _adapter_options(mapping: StrPath | None, overrides: Sequence[str], hz: float | None,
+                     allow_empty: bool) -> dict[str, Any]:
+    """Only the options the user gave, so formats that do not take them are not handed them."""
+    options: dict[str, Any] = {}
+    if mapping is not None:
+        options["mapping"] = os.fspath(mapping)
+    if overrides:
+        options["mapping_overrides"] = tuple(overrides)
+    if hz is not None:
+        options["hz"] = hz
+    if allow_empty:
+        options["allow_empty"] = True
+    return options
+
+
+def index(
+    dataset: StrPath,
+    *,
+    protocol: str | None = None,
+    obs: int | None = None,
+    pred: int | None = None,
+    stride: int | None = None,
+    min_targets: int | None = None,
+    targets: str | None = None,
+    target_types: str | Sequence[str] | None = None,
+    progress: Progress | None = None,
+) -> IndexSummary:
+    """``logpipe index``: rebuild the sample index of ``dataset`` with another protocol (no re-ingest); the
+    overrides change the dataset's current protocol unless ``protocol`` names a preset. ``progress`` is called
+    with the number of logs each shard held.
+
+    Raises:
+        LogpipeError: no protocol option given, an unknown preset; ``DatasetError``: not a dataset.
+
+    Example::
+
+        s = logpipe.index("/tmp/ethucy", obs=400, pred=400)
+        s["logs_without_samples"]   # {'no agent observed over the whole window': 2, 'too short for 400+400 steps': 1}
+    """
+    from logpipe.dataset import Dataset
+    from logpipe.stages.ingest import reindex
+
+    folder = _path(dataset)
+    chosen = sample_protocol(protocol, obs=obs, pred=pred, stride=stride, min_targets=min_targets, targets=targets,
+                             target_types=target_types, default=Dataset.open(folder).protocol)
+    if chosen is None:
+        raise LogpipeError("give --protocol or at least one of --obs/--pred/--stride/--min-targets/--targets"
+                           "/--target-types")
+    return cast(IndexSummary, reindex(folder, chosen, progress=progress))
+
+
+def rasterise(
+    dataset: StrPath,
+    *,
+    maps: StrPath | Sequence[StrPath] | None = None,
+    map_file: Sequence[str] | Mapping[str, StrPath] | None = None,
+    centre: str = "ego",
+    rotate: bool = False,
+    preview: int = 0,
+    size: int = 224,
+    extent: float = 100.0,
+    channels: str | Sequence[str] | None = None,
+    shard_size: int = 256,
+    force: bool = False,
+    workers: int | None = None,
+    backend: str = "local",
+    progress: Progress | None = None,
+) -> dict[str, Any]:
+    """``logpipe rasterise``: one ego-centred map raster per sample into ``DATASET/rasters/<run>/``.
+
+    Args:
+        maps: folder(s) holding map files; ``map_file``: ``MAP_ID=FILE`` strings or ``{map_id: file}``.
+        centre: ``ego`` (focal when a log has no ego) or ``focal``; ``rotate``: to the centre's heading.
+        size: raster side, pixels; ``extent``: raster side, metres; ``channels``: names (default: all).
+        workers: shards rendered at once (0 = all cores; default 1 locally, all with ``backend="ray"``).
+
+    Raises:
+        LogpipeError: a bad option, missing maps; ``DatasetError``: not a dataset.
+
+    Example::
+
+        logpipe.rasterise("out/av1", maps="../shared/data/argoverse1/maps", rotate=True, preview=4)
+    """
+    from logpipe.maps import MapSource
+    from logpipe.raster import DEFAULT_CHANNELS, RasterSpec
+    from logpipe.stages.rasterise import rasterise_dataset
+
+    _choice("--backend", backend, ("local", "ray"))
+    files: dict[str, Path] = {}
+    if isinstance(map_file, Mapping):
+        files = {str(k): _path(v) for k, v in map_file.items()}
+    else:
+        for item in map_file or ():
+            key, sep, value = item.partition("=")
+            if not sep:
+                raise LogpipeError(f"--map expects MAP_ID=FILE, got {item!r}")
+            files[key] = Path(value)
+    try:
+        spec = RasterSpec(size_px=size, extent_m=extent, rotate=rotate, channels=_names(channels) or DEFAULT_CHANNELS)
+    except ValueError as err:
+        raise LogpipeError(str(err)) from None
+    summary: dict[str, Any] = rasterise_dataset(
+        _path(dataset), MapSource(roots=tuple(_paths(maps)), files=files), centre=centre, rotate=rotate,
+        preview=preview, spec=spec, shard_size=shard_size, force=force, progress=progress,
+        workers=workers if workers is not None else (0 if backend == "ray" else 1),
+        backend="ray" if backend == "ray" else "local",
+    )
+    return summary
+
+
+def train(
+    dataset: StrPath,
+    *,
+    out: StrPath,
+    scene: str | None = None,
+    train_split: str | None = None,
+    val_split: str | None = None,
+    config: StrPath | None = None,
+    steps: int | None = None,
+    seed: int | None = None,
+    preset: str | None = None,
+    resume: bool = False,
+    raster_run: str | None = None,
+    loader_workers: int = 0,
+    init_from: StrPath | None = None,
+    progress: bool | Progress = False,
+) -> dict[str, Any]:
+    """``logpipe train``: train the predictor on ``dataset`` into the run folder ``out``.
+
+    Args:
+        scene: ETH/UCY leave-one-scene-out: train on ``SCENE/train``, validate on ``SCENE/val``.
+        train_split: training logs (default ``hash/train``); ``val_split``: validation logs (default: the
+            matching ``/val`` split; ``"none"`` disables it).
+        config: TOML/JSON hyper-parameters; ``steps`` and ``seed`` override ``[train]``; ``preset``: a row of
+            the paper's tables (``full``, ``v1``..``v4``, ``baseline``, ``lstm``, ``no_position``).
+        progress: True: the training loop's own bar (a terminal); a callback: called with the steps done.
+
+    Raises:
+        LogpipeError: a split expression without ``val_split``, an existing run without ``resume``, ...
+
+    Example::
+
+        s = logpipe.train("/tmp/ethucy", out="/tmp/run", scene="eth", config="configs/ethucy.toml", steps=100)
+        s["best_checkpoint"]                        # the folder ``predict(checkpoint=...)`` takes
+    """
+    from logpipe.dataset import is_split_expression
+    from logpipe.stages.train import train as run_train
+
+    chosen_train = train_split or (f"{scene}/train" if scene else "hash/train")
+    if val_split is None and is_split_expression(chosen_train):
+        raise LogpipeError(f"--train-split {chosen_train!r} has no matching /val split: give --val-split "
+                           "(e.g. the held-out logs) or 'none'")
+    chosen_val = val_split or ("none" if chosen_train == "all" else chosen_train.rsplit("/", 1)[0] + "/val")
+    overrides: dict[str, Any] = {}
+    if steps is not None:
+        overrides["steps"] = steps
+    if seed is not None:
+        overrides["seed"] = seed
+    summary: dict[str, Any] = run_train(
+        _path(dataset), _path(out), train_split=chosen_train, val_split=None if chosen_val == "none" else chosen_val,
+        config_path=_path(config) if config is not None else None, overrides=overrides, preset=preset,
+        resume=resume, raster_run=raster_run, loader_workers=loader_workers,
+        init_from=_path(init_from) if init_from is not None else None, progress=progress,
+    )
+    return summary
+
+
+def predict(
+    dataset: StrPath,
+    *,
+    out: StrPath,
+    checkpoint: StrPath | None = None,
+    predictor: str | None = None,
+    modes: int | None = None,
+    seed: int = 0,
+    noise_scale: float | None = None,
+    constant_velocity_modes: int | None = None,
+    context_max_neighbours: int | None = None,
+    as_trained: bool = False,
+    filters: Sequence[str] = (),
+    inputs: StrPath | Sequence[StrPath] | None = None,
+    raster_run: str | None = None,
+    raster_images: bool = True,
+    mcap: bool = True,
+    batch_size: int = 64,
+    threads: int = 0,
+    progress: Progress | None = None,
+) -> dict[str, Any]:
+    """``logpipe predict``: run a checkpoint (default: the shipped one for the dataset kind) or a baseline
+    (``predictor="cv"|"linear"|"kalman"|"cv_sampler"``) on every selected sample into the run folder ``out``.
+
+    Args:
+        modes: K futures per agent (default 20 for pedestrians, 6 for vehicles).
+        noise_scale, constant_velocity_modes, context_max_neighbours: the network's inference settings
+            (default: the checkpoint's stored ones; ``as_trained`` ignores those).
+        filters: ``log=ID[,ID]``, ``split=eth/test``, ``time=START_NS:END_NS``, ``type=pedestrian[,..]``.
+        inputs: root(s) bags/MCAP files were ingested from (their channels are copied into the MCAPs).
+        mcap: write one MCAP per log; ``raster_images``: add each sample's raster to it.
+
+    Raises:
+        LogpipeError: a bad option or filter, a checkpoint that does not fit the dataset, missing rasters.
+
+    Example::
+
+        logpipe.predict("/tmp/ethucy", out="/tmp/pred_cv", predictor="cv", filters=["split=eth/test"])
+    """
+    from logpipe.stages.predict import parse_filter, predict_dataset
+
+    summary: dict[str, Any] = predict_dataset(
+        _path(dataset), _path(out), checkpoint=_path(checkpoint) if checkpoint is not None else None,
+        predictor=predictor, modes=modes, seed=seed, noise_scale=noise_scale,
+        constant_velocity_modes=constant_velocity_modes, context_max_neighbours=context_max_neighbours,
+        as_trained=as_trained, sample_filter=parse_filter(list(filters)), inputs=_paths(inputs), raster_run=raster_run,
+        raster_images=raster_images, write_mcap=mcap, batch_size=batch_size, threads=threads, progress=progress,
+    )
+    return summary
+
+
+def score(
+    predictions: StrPath | Sequence[StrPath],
+    *,
+    truth: StrPath,
+    out: StrPath = "out/score",
+    split: str | None = None,
+    agents: str = "all",
+    min_agents: int = 1,
+    k: Sequence[int] | None = None,
+    miss_threshold: float = 2.0,
+    fail_above: Sequence[str] | Mapping[str, float] | None = None,
+    label: Sequence[str] | None = None,
+    allow_missing: bool = False,
+    plots: bool = True,
+    plot_samples: int = 6,
+) -> dict[str, Any]:
+    """``logpipe score``: ADE/FDE (metres) of prediction run folders (or files), one method each, against the
+    dataset ``truth``; writes ``report.json``, ``report.md`` and plots into ``out`` and returns the report.
+
+    Args:
+        fail_above: gates, as ``kN.METRIC=VALUE`` strings or ``{"k1.ade": 0.6}``; the report's
+            ``["gate"]["failed"]`` says whether one was crossed (the CLI then exits 1; this returns).
+        label: method names in input order; ``k``: K values to report (default 1 and each method's own K).
+
+    Raises:
+        LogpipeError: a malformed gate; ``ScoreError``, ``PredictionsError``, ``DatasetError`` from the stage.
+
+    Example::
+
+        r = logpipe.score(["/tmp/pred_cv"], truth="/tmp/ethucy", out="/tmp/score", split="eth/test")
+        r["methods"]["cv"]["overall"]["k1"]["ade"]  # 1.075 (metres)
+    """
+    from logpipe.stages.score import score as run_score
+
+    _choice("--agents", agents, ("all", "focal"))
+    thresholds: dict[str, float] = {}
+    if isinstance(fail_above, Mapping):
+        thresholds = {str(key): float(value) for key, value in fail_above.items()}
+    else:
+        for item in fail_above or ():
+            key, sep, value = item.partition("=")
+            try:
+                if not sep:
+                    raise ValueError(item)
+                thresholds[key.strip()] = float(value)
+            except ValueError:
+                raise LogpipeError(f"--fail-above {item!r}: expected kN.METRIC=NUMBER") from None
+    report: dict[str, Any] = run_score(
+        _paths(predictions), _path(truth), _path(out), agents=cast(Any, agents), min_agents=min_agents, split=split,
+        ks=list(k) if k else None, miss_threshold_m=miss_threshold, fail_above=thresholds,
+        labels=list(label) if label else None, allow_missing=allow_missing, plots=plots, plot_samples=plot_samples,
+    )
+    return report
+
+
+def verify(folders: StrPath | Sequence[StrPath], *, repair: bool = False, shallow: bool = False) -> VerifyReport:
+    """``logpipe verify``: check artifact folders against their manifests (size, sha256, row count of every
+    committed file; sizes only with ``shallow``); ``repair`` removes uncommitted leftovers. Problems are
+    returned, not raised (the CLI exits 1 when there are any).
+
+    Example::
+
+        assert not logpipe.api.verify(["/tmp/ethucy", "/tmp/pred_cv"])["problems"]
+    """
+    from logpipe.verify import verify_tree
+
+    return cast(VerifyReport, verify_tree(_paths(folders), repair=repair, deep=not shallow))
+
+
+def inspect(paths: StrPath | Sequence[StrPath]) -> list[dict[str, Any]]:
+    """``logpipe inspect --json``: one report per bag / MCAP / AV2 input found under ``paths`` (topics, types,
+    counts, span, rate, the detected mapping); unreadable inputs are reports with ``ok`` False, not errors.
+    ``logpipe.inspect.mapping_toml(reports)`` gives the mapping file ``ingest(mapping=...)`` takes.
+
+    Example::
+
+        from logpipe import api
+        from logpipe.inspect import mapping_toml
+
+        (report,) = api.inspect("tests/data/rosbags/datmo/intersection.bag")
+        report["mapping"]["ego"]["topic"]           # '/ego_pose'
+        Path("map.toml").write_text(mapping_toml([report]))
+    """
+    from logpipe.inspect import inspect_paths
+
+    return inspect_paths(_paths(paths))
+
+
+def summary_notes(summary: Mapping[str, Any]) -> list[str]:
+    """Lines that explain an ingest or index summary's counts, for the human output: the inputs that were
+    copies of others, and one line per reason logs gave no sample."""
+    lines = []
+    if summary.get("duplicates"):
+        copies = summary.get("duplicate_inputs") or []
+        example = f", e.g. {copies[0]['path']} = {copies[0]['same_as']}" if copies else ""
+        lines.append(f"{summary['duplicates']} inputs were identical copies of another and were ingested once "
+                     f"with it{example} (--json lists them)")
+    for reason, count in (summary.get("logs_without_samples") or {}).items():
+        lines.append(f"{count} log{'s' if count != 1 else ''} gave no sample: {reason}")
+    return lines
