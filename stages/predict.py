@@ -665,7 +665,6 @@ def _predict_logs(run: _Run, tracks: pa.Table, shard_logs: list[str], summary: d
     slices = {str(log_ids[lo]): (lo, hi) for lo, hi in zip(starts, ends, strict=True)}
     pending: list[_LogOutput] = []
     batch: list[tuple[_LogOutput, dict[str, Any], SceneSample]] = []
-    batch_index = 0
     for log_id in shard_logs:
         out = _LogOutput(log_id)
         pending.append(out)
@@ -681,13 +680,13 @@ def _predict_logs(run: _Run, tracks: pa.Table, shard_logs: list[str], summary: d
             out.expected += 1
             batch.append((out, row, sample))
             if len(batch) >= run.batch_size:
-                _run_batch(run, batch, batch_index, summary, progress, sink)
-                batch, batch_index = [], batch_index + 1
+                _run_batch(run, batch, summary, progress, sink)
+                batch = []
                 _end_finished(pending, out, sink)
                 sink.throttle()
         _end_finished(pending, out, sink)
     if batch:
-        _run_batch(run, batch, batch_index, summary, progress, sink)
+        _run_batch(run, batch, summary, progress, sink)
     for out in pending:
         sink.end(out)
 
@@ -772,7 +771,7 @@ def _model_input(run: _Run, windows: LogWindows, row: dict[str, Any]) -> SceneSa
     return sample
 
 
-def _run_batch(run: _Run, batch: list[tuple[_LogOutput, dict[str, Any], SceneSample]], index: int,
+def _run_batch(run: _Run, batch: list[tuple[_LogOutput, dict[str, Any], SceneSample]],
                summary: dict[str, Any], progress: Callable[[int], None] | None, sink: _ShardWriter) -> None:
     """Forecast one batch and hand each sample's result to its log."""
     import torch
