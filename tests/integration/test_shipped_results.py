@@ -50,3 +50,9 @@ def test_apolloscape_checkpoint_gives_its_results_through_plain_predict_and_scor
                                                                                    tmp_path: Path) -> None:
     got = _predict_and_score(shared / "apolloscape" / "prediction_train", tmp_path, "hash/test")
     _same_numbers(got, json.loads((RESULTS / "apolloscape.json").read_text())["overall"]["zhu2020"])
+
+
+@pytest.mark.shared
+def test_ethucy_checkpoint_gives_its_results_through_plain_predict_and_score(shared: Path, tmp_path: Path) -> None:
+    got = _predict_and_score(shared / "ethucy", tmp_path, "eth/test")
+    _same_numbers(got, json.loads((RESULTS / "ethucy.json").read_text())["scenes"]["eth"]["min1"]["zhu2020"])
