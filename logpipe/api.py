@@ -120,18 +120,20 @@ def _names(value: str | Sequence[str] | None) -> tuple[str, ...] | None:
 
 def sample_protocol(preset: str | None = None, *, obs: int | None = None, pred: int | None = None,
                     stride: int | None = None, min_targets: int | None = None, targets: str | None = None,
-                    target_types: str | Sequence[str] | None = None,
+                    target_types: str | Sequence[str] | None = None, window: str | None = None,
                     default: SampleProtocol | None = None) -> SampleProtocol | None:
     """The protocol the ``--protocol/--obs/--pred/...`` options describe: ``preset`` (or ``default``) with the
     overrides; None when nothing is given. Overrides of a preset are named ``<preset>-custom``.
 
     Raises:
-        LogpipeError: an unknown preset.
+        LogpipeError: an unknown preset or ``window`` (``sliding`` or ``first``).
     """
-    from logpipe.types import PROTOCOLS, SampleProtocol
+    from logpipe.types import PROTOCOLS, WINDOWS, SampleProtocol
 
     types = _names(target_types)
-    if preset is None and all(v is None for v in (obs, pred, stride, min_targets, targets, types)):
+    if window is not None:
+        _choice("--window", window, WINDOWS)
+    if preset is None and all(v is None for v in (obs, pred, stride, min_targets, targets, types, window)):
         return None
     if preset is not None and preset not in PROTOCOLS:
         raise LogpipeError(f"unknown protocol {preset!r}; presets: {', '.join(PROTOCOLS)}")
@@ -140,7 +142,7 @@ def sample_protocol(preset: str | None = None, *, obs: int | None = None, pred: 
         base = SampleProtocol("custom", obs_len=obs or 8, pred_len=pred or 12)
     changes: dict[str, Any] = {}
     for key, value in (("obs_len", obs), ("pred_len", pred), ("stride", stride), ("min_targets", min_targets),
-                       ("targets", targets), ("target_types", types)):
+                       ("targets", targets), ("target_types", types), ("window", window)):
         if value is not None:
             changes[key] = value
     if changes and base.name != "custom":
@@ -160,6 +162,7 @@ def ingest(
     min_targets: int | None = None,
     targets: str | None = None,
     target_types: str | Sequence[str] | None = None,
+    window: str | None = None,
     on_error: str = "fail",
     mcap: bool = True,
     workers: int = 0,
@@ -179,7 +182,8 @@ def ingest(
         out: dataset folder to create or extend.
         format: input format (default: detected from the first input).
         protocol: sample preset (``ethucy``, ``apolloscape``, ``argoverse``, ``argoverse2``; default: the
-            format's own); ``obs``/``pred``/``stride``/``min_targets``/``targets``/``target_types`` override it.
+            format's own); ``obs``/``pred``/``stride``/``min_targets``/``targets``/``target_types``/``window``
+            (``sliding``: a window every ``stride`` steps; ``first``: one at step 0) override it.
         on_error: ``fail`` (the first bad input stops the run, nothing is written) or ``skip`` (quarantine).
         mcap: also write each log as an MCAP file.
         workers: processes (0 = all cores); ``backend``: ``local`` or ``ray``; ``batch_files``: inputs per shard.
@@ -215,7 +219,7 @@ def ingest(
     options = IngestOptions(
         out=_path(out), format=format,
         protocol=sample_protocol(protocol, obs=obs, pred=pred, stride=stride, min_targets=min_targets,
-                                 targets=targets, target_types=target_types, default=own),
+                                 targets=targets, target_types=target_types, window=window, default=own),
         on_error="skip" if on_error == "skip" else "fail", write_mcap=mcap, workers=workers,
         backend="ray" if backend == "ray" else "local", batch_files=batch_files,
         adapter_options=_adapter_options(mapping, overrides, hz, allow_empty),
@@ -248,6 +252,7 @@ def index(
     min_targets: int | None = None,
     targets: str | None = None,
     target_types: str | Sequence[str] | None = None,
+    window: str | None = None,
     progress: Progress | None = None,
 ) -> IndexSummary:
     """``logpipe index``: rebuild the sample index of ``dataset`` with another protocol (no re-ingest); the
@@ -267,10 +272,10 @@ def index(
 
     folder = _path(dataset)
     chosen = sample_protocol(protocol, obs=obs, pred=pred, stride=stride, min_targets=min_targets, targets=targets,
-                             target_types=target_types, default=Dataset.open(folder).protocol)
+                             target_types=target_types, window=window, default=Dataset.open(folder).protocol)
     if chosen is None:
         raise LogpipeError("give --protocol or at least one of --obs/--pred/--stride/--min-targets/--targets"
-                           "/--target-types")
+                           "/--target-types/--window")
     return cast(IndexSummary, reindex(folder, chosen, progress=progress))
 
 
@@ -334,7 +339,7 @@ def rasterise(
 
 
 def train(
-    dataset: StrPath,
+    dataset: StrPath | Sequence[StrPath],
     *,
     out: StrPath,
     scene: str | None = None,
@@ -348,16 +353,20 @@ def train(
     raster_run: str | None = None,
     loader_workers: int = 0,
     init_from: StrPath | None = None,
+    device: str = "auto",
     progress: bool | Progress = False,
 ) -> dict[str, Any]:
     """``logpipe train``: train the predictor on ``dataset`` into the run folder ``out``.
 
     Args:
+        dataset: a dataset folder, or several trained on together (the splits apply in each; samples in the
+            order given, each dataset with its own raster run; the checkpoints record every format).
         scene: ETH/UCY leave-one-scene-out: train on ``SCENE/train``, validate on ``SCENE/val``.
         train_split: training logs (default ``hash/train``); ``val_split``: validation logs (default: the
             matching ``/val`` split; ``"none"`` disables it).
         config: TOML/JSON hyper-parameters; ``steps`` and ``seed`` override ``[train]``; ``preset``: a row of
             the paper's tables (``full``, ``v1``..``v4``, ``baseline``, ``lstm``, ``no_position``).
+        device: ``auto`` (CUDA when torch sees a GPU, else the CPU), ``cpu`` or ``cuda`` (autocast on CUDA).
         progress: True: the training loop's own bar (a terminal); a callback: called with the steps done.
 
     Raises:
@@ -371,6 +380,9 @@ def train(
     from logpipe.dataset import is_split_expression
     from logpipe.stages.train import train as run_train
 
+    folders = _paths(dataset)
+    if not folders:
+        raise LogpipeError("give at least one dataset")
     chosen_train = train_split or (f"{scene}/train" if scene else "hash/train")
     if val_split is None and is_split_expression(chosen_train):
         raise LogpipeError(f"--train-split {chosen_train!r} has no matching /val split: give --val-split "
@@ -382,10 +394,11 @@ def train(
     if seed is not None:
         overrides["seed"] = seed
     summary: dict[str, Any] = run_train(
-        _path(dataset), _path(out), train_split=chosen_train, val_split=None if chosen_val == "none" else chosen_val,
+        folders[0] if len(folders) == 1 else folders, _path(out), train_split=chosen_train,
+        val_split=None if chosen_val == "none" else chosen_val,
         config_path=_path(config) if config is not None else None, overrides=overrides, preset=preset,
         resume=resume, raster_run=raster_run, loader_workers=loader_workers,
-        init_from=_path(init_from) if init_from is not None else None, progress=progress,
+        init_from=_path(init_from) if init_from is not None else None, progress=progress, device=device,
     )
     return summary
 
@@ -409,6 +422,7 @@ def predict(
     mcap: bool = True,
     batch_size: int = 64,
     threads: int = 0,
+    device: str = "auto",
     progress: Progress | None = None,
 ) -> dict[str, Any]:
     """``logpipe predict``: run a checkpoint (default: the shipped one for the dataset kind) or a baseline
@@ -421,6 +435,8 @@ def predict(
         filters: ``log=ID[,ID]``, ``split=eth/test``, ``time=START_NS:END_NS``, ``type=pedestrian[,..]``.
         inputs: root(s) bags/MCAP files were ingested from (their channels are copied into the MCAPs).
         mcap: write one MCAP per log; ``raster_images``: add each sample's raster to it.
+        device: where a checkpoint's network runs: ``auto`` (CUDA when torch sees a GPU, else the CPU), ``cpu`` or
+            ``cuda`` (autocast on CUDA); baselines ignore it.
 
     Raises:
         LogpipeError: a bad option or filter, a checkpoint that does not fit the dataset, missing rasters.
@@ -437,6 +453,7 @@ def predict(
         constant_velocity_modes=constant_velocity_modes, context_max_neighbours=context_max_neighbours,
         as_trained=as_trained, sample_filter=parse_filter(list(filters)), inputs=_paths(inputs), raster_run=raster_run,
         raster_images=raster_images, write_mcap=mcap, batch_size=batch_size, threads=threads, progress=progress,
+        device=device,
     )
     return summary
 

@@ -145,6 +145,8 @@ TargetsOpt = Annotated[str | None, typer.Option(
     "--targets", help="fully_observed | fully_observed_no_ego (the ego's future is an input) | focal")]
 TargetTypesOpt = Annotated[str | None, typer.Option(
     "--target-types", help="Only agents of these types are targets, comma-separated (vehicle,bus_truck).")]
+WindowOpt = Annotated[str | None, typer.Option(
+    "--window", help="sliding (a window every --stride steps) | first (one window at step 0, Argoverse).")]
 JsonOpt = Annotated[bool, typer.Option("--json", help="Print a JSON summary on stdout (for CI).")]
 DatasetArg = Annotated[Path, typer.Argument(help="Dataset folder written by `logpipe ingest`.")]
 
@@ -167,6 +169,7 @@ def ingest(
     min_targets: MinTargetsOpt = None,
     targets: TargetsOpt = None,
     target_types: TargetTypesOpt = None,
+    window: WindowOpt = None,
     on_error: Annotated[str, typer.Option(
         "--on-error", help="fail: stop at the first bad input, write nothing. skip: quarantine bad inputs.")
     ] = "fail",
@@ -197,7 +200,8 @@ def ingest(
     with _user_errors(), _progress("ingest", "inputs") as advance:
         summary = api.ingest(
             inputs, out=out, format=fmt, protocol=protocol, obs=obs, pred=pred, stride=stride,
-            min_targets=min_targets, targets=targets, target_types=target_types, on_error=on_error, mcap=mcap,
+            min_targets=min_targets, targets=targets, target_types=target_types, window=window, on_error=on_error,
+            mcap=mcap,
             workers=workers, backend=backend, batch_files=batch_files, mapping=mapping, overrides=overrides or (),
             hz=hz, allow_empty=allow_empty, progress=advance,
         )
@@ -242,6 +246,7 @@ def index(
     min_targets: MinTargetsOpt = None,
     targets: TargetsOpt = None,
     target_types: TargetTypesOpt = None,
+    window: WindowOpt = None,
     as_json: JsonOpt = False,
 ) -> None:
     """Rebuild the sample index of a dataset with another protocol (no re-ingest).
@@ -252,7 +257,7 @@ def index(
 
     with _user_errors(), _progress("index", "logs") as advance:
         summary = api.index(dataset, protocol=protocol, obs=obs, pred=pred, stride=stride, min_targets=min_targets,
-                            targets=targets, target_types=target_types, progress=advance)
+                            targets=targets, target_types=target_types, window=window, progress=advance)
     _emit(dict(summary), as_json, _print_index)
 
 
@@ -295,9 +300,16 @@ def rasterise(
     _emit(summary, as_json, _print_summary)
 
 
+DeviceOpt = Annotated[str, typer.Option(
+    "--device", help="Where the network runs: auto (CUDA when torch sees a GPU, else the CPU) | cpu | cuda "
+    "(autocast in bf16, or fp16 where the GPU lacks bf16).")]
+
+
 @app.command()
 def train(
-    dataset: DatasetArg,
+    dataset: Annotated[list[Path], typer.Argument(
+        help="Dataset folder(s) written by `logpipe ingest`; several train one model on all of them (splits "
+             "apply in each, samples in this order).", show_default=False)],
     out: Annotated[Path, typer.Option("--out", "-o", help="Run folder (checkpoints best/ and last/, log).")],
     scene: Annotated[str | None, typer.Option(
         "--scene", help="ETH/UCY leave-one-scene-out: train on SCENE/train, validate on SCENE/val.")] = None,
@@ -318,7 +330,8 @@ def train(
     ] = None,
     resume: Annotated[bool, typer.Option("--resume", help="Continue from OUT/last.")] = False,
     raster_run: Annotated[str | None, typer.Option(
-        "--raster-run", help="Raster run under DATASET/rasters/ for the environment net (default: the only one).")
+        "--raster-run", help="Raster run under DATASET/rasters/ for the environment net (default: the only one; "
+                             "with several datasets, in each).")
     ] = None,
     loader_workers: Annotated[int, typer.Option(
         "--loader-workers", help="Stream training samples from the shards with a DataLoader of N workers "
@@ -327,11 +340,13 @@ def train(
         "--init-from", help="Start from this checkpoint folder: the parameters it has are copied (a Noise-LSTM "
         "checkpoint warm-starts the full model, whose feature inputs start at zero); the rest keep their "
         "initialisation. Ignored with --resume.")] = None,
+    device: DeviceOpt = "auto",
     as_json: JsonOpt = False,
 ) -> None:
     """Train the Zhu et al. predictor (or a Table 4 ablation / LSTM baseline via the config) on a dataset.
 
     Example: logpipe train out/ethucy --scene eth --out runs/eth --config configs/ethucy.toml
+    Example: logpipe train out/av1 out/av2 --out runs/av --config configs/argoverse.toml
     """
     from logpipe import api
 
@@ -342,7 +357,7 @@ def train(
         summary = api.train(dataset, out=out, scene=scene, train_split=train_split, val_split=val_split,
                             config=config, steps=steps, seed=seed, preset=preset, resume=resume,
                             raster_run=raster_run, loader_workers=loader_workers, init_from=init_from,
-                            progress=(not as_json) if advance is None else advance)
+                            device=device, progress=(not as_json) if advance is None else advance)
     _emit(summary, as_json, _print_summary)
 
 
@@ -382,6 +397,7 @@ def predict(
     mcap: Annotated[bool, typer.Option("--mcap/--no-mcap", help="Write one MCAP per log.")] = True,
     batch_size: Annotated[int, typer.Option("--batch-size", help="Samples per forward pass.")] = 64,
     threads: Annotated[int, typer.Option("--threads", help="torch threads (0 = all cores).")] = 0,
+    device: DeviceOpt = "auto",
     as_json: JsonOpt = False,
 ) -> None:
     """Run a checkpoint (or a baseline) on every sample and write predictions as Parquet and, per log, an MCAP
@@ -397,7 +413,7 @@ def predict(
             noise_scale=noise_scale, constant_velocity_modes=constant_velocity_modes,
             context_max_neighbours=context_max_neighbours, as_trained=as_trained, filters=filters or (),
             inputs=inputs, raster_run=raster_run, raster_images=raster_images, mcap=mcap, batch_size=batch_size,
-            threads=threads, progress=advance,
+            threads=threads, device=device, progress=advance,
         )
     for warning in summary["warnings"]:  # shown with --json and -q too: a leak must not pass unnoticed
         typer.echo(f"warning: {warning}", err=True)

@@ -102,6 +102,9 @@ class LogMeta:
 TARGET_RULES: tuple[str, ...] = ("fully_observed", "focal", "fully_observed_no_ego")
 """Values of ``SampleProtocol.targets``."""
 
+WINDOWS: tuple[str, ...] = ("sliding", "first")
+"""Values of ``SampleProtocol.window``."""
+
 
 @dataclass(frozen=True)
 class SampleProtocol:

@@ -23,7 +23,8 @@ from __future__ import annotations
 
 import itertools
 from collections.abc import Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, fields, replace
+from typing import Any
 
 import numpy as np
 import torch
@@ -96,6 +97,13 @@ class Batch:
         """B."""
         return len(self.offsets) - 1
 
+    def to(self, device: torch.device | str) -> Batch:
+        """This batch with every tensor field on ``device``; the numpy fields (frames, offsets, sample rows) are
+        host-side bookkeeping and stay."""
+        moved: dict[str, Any] = {f.name: value.to(device) for f in fields(self)
+                                 if isinstance(value := getattr(self, f.name), Tensor)}
+        return replace(self, **moved)
+
     def to_world(self, points: Tensor, scene: Tensor) -> NDArrayFloat:
         """Model-frame points (N, ..., 2) of rows in scenes ``scene`` (N,) -> world metres (float64)."""
         p = points.detach().double().cpu().numpy()
@@ -108,7 +116,7 @@ class Batch:
     def metres(self, values: Tensor, scene: Tensor) -> Tensor:
         """Model-frame lengths or positions (R, ...) of rows in scenes ``scene`` (R,) in metres (the frame's
         axes and origin kept): what errors are measured in."""
-        per_row = torch.from_numpy(self.scale).to(values.dtype)[scene]
+        per_row = torch.from_numpy(self.scale).to(values.device, values.dtype)[scene]
         return values / per_row.view(-1, *([1] * (values.dim() - 1)))
 
 

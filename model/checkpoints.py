@@ -23,6 +23,7 @@ import json
 import os
 import shutil
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass
 from importlib import metadata
 from pathlib import Path
@@ -56,6 +57,30 @@ class CheckpointError(LogpipeError):
 
 class CheckpointMismatchError(CheckpointError):
     """A checkpoint does not match what the caller expects (config, dataset kind, manifest)."""
+
+
+KIND_SEPARATOR = "+"
+"""Joins the formats of a checkpoint trained on datasets of several formats (``argoverse1+argoverse2``)."""
+
+
+def combined_kind(kinds: Sequence[str]) -> str:
+    """``dataset_kind`` of a checkpoint trained on datasets of these formats: the format itself when they share
+    one (so a single dataset's checkpoint is as before), else the distinct formats sorted and joined by ``+``."""
+    return KIND_SEPARATOR.join(sorted(set(kinds)))
+
+
+def kind_accepts(checkpoint_kind: str, dataset_kind: str) -> bool:
+    """Whether a checkpoint of ``checkpoint_kind`` fits data of ``dataset_kind``: the same kind, or one of the
+    formats a several-format checkpoint was trained on (and nothing else)."""
+    return dataset_kind == checkpoint_kind or dataset_kind in checkpoint_kind.split(KIND_SEPARATOR)
+
+
+def combined_manifest_hash(hashes: Sequence[str]) -> str:
+    """``manifest_hash`` of a run over datasets whose manifests have these sha256 digests, in the order given:
+    the digest itself for one dataset, else the sha256 of the digests one per line."""
+    if len(hashes) == 1:
+        return hashes[0]
+    return hashlib.sha256("\n".join(hashes).encode("ascii")).hexdigest()
 
 
 def logpipe_version() -> str:
@@ -133,13 +158,24 @@ class TrainingData:
     @classmethod
     def of(cls, dataset: Dataset, train_split: str, val_split: str | None) -> TrainingData:
         """The recordings behind the logs of ``train_split`` and ``val_split`` of ``dataset``."""
-        logs = dataset.logs()
-        source = dict(zip(logs.column("log_id").to_pylist(), logs.column("source_sha256").to_pylist(), strict=True))
+        train_logs = dataset.logs_in_split(train_split)
+        val_logs = dataset.logs_in_split(val_split) if val_split else []
+        return cls.of_logs([(dataset, train_logs, val_logs)], train_split, val_split)
 
-        def sources(split: str | None) -> tuple[str, ...]:
-            return tuple(sorted({str(source[log]) for log in dataset.logs_in_split(split)})) if split else ()
-
-        return cls(train_split, val_split, sources(train_split), sources(val_split))
+    @classmethod
+    def of_logs(cls, parts: Sequence[tuple[Dataset, Sequence[str], Sequence[str]]], train_split: str,
+                val_split: str | None) -> TrainingData:
+        """The recordings behind ``(dataset, training log ids, validation log ids)`` of each dataset trained on
+        (their union), with the splits as given."""
+        train: set[str] = set()
+        val: set[str] = set()
+        for dataset, train_logs, val_logs in parts:
+            logs = dataset.logs()
+            source = dict(zip(logs.column("log_id").to_pylist(), logs.column("source_sha256").to_pylist(),
+                              strict=True))
+            train |= {str(source[log]) for log in train_logs}
+            val |= {str(source[log]) for log in val_logs}
+        return cls(train_split, val_split, tuple(sorted(train)), tuple(sorted(val)))
 
     def to_dict(self) -> dict[str, Any]:
         """The ``training_data`` block of ``meta.json``."""
@@ -176,8 +212,10 @@ class CheckpointMeta:
 
     Attributes:
         config: the full training config (its ``model`` rebuilds the network).
-        dataset_kind: dataset family the model was trained on (``ethucy``, ``argoverse``, ...).
-        manifest_hash: hash of the training dataset's manifest, as given by the caller.
+        dataset_kind: dataset family the model was trained on (``ethucy``, ``argoverse``, ...); formats joined
+            by ``+`` when trained on datasets of several (``combined_kind``).
+        manifest_hash: hash of the training dataset's manifest, as given by the caller (``combined_manifest_hash``
+            of the manifests, in order, for several datasets).
         logpipe_version: version of the code that wrote the checkpoint.
         step: optimiser steps done.
         metrics: e.g. ``val_ade``/``val_fde`` (metres) at this step.
@@ -252,7 +290,7 @@ AVERAGED_FILE = "averaged.safetensors"
 
 def _atomic_tensors(path: Path, tensors: dict[str, torch.Tensor]) -> None:
     tmp = path.with_name(path.name + ".tmp")
-    save_file({k: v.detach().contiguous().clone() for k, v in tensors.items()}, str(tmp))
+    save_file({k: v.detach().cpu().contiguous().clone() for k, v in tensors.items()}, str(tmp))
     os.replace(tmp, path)
 
 
@@ -388,9 +426,10 @@ def check_meta(
     expect_config: ModelConfig | TrainConfig | None = None,
     expect_manifest_hash: str | None = None,
 ) -> None:
-    """Raise ``CheckpointMismatchError`` naming every difference from what the caller expects."""
+    """Raise ``CheckpointMismatchError`` naming every difference from what the caller expects (a checkpoint
+    trained on several formats fits each of them: ``kind_accepts``)."""
     problems = []
-    if expect_kind is not None and meta.dataset_kind != expect_kind:
+    if expect_kind is not None and not kind_accepts(meta.dataset_kind, expect_kind):
         problems.append(f"dataset kind: expected {expect_kind!r}, checkpoint has {meta.dataset_kind!r}")
     if expect_manifest_hash is not None and meta.manifest_hash != expect_manifest_hash:
         problems.append(

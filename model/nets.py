@@ -84,10 +84,10 @@ def lstm_step(weights: tuple[Tensor, Tensor], x: Tensor, h: Tensor, c: Tensor) -
     return torch.sigmoid(o) * torch.tanh(c_new), c_new
 
 
-def _bag_picks(k: int, s: int) -> tuple[Tensor, Tensor]:
+def _bag_picks(k: int, s: int, device: torch.device) -> tuple[Tensor, Tensor]:
     """For the bag entries (ky, kx, sy, sx, cy, cx) of ``EnvironmentNet.forward``, the index into the per-axis
-    (K*S*2) y and x entries."""
-    per_axis = torch.arange(k * s * 2).view(k, s, 2)
+    (K*S*2) y and x entries (on ``device``)."""
+    per_axis = torch.arange(k * s * 2, device=device).view(k, s, 2)
     full = (k, k, s, s, 2, 2)
     ypick = per_axis.view(k, 1, s, 1, 2, 1).expand(full).reshape(-1)
     xpick = per_axis.view(1, k, 1, s, 1, 2).expand(full).reshape(-1)
@@ -277,8 +277,8 @@ class EnvironmentNet(nn.Module):
         else:
             big_l, r, _ = pos.shape
             boxes = self.boxes(pos, batch, rows).transpose(0, 1)  # (R, L, 4)
-        steps = (torch.arange(n, dtype=pos.dtype) + 0.5) / n  # sample fractions, (bin, sub)
-        corner = torch.tensor([0.0, 1.0], dtype=pos.dtype)
+        steps = (torch.arange(n, dtype=pos.dtype, device=pos.device) + 0.5) / n  # sample fractions, (bin, sub)
+        corner = torch.tensor([0.0, 1.0], dtype=pos.dtype, device=pos.device)
 
         def axis(lo: Tensor, hi: Tensor, size: int) -> tuple[Tensor, Tensor]:
             """Cell index and weight (R * L, K*S*2) of the two bilinear corners of each sample along one axis."""
@@ -293,7 +293,7 @@ class EnvironmentNet(nn.Module):
         xi, wx = axis(boxes[..., 0:1], boxes[..., 2:3], wf)
         yi, wy = axis(boxes[..., 1:2], boxes[..., 3:4], hf)
         # Flat cell = ((bin * B + scene) * h + y) * w + x = y part (bin row, scene, y) + x part (bin column, x).
-        bins = torch.arange(k, dtype=pos.dtype).repeat_interleave(2 * s)  # bin of each (K*S*2) entry
+        bins = torch.arange(k, dtype=pos.dtype, device=pos.device).repeat_interleave(2 * s)  # bin of each entry
         scene = batch.scene[rows].to(pos.dtype).repeat_interleave(big_l)[:, None]
         cells = kk * b * hf * wf
         # Integer arithmetic in floats: exact below 2**24 (fp32) / 2**53, and float gathers ran ~3x faster than
@@ -303,7 +303,7 @@ class EnvironmentNet(nn.Module):
         x_part = bins * (b * hf * wf) + xi
         # Bag layout (ky, kx, sy, sx, cy, cx): bin, sub-sample, then corner (y-major); the picks say which per-axis
         # entry each of the K*K*S*S*4 bag entries uses.
-        ypick, xpick = _bag_picks(k, s)
+        ypick, xpick = _bag_picks(k, s, pos.device)
         flat = y_part.to(exact).index_select(1, ypick) + x_part.to(exact).index_select(1, xpick)
         wts = wx.index_select(1, xpick) * wy.index_select(1, ypick)
         v = F.embedding_bag(
@@ -405,7 +405,7 @@ class TrajectoryNet(nn.Module):
         ps, ds = cfg.pos_scale_m, cfg.disp_scale_m
         n = batch.positions.shape[0]
         b = batch.size
-        rows = torch.arange(n)
+        rows = torch.arange(n, device=batch.positions.device)
         obs = batch.positions[:, :t_obs].transpose(0, 1)  # (T_obs, N, 2)
         ok = batch.valid[:, :t_obs].transpose(0, 1)  # (T_obs, N)
         # Displacements where both ends are observed (eq. 15); the first step has none.
@@ -480,7 +480,7 @@ class TrajectoryNet(nn.Module):
         b = batch.size
         hid = cfg.lstm_dim
         scene = batch.scene[rows]
-        every = torch.ones(mm, r, dtype=torch.bool)
+        every = torch.ones(mm, r, dtype=torch.bool, device=noise.device)
         h = self.init_decoder(torch.cat((enc.h[rows][None].expand(mm, r, hid), noise), dim=-1))  # eqs. 21-22
         mode_open = self._mode_open(h, constant_velocity_modes, mode_dim=0)  # (M, R, 1)
         c = enc.c[rows][None].expand(mm, r, hid).reshape(mm * r, hid)
@@ -563,7 +563,7 @@ class TrajectoryNet(nn.Module):
         w, bias = lstm_weights(self.decoder)
         d_p = self.disp_embed.out_features
         # Gates (i, f, g, o) -> (i, f, o, g); eq. 17's embedding folded into the input weights.
-        order = torch.cat((torch.arange(2 * hid), torch.arange(3 * hid, 4 * hid), torch.arange(2 * hid, 3 * hid)))
+        order = torch.cat([torch.arange(lo * hid, hi * hid, device=w.device) for lo, hi in ((0, 2), (3, 4), (2, 3))])
         w, bias = w[:, order], bias[order]
         # The bias is a weight row over a constant-1 input column: addmm's broadcast copy of it cost ~half
         # of the matmul here.
@@ -649,7 +649,7 @@ class TrajectoryNet(nn.Module):
         if self.config.step_output != "agent_velocity_change" or carried is None:
             return None
         length = torch.linalg.vector_norm(carried, dim=-1, keepdim=True)
-        unit = torch.where(length > 1e-6, carried / length.clamp(min=1e-6), torch.tensor([1.0, 0.0]))
+        unit = torch.where(length > 1e-6, carried / length.clamp(min=1e-6), carried.new_tensor([1.0, 0.0]))
         s = length.clamp(min=self.config.agent_min_step_m)
         along = unit * s
         across = torch.stack((-along[:, 1], along[:, 0]), dim=-1)
@@ -683,12 +683,12 @@ class TrajectoryNet(nn.Module):
                               f"got {constant_velocity_modes}")
         shape = [1] * h0.dim()
         shape[mode_dim] = num_modes
-        keep = (torch.arange(num_modes) >= constant_velocity_modes).to(h0.dtype).view(shape)
+        keep = (torch.arange(num_modes, device=h0.device) >= constant_velocity_modes).to(h0.dtype).view(shape)
         return keep if gate is None else gate * keep
 
     def _noise_per_sample(self, batch: Batch, num_modes: int, sample_seeds: Sequence[int]) -> Tensor:
-        """(M, R, noise_dim) z of the active rows, each sample's rows (in row order) from its own seed."""
-        of_row = batch.sample[batch.active.numpy()]
+        """(M, R, noise_dim) z of the active rows, each sample's rows (in row order) from its own seed (on the CPU)."""
+        of_row = batch.sample[batch.active.cpu().numpy()]
         noise = torch.empty(num_modes, len(of_row), self.config.noise_dim)
         if len(sample_seeds) != len(batch.sample_targets):
             raise ValueError(f"{len(sample_seeds)} sample seeds for {len(batch.sample_targets)} samples")
@@ -718,6 +718,8 @@ class TrajectoryNet(nn.Module):
             noise = torch.randn(num_modes, r, self.config.noise_dim, generator=generator)
         else:
             noise = self._noise_per_sample(batch, num_modes, sample_seeds)
+        # z is drawn on the CPU generators whatever the device, so a seed gives the same z on every device.
+        noise = noise.to(batch.positions.device)
         if noise_scale != 1.0:
             noise = noise * noise_scale
         enc = self.encode(batch)

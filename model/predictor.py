@@ -17,6 +17,7 @@ from logpipe.types import NDArrayFloat, SceneSample
 from .batching import collate
 from .checkpoints import load_checkpoint
 from .config import ModelConfig
+from .device import autocast, resolve_device
 from .nets import TrajectoryNet
 from .seeding import sample_seed
 
@@ -65,6 +66,8 @@ class NetPredictor:
             None = the checkpoint's ``ModelConfig.constant_velocity_modes``, at most K - 1).
         context_max_neighbours: at most this many neighbours in each target's context (the nearest; see
             ``ModelConfig.context_max_neighbours``; None = the checkpoint's). Only with ``context_radius_m``.
+        device: where the network runs (``model.device.resolve_device``; under autocast on CUDA); the noise z is
+            drawn on the CPU and the forecasts come back to the CPU, so only the arithmetic depends on it.
     """
 
     @classmethod
@@ -78,20 +81,23 @@ class NetPredictor:
         noise_scale: float = 1.0,
         constant_velocity_modes: int | None = None,
         context_max_neighbours: int | None = None,
+        device: torch.device | str = "cpu",
     ) -> NetPredictor:
         """Load a checkpoint folder (see ``checkpoints.load_checkpoint`` for the checks and errors)."""
         loaded = load_checkpoint(path, expect_kind=expect_kind, expect_config=expect_config)
         return cls(loaded.net, batch_size=batch_size, noise_scale=noise_scale,
-                   constant_velocity_modes=constant_velocity_modes, context_max_neighbours=context_max_neighbours)
+                   constant_velocity_modes=constant_velocity_modes, context_max_neighbours=context_max_neighbours,
+                   device=device)
 
     def __init__(self, net: TrajectoryNet, batch_size: int = 32, name: str = "zhu2020",
                  noise_scale: float = 1.0, constant_velocity_modes: int | None = None,
-                 context_max_neighbours: int | None = None) -> None:
+                 context_max_neighbours: int | None = None, device: torch.device | str = "cpu") -> None:
         if not (math.isfinite(noise_scale) and noise_scale > 0):
             raise LogpipeError(f"noise scale must be a positive number, got {noise_scale}")
         if context_max_neighbours is not None and net.config.context_radius_m is None:
             raise LogpipeError("a neighbour cap needs a checkpoint trained with model.context_radius_m")
-        self.net = net.eval()
+        self.device = resolve_device(device)
+        self.net = net.eval().to(self.device)
         # The cap only changes which agents are collated, so it lives in the config collate reads (which also
         # rejects a negative one).
         self.config: ModelConfig = (net.config if context_max_neighbours is None
@@ -104,7 +110,7 @@ class NetPredictor:
 
     def _with(self, **changes: Any) -> NetPredictor:
         settings = {"noise_scale": self.noise_scale, "constant_velocity_modes": self.constant_velocity_modes,
-                    "context_max_neighbours": self.context_max_neighbours} | changes
+                    "context_max_neighbours": self.context_max_neighbours, "device": self.device} | changes
         return NetPredictor(self.net, self.batch_size, self.name, **settings)
 
     def with_noise_scale(self, noise_scale: float) -> NetPredictor:
@@ -128,12 +134,13 @@ class NetPredictor:
         for lo in range(0, len(samples), self.batch_size):
             chunk = samples[lo : lo + self.batch_size]
             batch = collate(chunk, self.config)
-            pred = self.net(batch, num_modes, fast=True, noise_scale=self.noise_scale,
-                            constant_velocity_modes=self.constant_velocity_modes,
-                            sample_seeds=[sample_seed(seed, s.sample_id) for s in chunk])
+            with autocast(self.device):
+                pred = self.net(batch.to(self.device), num_modes, fast=True, noise_scale=self.noise_scale,
+                                constant_velocity_modes=self.constant_velocity_modes,
+                                sample_seeds=[sample_seed(seed, s.sample_id) for s in chunk])
             n = batch.positions.shape[0]
             world = np.full((n, num_modes, t_pred, 2), np.nan)
-            rows = pred.rows
-            world[rows.numpy()] = batch.to_world(pred.positions.transpose(0, 1), batch.scene[rows])
+            rows = pred.rows.cpu()
+            world[rows.numpy()] = batch.to_world(pred.positions.transpose(0, 1).cpu(), batch.scene[rows])
             out += [np.ascontiguousarray(world[targets]) for targets in batch.sample_targets]
         return out

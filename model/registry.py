@@ -13,12 +13,13 @@ from pathlib import Path
 
 import pyarrow as pa
 import pyarrow.compute as pc
+import torch
 
 from logpipe.dataset import Dataset
 from logpipe.errors import LogpipeError
 from logpipe.io import read_json, read_table
 
-from .checkpoints import InferenceSettings, TrainingData, read_meta
+from .checkpoints import InferenceSettings, TrainingData, kind_accepts, read_meta
 from .predictor import NetPredictor, Predictor, inference_id
 
 BASELINES = {"cv": "constant_velocity", "linear": "linear", "kalman": "kalman_cv", "cv_sampler": "cv_sampler"}
@@ -179,15 +180,16 @@ def resolve_inference(chosen: ChosenPredictor, *, num_modes: int, noise_scale: f
 
 
 def check_fit(dataset: Dataset, chosen: ChosenPredictor, logs: pa.Table) -> list[str]:
-    """Every way the checkpoint does not fit the dataset (empty for baselines): kind, obs/pred lengths and
-    the optional ``frame_rate_hz`` / ``object_types`` entries of ``meta.json``."""
+    """Every way the checkpoint does not fit the dataset (empty for baselines): kind (one of a several-format
+    checkpoint's formats fits), obs/pred lengths and the optional ``frame_rate_hz`` / ``object_types`` entries of
+    ``meta.json``."""
     if chosen.checkpoint is None:
         return []
     meta = read_meta(chosen.checkpoint)
     raw = read_json(chosen.checkpoint / "meta.json")
     cfg, protocol = meta.config.model, dataset.protocol
     problems = []
-    if meta.dataset_kind != dataset.kind:
+    if not kind_accepts(meta.dataset_kind, dataset.kind):
         problems.append(f"dataset kind: checkpoint {meta.dataset_kind!r}, dataset {dataset.kind!r}")
     if (cfg.obs_len, cfg.pred_len) != (protocol.obs_len, protocol.pred_len):
         problems.append(f"obs/pred lengths: checkpoint {cfg.obs_len}+{cfg.pred_len} steps, dataset "
@@ -226,12 +228,14 @@ def seen_in_training(chosen: ChosenPredictor, logs: pa.Table) -> list[str]:
     return warnings
 
 
-def load_net(chosen: ChosenPredictor, dataset: Dataset, batch_size: int) -> None:
-    """Load the checkpoint's weights into ``chosen.model`` with ``chosen.inference`` (after ``check_fit``)."""
+def load_net(chosen: ChosenPredictor, dataset: Dataset, batch_size: int, device: torch.device | str = "cpu") -> None:
+    """Load the checkpoint's weights into ``chosen.model`` with ``chosen.inference``, on ``device`` (after
+    ``check_fit``)."""
     if chosen.model is not None or chosen.checkpoint is None:
         return
     settings = chosen.inference
     chosen.model = NetPredictor.from_checkpoint(chosen.checkpoint, expect_kind=dataset.kind, batch_size=batch_size,
                                                 noise_scale=settings.noise_scale,
                                                 constant_velocity_modes=settings.constant_velocity_modes,
-                                                context_max_neighbours=settings.context_max_neighbours)
+                                                context_max_neighbours=settings.context_max_neighbours,
+                                                device=device)

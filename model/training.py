@@ -50,6 +50,7 @@ from .checkpoints import (
     warm_start,
 )
 from .config import ConfigError, ModelConfig, TrainConfig, config_to_dict, save_config
+from .device import autocast, grad_scaler, resolve_device
 from .loss import DisplacementErrors, best_of_h_loss
 from .nets import TrajectoryNet
 
@@ -79,6 +80,7 @@ class TrainResult:
         train_samples_per_s: scenes per second in optimiser steps (excluding validation).
         weights_sha256: digest of the final weights (equal on every process of a data-parallel run).
         processes: data-parallel processes (1 without torchrun).
+        device: the torch device the run trained on (``cpu``, ``cuda``).
     """
 
     out_dir: Path
@@ -97,6 +99,7 @@ class TrainResult:
     processes: int = 1
     total_elapsed_s: float = 0.0
     resumed_at_step: int | None = None
+    device: str = "cpu"
 
 
 def _probe(samples: Iterable[SceneSample], limit: int = 256) -> tuple[bool, int | None, int, int]:
@@ -153,7 +156,8 @@ def best_of_h_step_loss(
     cfg = net.config
     enc = net.encode(batch)
     rows = batch.active.nonzero().squeeze(1)
-    noise = torch.randn(num_modes, len(rows), cfg.noise_dim, generator=generator)
+    # z from the CPU generator whatever the device: a run draws the same z on every device.
+    noise = torch.randn(num_modes, len(rows), cfg.noise_dim, generator=generator).to(rows.device)
     truth = batch.positions[rows, cfg.obs_len :]
     mask = targets_with_future(batch.target, batch.valid, cfg.obs_len)[rows]
     scene = batch.scene[rows]
@@ -163,15 +167,15 @@ def best_of_h_step_loss(
     with torch.no_grad():
         pred = net.decode(batch, enc, noise)
         _, best = best_of_h_loss(pred.positions, truth, mask, scene, batch.size, reduce)
-    every_row = torch.arange(len(rows))
+    every_row = torch.arange(len(rows), device=rows.device)
     if reduce == "scene":
         pred = net.decode(batch, enc, noise[best[scene], every_row][None])  # (1, R, noise_dim)
         return best_of_h_loss(pred.positions, truth, mask, scene, batch.size, reduce)[0]
-    picked = torch.zeros(batch.size, num_modes, dtype=torch.bool)
+    picked = torch.zeros(batch.size, num_modes, dtype=torch.bool, device=rows.device)
     picked[scene[mask], best[mask]] = True
     slot_of = picked.cumsum(dim=1) - 1  # (B, H): slot of each picked mode in its scene
     slots = max(int(picked.sum(dim=1).max()), 1)
-    mode_in_slot = torch.zeros(batch.size, slots, dtype=torch.long)  # unused slots decode mode 0
+    mode_in_slot = torch.zeros(batch.size, slots, dtype=torch.long, device=rows.device)  # unused: mode 0
     pick_scene, pick_mode = picked.nonzero(as_tuple=True)
     mode_in_slot[pick_scene, slot_of[pick_scene, pick_mode]] = pick_mode
     pred = net.decode(batch, enc, noise[mode_in_slot[scene].t(), every_row])  # (slots, R, noise_dim)
@@ -190,16 +194,19 @@ def evaluate(
     batch_size: int = 32,
     limit: int | None = None,
 ) -> DisplacementErrors:
-    """Best-of-K ADE/FDE (metres) of ``net`` on ``samples`` (targets with a full future only)."""
+    """Best-of-K ADE/FDE (metres) of ``net`` on ``samples`` (targets with a full future only), on the device
+    ``net`` is on (under ``device.autocast`` there)."""
     was_training = net.training
     net.eval()
+    device = next(net.parameters()).device
     gen = torch.Generator().manual_seed(seed)
     errors = DisplacementErrors()
     cfg = net.config
     it = iter(samples if limit is None else itertools.islice(samples, limit))
     while chunk := list(itertools.islice(it, batch_size)):
-        batch = collate(chunk, cfg)
-        pred = net(batch, num_modes, gen)
+        batch = collate(chunk, cfg).to(device)
+        with autocast(device):
+            pred = net(batch, num_modes, gen)
         rows = pred.rows
         mask = targets_with_future(batch.target, batch.valid, cfg.obs_len)[rows]
         scene = batch.scene[rows]  # errors in metres whatever the model frame's scale
@@ -360,6 +367,7 @@ def fit(
     manifest_hash: str = "",
     init_from: Path | None = None,
     training_data: TrainingData | None = None,
+    device: torch.device | str = "cpu",
 ) -> TrainResult:
     """Train ``TrajectoryNet`` and write checkpoints and the log into ``out_dir``.
 
@@ -381,12 +389,20 @@ def fit(
             weights come from ``last/``. Logged in the ``start`` event.
         training_data: the splits and recordings of ``train`` / ``val``, stored in every checkpoint so predicting
             over them can be flagged.
+        device: where the network trains and validates (``model.device.resolve_device``: ``cpu``, ``cuda`` or
+            ``auto``). On CUDA the forward passes run under autocast (bf16, else fp16 with a gradient scaler whose
+            scale is not checkpointed, so a resumed fp16 run re-learns it); batches, shuffling, augmentation and
+            noise are drawn on the CPU as before, and checkpoints hold the same CPU tensors on every device.
+            Data-parallel runs (torchrun, gloo) are CPU only.
     """
     start_time = time.perf_counter()
     ranks = _Ranks.from_env()
     cfg = config if isinstance(config, TrainConfig) else TrainConfig(model=config)
     if cfg.batch_size < ranks.world:
         raise ConfigError(f"train.batch_size {cfg.batch_size} must be >= the {ranks.world} torchrun processes")
+    dev = resolve_device(device)
+    if ranks.world > 1 and dev.type != "cpu":
+        raise ConfigError(f"data-parallel training under torchrun runs on the CPU (gloo), not {dev}: use --device cpu")
     if not isinstance(train, Sequence) and iter(train) is train:
         # A one-shot iterator: probe its head, then put the head back in front of the rest.
         head = list(itertools.islice(train, 256))
@@ -404,7 +420,8 @@ def fit(
     last_dir, best_dir = out_dir / "last", out_dir / "best"
     log = _Log(out_dir / "train_log.jsonl", enabled=ranks.main)
     torch.manual_seed(cfg.seed)
-    net = TrajectoryNet(cfg.model)
+    net = TrajectoryNet(cfg.model).to(dev)  # initialised on the CPU (same weights on every device), then moved
+    scaler = grad_scaler(dev)
     optimizer = torch.optim.Adam(net.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     average = _weight_average(net, cfg.ema_decay)
     step, epoch, pos_in_epoch = 0, 0, 0
@@ -439,7 +456,7 @@ def fit(
         average = _weight_average(net, cfg.ema_decay)  # averages from the warm-started weights
     if ranks.main:
         save_config(cfg, out_dir / "config.json")
-    log.write("start", step=step, config=config_to_dict(cfg), processes=ranks.world,
+    log.write("start", step=step, config=config_to_dict(cfg), processes=ranks.world, device=str(dev),
               **({"init_from": warm.to_dict()} if warm is not None else {}))
 
     def evaluated() -> TrajectoryNet:
@@ -521,17 +538,28 @@ def fit(
             rotations = None
             if cfg.augment_rotate:
                 rotations = np.random.default_rng([cfg.seed, step, 1]).uniform(0, 2 * np.pi, len(chunk)).tolist()
-            batch = collate(chunk, cfg.model, rotations=rotations)
+            batch = collate(chunk, cfg.model, rotations=rotations).to(dev)
             gen = torch.Generator().manual_seed(cfg.seed * 1_000_003 + step + 7_919 * ranks.rank)
             for group in optimizer.param_groups:
                 group["lr"] = cfg.lr * cfg.lr_decay ** (step // cfg.lr_decay_every)
-            loss = best_of_h_step_loss(net, batch, cfg.num_modes, gen, cfg.loss_min_over, cfg.select_then_backprop)
+            with autocast(dev):
+                loss = best_of_h_step_loss(net, batch, cfg.num_modes, gen, cfg.loss_min_over,
+                                           cfg.select_then_backprop)
             optimizer.zero_grad(set_to_none=True)
-            loss.backward()  # type: ignore[no-untyped-call]
+            if scaler is None:
+                loss.backward()  # type: ignore[no-untyped-call]
+            else:  # fp16 autocast: scale the loss so small gradients do not underflow
+                scaler.scale(loss).backward()  # type: ignore[no-untyped-call]
             ranks.average_gradients(net)
+            if scaler is not None:
+                scaler.unscale_(optimizer)  # clip the true gradients
             if cfg.grad_clip > 0:
                 torch.nn.utils.clip_grad_norm_(net.parameters(), cfg.grad_clip)
-            optimizer.step()
+            if scaler is None:
+                optimizer.step()
+            else:  # skips the step when the scaled gradients overflowed, then adapts the scale
+                scaler.step(optimizer)
+                scaler.update()
             if average is not None:
                 average.update_parameters(net)
             step += 1
@@ -582,6 +610,7 @@ def fit(
         processes=ranks.world,
         total_elapsed_s=earlier_elapsed + elapsed,
         resumed_at_step=resumed_at_step,
+        device=str(dev),
     )
 
 
@@ -599,5 +628,5 @@ def _weights_digest(net: torch.nn.Module) -> str:
     digest = hashlib.sha256()
     for name, tensor in sorted(net.state_dict().items()):
         digest.update(name.encode())
-        digest.update(tensor.detach().contiguous().numpy().tobytes())
+        digest.update(tensor.detach().cpu().contiguous().numpy().tobytes())
     return digest.hexdigest()

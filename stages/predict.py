@@ -54,6 +54,7 @@ from logpipe.executor import default_workers
 from logpipe.io import as_numpy, atomic_path, parquet_options, read_table, sha256_file, sha256_tree
 from logpipe.mcap_merge import NewChannel, NewMessage, Source, write_merged
 from logpipe.mcapio import WORLD_FRAME
+from logpipe.model.device import check_device_name, resolve_device
 from logpipe.model.registry import (
     ChosenPredictor,
     check_fit,
@@ -254,6 +255,7 @@ def predict_dataset(
     batch_size: int = 64,
     threads: int = 0,
     progress: Callable[[int], None] | None = None,
+    device: str = "auto",
 ) -> dict[str, Any]:
     """Predict every selected sample of ``dataset_dir`` into ``out_dir``; returns the run summary (``--json``).
 
@@ -284,6 +286,8 @@ def predict_dataset(
         batch_size: samples per forward pass.
         threads: torch intra-op threads (0 = the cores this process may use).
         progress: called with the number of samples each batch finished.
+        device: where a checkpoint's network runs: ``auto`` (CUDA when torch can use a GPU, else the CPU), ``cpu``
+            or ``cuda`` (autocast there; see ``logpipe.model.device``). Baselines run on the CPU whatever it says.
 
     Raises:
         LogpipeError: a bad option, a checkpoint that does not fit the dataset, missing rasters or originals;
@@ -295,6 +299,9 @@ def predict_dataset(
     dataset = Dataset.open(dataset_dir)
     sample_filter = sample_filter or SampleFilter()
     chosen = choose_predictor(dataset, checkpoint, predictor, split=sample_filter.split)
+    # Baselines are numpy: the value is checked but no device is used (summary "device": None).
+    check_device_name(device)
+    torch_device = resolve_device(device) if chosen.checkpoint is not None else None
     stored = None if as_trained else chosen.stored_settings
     modes = modes or (stored.num_modes if stored is not None else default_modes(dataset.protocol.name))
     if modes < 1 or batch_size < 1:
@@ -341,14 +348,14 @@ def predict_dataset(
         "samples_selected": sum(len(v) for v in samples_by_log.values()), "shards_skipped_done": 0,
         "samples": 0, "targets": 0, "rows": 0, "targets_unobserved": 0, "samples_without_targets": 0,
         "mcap_files": 0, "original_messages": 0, "model_seconds": 0.0, "io_seconds": 0.0, "io_wait_seconds": 0.0,
-        "io_busy_seconds": 0.0,
+        "io_busy_seconds": 0.0, "device": None if torch_device is None else str(torch_device),
     }
     previous_threads = torch.get_num_threads()
     previous_switch = sys.getswitchinterval()
     try:
         with output_errors(), PredictionRunWriter(out_dir) as writer:
             shards, files = writer.committed(settings)
-            load_net(chosen, dataset, batch_size)
+            load_net(chosen, dataset, batch_size, torch_device or "cpu")
             run = _Run(dataset, chosen, modes, seed, batch_size, sample_filter, rasters, raster_images, write_mcap,
                        logs, samples_by_log, originals, manifest_sha, meta,
                        frozenset(rasters.index.column("sample_id").to_pylist()) if rasters is not None

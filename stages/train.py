@@ -1,7 +1,8 @@
-"""``logpipe train``: fit the predictor on a dataset's samples.
+"""``logpipe train``: fit the predictor on a dataset's samples (or on several datasets' together).
 
-Reads top-down: open the dataset → pick the train/validation logs (a folder split such as ``eth/train``, or
-a ``hash/…`` split) → cut their samples into ``SceneSample``s → ``model.training.fit`` (checkpoints, the
+Reads top-down: open the dataset(s) → pick the train/validation logs (a folder split such as ``eth/train``, or
+a ``hash/…`` split, applied in each dataset) → cut their samples into ``SceneSample``s (concatenated in the
+order the datasets are given, each with its own raster run) → ``model.training.fit`` (checkpoints, the
 JSON-lines log, early stopping, resume) → a summary.
 """
 
@@ -11,7 +12,7 @@ import dataclasses
 import math
 import os
 import time
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -20,7 +21,7 @@ import pyarrow.compute as pc
 
 from logpipe.artifact import FolderLock
 from logpipe.dataset import Dataset
-from logpipe.errors import LogpipeError
+from logpipe.errors import DatasetError, LogpipeError
 from logpipe.io import sha256_file
 from logpipe.rasters import RASTER_DIR, RUN_MANIFEST, RasterShards, find_raster_run
 from logpipe.types import SceneSample
@@ -34,7 +35,18 @@ def scene_samples(
 ) -> list[SceneSample]:
     """The ``SceneSample``s of every sample whose log is in ``split`` (at most ``limit``, in index order), with
     their map rasters when a raster run is given."""
-    logs = dataset.logs_in_split(split)
+    samples = _log_samples(dataset, dataset.logs_in_split(split), rasters, limit)
+    if not samples:
+        raise LogpipeError(f"{dataset.root}: split {split!r} has logs but no prediction samples")
+    return samples
+
+
+def _log_samples(
+    dataset: Dataset, logs: Sequence[str], rasters: RasterShards | None, limit: int | None = None
+) -> list[SceneSample]:
+    """The ``SceneSample``s of the logs ``logs`` of ``dataset`` (see ``scene_samples``)."""
+    if not logs:
+        return []
     keep = pc.is_in(pc.field("log_id"), value_set=pa.array(logs))
     samples: list[SceneSample] = []
     for sample in dataset.iter_scene_samples(keep):
@@ -43,13 +55,11 @@ def scene_samples(
         samples.append(sample)
         if limit is not None and len(samples) >= limit:
             break
-    if not samples:
-        raise LogpipeError(f"{dataset.root}: split {split!r} has logs but no prediction samples")
     return samples
 
 
 def train(
-    dataset_dir: Path,
+    dataset_dir: Path | Sequence[Path],
     out_dir: Path,
     *,
     train_split: str,
@@ -62,11 +72,15 @@ def train(
     resume: bool = False,
     progress: bool | Callable[[int], None] = True,
     init_from: Path | None = None,
+    device: str = "auto",
 ) -> dict[str, Any]:
     """Train on ``train_split`` of ``dataset_dir``, validating on ``val_split``; returns the run summary.
 
     Args:
-        dataset_dir: an ingested dataset.
+        dataset_dir: an ingested dataset, or several trained on together: the splits apply in each (a dataset
+            where a split selects no log adds none), the samples are concatenated in the order given, each
+            dataset with its own raster run; the checkpoints record every format (``combined_kind``), one hash
+            of the manifests in order and the union of the recordings.
         out_dir: the run folder (checkpoints ``best/`` and ``last/``, ``train_log.jsonl``, ``config.toml``).
         train_split: e.g. ``eth/train`` (ETH/UCY leave-one-scene-out) or ``hash/train``.
         val_split: e.g. ``eth/val``; None trains without validation (no early stopping).
@@ -75,7 +89,7 @@ def train(
         preset: a row of the paper's tables applied over the config's model (``full``, ``v1``..``v4``,
             ``baseline`` = Noise-LSTM, ``lstm``); ``lstm`` has no noise, so it trains and validates with one mode.
         raster_run: the raster run under ``DATASET/rasters/`` to train the environment net on (default: the only
-            one; none: the environment net is off).
+            one; none: the environment net is off); with several datasets, in each of them.
         loader_workers: 0 cuts every training sample into memory first (exact resume); N > 0 streams them from
             the shards through a torch DataLoader with N worker processes (memory bounded by a shard per worker,
             shuffled through a buffer).
@@ -83,33 +97,49 @@ def train(
         progress: True: ``fit``'s progress bar (a terminal); a callable: ``logpipe.progress`` callback (steps).
         init_from: start a new run from this checkpoint folder (e.g. a Noise-LSTM checkpoint into the full
             model; see ``logpipe.model.checkpoints.warm_start``).
+        device: ``auto`` (CUDA when torch can use a GPU, else the CPU), ``cpu`` or ``cuda`` (autocast there; see
+            ``logpipe.model.device``).
     """
-    from logpipe.model.checkpoints import TrainingData
+    from logpipe.model.checkpoints import TrainingData, combined_kind, combined_manifest_hash
     from logpipe.model.config import TrainConfig, load_config
+    from logpipe.model.device import resolve_device
     from logpipe.model.training import fit
 
     started = time.perf_counter()
-    dataset = Dataset.open(dataset_dir)
+    # A bad --device fails before any data is read. torchrun's data-parallel training is CPU only (gloo, see
+    # ``fit``): there ``auto`` is the CPU.
+    torch_device = resolve_device("cpu" if device == "auto" and int(os.environ.get("WORLD_SIZE", "1")) > 1 else device)
+    datasets = _open_datasets([dataset_dir] if isinstance(dataset_dir, Path) else list(dataset_dir))
+    dataset = datasets[0]
     config = load_config(config_path) if config_path else TrainConfig()
     if overrides:
         config = dataclasses.replace(config, **overrides)
     if preset is not None:
         config = with_preset(config, preset)
     protocol = dataset.protocol
+    _check_lengths(datasets)
     if (config.model.obs_len, config.model.pred_len) != (protocol.obs_len, protocol.pred_len):
         config = dataclasses.replace(
             config, model=dataclasses.replace(config.model, obs_len=protocol.obs_len, pred_len=protocol.pred_len)
         )
-    rasters = _raster_run(dataset, raster_run)
+    runs = [_raster_run(ds, raster_run) for ds in datasets]
+    _check_rasters(datasets, runs, needed=config.model.features.environment)
+    rasters = runs[0]
+    train_logs = _split_logs(datasets, train_split)
+    val_logs = _split_logs(datasets, val_split) if val_split else [[] for _ in datasets]
     train_samples: Sequence[SceneSample] | Iterable[SceneSample]
+    train_counts: list[int | str]
     if loader_workers > 0:
         from logpipe.model.data import scene_loader
 
-        train_samples = scene_loader(dataset.root, dataset.logs_in_split(train_split), workers=loader_workers,
-                                     raster_run=rasters.run_dir.name if rasters is not None else None)
+        loaders = [scene_loader(ds.root, logs, workers=loader_workers,
+                                raster_run=run.run_dir.name if run is not None else None)
+                   for ds, logs, run in zip(datasets, train_logs, runs, strict=True) if logs]
+        train_samples = loaders[0] if len(loaders) == 1 else _Chained(loaders)
+        train_counts = ["streamed" if logs else 0 for logs in train_logs]
     else:
-        train_samples = scene_samples(dataset, train_split, rasters=rasters)
-    val_samples = scene_samples(dataset, val_split, rasters=rasters) if val_split else None
+        train_samples, train_counts = _samples(datasets, train_logs, runs, train_split)
+    val_samples, val_counts = _samples(datasets, val_logs, runs, val_split) if val_split else (None, [])
     # One training per run folder: under torchrun only process 0 writes, so only it holds the lock.
     lock = FolderLock(out_dir) if os.environ.get("RANK", "0") == "0" else None
     created = not out_dir.exists()
@@ -124,18 +154,26 @@ def train(
             out_dir,
             resume=resume,
             progress=progress,
-            dataset_kind=dataset.kind,
-            manifest_hash=sha256_file(dataset.root / "manifest.json"),
+            dataset_kind=combined_kind([ds.kind for ds in datasets]),
+            manifest_hash=combined_manifest_hash([sha256_file(ds.root / "manifest.json") for ds in datasets]),
             init_from=init_from,
-            training_data=TrainingData.of(dataset, train_split, val_split),
+            training_data=TrainingData.of_logs(list(zip(datasets, train_logs, val_logs, strict=True)), train_split,
+                                               val_split),
+            device=torch_device,
         )
     finally:
         if lock is not None:
             lock.release()
             if created and not any(out_dir.iterdir()):
                 out_dir.rmdir()  # a run that could not start leaves no folder
+    several = len(datasets) > 1
     return {
-        "dataset": str(dataset_dir),
+        # With several datasets: their folders and raster runs as lists, and the samples each gave.
+        "dataset": [str(ds.root) for ds in datasets] if several else str(dataset_dir),
+        **({"per_dataset": [{"dataset": str(ds.root), "format": ds.kind, "train_samples": n,
+                             "val_samples": val_counts[i] if val_counts else 0}
+                            for i, (ds, n) in enumerate(zip(datasets, train_counts, strict=True))]}
+           if several else {}),
         "run": str(out_dir),
         "train_split": train_split,
         "val_split": val_split,
@@ -149,9 +187,11 @@ def train(
         "best_checkpoint": str(result.best_checkpoint) if result.best_checkpoint else None,
         "last_checkpoint": str(result.last_checkpoint),
         "train_samples_per_s": round(result.train_samples_per_s, 1),
-        "raster_run": rasters.run_dir.name if rasters is not None else None,
+        "raster_run": ([r.run_dir.name if r is not None else None for r in runs] if several
+                       else rasters.run_dir.name if rasters is not None else None),
         "init_from": str(init_from) if init_from is not None and result.resumed_at_step is None else None,
         "environment_net": result.config.model.features.environment,
+        "device": result.device,
         "seconds": round(time.perf_counter() - started, 1),
         # A resumed run: where this part started, and the training wall time of all parts (None for a run whose
         # earlier part predates the training state's clock).
@@ -181,3 +221,90 @@ def _raster_run(dataset: Dataset, name: str | None) -> RasterShards | None:
     if name is None and len(runs) > 1:
         raise LogpipeError(f"{dataset.root}: several raster runs ({', '.join(runs)}); name one with --raster-run")
     return find_raster_run(dataset.root, name, None)
+
+
+def _open_datasets(folders: Sequence[Path]) -> list[Dataset]:
+    """The datasets to train on, in the order given; one given twice would count its samples twice."""
+    if not folders:
+        raise LogpipeError("give at least one dataset")
+    seen: set[Path] = set()
+    for folder in folders:
+        if folder.resolve() in seen:
+            raise LogpipeError(f"{folder}: dataset given twice")
+        seen.add(folder.resolve())
+    return [Dataset.open(folder) for folder in folders]
+
+
+def _check_lengths(datasets: Sequence[Dataset]) -> None:
+    """Datasets trained together must cut windows of the same observed + predicted steps (one model)."""
+    first = datasets[0].protocol
+    for ds in datasets[1:]:
+        p = ds.protocol
+        if (p.obs_len, p.pred_len) != (first.obs_len, first.pred_len):
+            raise LogpipeError(f"{ds.root}: samples of {p.obs_len}+{p.pred_len} steps ({p.name}) but "
+                               f"{datasets[0].root} has {first.obs_len}+{first.pred_len} ({first.name}); "
+                               "re-index one with `logpipe index --obs N --pred N`")
+
+
+def _check_rasters(datasets: Sequence[Dataset], runs: Sequence[RasterShards | None], *, needed: bool) -> None:
+    """With the environment net on, either no dataset has rasters (it is then switched off, as for one dataset)
+    or every one has a run made with the same settings (one raster size and channel set for the network)."""
+    if not needed or len(datasets) < 2:
+        return
+    have = [str(ds.root) for ds, run in zip(datasets, runs, strict=True) if run is not None]
+    missing = [str(ds.root) for ds, run in zip(datasets, runs, strict=True) if run is None]
+    if have and missing:
+        raise LogpipeError(f"{', '.join(missing)}: no raster run, but {', '.join(have)} has one and the "
+                           "environment net needs a raster for every sample; rasterise it (`logpipe rasterise`) "
+                           "or train without the environment net (--preset v4)")
+    # Run folder names hash every raster setting, so equal names mean equal settings.
+    names = {run.run_dir.name for run in runs if run is not None}
+    if len(names) > 1:
+        shown = "; ".join(f"{ds.root}: {run.run_dir.name}" for ds, run in zip(datasets, runs, strict=True)
+                          if run is not None)
+        raise LogpipeError(f"raster runs made with different settings ({shown}); rasterise every dataset with the "
+                           "same size, extent, channels, rotation and centre")
+
+
+def _split_logs(datasets: Sequence[Dataset], split: str) -> list[list[str]]:
+    """The logs of ``split`` in each dataset. With several datasets a dataset where the split selects no log
+    adds none (a hash split of a few logs can be empty); a split that selects none in any of them is an error."""
+    if len(datasets) == 1:
+        return [datasets[0].logs_in_split(split)]
+    found: list[list[str]] = []
+    errors: list[str] = []
+    for ds in datasets:
+        try:
+            found.append(ds.logs_in_split(split))
+        except DatasetError as exc:
+            found.append([])
+            errors.append(str(exc))
+    if not any(found):
+        raise DatasetError("; ".join(errors))
+    return found
+
+
+def _samples(datasets: Sequence[Dataset], logs: Sequence[Sequence[str]], runs: Sequence[RasterShards | None],
+             split: str) -> tuple[list[SceneSample], list[int | str]]:
+    """The samples of each dataset's logs, concatenated in dataset order, and how many each gave."""
+    samples: list[SceneSample] = []
+    counts: list[int | str] = []
+    for ds, ids, run in zip(datasets, logs, runs, strict=True):
+        part = _log_samples(ds, ids, run)
+        samples += part
+        counts.append(len(part))
+    if not samples:
+        raise LogpipeError(f"{', '.join(str(ds.root) for ds in datasets)}: split {split!r} has logs but no "
+                           "prediction samples")
+    return samples, counts
+
+
+class _Chained:
+    """Re-iterable sample streams read one after the other (``fit`` re-iterates its input every epoch)."""
+
+    def __init__(self, parts: Sequence[Iterable[SceneSample]]) -> None:
+        self.parts = list(parts)
+
+    def __iter__(self) -> Iterator[SceneSample]:
+        for part in self.parts:
+            yield from part

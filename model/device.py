@@ -1,0 +1,76 @@
+"""Where the network runs: ``--device auto|cpu|cuda`` and the mixed precision that goes with CUDA.
+
+On the CPU nothing changes: no autocast, no gradient scaling, so CPU results are bit-identical to a run without
+a device option. On CUDA the forward passes run under ``torch.autocast`` in bf16 where the GPU supports it, else
+fp16, whose small exponent range needs a ``GradScaler`` in training (bf16 has fp32's range and needs none).
+Random draws (noise z, augmentation, shuffling) stay on CPU generators whatever the device, so a run draws the
+same numbers on every device; only the arithmetic differs.
+"""
+
+from __future__ import annotations
+
+import contextlib
+from typing import Any
+
+import torch
+
+from .config import ConfigError
+
+DEVICE_CHOICES = ("auto", "cpu", "cuda")
+"""``--device`` values: ``auto`` is CUDA when torch can use a GPU, else the CPU."""
+
+
+def resolve_device(name: str | torch.device) -> torch.device:
+    """The torch device for a ``--device`` value (a ``torch.device`` is taken as it is).
+
+    Raises:
+        ConfigError: a value not in ``DEVICE_CHOICES``, or ``cuda`` when torch cannot use a GPU (the message
+            says what torch reports: a CPU-only build, or no visible GPU).
+    """
+    if isinstance(name, torch.device):
+        return name
+    check_device_name(name)
+    if name == "cpu":
+        return torch.device("cpu")
+    if not torch.cuda.is_available():
+        if name == "auto":
+            return torch.device("cpu")
+        raise ConfigError(f"--device cuda: torch cannot use a GPU here ({_cuda_report()}); use --device cpu or auto")
+    return torch.device("cuda")
+
+
+def check_device_name(name: str) -> None:
+    """Raise ``ConfigError`` unless ``name`` is one of ``DEVICE_CHOICES`` (for runs that use no device, such as
+    the classical baselines, where a typo should still be reported)."""
+    if name not in DEVICE_CHOICES:
+        raise ConfigError(f"--device must be one of {', '.join(DEVICE_CHOICES)}, got {name!r}")
+
+
+def _cuda_report() -> str:
+    """Why ``torch.cuda.is_available()`` is False, in torch's terms."""
+    if torch.version.cuda is None:
+        return f"torch {torch.__version__} is a CPU-only build"
+    return (f"torch {torch.__version__} is built for CUDA {torch.version.cuda} but sees "
+            f"{torch.cuda.device_count()} usable GPUs")
+
+
+def autocast_dtype(device: torch.device) -> torch.dtype | None:
+    """The autocast precision on ``device``: bf16 on a GPU that supports it, else fp16; None (fp32) on the CPU."""
+    if device.type != "cuda":
+        return None
+    return torch.bfloat16 if torch.cuda.is_bf16_supported() else torch.float16
+
+
+def autocast(device: torch.device) -> contextlib.AbstractContextManager[Any]:
+    """Mixed precision for forward passes on ``device`` (``autocast_dtype``); a no-op context on the CPU."""
+    dtype = autocast_dtype(device)
+    if dtype is None:
+        return contextlib.nullcontext()
+    return torch.autocast(device.type, dtype=dtype)
+
+
+def grad_scaler(device: torch.device) -> torch.amp.GradScaler | None:
+    """A loss scaler for training under fp16 autocast (fp16 gradients underflow without it); None otherwise."""
+    if autocast_dtype(device) != torch.float16:
+        return None
+    return torch.amp.GradScaler(device.type)
