@@ -171,10 +171,29 @@ def render(full: dict[str, Any], held: dict[str, Any], choice: dict[str, float],
               "hash/train "
               "by per-agent best-of-6 ADE (FDE breaks ties).", "", "## Learned methods", ""]
     lines += [f"- not run: {s}" for s in skipped] or ["All learned methods had checkpoints."]
+    lines += driving_section(args.results)
     lines += ["", "Full reports (report.json, report.md, horizon.png, scenes_*.png over the lane raster): "
               f"`docs/results/{args.name}/`.", "", "## Time", "",
               machine_note(seconds) + " " + ", ".join(f"{k} {v:.1f} s" for k, v in timings.items()) + ".", ""]
     return "\n".join(lines)
+
+
+def driving_section(results: Path) -> list[str]:
+    """The table of ``scripts/reproduce_driving.py`` (the full model and v1-v4 trained on these logs and AV2's),
+    when it has been run."""
+    found = results / "argoverse_logs.json"
+    if not found.exists():
+        return ["", "## The driving model trained on the real logs", "",
+                "Not run yet: `python scripts/reproduce_driving.py` writes it."]
+    from reproduce_driving import table_lines
+
+    result = json.loads(found.read_text())
+    c = result["counts"]
+    return ["", "## The driving model trained on the real logs (every target, not only the focal agent)", "",
+            f"From `docs/results/argoverse_logs.md` (`python scripts/reproduce_driving.py`): trained on the AV1 and "
+            f"AV2 logs' hash/train, scored on hash/test ({c['test_windows']} windows, {c['test_targets']} targets: "
+            "every fully observed vehicle but the AV). A pipeline check on a few hundred windows, not a reproduction "
+            "of Table 3 or 4; protocol, rules and intervals are described there.", "", *table_lines(result)]
 
 
 if __name__ == "__main__":
