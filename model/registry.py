@@ -28,7 +28,7 @@ BASELINES = {"cv": "constant_velocity", "linear": "linear", "kalman": "kalman_cv
 # Shipped baselines and ablations live in folders named after their method (``ethucy/eth/lstm``,
 # ``apolloscape/noise_lstm``, ``ethucy/eth/no_position``); they are there for the reproduction tables, never the
 # default model.
-COMPARISON_FOLDERS = frozenset({"lstm", "noise_lstm", "no_position"})
+COMPARISON_FOLDERS = frozenset({"lstm", "noise_lstm", "no_position", "paper"})
 
 
 @dataclass(frozen=True)
