@@ -19,16 +19,20 @@ from typing import Any
 
 REPO = Path(__file__).resolve().parents[1]
 CHECKPOINTS = REPO / "model" / "checkpoints"
-METHODS = {"zhu2020": "the paper's method", "noise_lstm": "Noise-LSTM (preset `baseline`)",
+METHODS = {"paper": "the paper's method as the paper specifies it (`configs/<kind>_paper.toml`: every model default, "
+                    "the per-scene loss of eq. 23, no augmentation; `make train-<kind>-paper`)",
+           "zhu2020": "the paper's network with our extensions (`configs/<kind>.toml`), the default of `logpipe "
+                      "predict`", "noise_lstm": "Noise-LSTM (preset `baseline`)",
            "lstm": "LSTM (preset `lstm`, no noise, K=1)"}
 ABLATIONS = {"ethucy": {"no_position": "the paper's method without its position feature (eqs. 1-2; preset "
                                        "`no_position`), an ablation"}}
 
 ABOUT = {
     "ethucy": """Leave-one-scene-out models, one per held-out scene, trained with `make train-ethucy` (`logpipe train
-out/ethucy --scene SCENE --config configs/ethucy.toml [--preset baseline|lstm|no_position]`). The paper's method is
-in `ethucy/<scene>/`, the baselines in `ethucy/<scene>/noise_lstm/` and `ethucy/<scene>/lstm/`, the ablation without
-the position feature in `ethucy/<scene>/no_position/`.
+out/ethucy --scene SCENE --config configs/ethucy.toml [--preset baseline|lstm|no_position]`). The paper's network
+with our extensions is in `ethucy/<scene>/`, the paper's method as the paper specifies it in `ethucy/<scene>/paper/`
+(`make train-ethucy-paper`), the baselines in `ethucy/<scene>/noise_lstm/` and `ethucy/<scene>/lstm/`, the ablation
+without the position feature in `ethucy/<scene>/no_position/`.
 
 - **Data:** `logpipe ingest ../shared/data/ethucy` (Social-GAN split files). Training logs: memberships
   `SCENE/train`; validation: `SCENE/val` (the held-out scene is never seen). Samples: 8 observed + 12 predicted steps
@@ -38,7 +42,8 @@ the position feature in `ethucy/<scene>/no_position/`.
   so the ego-motion, ego-trajectory and environment features are off, as in the paper.""",
     "apolloscape": """Models trained with `make train-apolloscape` (`logpipe train out/reproduce/apolloscape/dataset
 --train-split hash/train --val-split hash/val --config configs/apolloscape.toml [--preset baseline|lstm]`), in
-`apolloscape/<method>/`.
+`apolloscape/<method>/`; the paper's method as the paper specifies it in `apolloscape/paper/`
+(`make train-apolloscape-paper`).
 
 - **Data:** `logpipe ingest ../shared/data/apolloscape/prediction_train --format apolloscape`; the files are split
   70/15/15 by the sha256 of their log id (`hash/train`, `hash/val`, `hash/test`). 6 observed + 6 predicted steps at
@@ -81,14 +86,15 @@ def card(kind: str, seed: int = 0) -> str:
         folders = [(m, root / m) for m in trained]
         label = "method"
     rows = "\n".join(_row(name, folder) for name, folder in folders)
-    methods = "; ".join(f"`{k}`: {v}" for k, v in trained.items())
+    methods = "; ".join(f"`{k}`: {v.replace('<kind>', kind)}" for k, v in trained.items())
+    paper_config = REPO / "configs" / f"{kind}_paper.toml"
     seed_note = str(seed) if seed == 0 else (f"{seed} (`make train-{kind} SEED={seed}`; seed 0 is in "
                                              f"`model/checkpoints/{kind}/`)")
     return f"""# {kind} checkpoints
 
 {ABOUT[kind]}
-- **Methods:** {methods}. The baselines train with the same config; `--preset` only switches the features off
-  (and, for LSTM, the noise), so the schedule, data and augmentation match.
+- **Methods:** {methods}. The baselines train with `configs/{kind}.toml`; `--preset` only switches the features off
+  (and, for LSTM, the noise), so the schedule, data and augmentation match. `paper` shares that schedule only.
 - **Seed:** {seed_note}, one torch thread per run, two runs at a time on a 2-core CPU shared with other jobs.
   Card written {time.strftime('%Y-%m-%d', time.gmtime())} on Python {platform.python_version()}.
 - **Schedule:** much shorter than the paper's 20,000 steps, so a model trains in minutes here; early stopping on
@@ -113,7 +119,13 @@ neighbour cap that `logpipe predict` uses by default), `train_summary.json` and 
 ```toml
 {config.strip()}
 ```
-"""
+""" + (f"""
+## Config of `paper` (`configs/{kind}_paper.toml`)
+
+```toml
+{paper_config.read_text().strip()}
+```
+""" if paper_config.is_file() else "")
 
 
 def _root(seed: int) -> Path:
