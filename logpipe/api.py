@@ -424,6 +424,8 @@ def predict(
     threads: int = 0,
     device: str = "auto",
     progress: Progress | None = None,
+    backend: str = "local",
+    workers: int = 0,
 ) -> dict[str, Any]:
     """``logpipe predict``: run a checkpoint (default: the shipped one for the dataset kind) or a baseline
     (``predictor="cv"|"linear"|"kalman"|"cv_sampler"``) on every selected sample into the run folder ``out``.
@@ -437,6 +439,8 @@ def predict(
         mcap: write one MCAP per log; ``raster_images``: add each sample's raster to it.
         device: where a checkpoint's network runs: ``auto`` (CUDA when torch sees a GPU, else the CPU), ``cpu`` or
             ``cuda`` (autocast on CUDA); baselines ignore it.
+        backend: ``local`` or ``ray`` (forecasts on ``workers`` Ray actors, 0 = one per GPU, else per CPU; the
+            dataset must be on a file system every node shares); the same output bytes at the same ``threads``.
 
     Raises:
         LogpipeError: a bad option or filter, a checkpoint that does not fit the dataset, missing rasters.
@@ -453,7 +457,7 @@ def predict(
         constant_velocity_modes=constant_velocity_modes, context_max_neighbours=context_max_neighbours,
         as_trained=as_trained, sample_filter=parse_filter(list(filters)), inputs=_paths(inputs), raster_run=raster_run,
         raster_images=raster_images, write_mcap=mcap, batch_size=batch_size, threads=threads, progress=progress,
-        device=device,
+        device=device, backend=backend, workers=workers,
     )
     return summary
 

@@ -396,8 +396,14 @@ def predict(
         "--raster-images/--no-raster-images", help="Add each sample's raster to the MCAP as an image.")] = True,
     mcap: Annotated[bool, typer.Option("--mcap/--no-mcap", help="Write one MCAP per log.")] = True,
     batch_size: Annotated[int, typer.Option("--batch-size", help="Samples per forward pass.")] = 64,
-    threads: Annotated[int, typer.Option("--threads", help="torch threads (0 = all cores).")] = 0,
+    threads: Annotated[int, typer.Option(
+        "--threads", help="torch threads (0 = all cores; with ray, per actor and default 1).")] = 0,
     device: DeviceOpt = "auto",
+    backend: Annotated[str, typer.Option(
+        "--backend", help="local | ray: forecast on Ray actors (DATASET on a file system every node shares); "
+        "outputs are written here, the same bytes as a local run with the same --threads.")] = "local",
+    workers: Annotated[int, typer.Option(
+        "--workers", "-j", help="Ray actors (0 = one per GPU of the cluster, else one per CPU); ray only.")] = 0,
     as_json: JsonOpt = False,
 ) -> None:
     """Run a checkpoint (or a baseline) on every sample and write predictions as Parquet and, per log, an MCAP
@@ -413,7 +419,7 @@ def predict(
             noise_scale=noise_scale, constant_velocity_modes=constant_velocity_modes,
             context_max_neighbours=context_max_neighbours, as_trained=as_trained, filters=filters or (),
             inputs=inputs, raster_run=raster_run, raster_images=raster_images, mcap=mcap, batch_size=batch_size,
-            threads=threads, device=device, progress=advance,
+            threads=threads, device=device, progress=advance, backend=backend, workers=workers,
         )
     for warning in summary["warnings"]:  # shown with --json and -q too: a leak must not pass unnoticed
         typer.echo(f"warning: {warning}", err=True)

@@ -28,6 +28,7 @@ run gives the same bytes as an uninterrupted one.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 import queue
 import sys
@@ -233,6 +234,8 @@ class _Run:
     manifest_sha256: str
     meta: PredictionMeta
     raster_ids: frozenset[str]
+    forecast: Callable[[list[SceneSample]], Sequence[Any]] | None = None
+    """Where forecasts come from instead of ``chosen.model`` (``--backend ray``: results of the actors)."""
 
 
 def predict_dataset(
@@ -256,6 +259,8 @@ def predict_dataset(
     threads: int = 0,
     progress: Callable[[int], None] | None = None,
     device: str = "auto",
+    backend: str = "local",
+    workers: int = 0,
 ) -> dict[str, Any]:
     """Predict every selected sample of ``dataset_dir`` into ``out_dir``; returns the run summary (``--json``).
 
@@ -288,6 +293,9 @@ def predict_dataset(
         progress: called with the number of samples each batch finished.
         device: where a checkpoint's network runs: ``auto`` (CUDA when torch can use a GPU, else the CPU), ``cpu``
             or ``cuda`` (autocast there; see ``logpipe.model.device``). Baselines run on the CPU whatever it says.
+        backend: ``local`` (this process) or ``ray``: forecasts on Ray actors (``logpipe.model.ray_predict``;
+            ``dataset_dir`` must be on a file system every node shares), outputs written here, the same bytes.
+        workers: Ray actors (0: one per GPU of the cluster, else one per CPU); ``local`` ignores it.
 
     Raises:
         LogpipeError: a bad option, a checkpoint that does not fit the dataset, missing rasters or originals;
@@ -306,6 +314,8 @@ def predict_dataset(
     modes = modes or (stored.num_modes if stored is not None else default_modes(dataset.protocol.name))
     if modes < 1 or batch_size < 1:
         raise LogpipeError(f"--modes and --batch-size must be >= 1, got {modes} and {batch_size}")
+    if backend not in ("local", "ray"):
+        raise LogpipeError(f"--backend must be local or ray, got {backend!r}")
     inference = resolve_inference(chosen, num_modes=modes, noise_scale=noise_scale,
                                   constant_velocity_modes=constant_velocity_modes,
                                   context_max_neighbours=context_max_neighbours, as_trained=as_trained)
@@ -348,14 +358,15 @@ def predict_dataset(
         "samples_selected": sum(len(v) for v in samples_by_log.values()), "shards_skipped_done": 0,
         "samples": 0, "targets": 0, "rows": 0, "targets_unobserved": 0, "samples_without_targets": 0,
         "mcap_files": 0, "original_messages": 0, "model_seconds": 0.0, "io_seconds": 0.0, "io_wait_seconds": 0.0,
-        "io_busy_seconds": 0.0, "device": None if torch_device is None else str(torch_device),
+        "io_busy_seconds": 0.0, "device": None if torch_device is None else str(torch_device), "backend": backend,
     }
     previous_threads = torch.get_num_threads()
     previous_switch = sys.getswitchinterval()
     try:
         with output_errors(), PredictionRunWriter(out_dir) as writer:
             shards, files = writer.committed(settings)
-            load_net(chosen, dataset, batch_size, torch_device or "cpu")
+            if backend == "local":  # with ray the actors load it
+                load_net(chosen, dataset, batch_size, torch_device or "cpu")
             run = _Run(dataset, chosen, modes, seed, batch_size, sample_filter, rasters, raster_images, write_mcap,
                        logs, samples_by_log, originals, manifest_sha, meta,
                        frozenset(rasters.index.column("sample_id").to_pylist()) if rasters is not None
@@ -368,6 +379,11 @@ def predict_dataset(
             # The writer thread (``_ShardWriter``) holds the GIL for long stretches of JSON encoding; with the
             # default 5 ms switch interval every small torch op of the model thread could wait that long for it.
             sys.setswitchinterval(_SWITCH_INTERVAL_S)
+            if backend == "ray":
+                pending = [(i, p) for i, p in enumerate(dataset.shard_paths)
+                           if p.relative_to(dataset.root).as_posix() not in done]
+                run.forecast = _ray_forecasts(run, pending, workers, threads, device)
+                summary["device"] = None  # chosen on each actor
             uncommitted = writer.manifest is None
             for index, path in enumerate(dataset.shard_paths):
                 key = path.relative_to(dataset.root).as_posix()
@@ -665,11 +681,7 @@ def _predict_logs(run: _Run, tracks: pa.Table, shard_logs: list[str], summary: d
 
     Batches span logs (Argoverse has one sample per log), so a log is finished when a batch has gone past it.
     """
-    log_ids = as_numpy(tracks.column("log_id"))
-    bounds = np.flatnonzero(log_ids[1:] != log_ids[:-1]) + 1
-    starts = np.concatenate([[0], bounds]).tolist()
-    ends = np.concatenate([bounds, [len(log_ids)]]).tolist()
-    slices = {str(log_ids[lo]): (lo, hi) for lo, hi in zip(starts, ends, strict=True)}
+    slices = _log_slices(tracks)
     pending: list[_LogOutput] = []
     batch: list[tuple[_LogOutput, dict[str, Any], SceneSample]] = []
     for log_id in shard_logs:
@@ -696,6 +708,15 @@ def _predict_logs(run: _Run, tracks: pa.Table, shard_logs: list[str], summary: d
         _run_batch(run, batch, summary, progress, sink)
     for out in pending:
         sink.end(out)
+
+
+def _log_slices(tracks: pa.Table) -> dict[str, tuple[int, int]]:
+    """Each log's [start, end) rows in a shard (shards store a log's rows together)."""
+    log_ids = as_numpy(tracks.column("log_id"))
+    bounds = np.flatnonzero(log_ids[1:] != log_ids[:-1]) + 1
+    starts = np.concatenate([[0], bounds]).tolist()
+    ends = np.concatenate([bounds, [len(log_ids)]]).tolist()
+    return {str(log_ids[lo]): (lo, hi) for lo, hi in zip(starts, ends, strict=True)}
 
 
 def _end_finished(pending: list[_LogOutput], current: _LogOutput, sink: _ShardWriter) -> None:
@@ -767,15 +788,21 @@ class LogWindows:
 def _model_input(run: _Run, windows: LogWindows, row: dict[str, Any]) -> SceneSample | None:
     """The sample with the object-type filter applied to its targets and its raster attached; None when no
     target is left."""
-    sample = windows.sample(row)
-    if run.filter.object_types:
-        keep = np.isin(np.asarray(OBJECT_TYPES)[sample.object_types], run.filter.object_types)
-        sample.target_mask = sample.target_mask & keep
-    if not sample.target_mask.any():
+    sample = _with_targets(run, windows, row)
+    if sample is None:
         return None
     if run.rasters is not None and sample.sample_id in run.raster_ids:
         sample.raster, sample.world_to_raster = run.rasters.get(sample.sample_id)
     return sample
+
+
+def _with_targets(run: _Run, windows: LogWindows, row: dict[str, Any]) -> SceneSample | None:
+    """The sample with the object-type filter applied to its targets; None when no target is left."""
+    sample = windows.sample(row)
+    if run.filter.object_types:
+        keep = np.isin(np.asarray(OBJECT_TYPES)[sample.object_types], run.filter.object_types)
+        sample.target_mask = sample.target_mask & keep
+    return sample if sample.target_mask.any() else None
 
 
 def _run_batch(run: _Run, batch: list[tuple[_LogOutput, dict[str, Any], SceneSample]],
@@ -787,7 +814,8 @@ def _run_batch(run: _Run, batch: list[tuple[_LogOutput, dict[str, Any], SceneSam
     t0 = time.perf_counter()
     with torch.inference_mode():
         # Predictors draw each sample's noise from (--seed, sample id): batching and resuming change nothing.
-        futures = run.chosen.model.predict(samples, run.modes, run.seed)
+        futures = (run.forecast(samples) if run.forecast is not None
+                   else run.chosen.model.predict(samples, run.modes, run.seed))
     summary["model_seconds"] += time.perf_counter() - t0
     protocol = run.dataset.protocol
     by_log: dict[str, tuple[_LogOutput, list[_SamplePrediction]]] = {}
@@ -830,6 +858,100 @@ def _log_table(run: _Run, log_id: str, done: list[_SamplePrediction]) -> pa.Tabl
                        futures=p.futures, scores=p.scores, step_ns=p.step_ns)
         for p in done
     ])
+
+
+# ---------------------------------------------------------------------------------------------------------
+# --backend ray: the local path's batches, forecast on Ray actors, written here as above. The Ray plumbing is
+# ``logpipe.model.ray_predict`` (it loads the model, so not the core; stages never import each other); what a
+# work item is stays here, next to the windowing both sides share, so the actors cut the same samples.
+
+_RayItem = tuple[str, list[list[tuple[str, dict[str, Any]]]]]
+"""A shard path and consecutive batches of it, cut as ``_predict_logs`` cuts them: (log id, sample-index row)."""
+_ITEMS_PER_ACTOR = 4
+"""Work items per actor: enough to even out uneven items, few enough that each amortises its shard read."""
+
+
+def _ray_forecasts(run: _Run, pending: list[tuple[int, Path]], workers: int, threads: int,
+                   device: str) -> Callable[[list[SceneSample]], Sequence[Any]]:
+    """``run.forecast`` for ``--backend ray``: returns, batch after batch, the actors' forecasts of the batches
+    ``_predict_logs`` will cut from the ``pending`` shards (checked by sample id)."""
+    from logpipe.model import ray_predict
+
+    # Each actor runs torch on ``--threads`` threads (default 1) and reserves as many CPUs. The network's float32
+    # reductions round by thread count, so outputs match a local run's bytes at the same --threads (tested).
+    threads = threads or 1
+    size, gpu = ray_predict.start(workers, threads)
+    planned = [(path, _plan_batches(run, path)) for _, path in pending]
+    per_item = max(1, -(-sum(len(b) for _, b in planned) // (_ITEMS_PER_ACTOR * size)))
+    items: list[_RayItem] = [(str(path), batches[i : i + per_item])
+                             for path, batches in planned for i in range(0, len(batches), per_item)]
+    # Actors need neither the per-log tables nor the originals; a fresh RasterShards has no memory maps to pickle.
+    rasters = run.rasters and RasterShards(run.rasters.run_dir, run.rasters.spec, run.rasters.index)
+    actor_run = dataclasses.replace(run, logs={}, samples_by_log={}, originals={}, rasters=rasters)
+    setup = functools.partial(_ray_actor, actor_run, threads, device)
+    results = (batch for item in ray_predict.forecast_on_ray(setup, items, size=size, gpu=gpu, cpus=threads)
+               for batch in item)
+
+    def forecast(samples: list[SceneSample]) -> Sequence[Any]:
+        ids, futures = next(results)
+        if ids != [s.sample_id for s in samples]:
+            raise LogpipeError(f"Ray returned forecasts of samples {ids[:3]}... for a batch of "
+                               f"{[s.sample_id for s in samples][:3]}... (the actors cut other batches)")
+        return futures  # type: ignore[no-any-return]
+
+    return forecast
+
+
+def _plan_batches(run: _Run, path: Path) -> list[list[tuple[str, dict[str, Any]]]]:
+    """The batches ``_predict_logs`` cuts from one shard: samples left with targets, ``batch_size`` at a time."""
+    tracks = read_table(path)
+    slices = _log_slices(tracks)
+    kept: list[tuple[str, dict[str, Any]]] = []
+    for log_id in (i for i in run.logs if i in slices):  # logs-table order, as _predict_shard takes them
+        lo, hi = slices[log_id]
+        windows = LogWindows(tracks.slice(lo, hi - lo), run.dataset.protocol.obs_len)
+        kept += [(log_id, row) for row in run.samples_by_log.get(log_id, [])
+                 if _with_targets(run, windows, row) is not None]
+    return [kept[i : i + run.batch_size] for i in range(0, len(kept), run.batch_size)]
+
+
+def _ray_actor(run: _Run, threads: int, device: str) -> Callable[[_RayItem], list[tuple[list[str], list[Any]]]]:
+    """Runs once in each Ray actor: loads the model, sets ``threads`` torch threads; returns the forecast of a
+    work item (sample ids and forecasts per batch), reading its shard from the shared file system (the last one
+    read is kept)."""
+    import torch
+
+    load_net(run.chosen, run.dataset, run.batch_size,
+             resolve_device(device) if run.chosen.checkpoint is not None else "cpu")
+    torch.set_num_threads(threads)
+    model = run.chosen.model
+    assert model is not None
+    shard: dict[str, Any] = {}
+
+    def forecast(item: _RayItem) -> list[tuple[list[str], list[Any]]]:
+        path, batches = item
+        if shard.get("path") != path:
+            tracks = read_table(Path(path))
+            shard.clear()
+            shard.update(path=path, tracks=tracks, slices=_log_slices(tracks), windows={})
+        windows: dict[str, LogWindows] = shard["windows"]
+        out = []
+        for batch in batches:
+            samples = []
+            for log_id, row in batch:
+                if log_id not in windows:
+                    lo, hi = shard["slices"][log_id]
+                    windows[log_id] = LogWindows(shard["tracks"].slice(lo, hi - lo), run.dataset.protocol.obs_len)
+                sample = _model_input(run, windows[log_id], row)
+                if sample is None:
+                    raise LogpipeError(f"{path}: sample {row['sample_id']} has no targets on a Ray actor")
+                samples.append(sample)
+            with torch.inference_mode():
+                futures = model.predict(samples, run.modes, run.seed)
+            out.append(([s.sample_id for s in samples], [np.asarray(f) for f in futures]))
+        return out
+
+    return forecast
 
 
 # ---------------------------------------------------------------------------------------------------------
