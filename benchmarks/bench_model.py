@@ -6,6 +6,9 @@ Measures, each as the median of repeats:
   environment net (the paper's ETH/UCY setting: PF + TF) and with it (all features, ego + raster), with
   the default select-then-backprop step and (no-env only) back-propagating through all H modes;
 * inference scenes/s (batch 32, K = 20 modes), the same two settings;
+* the cost of the environment net in training, per core, on Argoverse-shaped scenes (20 + 30 steps, 5-15 agents,
+  ego, 7 x 224 x 224 raster): v4 (no EN) against the full model with the backbone trained, frozen, and frozen with
+  its feature maps cached (``model.feature_cache``, timed in the second epoch: every map a hit), as ratios to v4;
 * the ResNet18 stages 1-2 backbone alone (224 x 224, C = 4, batch 8, forward) in fp32 and in bf16
   autocast with channels_last, plus the bf16 accuracy cost (relative L2 error of the feature map and of
   the pooled environment feature v against fp32, same weights).
@@ -22,13 +25,16 @@ import statistics
 import sys
 import time
 from collections.abc import Callable
+from dataclasses import replace
 from typing import Any
 
+import numpy as np
 import torch
 
 from logpipe.model.backbone import native_bf16
-from logpipe.model.batching import collate
-from logpipe.model.config import Features, ModelConfig
+from logpipe.model.batching import Batch, collate
+from logpipe.model.config import PRESETS, Features, ModelConfig
+from logpipe.model.feature_cache import BackboneFeatureCache, scene_keys
 from logpipe.model.nets import TrajectoryNet
 from logpipe.model.synthetic import make_scenes
 from logpipe.model.training import best_of_h_step_loss
@@ -52,12 +58,25 @@ def _median_rate(fn: Callable[[], int], repeats: int, warmup: int = 1) -> float:
 
 
 def _train_rate(
-    cfg: ModelConfig, scenes: list[SceneSample], steps: int, repeats: int, select: bool = True
+    cfg: ModelConfig, scenes: list[SceneSample], steps: int, repeats: int, select: bool = True,
+    cache: BackboneFeatureCache | None = None,
 ) -> float:
+    """Training scenes/s over batches of 8 (windows ``scenes[8 i : 8 i + 8]``); with ``cache``, its backbone maps
+    of every window are computed first (the first epoch), so the timed steps are later epochs'."""
     torch.manual_seed(0)
     net = TrajectoryNet(cfg).train()
     opt = torch.optim.Adam(net.parameters(), lr=5e-4)
     cursor = [0]
+
+    def maps(chunk: list[SceneSample], batch: Batch) -> torch.Tensor | None:
+        keys = scene_keys(chunk, batch) if cache is not None else None
+        if cache is None or keys is None or net.env is None or batch.raster is None:
+            return None
+        fmap: torch.Tensor = cache.feature_maps(net.env, batch.raster, keys)
+        return fmap
+
+    for lo in range(0, len(scenes) - 8, 8) if cache is not None else ():
+        maps(scenes[lo : lo + 8], collate(scenes[lo : lo + 8], cfg))
 
     def run() -> int:
         done = 0
@@ -65,7 +84,8 @@ def _train_rate(
             lo = cursor[0] % (len(scenes) - 8)
             cursor[0] += 8
             batch = collate(scenes[lo : lo + 8], cfg)
-            loss = best_of_h_step_loss(net, batch, 20, torch.Generator().manual_seed(done), "scene", select)
+            fmap = maps(scenes[lo : lo + 8], batch)
+            loss = best_of_h_step_loss(net, batch, 20, torch.Generator().manual_seed(done), "scene", select, fmap)
             opt.zero_grad()
             loss.backward()
             opt.step()
@@ -86,6 +106,36 @@ def _infer_rate(cfg: ModelConfig, scenes: list[SceneSample], repeats: int) -> fl
         return len(scenes)
 
     return _median_rate(run, repeats)
+
+
+def _train_env_cost(quick: bool) -> dict[str, Any]:
+    """Training samples/s per core (1 thread, CPU time) of v4 and of the full model with the backbone trained,
+    frozen, and frozen + cached (second epoch), each as a median of repeats and as a ratio to v4."""
+    repeats, steps, n_scenes = (3, 1, 24) if quick else (5, 2, 48)
+    scenes = make_scenes(n_scenes, seed=4, min_agents=5, max_agents=15, obs_len=20, pred_len=30, with_ego=True,
+                         with_raster=True, channels=7)
+    # Each sample its own raster (the synthetic stripes are the same in every scene), as on real data.
+    scenes = [replace(s, raster=np.roll(s.raster, 3 * i, axis=2)) for i, s in enumerate(scenes)]
+    base = ModelConfig(obs_len=20, pred_len=30, raster_channels=7, backbone_bf16=False)
+    frozen = replace(base, freeze_backbone=True)
+    cache = BackboneFeatureCache(max_bytes=10**10)
+    rates = {
+        "v4_no_env": _train_rate(replace(base, features=PRESETS["v4"]), scenes, steps, repeats),
+        "full_env_trained": _train_rate(base, scenes, steps, repeats),
+        "full_backbone_frozen": _train_rate(frozen, scenes, steps, repeats),
+        "full_backbone_frozen_cached": _train_rate(frozen, scenes, steps, repeats, cache=cache),
+    }
+    out: dict[str, Any] = {
+        "scenes": f"{n_scenes} synthetic, 5-15 agents with ego, 20 + 30 steps, 7 x 224 x 224 raster; batch 8, H = 20",
+        "load_avg_1m_at_start": os.getloadavg()[0],
+    }
+    out.update({f"train_samples_per_s_{k}_per_core": v for k, v in rates.items()})
+    out.update({f"ratio_{k}_to_v4": v / rates["v4_no_env"] for k, v in rates.items() if k != "v4_no_env"})
+    # The cached run's timed steps must all have been hits: the first epoch (pre-fill) computed each sample once.
+    out["cached_run_backbone_images"] = cache.stats.computed
+    out["cached_run_hits"] = cache.stats.hits
+    out["load_avg_1m_at_end"] = os.getloadavg()[0]
+    return out
 
 
 def _backbone(repeats: int) -> dict[str, float]:
@@ -146,6 +196,7 @@ def run(quick: bool = False) -> dict[str, Any]:
     }
     torch.set_num_threads(1)
     _CLOCK["kind"] = "cpu"
+    result["train_env_cost"] = _train_env_cost(quick)
     result["train_samples_per_s_no_env_per_core"] = _train_rate(eth, plain, steps, repeats)
     result["train_samples_per_s_no_env_full_backprop_per_core"] = _train_rate(eth, plain, steps, repeats, False)
     result["train_samples_per_s_env_per_core"] = _train_rate(full, mapped, max(1, steps // 2), repeats)

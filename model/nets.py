@@ -398,8 +398,9 @@ class TrajectoryNet(nn.Module):
         v = self.env(proj, pos.detach(), batch, rows)
         return torch.where(batch.has_raster[batch.scene[rows]][None, :, None], v, torch.zeros_like(v))
 
-    def encode(self, batch: Batch) -> Encoded:
-        """Run LSTM_E (eq. 16) and the AIN GRU over the observed steps t = 1 .. T_obs."""
+    def encode(self, batch: Batch, feature_map: Tensor | None = None) -> Encoded:
+        """Run LSTM_E (eq. 16) and the AIN GRU over the observed steps t = 1 .. T_obs; ``feature_map``: the
+        backbone's maps of ``batch.raster`` when the caller has them (``feature_cache``), else computed here."""
         cfg = self.config
         t_obs = batch.obs_len
         ps, ds = cfg.pos_scale_m, cfg.disp_scale_m
@@ -433,7 +434,8 @@ class TrajectoryNet(nn.Module):
         proj = v_all = None
         if self.env is not None:
             if batch.raster is not None:
-                proj = self.env.project(self.env.feature_map(batch.raster))
+                fmap = self.env.feature_map(batch.raster) if feature_map is None else feature_map
+                proj = self.env.project(fmap)
             v_all = self._env(proj, obs, batch, rows)  # (T_obs, N, d_v)
             v_all = torch.where(ok[..., None], v_all, torch.zeros_like(v_all))
         gate = torch.sigmoid(self.attention(obs / ps)) if self.attention is not None else None  # eq. 13

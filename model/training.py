@@ -27,7 +27,7 @@ import math
 import os
 import time
 from collections.abc import Callable, Iterable, Iterator, Sequence
-from dataclasses import dataclass, replace
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any, ParamSpec, TypeVar
 
@@ -51,6 +51,7 @@ from .checkpoints import (
 )
 from .config import ConfigError, ModelConfig, TrainConfig, config_to_dict, save_config
 from .device import autocast, grad_scaler, resolve_device
+from .feature_cache import BackboneFeatureCache, scene_keys
 from .loss import DisplacementErrors, best_of_h_loss
 from .nets import TrajectoryNet
 
@@ -139,9 +140,11 @@ def targets_with_future(batch_target: torch.Tensor, valid: torch.Tensor, obs_len
 
 
 def best_of_h_step_loss(
-    net: TrajectoryNet, batch: Batch, num_modes: int, generator: torch.Generator, reduce: str, select_first: bool
+    net: TrajectoryNet, batch: Batch, num_modes: int, generator: torch.Generator, reduce: str, select_first: bool,
+    feature_map: torch.Tensor | None = None,
 ) -> torch.Tensor:
-    """Eq. 23 for one batch, ready for ``backward``.
+    """Eq. 23 for one batch, ready for ``backward`` (``feature_map``: the backbone's maps of ``batch.raster``
+    from ``feature_cache``, else the backbone runs).
 
     With ``select_first`` the H modes are decoded without autograd, the best modes are picked, and only
     those are decoded again with autograd from the same encoder state and the same noise z. Modes are
@@ -154,7 +157,7 @@ def best_of_h_step_loss(
       with the most of them needs (slot l holds a different mode in each scene; scenes never interact).
     """
     cfg = net.config
-    enc = net.encode(batch)
+    enc = net.encode(batch, feature_map)
     rows = batch.active.nonzero().squeeze(1)
     # z from the CPU generator whatever the device: a run draws the same z on every device.
     noise = torch.randn(num_modes, len(rows), cfg.noise_dim, generator=generator).to(rows.device)
@@ -424,6 +427,8 @@ def fit(
     scaler = grad_scaler(dev)
     optimizer = torch.optim.Adam(net.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     average = _weight_average(net, cfg.ema_decay)
+    # Frozen backbone's maps of the training samples (validation runs the backbone); see feature_cache.
+    cache = BackboneFeatureCache(cfg.cache_backbone_max_mb * 10**6) if cfg.cache_backbone_features else None
     step, epoch, pos_in_epoch = 0, 0, 0
     best_ade, best_fde, best_step, bad_evals = math.inf, math.inf, -1, 0
     earlier_elapsed, resumed_at_step = 0.0, None  # wall time of the parts before a resume, and where it resumed
@@ -538,13 +543,18 @@ def fit(
             rotations = None
             if cfg.augment_rotate:
                 rotations = np.random.default_rng([cfg.seed, step, 1]).uniform(0, 2 * np.pi, len(chunk)).tolist()
-            batch = collate(chunk, cfg.model, rotations=rotations).to(dev)
+            batch = collate(chunk, cfg.model, rotations=rotations)
+            keys = scene_keys(chunk, batch) if cache is not None and net.env is not None else None
+            batch = batch.to(dev)
             gen = torch.Generator().manual_seed(cfg.seed * 1_000_003 + step + 7_919 * ranks.rank)
             for group in optimizer.param_groups:
                 group["lr"] = cfg.lr * cfg.lr_decay ** (step // cfg.lr_decay_every)
             with autocast(dev):
+                fmap = None
+                if cache is not None and keys is not None and net.env is not None and batch.raster is not None:
+                    fmap = cache.feature_maps(net.env, batch.raster, keys)
                 loss = best_of_h_step_loss(net, batch, cfg.num_modes, gen, cfg.loss_min_over,
-                                           cfg.select_then_backprop)
+                                           cfg.select_then_backprop, fmap)
             optimizer.zero_grad(set_to_none=True)
             if scaler is None:
                 loss.backward()  # type: ignore[no-untyped-call]
@@ -592,7 +602,8 @@ def fit(
         validate()
     elapsed = time.perf_counter() - start_time
     rate = train_samples / train_time if train_time > 0 else 0.0
-    log.write("end", step=step, best_step=best_step, best_val_ade=best_ade, elapsed_s=elapsed, samples_per_s=rate)
+    log.write("end", step=step, best_step=best_step, best_val_ade=best_ade, elapsed_s=elapsed, samples_per_s=rate,
+              **({"backbone_cache": asdict(cache.stats)} if cache is not None else {}))
     return TrainResult(
         out_dir=out_dir,
         best_checkpoint=best_dir if (best_dir / "meta.json").exists() else None,
