@@ -28,8 +28,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from reproduce_ethucy import (
     AS_TRAINED,
     CV_MODES_GRID,
+    NETWORK_ROWS,
     NOISE_SCALE_GRID,
     PAPER,
+    PAPER_ROWS,
     REPO,
     SEED_METHODS,
     across_seeds_table,
@@ -58,24 +60,13 @@ LEARNED = {PAPER: ("model/checkpoints/apolloscape/paper", K_BEST),
            "zhu2020": ("model/checkpoints/apolloscape/zhu2020", K_BEST),
            "noise_lstm": ("model/checkpoints/apolloscape/noise_lstm", K_BEST),
            "lstm": ("model/checkpoints/apolloscape/lstm", 1)}
-ROWS = (("The paper's method as specified, best-of-20 per agent", PAPER, 20, "ade", "fde"),
-        ("The paper's method as specified, best-of-20 joint", PAPER, 20, "ade_joint", "fde_joint"),
-        ("The paper's method as specified, K=1", PAPER, 1, "ade", "fde"),
+ROWS = (*PAPER_ROWS,
         ("Constant velocity (K=1)", "cv", 1, "ade", "fde"), ("Linear (K=1)", "linear", 1, "ade", "fde"),
         ("Kalman CV (K=1)", "kalman", 1, "ade", "fde"),
         ("CV sampler, best-of-20 per agent", "cv_sampler", 20, "ade", "fde"),
         ("CV sampler, best-of-20 joint", "cv_sampler", 20, "ade_joint", "fde_joint"),
         ("CV sampler, K=1", "cv_sampler", 1, "ade", "fde"), ("LSTM (K=1)", "lstm", 1, "ade", "fde"),
-        ("Noise-LSTM, best-of-20 per agent (inference settings chosen on val)", "noise_lstm", 20, "ade", "fde"),
-        ("Noise-LSTM, best-of-20 joint (inference settings chosen on val)", "noise_lstm", 20, "ade_joint",
-         "fde_joint"),
-        ("Ours: the method with our extensions (zhu2020), best-of-20 per agent (inference settings chosen on val)",
-         "zhu2020", 20, "ade", "fde"),
-        ("Ours: the method with our extensions (zhu2020), best-of-20 joint (inference settings chosen on val)",
-         "zhu2020", 20, "ade_joint", "fde_joint"),
-        ("Ours: the method with our extensions (zhu2020), best-of-20 per agent, as trained (s = 1)", AS_TRAINED, 20,
-         "ade", "fde"),
-        ("Ours: the method with our extensions (zhu2020), K=1, as trained (s = 1)", AS_TRAINED, 1, "ade", "fde"))
+        *NETWORK_ROWS)
 TYPES = ("vehicle", "bus_truck", "pedestrian", "cyclist", "unknown")
 
 
