@@ -8,7 +8,7 @@ OUT ?= out
 SHARED ?= ../shared/data
 ETHUCY_SCENES := eth hotel univ zara1 zara2
 
-.PHONY: setup demo test bench lint clean train-ethucy train-apolloscape train-ethucy-paper train-apolloscape-paper reproduce-ethucy reproduce-apolloscape reproduce-argoverse fuzz synthetic-map-check
+.PHONY: setup demo test bench lint clean train-ethucy train-apolloscape train-ethucy-paper train-apolloscape-paper reproduce-ethucy reproduce-apolloscape reproduce-argoverse reproduce-driving fuzz synthetic-map-check
 
 # torch first and pinned: a looser pin would pull a multi-GB CUDA build; 2.13.0 is a local CPU wheel here.
 $(STAMP): pyproject.toml
@@ -64,6 +64,11 @@ DATA ?= $(SHARED)/argoverse1/data
 MAPS ?= $(SHARED)/argoverse1/maps
 reproduce-argoverse: setup
 	$(PY) scripts/reproduce_argoverse.py --data $(DATA) --maps $(MAPS)
+
+# The driving model on the real AV1 + AV2 logs (docs/results/argoverse_logs.md): trains what is missing (resumable),
+# then scores hash/test.
+reproduce-driving: setup
+	$(PY) scripts/reproduce_driving.py
 
 clean:
 	rm -rf $(OUT) .pytest_cache .mypy_cache .ruff_cache
