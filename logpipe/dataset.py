@@ -43,6 +43,7 @@ from logpipe.artifact import MANIFEST, Ownership, check_files, read_manifest
 from logpipe.contracts import decode_dictionaries
 from logpipe.errors import DatasetError
 from logpipe.io import as_numpy, read_table
+from logpipe.shards import log_slices
 from logpipe.types import OBJECT_TYPES, Role, SampleProtocol, SceneSample
 
 TRACKS_DIR = "tracks"
@@ -235,12 +236,8 @@ class Dataset:
             table = read_table(path, filters=filters)
             if table.num_rows == 0:
                 continue
-            log_ids_np = as_numpy(table.column("log_id"))
-            bounds = np.flatnonzero(log_ids_np[1:] != log_ids_np[:-1]) + 1
-            starts = np.concatenate([[0], bounds])
-            ends = np.concatenate([bounds, [len(log_ids_np)]])
-            for lo, hi in zip(starts.tolist(), ends.tolist(), strict=True):
-                yield str(log_ids_np[lo]), table.slice(lo, hi - lo)
+            for log_id, (lo, hi) in log_slices(table).items():
+                yield log_id, table.slice(lo, hi - lo)
 
     def iter_scene_samples(self, sample_filter: pa.compute.Expression | None = None) -> Iterator[SceneSample]:
         """``SceneSample``s for every sample (optionally filtered), grouped by log for one read per log."""

@@ -127,11 +127,13 @@ class RasterShards:
 
 
 def find_raster_run(dataset_dir: Path, run: str | None, channels: int | None) -> RasterShards | None:
-    """The raster run to read: ``run`` (a folder name under ``rasters/``), else the only finished run (with
-    ``channels`` channels when given); None when there is none.
+    """The raster run to read, the one rule every stage follows: ``run`` (a folder name under ``rasters/``) when
+    given, else the only finished run; with ``channels``, only runs rendering that many channels count. None when
+    no finished run fits (each caller decides whether it needs one). Interrupted runs never count.
 
     Raises:
-        DatasetError: ``run`` does not exist, or several runs fit and none was named.
+        DatasetError: ``run`` is not a finished run, or several runs fit and none was named (the message names
+            them).
     """
     root = dataset_dir / RASTER_DIR
     runs = sorted(p.parent for p in root.glob(f"*/{RUN_MANIFEST}")) if root.is_dir() else []
@@ -141,15 +143,14 @@ def find_raster_run(dataset_dir: Path, run: str | None, channels: int | None) ->
         runs = [r for r in runs if r.name == run]
         if not runs:
             raise DatasetError(f"{dataset_dir}: no finished raster run {run!r} in {root}")
-    settings = [manifests[r]["settings"] for r in runs]
-    fitting = [(r, s) for r, s in zip(runs, settings, strict=True)
-               if channels is None or len(s["spec"]["channels"]) == channels]
+    fitting = [r for r in runs if channels is None or len(manifests[r]["settings"]["spec"]["channels"]) == channels]
     if not fitting:
         return None
-    if len(fitting) > 1 and channels is not None:
-        raise DatasetError(f"{dataset_dir}: several raster runs fit ({', '.join(r.name for r, _ in fitting)}); "
+    if len(fitting) > 1:
+        # Picking one silently would make the result depend on folder names (hashes of the settings).
+        raise DatasetError(f"{dataset_dir}: several raster runs fit ({', '.join(r.name for r in fitting)}); "
                            "name one with --raster-run")
-    _, chosen = fitting[0]
+    chosen = manifests[fitting[0]]["settings"]
     return RasterShards.open(dataset_dir, RasterSpec.from_dict(chosen["spec"]), chosen["centre"])
 
 

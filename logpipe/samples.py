@@ -16,6 +16,7 @@ import pyarrow.compute as pc
 
 from logpipe.contracts import arrow_schema, conform
 from logpipe.io import as_numpy
+from logpipe.shards import log_runs
 from logpipe.types import LogMeta, NDArrayBool, NDArrayInt, Role, SampleProtocol
 
 REGULAR_TOLERANCE = 0.5
@@ -78,9 +79,7 @@ def build_samples(
         return conform(pa.table(_first_windows(log_code, log_names, track_code, track_names, steps, ts, focal,
                                                protocol, rate, excluded)), schema)
 
-    bounds = np.flatnonzero(np.diff(log_code)) + 1
-    starts = np.concatenate([[0], bounds])
-    ends = np.concatenate([bounds, [len(log_code)]])
+    starts, ends = log_runs(log_code)
     columns: dict[str, list[object]] = {name: [] for name in schema.names}
     for lo, hi in zip(starts.tolist(), ends.tolist(), strict=True):
         log_id = log_names[log_code[lo]]
@@ -228,10 +227,9 @@ def no_sample_reasons(tracks: pa.Table, protocol: SampleProtocol, samples: pa.Ta
     steps = as_numpy(tracks.column("step")).astype(np.int64)
     focal = as_numpy(pc.equal(tracks.column("role"), Role.FOCAL.value))
     excluded = _excluded_rows(tracks, protocol)
-    bounds = np.flatnonzero(np.diff(codes.log_code)) + 1
+    starts, ends = log_runs(codes.log_code)
     reasons: dict[str, str] = {}
-    for lo, hi in zip(np.concatenate([[0], bounds]).tolist(), np.append(bounds, len(codes.log_code)).tolist(),
-                      strict=True):
+    for lo, hi in zip(starts.tolist(), ends.tolist(), strict=True):
         log_id = codes.log_names[codes.log_code[lo]]
         if log_id not in sampled:
             reasons[log_id] = _no_sample_reason(steps[lo:hi], codes.track_code[lo:hi], focal[lo:hi], protocol,
@@ -279,10 +277,8 @@ def _first_windows(
     statistic is a reduction over contiguous runs of the batch.
     """
     seq = protocol.seq_len
-    n = len(log_code)
-    starts = np.flatnonzero(np.concatenate([[True], log_code[1:] != log_code[:-1]]))
+    starts, ends = log_runs(log_code)
     n_logs = len(starts)
-    ends = np.append(starts[1:], n)
     log_of_row = np.repeat(np.arange(n_logs), ends - starts)
     n_steps = steps[ends - 1] + 1
     in_window = steps < seq

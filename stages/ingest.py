@@ -35,6 +35,7 @@ from logpipe.inputs import complete_hashes, find_inputs, fingerprint_inputs, rea
 from logpipe.io import as_numpy, parquet_options, read_table, sha256_file, sha256_tree, write_parquet
 from logpipe.progress import report_total
 from logpipe.samples import TrackCodes, build_samples, no_sample_reasons, steps_from_sorted_times
+from logpipe.shards import log_runs
 from logpipe.types import PENDING_SHA256, LogMeta, NDArrayBool, NDArrayInt, Role, SampleProtocol, SourceFile
 
 OnError = Literal["fail", "skip"]
@@ -323,13 +324,11 @@ _STAT_KEYS = ("num_rows", "num_tracks", "num_steps", "start_ns", "end_ns", "medi
 
 def _log_stats(tracks: pa.Table, codes: TrackCodes) -> dict[str, dict[str, Any]]:
     """Per-log row count, distinct tracks and steps, time span, median step and whether an ego exists."""
-    n = tracks.num_rows
     logs, names, tracks_code = codes.log_code, codes.log_names, codes.track_code
     steps = as_numpy(tracks.column("step"))
     ts = as_numpy(tracks.column("timestamp_ns"))
     ego = _equals(tracks.column("role"), Role.EGO.value)
-    starts = np.flatnonzero(np.concatenate([[True], logs[1:] != logs[:-1]]))
-    ends = np.append(starts[1:], n)
+    starts, ends = log_runs(logs)
     distinct = _distinct_per_group(logs, tracks_code, len(names))
     egos = np.zeros(len(names), dtype=bool)
     egos[logs[ego]] = True
@@ -392,15 +391,14 @@ def _write_mcaps(tracks: pa.Table, metas: list[LogMeta], folder: Path) -> int:
     # Log boundaries from the log codes (no string per row), every column converted once for the batch.
     logs = pc.dictionary_encode(tracks.column("log_id")).combine_chunks()
     codes, names = as_numpy(logs.indices), logs.dictionary.to_pylist()
-    bounds = np.flatnonzero(codes[1:] != codes[:-1]) + 1
     maps = {m.log_id: m.map_id for m in metas}
     # Imported here: the mcap writer's imports (~35 ms) are wasted on the --no-mcap path.
     from logpipe.mcapio import LogRows, write_log_mcap
 
     rows = LogRows.of(tracks)
     messages = 0
-    for lo, hi in zip(np.concatenate([[0], bounds]).tolist(), np.concatenate([bounds, [len(codes)]]).tolist(),
-                      strict=True):
+    starts, ends = log_runs(codes)
+    for lo, hi in zip(starts.tolist(), ends.tolist(), strict=True):
         log_id = names[codes[lo]]
         messages += write_log_mcap(log_id, rows.slice(lo, hi), folder / f"{log_id}.mcap", maps.get(log_id))
     return messages

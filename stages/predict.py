@@ -76,6 +76,7 @@ from logpipe.predictions import (
 )
 from logpipe.progress import report_total
 from logpipe.rasters import RasterShards, find_raster_run
+from logpipe.shards import log_slices
 from logpipe.types import OBJECT_TYPES, NDArrayFloat, NDArrayInt, SceneSample
 
 try:  # orjson encodes numpy arrays ~30x faster than json; the output is the same compact JSON
@@ -323,7 +324,10 @@ def predict_dataset(
     problems = check_fit(dataset, chosen, logs_table)
     warnings = seen_in_training(chosen, logs_table)
     samples_by_log = _selected_samples(dataset, logs_table, sample_filter)
-    rasters = find_raster_run(dataset_dir, raster_run, chosen.raster_channels if chosen.needs_raster else None)
+    # Looked up when used or named, so several runs are an error only where the choice matters and a named run
+    # that does not exist is always reported.
+    rasters = (find_raster_run(dataset_dir, raster_run, chosen.raster_channels if chosen.needs_raster else None)
+               if chosen.needs_raster or raster_images or raster_run is not None else None)
     if chosen.needs_raster:
         problems += _raster_problems(dataset_dir, rasters, samples_by_log)
     if problems:
@@ -681,7 +685,7 @@ def _predict_logs(run: _Run, tracks: pa.Table, shard_logs: list[str], summary: d
 
     Batches span logs (Argoverse has one sample per log), so a log is finished when a batch has gone past it.
     """
-    slices = _log_slices(tracks)
+    slices = log_slices(tracks)
     pending: list[_LogOutput] = []
     batch: list[tuple[_LogOutput, dict[str, Any], SceneSample]] = []
     for log_id in shard_logs:
@@ -708,15 +712,6 @@ def _predict_logs(run: _Run, tracks: pa.Table, shard_logs: list[str], summary: d
         _run_batch(run, batch, summary, progress, sink)
     for out in pending:
         sink.end(out)
-
-
-def _log_slices(tracks: pa.Table) -> dict[str, tuple[int, int]]:
-    """Each log's [start, end) rows in a shard (shards store a log's rows together)."""
-    log_ids = as_numpy(tracks.column("log_id"))
-    bounds = np.flatnonzero(log_ids[1:] != log_ids[:-1]) + 1
-    starts = np.concatenate([[0], bounds]).tolist()
-    ends = np.concatenate([bounds, [len(log_ids)]]).tolist()
-    return {str(log_ids[lo]): (lo, hi) for lo, hi in zip(starts, ends, strict=True)}
 
 
 def _end_finished(pending: list[_LogOutput], current: _LogOutput, sink: _ShardWriter) -> None:
@@ -905,7 +900,7 @@ def _ray_forecasts(run: _Run, pending: list[tuple[int, Path]], workers: int, thr
 def _plan_batches(run: _Run, path: Path) -> list[list[tuple[str, dict[str, Any]]]]:
     """The batches ``_predict_logs`` cuts from one shard: samples left with targets, ``batch_size`` at a time."""
     tracks = read_table(path)
-    slices = _log_slices(tracks)
+    slices = log_slices(tracks)
     kept: list[tuple[str, dict[str, Any]]] = []
     for log_id in (i for i in run.logs if i in slices):  # logs-table order, as _predict_shard takes them
         lo, hi = slices[log_id]
@@ -933,7 +928,7 @@ def _ray_actor(run: _Run, threads: int, device: str) -> Callable[[_RayItem], lis
         if shard.get("path") != path:
             tracks = read_table(Path(path))
             shard.clear()
-            shard.update(path=path, tracks=tracks, slices=_log_slices(tracks), windows={})
+            shard.update(path=path, tracks=tracks, slices=log_slices(tracks), windows={})
         windows: dict[str, LogWindows] = shard["windows"]
         out = []
         for batch in batches:

@@ -59,6 +59,7 @@ from logpipe.rasters import (
     run_id,
     shard_file,
 )
+from logpipe.shards import log_slices
 from logpipe.types import NDArrayByte, NDArrayFloat, NDArrayInt
 
 logger = logging.getLogger(__name__)
@@ -438,17 +439,13 @@ class _TrackReader:
             raise DatasetError(f"{self.root}: no log {log_id!r} in the logs table")
         if shard != self._shard:
             table = read_table(self.root / shard)
-            ids = as_numpy(table.column("log_id"))
-            cuts = np.flatnonzero(ids[1:] != ids[:-1]) + 1
-            starts = [0, *cuts.tolist()]
-            ends = [*cuts.tolist(), len(ids)]
-            self._slices = {str(ids[a]): (a, b - a) for a, b in zip(starts, ends, strict=True)}
+            self._slices = log_slices(table)
             self._shard, self._table = shard, table
         assert self._table is not None
         if log_id not in self._slices:
             raise DatasetError(f"{self.root}: log {log_id!r} missing from {shard}")
-        a, n = self._slices[log_id]
-        return self._table.slice(a, n)
+        start, end = self._slices[log_id]
+        return self._table.slice(start, end - start)
 
 
 def _index_counts(out: Path, shard_meta: list[dict[str, Any]]) -> dict[str, Any]:

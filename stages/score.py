@@ -581,7 +581,8 @@ def _scene_samples(ds: Dataset, ids: list[str]) -> dict[str, SceneSample]:
 
 
 def _open_rasters(ds: Dataset) -> Any:
-    """The dataset's first finished raster run, or None (plots then show tracks only)."""
+    """The dataset's only finished raster run (``find_raster_run``), or None when there is none, several or an
+    unreadable one (plots then show tracks only)."""
     from logpipe.rasters import find_raster_run
 
     try:

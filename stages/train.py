@@ -23,7 +23,7 @@ from logpipe.artifact import FolderLock
 from logpipe.dataset import Dataset
 from logpipe.errors import DatasetError, LogpipeError
 from logpipe.io import sha256_file
-from logpipe.rasters import RASTER_DIR, RUN_MANIFEST, RasterShards, find_raster_run
+from logpipe.rasters import RasterShards, find_raster_run
 from logpipe.types import SceneSample
 
 if TYPE_CHECKING:
@@ -122,7 +122,7 @@ def train(
         config = dataclasses.replace(
             config, model=dataclasses.replace(config.model, obs_len=protocol.obs_len, pred_len=protocol.pred_len)
         )
-    runs = [_raster_run(ds, raster_run) for ds in datasets]
+    runs = [find_raster_run(ds.root, raster_run, None) for ds in datasets]  # several unnamed runs: an error
     _check_rasters(datasets, runs, needed=config.model.features.environment)
     rasters = runs[0]
     train_logs = _split_logs(datasets, train_split)
@@ -212,15 +212,6 @@ def with_preset(config: TrainConfig, name: str) -> TrainConfig:
     # Without noise all modes are equal: one is drawn, so none is held at constant velocity.
     model = dataclasses.replace(config.model, features=row.features, noise_dim=0, constant_velocity_modes=0)
     return dataclasses.replace(config, model=model, num_modes=1, val_modes=1)
-
-
-def _raster_run(dataset: Dataset, name: str | None) -> RasterShards | None:
-    """The raster run to train on: ``name``, else the only finished one; several unnamed runs are an error."""
-    root = dataset.root / RASTER_DIR
-    runs = sorted(p.parent.name for p in root.glob(f"*/{RUN_MANIFEST}")) if root.is_dir() else []
-    if name is None and len(runs) > 1:
-        raise LogpipeError(f"{dataset.root}: several raster runs ({', '.join(runs)}); name one with --raster-run")
-    return find_raster_run(dataset.root, name, None)
 
 
 def _open_datasets(folders: Sequence[Path]) -> list[Dataset]:
