@@ -197,3 +197,8 @@ class SceneSample:
     obs_len: int
     raster: NDArrayByte | None = None
     world_to_raster: NDArrayFloat | None = None
+
+    @property
+    def log_id(self) -> str:
+        """The log the sample was cut from."""
+        return self.sample_id.rsplit(":", 1)[0]

@@ -30,6 +30,10 @@ BASELINES = {"cv": "constant_velocity", "linear": "linear", "kalman": "kalman_cv
 # default model.
 COMPARISON_FOLDERS = frozenset({"lstm", "noise_lstm", "no_position", "paper"})
 
+# Dataset kinds whose shipped model lives under another folder: one driving model serves both Argoverse formats
+# (it is trained on both; its ``meta.json`` kind is ``argoverse1+argoverse2``).
+KIND_FOLDERS = {"argoverse1": "argoverse", "argoverse2": "argoverse"}
+
 
 @dataclass(frozen=True)
 class Inference:
@@ -86,8 +90,9 @@ class ChosenPredictor:
 
 
 def shipped_checkpoints(kind: str) -> list[Path]:
-    """Folders (with a ``meta.json``) of the paper's method shipped under ``model/checkpoints/<kind>/``, by path."""
-    root = Path(__file__).parent / "checkpoints" / kind
+    """Folders (with a ``meta.json``) of the paper's method shipped for a dataset kind, by path: under
+    ``model/checkpoints/<kind>/`` or the kind's ``KIND_FOLDERS`` entry."""
+    root = Path(__file__).parent / "checkpoints" / KIND_FOLDERS.get(kind, kind)
     found = sorted(p.parent for p in root.glob("**/meta.json")) if root.is_dir() else []
     return [p for p in found if p.name not in COMPARISON_FOLDERS]
 
@@ -102,7 +107,8 @@ def default_checkpoint(kind: str, split: str | None) -> Path:
     """
     found = shipped_checkpoints(kind)
     if not found:
-        raise LogpipeError(f"no shipped checkpoint for dataset kind {kind!r} (looked in model/checkpoints/{kind}/); "
+        folder = KIND_FOLDERS.get(kind, kind)
+        raise LogpipeError(f"no shipped checkpoint for dataset kind {kind!r} (looked in model/checkpoints/{folder}/); "
                            f"give --checkpoint PATH or a baseline --predictor {'|'.join(BASELINES)}")
     if len(found) == 1:
         return found[0]

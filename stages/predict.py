@@ -357,6 +357,8 @@ def predict_dataset(
     summary: dict[str, Any] = {
         "dataset": str(dataset_dir), "out": str(out_dir), "predictor": chosen.name,
         "checkpoint_id": chosen.checkpoint_id, "num_modes": modes, "seed": seed,
+        "checkpoint": str(chosen.checkpoint) if chosen.checkpoint is not None else None,
+        "raster_run": rasters.run_dir.name if rasters is not None else None,
         "inference": inference.summary() if chosen.checkpoint is not None else None, "warnings": warnings,
         "protocol": dataset.protocol.to_dict(), "logs_selected": len(logs),
         "samples_selected": sum(len(v) for v in samples_by_log.values()), "shards_skipped_done": 0,
