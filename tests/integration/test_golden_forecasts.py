@@ -1,0 +1,87 @@
+"""Every shipped checkpoint's forecasts on the bundled samples, pinned: a refactor must not move them.
+
+``logpipe predict`` (its defaults: the checkpoint's stored inference settings, seed 0) runs every shipped checkpoint
+over the bundled ETH ``eth/test`` scene, the bundled ApolloScape files, or the two held-out Argoverse 1 sequences over
+their lane rasters. ``tests/data/golden/forecasts.npz`` pins, per checkpoint, the sha256 of the dense (agents, K, T, 2)
+float32 forecasts, the first 8 agents' forecasts and every agent's mean forecast point (small enough for git). Across
+machines the CPU's vector units may change the last bits of float32 maths, so the test compares those arrays to
+1e-4 m; ``LOGPIPE_GOLDEN_EXACT=1`` demands the same sha256 (the before/after check of a restructuring on one machine);
+
+``LOGPIPE_GOLDEN_WRITE=1`` rewrites the file (only when a change is meant to move forecasts; say why in the commit).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from logpipe.cli import app
+from logpipe.predictions import PredictionRun
+
+REPO = Path(__file__).resolve().parents[2]
+DATA = REPO / "tests" / "data"
+GOLDEN = DATA / "golden" / "forecasts.npz"
+SHIPPED = REPO / "model" / "checkpoints"
+CHECKPOINTS = sorted(p for p in (m.parent.relative_to(SHIPPED) for m in SHIPPED.glob("**/meta.json"))
+                     if p.parts[0] in ("ethucy", "apolloscape", "argoverse"))
+runner = CliRunner()
+
+
+def _run(*args: str) -> None:
+    result = runner.invoke(app, ["-q", *args])
+    assert result.exit_code == 0, result.output
+
+
+@pytest.fixture(scope="module")
+def datasets(tmp_path_factory: pytest.TempPathFactory) -> dict[str, tuple[Path, list[str]]]:
+    """Ingested (and, for Argoverse, rasterised) bundled samples per checkpoint family, with predict's filter."""
+    root = tmp_path_factory.mktemp("golden")
+    maps = DATA / "maps"
+    _run("ingest", str(DATA / "ethucy"), "--out", str(root / "ethucy"), "--no-mcap")
+    _run("ingest", str(DATA / "apolloscape"), "--out", str(root / "apolloscape"), "--no-mcap")
+    _run("ingest", str(maps / "20.csv"), str(maps / "32.csv"), "--out", str(root / "argoverse"), "--no-mcap")
+    _run("rasterise", str(root / "argoverse"), "--map", f"MIA={maps / 'MIA_lane_centerlines_crop_20.npz'}",
+         "--map", f"PIT={maps / 'PIT_lane_centerlines_crop_32.npz'}", "--rotate")
+    return {"ethucy": (root / "ethucy", ["--filter", "split=eth/test"]), "apolloscape": (root / "apolloscape", []),
+            "argoverse": (root / "argoverse", [])}
+
+
+def _forecasts(checkpoint: Path, data: Path, filters: list[str], out: Path) -> np.ndarray:
+    _run("predict", str(data), "--checkpoint", str(SHIPPED / checkpoint), *filters,
+         "--out", str(out), "--no-mcap")
+    dense = PredictionRun.open(out).dense()
+    return np.asarray(dense.pred, dtype=np.float32)
+
+
+def test_shipped_checkpoints_predict_the_pinned_forecasts(datasets: dict[str, tuple[Path, list[str]]],
+                                                          tmp_path: Path) -> None:
+    assert len(CHECKPOINTS) >= 10 and Path("argoverse/zhu2020") in CHECKPOINTS
+    got = {}
+    for i, ckpt in enumerate(CHECKPOINTS):
+        data, filters = datasets[ckpt.parts[0]]
+        got[str(ckpt)] = _forecasts(ckpt, data, filters, tmp_path / f"p{i}")
+        assert np.isfinite(got[str(ckpt)]).all() and got[str(ckpt)].shape[0] > 0
+    pins = {f"{name}:{part}": value for name, forecasts in got.items() for part, value in _pins(forecasts).items()}
+    if os.environ.get("LOGPIPE_GOLDEN_WRITE") == "1":
+        GOLDEN.parent.mkdir(parents=True, exist_ok=True)
+        np.savez_compressed(GOLDEN, **pins)  # type: ignore[arg-type]  # numpy types **kwds against allow_pickle
+    pinned = np.load(GOLDEN)
+    assert sorted(pinned.files) == sorted(pins), "a shipped checkpoint was added or removed: rewrite the golden file"
+    exact = os.environ.get("LOGPIPE_GOLDEN_EXACT") == "1"
+    for key, value in pins.items():
+        if key.endswith(":sha256"):
+            if exact:
+                assert str(pinned[key]) == str(value), key
+        else:
+            np.testing.assert_allclose(value, pinned[key], rtol=0, atol=1e-4, err_msg=key)
+
+
+def _pins(forecasts: np.ndarray) -> dict[str, np.ndarray]:
+    """What the golden file keeps of one checkpoint's (N, K, T, 2) forecasts."""
+    return {"sha256": np.array(hashlib.sha256(np.ascontiguousarray(forecasts).tobytes()).hexdigest()),
+            "head": forecasts[:8], "mean": forecasts.mean(axis=(1, 2), dtype=np.float64)}
