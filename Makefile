@@ -23,15 +23,16 @@ setup: $(STAMP)
 LP := $(VENV)/bin/logpipe
 DEMO := $(OUT)/demo
 M := tests/data/maps
+DRV := tests/data/driving
 
 # Every stage on the bundled samples (tests/data): two Argoverse 1 sequences held out from the shipped driving
 # model (hash/test) with their map crops, predicted by that model over their lane rasters; ETH/UCY with the
 # shipped checkpoint for the held-out ETH scene; ApolloScape with its shipped checkpoint.
 demo: setup
 	rm -rf $(DEMO)
-	$(LP) ingest $(M)/20.csv $(M)/32.csv --out $(DEMO)/argoverse1
-	$(LP) rasterise $(DEMO)/argoverse1 --map MIA=$(M)/MIA_lane_centerlines_crop_20.npz \
-		--map PIT=$(M)/PIT_lane_centerlines_crop_32.npz --rotate --preview 2
+	$(LP) ingest $(DRV)/20.csv $(DRV)/32.csv --out $(DEMO)/argoverse1
+	$(LP) rasterise $(DEMO)/argoverse1 --map MIA=$(DRV)/MIA_lane_centerlines_crop_20.npz \
+		--map PIT=$(DRV)/PIT_lane_centerlines_crop_32.npz --rotate --preview 2
 	$(LP) predict $(DEMO)/argoverse1 --out $(DEMO)/predict-argoverse1
 	$(LP) score $(DEMO)/predict-argoverse1 --truth $(DEMO)/argoverse1 --agents focal \
 		--out $(DEMO)/score-argoverse1

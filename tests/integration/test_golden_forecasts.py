@@ -41,12 +41,12 @@ def _run(*args: str) -> None:
 def datasets(tmp_path_factory: pytest.TempPathFactory) -> dict[str, tuple[Path, list[str]]]:
     """Ingested (and, for Argoverse, rasterised) bundled samples per checkpoint family, with predict's filter."""
     root = tmp_path_factory.mktemp("golden")
-    maps = DATA / "maps"
+    driving = DATA / "driving"
     _run("ingest", str(DATA / "ethucy"), "--out", str(root / "ethucy"), "--no-mcap")
     _run("ingest", str(DATA / "apolloscape"), "--out", str(root / "apolloscape"), "--no-mcap")
-    _run("ingest", str(maps / "20.csv"), str(maps / "32.csv"), "--out", str(root / "argoverse"), "--no-mcap")
-    _run("rasterise", str(root / "argoverse"), "--map", f"MIA={maps / 'MIA_lane_centerlines_crop_20.npz'}",
-         "--map", f"PIT={maps / 'PIT_lane_centerlines_crop_32.npz'}", "--rotate")
+    _run("ingest", str(driving / "20.csv"), str(driving / "32.csv"), "--out", str(root / "argoverse"), "--no-mcap")
+    _run("rasterise", str(root / "argoverse"), "--map", f"MIA={driving / 'MIA_lane_centerlines_crop_20.npz'}",
+         "--map", f"PIT={driving / 'PIT_lane_centerlines_crop_32.npz'}", "--rotate")
     return {"ethucy": (root / "ethucy", ["--filter", "split=eth/test"]), "apolloscape": (root / "apolloscape", []),
             "argoverse": (root / "argoverse", [])}
 
