@@ -57,20 +57,20 @@ lint: setup
 
 # Results files in docs/results/ (tables with the protocol beside every number; see docs/results/README.md).
 reproduce-ethucy: setup
-	$(PY) scripts/reproduce_ethucy.py
+	$(PY) -m scripts.reproduce_ethucy --seeds-dir $(OUT)/checkpoints
 
 reproduce-apolloscape: setup
-	$(PY) scripts/reproduce_apolloscape.py
+	$(PY) -m scripts.reproduce_apolloscape --seeds-dir $(OUT)/checkpoints
 
 DATA ?= $(SHARED)/argoverse1/data
 MAPS ?= $(SHARED)/argoverse1/maps
 reproduce-argoverse: setup
-	$(PY) scripts/reproduce_argoverse.py --data $(DATA) --maps $(MAPS)
+	$(PY) -m scripts.reproduce_argoverse --data $(DATA) --maps $(MAPS)
 
 # The driving model on the real AV1 + AV2 logs (docs/results/argoverse_logs.md): trains what is missing (resumable),
 # then scores hash/test.
 reproduce-driving: setup
-	$(PY) scripts/reproduce_driving.py
+	$(PY) -m scripts.reproduce_driving
 
 clean:
 	rm -rf $(OUT) .pytest_cache .mypy_cache .ruff_cache
@@ -78,13 +78,13 @@ clean:
 # Shipped checkpoints, two trainings at a time: the paper's method (zhu2020) and the LSTM / Noise-LSTM baselines,
 # trained with the same config (`--preset` swaps only the features and noise). ETH/UCY: one per left-out scene in
 # model/checkpoints/ethucy/<scene>/ (baselines in its lstm/ and noise_lstm/); ApolloScape: model/checkpoints/apolloscape/<method>.
-# SEED=N (N > 0) trains the same runs with train.seed = N into model/checkpoints/seedN/ (the reproduce scripts'
-# across-seeds tables read every seedN/ there).
+# SEED=N (N > 0) trains the same runs with train.seed = N into $(OUT)/checkpoints/seedN/, outside the package (the
+# reproduce scripts' across-seeds tables read every seedN/ there: their --seeds-dir).
 LEARNED_METHODS := zhu2020 noise_lstm lstm
 # ETH/UCY also trains the paper's method without its position feature (eqs. 1-2), an ablation row of its table.
 ETHUCY_METHODS := $(LEARNED_METHODS) no_position
 SEED ?= 0
-CKPT := model/checkpoints$(if $(filter 0,$(SEED)),,/seed$(SEED))
+CKPT := $(if $(filter 0,$(SEED)),model/checkpoints,$(OUT)/checkpoints/seed$(SEED))
 RUNS := $(OUT)/runs$(if $(filter 0,$(SEED)),,/seed$(SEED))
 preset_flag = $(if $(filter noise_lstm,$(1)),--preset baseline,$(if $(filter lstm no_position,$(1)),--preset $(1),))
 # copy_best(run, dest): replace only the files of the checkpoint in dest, so baselines nested in it survive.
@@ -161,7 +161,7 @@ synthetic-map-check: setup
 		$(LP) ingest $(SYN)/csv/$$part --out $(SYN)/$$part --protocol argoverse --targets fully_observed_no_ego \
 			--no-mcap && $(LP) rasterise $(SYN)/$$part --maps $(AV1_MAPS) --rotate || exit 1; done
 	$(MAKE) -j2 $(SYN)/runs/full $(SYN)/runs/v4
-	$(PY) scripts/synthetic_map_check.py --full $(SYN)/runs/full --no-en $(SYN)/runs/v4 --test $(SYN)/test
+	$(PY) -m scripts.synthetic_map_check --full $(SYN)/runs/full --no-en $(SYN)/runs/v4 --test $(SYN)/test
 
 $(SYN)/runs/%:
 	mkdir -p $(SYN)/runs && OMP_NUM_THREADS=1 $(LP) train $(SYN)/train --train-split hash/train --val-split hash/val \

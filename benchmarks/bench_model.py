@@ -36,8 +36,8 @@ from logpipe.model.batching import Batch, collate
 from logpipe.model.config import PRESETS, Features, ModelConfig
 from logpipe.model.feature_cache import BackboneFeatureCache, scene_keys
 from logpipe.model.nets import TrajectoryNet
+from logpipe.model.step_loss import best_of_h_step_loss
 from logpipe.model.synthetic import make_scenes
-from logpipe.model.training import best_of_h_step_loss
 from logpipe.types import SceneSample
 
 # Which clock _median_rate uses: "cpu" = CPU time of this process (robust on a shared machine when

@@ -53,7 +53,7 @@ def _predict(dataset: Path, out: Path, repeats: int, **kwargs: Any) -> dict[str,
 def _macs_per_sample(dataset: Path, checkpoint: Path, modes: int, **kwargs: Any) -> dict[str, float]:
     """Multiply-accumulates per sample of the network's matmuls (encoder + decoder, not the backbone) and the
     environment-lookup gathers, counted from the dataset's real agent counts and the checkpoint's config."""
-    from logpipe.model.checkpoints import read_meta
+    from logpipe.model.checkpoint_meta import read_meta
     from logpipe.stages import predict as stage
 
     cfg = read_meta(checkpoint).config.model
@@ -148,8 +148,8 @@ def run(quick: bool = False) -> dict[str, Any]:
     from logpipe.model.config import ModelConfig, TrainConfig
     from logpipe.model.nets import TrajectoryNet
     from logpipe.raster import RasterSpec
+    from logpipe.sample_filter import parse_filter
     from logpipe.stages.ingest import IngestOptions, ingest
-    from logpipe.stages.predict import parse_filter
     from logpipe.stages.rasterise import rasterise_dataset
 
     if not SHARED.is_dir():

@@ -30,9 +30,10 @@ import os
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import replace
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, NotRequired, TypedDict, cast
+from typing import TYPE_CHECKING, Any, cast
 
 from logpipe.errors import LogpipeError
+from logpipe.summaries import IndexSummary, IngestSummary, VerifyReport
 
 if TYPE_CHECKING:
     from logpipe.types import SampleProtocol
@@ -42,54 +43,6 @@ StrPath = str | os.PathLike[str]
 
 Progress = Callable[[int], None]
 """Called with the number of items (inputs, samples) each finished batch covered."""
-
-
-class IngestSummary(TypedDict):
-    """What ``ingest`` returns (``logpipe ingest --json``). Counts are of this run unless under ``totals``.
-
-    ``inputs_found`` counts distinct inputs: ``duplicates`` more files were identical copies of one of them
-    (listed in ``duplicate_inputs`` as ``{"path", "same_as"}``, relative paths) and were ingested once, as
-    that input (their folders are added to its memberships). ``logs_without_samples`` counts the logs that
-    give no prediction sample, by reason (e.g. ``"too short for 8+12 steps"``).
-    """
-
-    dataset: str
-    format: str
-    protocol: dict[str, Any]
-    inputs_found: int
-    inputs_skipped_already_ingested: int
-    inputs_ingested: int
-    duplicates: int
-    duplicate_inputs: list[dict[str, str]]
-    quarantined: list[dict[str, Any]]
-    logs: int
-    rows: int
-    samples: int
-    logs_without_samples: dict[str, int]
-    shards_written: list[str]
-    mcap_messages: NotRequired[int]
-    seconds: float
-    totals: dict[str, int]
-
-
-class IndexSummary(TypedDict):
-    """What ``index`` returns (``logpipe index --json``); ``unchanged`` when the protocol was the dataset's
-    already (then nothing was recounted, and ``logs_without_samples`` is absent)."""
-
-    dataset: str
-    protocol: dict[str, Any]
-    samples: int
-    logs_without_samples: NotRequired[dict[str, int]]
-    unchanged: NotRequired[bool]
-
-
-class VerifyReport(TypedDict):
-    """What ``verify`` returns: the folders checked, how many files, one line per problem, leftover paths."""
-
-    folders: list[str]
-    files_checked: int
-    problems: list[str]
-    leftovers: list[str]
 
 
 def _path(value: StrPath) -> Path:
@@ -449,16 +402,19 @@ def predict(
 
         logpipe.predict("/tmp/ethucy", out="/tmp/pred_cv", predictor="cv", filters=["split=eth/test"])
     """
-    from logpipe.stages.predict import parse_filter, predict_dataset
+    from logpipe.predict_options import PredictOptions
+    from logpipe.sample_filter import parse_filter
+    from logpipe.stages.predict import predict_dataset
 
-    summary: dict[str, Any] = predict_dataset(
-        _path(dataset), _path(out), checkpoint=_path(checkpoint) if checkpoint is not None else None,
+    options = PredictOptions(
+        checkpoint=_path(checkpoint) if checkpoint is not None else None,
         predictor=predictor, modes=modes, seed=seed, noise_scale=noise_scale,
         constant_velocity_modes=constant_velocity_modes, context_max_neighbours=context_max_neighbours,
         as_trained=as_trained, sample_filter=parse_filter(list(filters)), inputs=_paths(inputs), raster_run=raster_run,
-        raster_images=raster_images, write_mcap=mcap, batch_size=batch_size, threads=threads, progress=progress,
+        raster_images=raster_images, write_mcap=mcap, batch_size=batch_size, threads=threads,
         device=device, backend=backend, workers=workers,
     )
+    summary: dict[str, Any] = predict_dataset(_path(dataset), _path(out), options, progress=progress)
     return summary
 
 
@@ -548,17 +504,3 @@ def inspect(paths: StrPath | Sequence[StrPath]) -> list[dict[str, Any]]:
     from logpipe.inspect import inspect_paths
 
     return inspect_paths(_paths(paths))
-
-
-def summary_notes(summary: Mapping[str, Any]) -> list[str]:
-    """Lines that explain an ingest or index summary's counts, for the human output: the inputs that were
-    copies of others, and one line per reason logs gave no sample."""
-    lines = []
-    if summary.get("duplicates"):
-        copies = summary.get("duplicate_inputs") or []
-        example = f", e.g. {copies[0]['path']} = {copies[0]['same_as']}" if copies else ""
-        lines.append(f"{summary['duplicates']} inputs were identical copies of another and were ingested once "
-                     f"with it{example} (--json lists them)")
-    for reason, count in (summary.get("logs_without_samples") or {}).items():
-        lines.append(f"{count} log{'s' if count != 1 else ''} gave no sample: {reason}")
-    return lines

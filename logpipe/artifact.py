@@ -2,37 +2,33 @@
 
 Every folder logpipe writes (a dataset, a raster run, a prediction run, a score report) follows one protocol:
 
-1. ``ArtifactWriter`` takes an exclusive ``fcntl.flock`` on the folder for the whole write; a second writer
-   fails at once with one line naming the holder's pid and command (``FOLDER/.logpipe.lock`` while held).
+1. ``ArtifactWriter`` takes an exclusive ``fcntl.flock`` on the folder for the whole write
+   (``logpipe.folder_lock``); a second writer fails at once with one line naming the holder's pid and command
+   (``FOLDER/.logpipe.lock`` while held).
 2. It removes what the committed manifest does not name, among the paths the artifact owns (``owned``):
    leftovers of a crashed writer. Files of other artifacts nested inside (a dataset's ``rasters/``) and
    anything the user put there are never touched.
 3. New files are written whole (temp name + rename, ``logpipe.io.atomic_path``) under names the committed
    manifest does not use, so the state a reader sees never changes under it.
-4. ``commit`` flushes every new file to disk (one ``syncfs``), then replaces ``manifest.json`` by rename and
-   syncs the folder: the single commit point. A crash before the rename leaves the old state, after it the
-   new one; the next writer cleans the rest.
+4. ``commit`` flushes every new file to disk (one ``syncfs``, ``logpipe.durability``), then replaces
+   ``manifest.json`` by rename and syncs the folder: the single commit point. A crash before the rename
+   leaves the old state, after it the new one; the next writer cleans the rest.
 5. Files the new manifest no longer names are removed.
 
 The manifest's ``files`` section lists every committed file (relative path → bytes, sha256, and rows for
 Parquet tables): readers trust only these, ``verify`` recomputes them.
 
-``crash_point`` marks each step of the protocol; ``LOGPIPE_CRASH_AT=N`` makes the process kill itself
-(SIGKILL) at the N-th one it reaches and ``LOGPIPE_CRASH_TRACE=FILE`` lists them (the crash-injection tests).
+``logpipe.durability.crash_point`` marks each step of the protocol (the crash-injection tests stop the process
+there). Folders whose files are only valid together (checkpoints) are replaced whole by ``logpipe.folder_swap``.
 """
 
 from __future__ import annotations
 
-import ctypes
 import errno
-import fcntl
 import json
 import os
 import re
-import shlex
 import shutil
-import signal
-import sys
 from collections.abc import Iterable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -40,10 +36,11 @@ from pathlib import Path
 from types import TracebackType
 from typing import Any, Self, TypedDict
 
-from logpipe.errors import ArtifactBusyError, DatasetError, LogpipeError, OutputError
+from logpipe.durability import crash_point, fsync_dir, syncfs
+from logpipe.errors import DatasetError, LogpipeError, OutputError
+from logpipe.folder_lock import LOCK_FILE, FolderLock
 
 MANIFEST = "manifest.json"
-LOCK_FILE = ".logpipe.lock"
 STAGING_PREFIX = ".staging-"
 
 
@@ -70,130 +67,6 @@ def unsafe_file_name(name: str) -> str | None:
     if len(name) > MAX_NAME_CHARS:
         return f"is {len(name)} characters long (at most {MAX_NAME_CHARS})"
     return None
-
-
-# ---- crash injection -----------------------------------------------------------------------------------
-
-
-@dataclass
-class _CrashPlan:
-    at: int
-    trace: str | None
-    pid: int
-    reached: int = 0
-
-
-def _crash_plan() -> _CrashPlan | None:
-    at, trace = os.environ.get("LOGPIPE_CRASH_AT"), os.environ.get("LOGPIPE_CRASH_TRACE")
-    if at is None and trace is None:
-        return None
-    return _CrashPlan(int(at) if at else 0, trace, os.getpid())
-
-
-_PLAN = _crash_plan()
-
-
-def crash_point(label: str) -> None:
-    """A step of a commit where a crash must leave a consistent folder; a no-op unless a test asked for a crash.
-
-    Counts only in the process that read the environment (worker processes write only staging files, which
-    the random-time kills of the tests cover).
-    """
-    if _PLAN is None or os.getpid() != _PLAN.pid:
-        return
-    _PLAN.reached += 1
-    if _PLAN.trace:
-        with open(_PLAN.trace, "a", encoding="utf-8") as fh:
-            fh.write(f"{_PLAN.reached}\t{label}\n")
-    if _PLAN.reached == _PLAN.at:
-        os.kill(os.getpid(), signal.SIGKILL)
-
-
-# ---- durability ----------------------------------------------------------------------------------------
-
-
-def _syncfs(folder: Path) -> None:
-    """Flush every dirty page of ``folder``'s file system: one call instead of an fsync per new file."""
-    fd = os.open(folder, os.O_RDONLY)
-    try:
-        libc = ctypes.CDLL(None, use_errno=True)
-        if getattr(libc, "syncfs", None) is None or libc.syncfs(fd) != 0:
-            os.sync()
-    finally:
-        os.close(fd)
-
-
-def fsync_dir(folder: Path) -> None:
-    """Make renames inside ``folder`` durable."""
-    fd = os.open(folder, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
-
-
-# ---- the lock ------------------------------------------------------------------------------------------
-
-
-class FolderLock:
-    """An exclusive, non-blocking ``flock`` on the folder itself, released when the process ends.
-
-    Locking the directory (not a file in it) leaves a finished folder's contents independent of who wrote
-    it. While held, ``.logpipe.lock`` names the holder's pid and command for the error a second writer gets;
-    it is removed on release (a crashed holder's stale copy is overwritten by the next one). The kernel
-    drops the lock with the process, so a crashed writer never blocks the next one.
-    """
-
-    def __init__(self, root: Path) -> None:
-        self.root = root
-        self._fd: int | None = None
-        self.found_stale = False
-        """Whether a holder's ``.logpipe.lock`` was there when this one took the lock: a writer was killed."""
-
-    def acquire(self) -> None:
-        fd = os.open(self.root, os.O_RDONLY | os.O_DIRECTORY | os.O_CLOEXEC)
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            os.close(fd)
-            try:
-                holder = (self.root / LOCK_FILE).read_text(encoding="utf-8", errors="replace")
-            except OSError:
-                holder = ""
-            raise ArtifactBusyError(f"{self.root}: another logpipe process is writing here "
-                                    f"({_describe_holder(holder)}); wait for it to finish") from None
-        except BaseException:
-            os.close(fd)
-            raise
-        self._fd = fd
-        self.found_stale = (self.root / LOCK_FILE).exists()
-        try:
-            info = json.dumps({"pid": os.getpid(), "command": shlex.join(sys.argv)})
-            (self.root / LOCK_FILE).write_text(info + "\n", encoding="utf-8")
-        except BaseException:
-            self.release()
-            raise
-
-    def release(self) -> None:
-        if self._fd is None:
-            return
-        try:
-            (self.root / LOCK_FILE).unlink(missing_ok=True)
-        finally:
-            os.close(self._fd)  # closing the last descriptor drops the flock
-            self._fd = None
-
-    @property
-    def held(self) -> bool:
-        return self._fd is not None
-
-
-def _describe_holder(text: str) -> str:
-    try:
-        info = json.loads(text)
-        return f"pid {info['pid']}: {info['command']}"
-    except (ValueError, KeyError, TypeError):
-        return "holder unknown"
 
 
 # ---- manifests -----------------------------------------------------------------------------------------
@@ -415,7 +288,7 @@ class ArtifactWriter:
         if missing:
             raise LogpipeError(f"internal: {self.root}: commit names files that are not there: {missing[:3]}")
         crash_point("before sync")
-        _syncfs(self.root)
+        syncfs(self.root)
         text = json.dumps(manifest, indent=None if len(files) > 1000 else 2, sort_keys=True,
                           separators=(",", ":") if len(files) > 1000 else None) + "\n"
         with atomic_path(self.root / MANIFEST, durable=True) as tmp:
@@ -545,71 +418,6 @@ def os_error_message(exc: OSError) -> str:
              errno.EDQUOT: "disk quota exceeded", errno.EPERM: "operation not permitted"}
     what = hints.get(exc.errno or 0, exc.strerror or type(exc).__name__)
     return f"{where}: {what}; nothing was committed, the folder holds its previous state"
-
-
-# ---- whole-folder replacement --------------------------------------------------------------------------
-
-_RENAME_EXCHANGE = 2
-
-
-def _exchange(a: Path, b: Path) -> bool:
-    """Swap two paths in one step (``renameat2(RENAME_EXCHANGE)``); False where the kernel or file system
-    cannot."""
-    if sys.platform != "linux":
-        return False
-    libc = ctypes.CDLL(None, use_errno=True)
-    renameat2 = getattr(libc, "renameat2", None)
-    if renameat2 is None:
-        return False
-    at_fdcwd = -100
-    if renameat2(at_fdcwd, os.fsencode(a), at_fdcwd, os.fsencode(b), _RENAME_EXCHANGE) == 0:
-        return True
-    err = ctypes.get_errno()
-    if err in (errno.EINVAL, errno.ENOSYS, errno.ENOTSUP):
-        return False
-    raise OSError(err, os.strerror(err), str(b))
-
-
-def staging_folder_for(target: Path) -> Path:
-    """A fresh, empty folder beside ``target`` to build its replacement in (``replace_folder``)."""
-    import uuid
-
-    for stale in target.parent.glob(f"{STAGING_PREFIX}{target.name}-*"):  # a killed writer's
-        shutil.rmtree(stale, ignore_errors=True)
-    folder = target.parent / f"{STAGING_PREFIX}{target.name}-{uuid.uuid4().hex[:8]}"
-    folder.mkdir(parents=True)
-    return folder
-
-
-def replace_folder(staging: Path, target: Path) -> None:
-    """Make ``staging`` (a complete folder beside ``target``) the folder at ``target`` in one step, for
-    folders whose files are only valid together (a checkpoint: weights and the metadata naming their sha256).
-
-    The files are flushed first; the swap is one ``renameat2`` exchange, so a crash leaves either folder
-    whole at ``target``. Where the file system cannot exchange, the old folder is renamed aside first and
-    ``recover_folder`` puts it back if a crash came between the two renames.
-    """
-    _syncfs(staging)
-    crash_point(f"before swap {target.name}")
-    if not target.exists():
-        staging.rename(target)
-    elif _exchange(staging, target):
-        crash_point(f"after swap {target.name}")
-        shutil.rmtree(staging)
-    else:
-        aside = target.parent / f".{target.name}.old"
-        shutil.rmtree(aside, ignore_errors=True)
-        target.rename(aside)
-        staging.rename(target)
-        shutil.rmtree(aside)
-    fsync_dir(target.parent)
-
-
-def recover_folder(target: Path) -> None:
-    """Undo a ``replace_folder`` cut between its two renames (only on file systems without exchange)."""
-    aside = target.parent / f".{target.name}.old"
-    if not target.exists() and aside.is_dir():
-        aside.rename(target)
 
 
 # ---- the base of the typed writers ---------------------------------------------------------------------

@@ -35,16 +35,15 @@ from functools import cached_property
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import pyarrow as pa
-import pyarrow.compute as pc
 
 from logpipe.artifact import MANIFEST, Ownership, check_files, read_manifest
 from logpipe.contracts import decode_dictionaries
 from logpipe.errors import DatasetError
-from logpipe.io import as_numpy, read_table
+from logpipe.io import read_table
 from logpipe.shards import log_slices
-from logpipe.types import OBJECT_TYPES, Role, SampleProtocol, SceneSample
+from logpipe.types import SampleProtocol, SceneSample
+from logpipe.windows import LogWindows
 
 TRACKS_DIR = "tracks"
 LOGS_DIR = "logs"
@@ -253,42 +252,21 @@ class Dataset:
 
 
 def scene_sample(tracks: pa.Table, sample: dict[str, Any], protocol: SampleProtocol) -> SceneSample:
-    """Cut one sample's window out of a log's rows: every agent seen in it, NaN where unobserved.
+    """Cut one sample's window out of a log's rows: every agent seen in it, NaN where unobserved
+    (``logpipe.windows.LogWindows``).
 
     Args:
         tracks: the log's rows (sorted by step).
         sample: a row of the sample index.
         protocol: gives ``obs_len``.
     """
-    start, end = int(sample["start_step"]), int(sample["end_step"])
-    window = tracks.filter(
-        pc.and_(pc.greater_equal(tracks.column("step"), start), pc.less_equal(tracks.column("step"), end))
-    )
-    steps = as_numpy(window.column("step")) - start
-    # Agents numbered by first appearance in the window: from the values (an encoded column would keep its
-    # file's dictionary, every track of the row group).
-    track_col = pc.dictionary_encode(decode_dictionaries(window.select(["track_id"])).column(0)).combine_chunks()
-    names = track_col.dictionary.to_pylist()
-    codes = track_col.indices.to_numpy()
-    seq = end - start + 1
-    positions = np.full((len(names), seq, 2), np.nan)
-    positions[codes, steps, 0] = as_numpy(window.column("x"))
-    positions[codes, steps, 1] = as_numpy(window.column("y"))
-    timestamps = np.zeros(seq, dtype=np.int64)
-    timestamps[steps] = as_numpy(window.column("timestamp_ns"))
-    type_code = {t: i for i, t in enumerate(OBJECT_TYPES)}
-    object_types = np.zeros(len(names), dtype=np.int64)
-    object_types[codes] = [type_code[t] for t in window.column("object_type").to_pylist()]
-    roles = window.column("role").to_pylist()
-    ego_codes = {int(c) for c, r in zip(codes, roles, strict=True) if r == Role.EGO.value}
-    targets = set(sample["target_track_ids"])
-    return SceneSample(
-        sample_id=str(sample["sample_id"]),
-        positions=positions,
-        timestamps_ns=timestamps,
-        track_ids=[str(n) for n in names],
-        object_types=object_types,
-        target_mask=np.array([n in targets for n in names], dtype=bool),
-        ego_index=min(ego_codes) if ego_codes else -1,
-        obs_len=protocol.obs_len,
-    )
+    cached = _LAST_LOG[0] if _LAST_LOG else None  # a local reference: another thread may replace the entry
+    if cached is None or cached[0] is not tracks:
+        # Callers cut a log's samples one after another: convert the log's columns once, not per window.
+        cached = (tracks, LogWindows(tracks))
+        _LAST_LOG[:] = [cached]
+    return cached[1].sample(sample, protocol.obs_len)
+
+
+_LAST_LOG: list[tuple[pa.Table, LogWindows]] = []
+"""The last log ``scene_sample`` cut (its table is held, so its identity cannot pass to another table)."""

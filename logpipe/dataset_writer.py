@@ -15,9 +15,10 @@ import pyarrow as pa
 import pyarrow.compute as pc
 
 from logpipe import __version__
-from logpipe.artifact import FileEntry, FolderWriter, crash_point, file_entry
+from logpipe.artifact import FileEntry, FolderWriter, file_entry
 from logpipe.contracts import arrow_schema, decode_dictionaries, encode_dictionaries, schema_version, value_schema
 from logpipe.dataset import DATASET_ARTIFACT, DATASET_OWNED, MCAP_DIR, SAMPLES_DIR, table_file
+from logpipe.durability import crash_point
 from logpipe.errors import DatasetError
 from logpipe.io import read_table, write_parquet
 from logpipe.types import SampleProtocol

@@ -56,3 +56,7 @@ class ArtifactBusyError(LogpipeError):
 class OutputError(LogpipeError):
     """Writing an output failed at the operating-system level (disk full, read-only, permissions); the folder
     keeps its last committed state."""
+
+
+class ScoreError(LogpipeError):
+    """Predictions and truth cannot be scored together (bad table, missing agents, unknown metric)."""

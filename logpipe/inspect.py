@@ -19,14 +19,9 @@ from rich.table import Table
 from logpipe.formats.av2 import Av2Adapter
 from logpipe.formats.base import as_source_error, require_regular
 from logpipe.formats.mcapfile import McapAdapter, McapFile
-from logpipe.formats.ros_messages import (
-    AmbiguousMappingError,
-    TfBuffer,
-    TopicSummary,
-    auto_mapping,
-    topic_kind,
-    unsupported_reason,
-)
+from logpipe.formats.ros.mapping import AmbiguousMappingError, TopicSummary, auto_mapping
+from logpipe.formats.ros.message_types import topic_kind, unsupported_reason
+from logpipe.formats.ros.tf import TfBuffer
 from logpipe.formats.rosbag import RosbagAdapter, explain_open_error, storage_paths
 
 
@@ -280,7 +275,7 @@ def mapping_toml(reports: Sequence[dict[str, Any]]) -> str:
             or an Argoverse 2 input, which needs none), or inputs whose detected mappings differ.
     """
     from logpipe.errors import LogpipeError
-    from logpipe.formats.mapping import mapping_from_dict
+    from logpipe.formats.ros.mapping import mapping_from_dict
 
     if not reports:
         raise LogpipeError("no input found to take a mapping from")

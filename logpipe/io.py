@@ -14,7 +14,7 @@ from typing import IO, Any
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from logpipe.artifact import crash_point
+from logpipe.durability import crash_point
 from logpipe.errors import DatasetError
 
 _HASH_CHUNK = 1 << 20

@@ -50,12 +50,13 @@ EGO_FRAME = "ego"
 
 
 @cache
-def _schema_bytes(schema_name: str) -> bytes:
+def json_schema_bytes(schema_name: str) -> bytes:
+    """The JSON Schema of a ``jsonschema`` MCAP channel (``schemas/``), as stored in the MCAP's schema record."""
     return json.dumps(json_schema(schema_name), sort_keys=True).encode()
 
 
 def _register(writer: Writer, topic: str, schema_name: str) -> int:
-    schema_id = writer.register_schema(name=schema_name, encoding="jsonschema", data=_schema_bytes(schema_name))
+    schema_id = writer.register_schema(name=schema_name, encoding="jsonschema", data=json_schema_bytes(schema_name))
     return writer.register_channel(topic=topic, message_encoding="json", schema_id=schema_id)
 
 

@@ -25,7 +25,9 @@ Conventions (the literature disagrees on them; every function says which one it 
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -145,6 +147,33 @@ def error_by_step(err: NDArrayFloat, mode: NDArrayInt) -> NDArrayFloat:
     if err.shape[0] == 0:
         return np.full(err.shape[2], np.nan)
     out: NDArrayFloat = err[np.arange(err.shape[0]), mode].mean(axis=0)
+    return out
+
+
+def group_metrics(err: NDArrayFloat, sample_idx: NDArrayInt, ks: Sequence[int], miss_threshold_m: float
+                  ) -> dict[str, Any]:
+    """A report block for one group of agents: counts and, for each k in ``ks``, every convention's means over
+    the agents of ``err`` (N, K, T) metres; ``sample_idx`` (N,) the sample of each agent (for the joint choice).
+    ``kN`` is None when the group has no agent."""
+    out: dict[str, Any] = {"samples": len(np.unique(sample_idx)), "agents": int(err.shape[0])}
+    for k in ks:
+        e = top_k(err, k)
+        if e.shape[0] == 0:
+            out[f"k{k}"] = None
+            continue
+        per_agent = best_of_k_per_agent(e)
+        joint = best_of_k_joint(e, sample_idx)
+        argo = argoverse(e)
+        out[f"k{k}"] = {
+            "ade": float(per_agent.ade.mean()),
+            "fde": float(per_agent.fde.mean()),
+            "ade_joint": float(joint.ade.mean()),
+            "fde_joint": float(joint.fde.mean()),
+            "argo_ade": float(argo.ade.mean()),
+            "argo_fde": float(argo.fde.mean()),
+            "miss_rate": float(miss(argo.fde, miss_threshold_m).mean()),
+            "error_by_step": [float(v) for v in error_by_step(e, per_agent.mode)],
+        }
     return out
 
 

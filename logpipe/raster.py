@@ -31,15 +31,12 @@ Default channels: ``DEFAULT_CHANNELS`` (drivable area, the four direction quadra
 crossings): one anti-aliased pass over the lanes encodes both where they are and where they go, which is
 about twice as fast as ``lane_centerline`` + ``lane_direction``.
 
-Speed (per raster, the cost is Python and NumPy call overhead plus OpenCV's per-polyline work, not
-arithmetic): per kind, a ``Rasteriser`` keeps the layer's vertices (``MapStore.render_layer``: lanes chained
-with their unique successors, then cut into cell-sized chunks) in grid-band order, so a window is ~2
-contiguous slices, each transformed in place into a reused int32 fixed-point buffer (``shift`` fractional
-bits, OpenCV's sub-pixel drawing) by one matrix product; one more product culls every chunk whose box
-misses the image; the survivors, as ready-made views of that buffer, are drawn in layer order with one
-``cv2.polylines`` call per channel (per direction sector for ``lane_direction``). Polygons are filled one
-call each because ``fillPoly`` with several contours fills by the even-odd rule, which would punch holes
-where areas overlap. Layers without features (AV1 has only centerlines) cost nothing per raster.
+Speed: each layer's vertices are prepared once per rasteriser (``logpipe.raster_layers``); a window is then
+~2 contiguous slices transformed in place, one product culls the chunks that miss the image, and the survivors
+are drawn in layer order with one ``cv2.polylines`` call per channel (per direction sector for
+``lane_direction``). Polygons are filled one call each because ``fillPoly`` with several contours fills by the
+even-odd rule, which would punch holes where areas overlap. ``logpipe.raster_reference`` is the straightforward
+renderer the tests and the benchmark hold this one to.
 """
 
 from __future__ import annotations
@@ -55,7 +52,8 @@ from typing import Any
 import cv2
 import numpy as np
 
-from logpipe.maps.store import BandOrder, FeatureKind, Layer, MapStore
+from logpipe.maps import FeatureKind, MapStore
+from logpipe.raster_layers import BAND_ROWS, PreparedLayer
 from logpipe.types import NDArrayByte, NDArrayFloat, NDArrayInt, NDArrayInt32
 
 QUADRANT_CHANNELS: tuple[str, ...] = ("lane_right", "lane_up", "lane_left", "lane_down")
@@ -82,7 +80,7 @@ DEFAULT_CHANNELS: tuple[str, ...] = (
 """The default set: direction is encoded by which of four anti-aliased lane channels a lane is drawn in
 (up = the agent's heading when rotated). ``lane_centerline`` is their maximum; it and the finer
 ``lane_direction`` sector code can be requested instead."""
-_CHANNEL_KIND: dict[str, FeatureKind] = {
+CHANNEL_KIND: dict[str, FeatureKind] = {
     "drivable_area": FeatureKind.DRIVABLE_AREA,
     "lane_centerline": FeatureKind.LANE_CENTERLINE,
     "lane_direction": FeatureKind.LANE_CENTERLINE,
@@ -252,46 +250,6 @@ class RasterResult:
         return self.n_features == 0
 
 
-class _Scratch:
-    """One layer prepared for drawing by one rasteriser. Memory is of the order of the layer's own (vertex
-    buffers, one view object per chunk); no pixels are cached, so it stays small for city-sized maps.
-
-    Vertices are stored in ``BandOrder`` (a window is ~2 contiguous slices, each transformed in place by
-    one product) while chunks are still drawn in layer order, the reference's: ``views[i]`` is layer
-    chunk ``i`` wherever it sits in the buffer.
-
-    Attributes:
-        band: the band order of the layer's chunks.
-        pix: (N, 2) int32 fixed-point pixel coordinates of the vertices, band order; only the chunks of
-            the window being drawn are valid (every render rewrites them).
-        homog: (N, 3) the vertices as (x, y, 1), band order.
-        offsets: (F + 1,) vertex offset of each band position, a Python list (indexed per slice).
-        boxes: (F, 4) bounding-box centre (x, y) and half-size (x, y) of each band position, metres.
-        views: layer chunk ``i`` as its slice of ``pix``, made once: slicing per chunk and render costs
-            more than the rest of the per-chunk work.
-    """
-
-    def __init__(self, layer: Layer, band_rows: int) -> None:
-        self.band = BandOrder(layer, band_rows)
-        order = self.band.order
-        counts = layer.counts[order]
-        offsets = np.zeros(len(order) + 1, dtype=np.int64)
-        np.cumsum(counts, out=offsets[1:])
-        n = int(offsets[-1])
-        # Vertex j of position p comes from layer vertex layer.offsets[order[p]] + (j - offsets[p]).
-        src = np.repeat(layer.offsets[order] - offsets[:-1], counts) + np.arange(n, dtype=np.int64)
-        self.homog: NDArrayFloat = np.concatenate([layer.points[src], np.ones((n, 1))], axis=1)
-        self.pix: NDArrayInt32 = np.zeros((n, 2), dtype=np.int32)
-        self.offsets: list[int] = offsets.tolist()
-        lo, hi = layer.lo[order], layer.hi[order]
-        self.boxes: NDArrayFloat = np.concatenate([(lo + hi) / 2.0, (hi - lo) / 2.0], axis=1)
-        pix, o = self.pix, self.offsets
-        self.views: list[NDArrayInt32] = [pix[o[p] : o[p + 1]] for p in self.band.position.tolist()]
-
-
-BAND_ROWS = 8
-"""Grid rows (32 m) per band of the vertex order: a 100 m window, rotated, spans ~6 rows, so it reads ~1.5
-slices; taller bands read more vertices in vain, shorter ones more slices."""
 _NO_CHUNKS: NDArrayInt = np.zeros(0, dtype=np.int64)
 
 
@@ -314,7 +272,7 @@ class Rasteriser:
         self._cull_hi = (spec.size_px + 1) * self._scale
         self._values = direction_values(spec.direction_bins).tolist()
         self._band_rows = BAND_ROWS
-        self._scratch: dict[FeatureKind, _Scratch] = {}
+        self._scratch: dict[FeatureKind, PreparedLayer] = {}
         self._plan: list[tuple[int, str, FeatureKind]] = []
         # Chunk direction in sector units, offset by 0.5 (round to nearest) and by a whole number of turns
         # so that adding the heading term stays positive and int truncation equals floor.
@@ -323,11 +281,11 @@ class Rasteriser:
         self._quadrant_plane: list[tuple[int, int]] = []  # (quadrant, channel index)
         if store is not None:
             for ci, name in enumerate(spec.channels):
-                layer = store.render_layer(_CHANNEL_KIND[name])
+                layer = store.render_layer(CHANNEL_KIND[name])
                 if not len(layer):  # e.g. AV1 maps have no areas or boundaries: skip the empty queries
                     continue
                 if layer.kind not in self._scratch:
-                    self._scratch[layer.kind] = _Scratch(layer, self._band_rows)
+                    self._scratch[layer.kind] = PreparedLayer(layer, self._band_rows)
                 self._plan.append((ci, name, layer.kind))
                 if name == "lane_direction":
                     k = spec.direction_bins
@@ -444,7 +402,7 @@ class Rasteriser:
 
     def _select(
         self,
-        scratch: _Scratch,
+        scratch: PreparedLayer,
         box: tuple[float, float, float, float],
         lin: NDArrayFloat,
         cull: NDArrayFloat,
@@ -509,43 +467,6 @@ class Rasteriser:
         for s, batch in enumerate(groups):  # ascending sectors: the higher value wins where lanes overlap
             if batch:
                 cv2.polylines(plane, batch, False, values[s], 1, cv2.LINE_8, shift)
-
-
-def render_baseline(
-    store: MapStore | None, spec: RasterSpec, cx: float, cy: float, heading: float | None
-) -> NDArrayByte:
-    """Straightforward reference rasteriser: a linear scan of every chunk of the map and one OpenCV call
-    per chunk. Same geometry, transform and drawing primitives as ``Rasteriser.render``, no index and no
-    batching; used by the tests and the benchmark as ground truth and as the speed baseline.
-    """
-    img = np.zeros(spec.shape, dtype=np.uint8)
-    if store is None:
-        return img
-    affine = world_to_pixel(spec, cx, cy, heading)
-    t = effective_heading(spec, heading)
-    xmin, ymin, xmax, ymax = query_box(spec, cx, cy, heading)
-    k = spec.direction_bins
-    values = direction_values(k)
-    for ci, name in enumerate(spec.channels):
-        layer = store.render_layer(_CHANNEL_KIND[name])
-        for i in range(len(layer)):
-            lo, hi = layer.lo[i], layer.hi[i]
-            if hi[0] < xmin or lo[0] > xmax or hi[1] < ymin or lo[1] > ymax:
-                continue
-            pts = layer.points[layer.offsets[i] : layer.offsets[i + 1]]
-            pix = to_fixed_point(pts, affine, spec.shift)
-            phi = float(layer.chord_angle[i]) - t + math.pi / 2.0
-            if name == "lane_direction":
-                sector = math.floor(phi * k / (2.0 * math.pi) + 0.5) % k
-                cv2.polylines(img[ci], [pix], False, int(values[sector]), 1, cv2.LINE_8, spec.shift)
-            elif name in QUADRANT_CHANNELS:
-                if math.floor(phi * 4 / (2.0 * math.pi) + 0.5) % 4 == QUADRANT_CHANNELS.index(name):
-                    cv2.polylines(img[ci], [pix], False, 255, 1, cv2.LINE_AA, spec.shift)
-            elif layer.kind in (FeatureKind.DRIVABLE_AREA, FeatureKind.CROSSING):
-                cv2.fillPoly(img[ci], [pix], 255, cv2.LINE_AA, spec.shift)
-            else:
-                cv2.polylines(img[ci], [pix], False, 255, 1, cv2.LINE_AA, spec.shift)
-    return img
 
 
 def heading_from_motion(xy: NDArrayFloat, min_disp_m: float = 0.5) -> float | None:

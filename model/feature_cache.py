@@ -45,7 +45,7 @@ from torch import Tensor
 from logpipe.types import SceneSample
 
 from .batching import Batch
-from .nets import EnvironmentNet
+from .environment import EnvironmentNet
 
 CacheKey = tuple[str, bytes]
 """(sample id, or "" for a scene without a raster; BLAKE2b-128 digest of the collated raster and its shape)."""

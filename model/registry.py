@@ -19,7 +19,7 @@ from logpipe.dataset import Dataset
 from logpipe.errors import LogpipeError
 from logpipe.io import read_json, read_table
 
-from .checkpoints import InferenceSettings, TrainingData, kind_accepts, read_meta
+from .checkpoint_meta import InferenceSettings, TrainingData, kind_accepts, read_meta
 from .predictor import NetPredictor, Predictor, inference_id
 
 BASELINES = {"cv": "constant_velocity", "linear": "linear", "kalman": "kalman_cv", "cv_sampler": "cv_sampler"}

@@ -3,22 +3,25 @@
 Reads only what `make train-ethucy` / `make train-apolloscape` copy next to each checkpoint (``meta.json``,
 ``train_summary.json``), so the card can be rebuilt from a clean clone.
 
-Usage: ``python scripts/model_card.py [--seed N] [ethucy|apolloscape ...]`` (default: both; seed 0, the
-``model/checkpoints/<kind>`` folders, else ``model/checkpoints/seedN/<kind>``).
+Usage: ``python -m scripts.model_card [--seed N] [--seeds-dir DIR] [ethucy|apolloscape ...]`` (default: both;
+seed 0, the shipped ``model/checkpoints/<kind>`` folders, else ``DIR/seedN/<kind>``, ``out/checkpoints`` by default:
+``make train-* SEED=N`` trains the extra seeds there, outside the package).
 """
 
 from __future__ import annotations
 
+import argparse
 import json
 import platform
 import sys
 import time
 import tomllib
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-REPO = Path(__file__).resolve().parents[1]
-CHECKPOINTS = REPO / "model" / "checkpoints"
+from scripts.locations import CHECKPOINTS, REPO, SEEDS_DIR
+
 METHODS = {"paper": "the paper's method as the paper specifies it (`configs/<kind>_paper.toml`: every model default, "
                     "the per-scene loss of eq. 23, no augmentation; `make train-<kind>-paper`)",
            "zhu2020": "the paper's network with our extensions (`configs/<kind>.toml`), the default of `logpipe "
@@ -71,9 +74,9 @@ def _row(name: str, folder: Path) -> str:
             f" (K={k}) | {s.get('train_samples_per_s', '?')} | {minutes} |")
 
 
-def card(kind: str, seed: int = 0) -> str:
-    """The Markdown card of ``model/checkpoints/<kind>`` (of ``model/checkpoints/seed<seed>/<kind>`` for seed > 0)."""
-    root = _root(seed) / kind
+def card(kind: str, seed: int = 0, seeds_dir: Path = SEEDS_DIR) -> str:
+    """The Markdown card of ``model/checkpoints/<kind>`` (of ``seeds_dir/seed<seed>/<kind>`` for seed > 0)."""
+    root = _root(seed, seeds_dir) / kind
     config = (REPO / "configs" / f"{kind}.toml").read_text()
     val_limit = tomllib.loads(config).get("train", {}).get("val_max_samples")
     val_on = f"first {val_limit} validation samples" if val_limit else "the whole validation split"
@@ -128,22 +131,29 @@ neighbour cap that `logpipe predict` uses by default), `train_summary.json` and 
 """ if paper_config.is_file() else "")
 
 
-def _root(seed: int) -> Path:
-    """Where ``make train-* SEED=seed`` puts its checkpoints."""
-    return CHECKPOINTS if seed == 0 else CHECKPOINTS / f"seed{seed}"
+def _root(seed: int, seeds_dir: Path) -> Path:
+    """Where ``make train-* SEED=seed`` puts its checkpoints: the package for seed 0, ``seeds_dir/seedN`` else."""
+    return CHECKPOINTS if seed == 0 else seeds_dir / f"seed{seed}"
 
 
-def main(argv: list[str]) -> int:
-    seed = 0
-    if argv[:1] == ["--seed"]:
-        seed, argv = int(argv[1]), argv[2:]
-    for kind in argv or ["ethucy", "apolloscape"]:
-        path = _root(seed) / kind / "MODEL_CARD.md"
+def main(argv: Sequence[str] | None = None) -> int:
+    """Write the cards; returns the exit code."""
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    # no `choices`: argparse rejects an empty `nargs="*"` list against them (the default: every dataset)
+    ap.add_argument("kinds", nargs="*", metavar="{ethucy,apolloscape}", help="datasets (default: both)")
+    ap.add_argument("--seed", type=int, default=0, help="training seed (0: the shipped checkpoints)")
+    ap.add_argument("--seeds-dir", type=Path, default=SEEDS_DIR,
+                    help="the extra seeds' checkpoints, seedN/<kind>/... (default: out/checkpoints)")
+    args = ap.parse_args(argv)
+    if unknown := sorted(set(args.kinds) - set(ABOUT)):
+        ap.error(f"unknown datasets {unknown}: expected some of {sorted(ABOUT)}")
+    for kind in args.kinds or ["ethucy", "apolloscape"]:
+        path = _root(args.seed, args.seeds_dir) / kind / "MODEL_CARD.md"
         path.parent.mkdir(parents=True, exist_ok=True)
-        path.write_text(card(kind, seed))
+        path.write_text(card(kind, args.seed, args.seeds_dir))
         print(path)
     return 0
 
 
 if __name__ == "__main__":
-    sys.exit(main(sys.argv[1:]))
+    sys.exit(main())

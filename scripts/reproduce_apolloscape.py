@@ -9,8 +9,9 @@ overall and per type. The constant-velocity sampler's noise is chosen on ``hash/
 
 Usage::
 
-    python scripts/reproduce_apolloscape.py [--data ../shared/data/apolloscape/prediction_train]
+    python -m scripts.reproduce_apolloscape [--data ../shared/data/apolloscape/prediction_train]
         [--work out/reproduce/apolloscape] [--results docs/results] [--checkpoint zhu2020=DIR] ...
+        [--seeds-dir out/checkpoints]
 """
 
 from __future__ import annotations
@@ -23,35 +24,13 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-
-from reproduce_ethucy import (
-    AS_TRAINED,
-    CV_MODES_GRID,
-    NETWORK_ROWS,
-    NOISE_SCALE_GRID,
-    PAPER,
-    PAPER_ROWS,
-    REPO,
-    SEED_METHODS,
-    across_seeds_table,
-    checkpoint_paths,
-    chosen_on,
-    ensure_dataset,
-    find_checkpoint,
-    grid_row,
-    machine_note,
-    pair,
-    seed_run,
-    seed_values,
-    training_seeds,
-    tune_sampler,
-    write_classical,
-    write_learned,
-)
-
 from logpipe.stages.score import score
 from logpipe.stages.train import scene_samples
+from scripts.forecasts import write_classical, write_learned
+from scripts.locations import REPO, SEEDS_DIR, checkpoint_paths, ensure_dataset, find_checkpoint
+from scripts.seeds import SEED_METHODS, across_seeds_table, no_seeds_note, seed_run, seed_values, shown, training_seeds
+from scripts.tables import AS_TRAINED, NETWORK_ROWS, PAPER, PAPER_ROWS, machine_note, pair
+from scripts.validation import CV_MODES_GRID, NOISE_SCALE_GRID, chosen_on, grid_row, tune_sampler
 
 K_BEST = 20
 PAPER_TABLE2 = {"Linear": "1.95/3.39", "KF": "2.48/4.33", "LSTM": "1.63/2.85", "Noise-LSTM": "1.49/2.58",
@@ -78,6 +57,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--results", type=Path, default=REPO / "docs" / "results")
     ap.add_argument("--checkpoint", action="append", default=[], metavar="METHOD=DIR")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--seeds-dir", type=Path, default=SEEDS_DIR,
+                    help="the extra training seeds' checkpoints, seedN/apolloscape/... (`make train-apolloscape "
+                         "SEED=N`), for the across-seeds table (default: out/checkpoints)")
     ap.add_argument("--no-store-settings", dest="store_settings", action="store_false",
                     help="do not record the inference settings chosen on validation in the checkpoints' meta.json "
                          "(where they become `logpipe predict`'s defaults)")
@@ -108,8 +90,9 @@ def main(argv: Sequence[str] | None = None) -> int:
             noise[method] = chosen
     report = score(files, ds.root, args.results / "apolloscape", split="hash/test", min_agents=1, plots=True,
                    title="ApolloScape hash/test (6 + 6 steps at 2 Hz, all agent types)")
-    seeds = {n: seed_run(n, templates, LEARNED, "", ds, val, test, "hash/test", 1, args.work / "seeds" / f"seed{n}")
-             for n in training_seeds(ds.kind)}
+    seeds = {n: seed_run(n, templates, LEARNED, "", ds, val, test, "hash/test", 1, args.work / "seeds" / f"seed{n}",
+                         seeds_dir=args.seeds_dir)
+             for n in training_seeds(ds.kind, args.seeds_dir)}
     seconds = time.perf_counter() - t0
     n_logs = {s: len(ds.logs_in_split(f"hash/{s}")) for s in ("train", "val", "test")}
     (args.results / "apolloscape.json").write_text(json.dumps(
@@ -127,6 +110,20 @@ def main(argv: Sequence[str] | None = None) -> int:
     return 0
 
 
+def render_across_seeds(methods: dict[str, Any], seeds: dict[int, dict[str, Any]], seeds_dir: Path) -> list[str]:
+    """The across-seeds section (all types), or a note that ``seeds_dir`` holds no extra seed."""
+    if not seeds:
+        return ["", "## Across training seeds", "", no_seeds_note(seeds_dir, "apolloscape")]
+    by_seed = {"all": {m: seed_values(methods, seeds, m, k) for _, m, k in SEED_METHODS}}
+    return ["", "## Across training seeds", "",
+            "The table above is training seed 0 (the shipped checkpoints). Every learned method was also "
+            f"trained with `train.seed` = {', '.join(map(str, sorted(seeds)))} (`make train-apolloscape SEED=N`, "
+            f"checkpoints in `{shown(seeds_dir)}/seedN/apolloscape/`, the same config), each sampled with its "
+            "seed and its noise scale chosen on hash/val again; the sampler is re-tuned on hash/val and sampled "
+            "with each seed. Cells: mean best-of-K ADE/FDE over the seeds (ADE range / FDE range), all types.",
+            "", *across_seeds_table(["all"], by_seed, with_avg=False)]
+
+
 def render(report: dict[str, Any], choice: dict[str, float], grid: list[Any], noise: dict[str, Any],
            n_logs: dict[str, int], skipped: list[str], seconds: float, args: argparse.Namespace,
            seeds: dict[int, dict[str, Any]]) -> str:
@@ -136,7 +133,7 @@ def render(report: dict[str, Any], choice: dict[str, float], grid: list[Any], no
     types = [t for t in TYPES if t in any_m["by_type"]]
     lines = [
         "# ApolloScape trajectories (the paper's Table 2)", "",
-        "Produced by `python scripts/reproduce_apolloscape.py` (`make reproduce-apolloscape`). ADE/FDE in metres "
+        "Produced by `python -m scripts.reproduce_apolloscape` (`make reproduce-apolloscape`). ADE/FDE in metres "
         "(ADE = mean Euclidean distance over the 6 predicted steps, 3 s at 2 Hz; FDE at the last step).", "",
         "## Split and protocol", "",
         f"Data: the 53 ApolloScape `prediction_train` files in `{args.data}` (the only release with futures). "
@@ -171,15 +168,7 @@ def render(report: dict[str, Any], choice: dict[str, float], grid: list[Any], no
     for name, e in methods.items():
         b = e["overall"][f"k{e['ks'][-1]}"]
         lines.append(f"| {name} K={e['ks'][-1]} | " + " | ".join(f"{v:.2f}" for v in b["error_by_step"]) + " |")
-    if seeds:
-        by_seed = {"all": {m: seed_values(methods, seeds, m, k) for _, m, k in SEED_METHODS}}
-        lines += ["", "## Across training seeds", "",
-                  "The table above is training seed 0 (the shipped checkpoints). Every learned method was also "
-                  f"trained with `train.seed` = {', '.join(map(str, sorted(seeds)))} (`make train-apolloscape SEED=N`, "
-                  "checkpoints in `model/checkpoints/seedN/apolloscape/`, the same config), each sampled with its "
-                  "seed and its noise scale chosen on hash/val again; the sampler is re-tuned on hash/val and sampled "
-                  "with each seed. Cells: mean best-of-K ADE/FDE over the seeds (ADE range / FDE range), all types.",
-                  "", *across_seeds_table(["all"], by_seed, with_avg=False)]
+    lines += render_across_seeds(methods, seeds, args.seeds_dir)
     lines += ["", "## The paper's Table 2 (as printed, its own unpublished split)", "",
               "| " + " | ".join(PAPER_TABLE2) + " |", "|" + "---|" * len(PAPER_TABLE2),
               "| " + " | ".join(PAPER_TABLE2.values()) + " |", "",

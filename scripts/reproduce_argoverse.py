@@ -3,7 +3,7 @@
 The documented command for the full dataset (a folder of AV1 forecasting CSVs, e.g. the 39,472-file
 ``val/data``) and its city maps::
 
-    python scripts/reproduce_argoverse.py --data DIR --maps DIR [--work out/reproduce/argoverse]
+    python -m scripts.reproduce_argoverse --data DIR --maps DIR [--work out/reproduce/argoverse]
 
 Default: the 69 real sequences in ``../shared/data/argoverse1/data`` with their lane-centerline maps. 20
 observed + 30 predicted steps at 10 Hz; the focal AGENT of each sequence is the one agent scored
@@ -23,22 +23,12 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-
-from reproduce_ethucy import (
-    REPO,
-    checkpoint_paths,
-    ensure_dataset,
-    find_checkpoint,
-    machine_note,
-    pair,
-    tune_sampler,
-    write_classical,
-    write_predictions,
-)
-
 from logpipe.stages.score import score
 from logpipe.stages.train import scene_samples
+from scripts.forecasts import write_classical, write_predictions
+from scripts.locations import REPO, checkpoint_paths, ensure_dataset, find_checkpoint
+from scripts.tables import machine_note, pair
+from scripts.validation import tune_sampler
 
 K = 6
 PAPER_TABLE3 = {  # Zhu et al. Table 3, ADE/FDE (K unstated), relative / world coordinates of the model input
@@ -91,7 +81,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         if ckpt is None:
             skipped.append(f"{method}: no checkpoint at {path}")
             continue
-        from logpipe.model.checkpoints import read_meta
+        from logpipe.model.checkpoint_meta import read_meta
         from logpipe.model.predictor import NetPredictor
 
         meta = read_meta(ckpt)
@@ -157,8 +147,8 @@ def render(full: dict[str, Any], held: dict[str, Any], choice: dict[str, float],
     steps = [i for i, t in enumerate(horizon) if abs(t - round(t)) < 1e-6]
     lines = [
         "# Argoverse 1 motion forecasting (the paper's Table 3 protocol)", "",
-        f"Produced by `python scripts/reproduce_argoverse.py --data {args.data} --maps {args.maps}`; for the full "
-        "dataset run `python scripts/reproduce_argoverse.py --data <av1>/val/data --maps <av1 maps> --name "
+        f"Produced by `python -m scripts.reproduce_argoverse --data {args.data} --maps {args.maps}`; for the full "
+        "dataset run `python -m scripts.reproduce_argoverse --data <av1>/val/data --maps <av1 maps> --name "
         "argoverse_val`. 20 observed + 30 predicted steps (2 s + 3 s at 10 Hz); the focal AGENT is scored "
         "(`agents=focal`). Argoverse convention: among the first K modes (by score) the one with the lowest FDE, "
         "its ADE and FDE; miss = that FDE > 2.0 m. ADE/FDE in metres (mean / final Euclidean distance).", "",
@@ -196,18 +186,18 @@ def render(full: dict[str, Any], held: dict[str, Any], choice: dict[str, float],
 
 
 def driving_section(results: Path) -> list[str]:
-    """The table of ``scripts/reproduce_driving.py`` (the full model and v1-v4 trained on these logs and AV2's),
+    """The table of ``python -m scripts.reproduce_driving`` (the full model and v1-v4 trained on these logs and AV2's),
     when it has been run."""
     found = results / "argoverse_logs.json"
     if not found.exists():
         return ["", "## The driving model trained on the real logs", "",
-                "Not run yet: `python scripts/reproduce_driving.py` writes it."]
-    from reproduce_driving import table_lines
+                "Not run yet: `python -m scripts.reproduce_driving` writes it."]
+    from scripts.reproduce_driving import table_lines
 
     result = json.loads(found.read_text())
     c = result["counts"]
     return ["", "## The driving model trained on the real logs (every target, not only the focal agent)", "",
-            f"From `docs/results/argoverse_logs.md` (`python scripts/reproduce_driving.py`): trained on the AV1 and "
+            f"From `docs/results/argoverse_logs.md` (`python -m scripts.reproduce_driving`): trained on the AV1 and "
             f"AV2 logs' hash/train, scored on hash/test ({c['test_windows']} windows, {c['test_targets']} targets: "
             "every fully observed vehicle but the AV). A pipeline check on a few hundred windows, not a reproduction "
             "of Table 3 or 4; protocol, rules and intervals are described there.", "", *table_lines(result)]

@@ -7,10 +7,10 @@ real map. Split by log with each dataset's id hash: trained on ``hash/train``, e
 scored on ``hash/test``, which nothing is tuned on (the CV sampler's two noise parameters are chosen on
 ``hash/train``). A pipeline check on a few hundred windows, not a reproduction of the paper's Table 3 or 4::
 
-    python scripts/reproduce_driving.py [--seeds 0 1 2] [--no-train]
+    python -m scripts.reproduce_driving [--seeds 0 1 2] [--no-train]
 
 Trainings are resumable (``logpipe train --resume``): a run stopped half-way continues where it stopped. Writes
-``docs/results/argoverse_logs.json`` and ``.md``; ``reproduce_argoverse.py`` shows the table in ``argoverse.md``.
+``docs/results/argoverse_logs.json`` and ``.md``; ``scripts.reproduce_argoverse`` shows the table in ``argoverse.md``.
 """
 
 from __future__ import annotations
@@ -26,10 +26,6 @@ from typing import Any
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-
-from reproduce_ethucy import REPO, machine_note, truth_of, tune_sampler
-
 from logpipe import metrics
 from logpipe.api import ingest, rasterise, train
 from logpipe.dataset import Dataset
@@ -39,6 +35,9 @@ from logpipe.model.predictor import NetPredictor, Predictor
 from logpipe.rasters import find_raster_run
 from logpipe.stages.train import scene_samples
 from logpipe.types import NDArrayFloat, SceneSample
+from scripts.locations import REPO
+from scripts.tables import machine_note
+from scripts.validation import truth_of, tune_sampler
 
 K = 6
 VARIANTS = ("full", "v4", "v3", "v2", "v1", "baseline")
@@ -234,7 +233,7 @@ def render(result: dict[str, Any], seconds: float) -> str:
     seeds = result["seeds"]
     lines = [
         "# The driving model on the real logs (pipeline check, not a reproduction of Table 3/4)", "",
-        "Produced by `python scripts/reproduce_driving.py` (trains what is missing, resumably; config "
+        "Produced by `python -m scripts.reproduce_driving` (trains what is missing, resumably; config "
         "`configs/argoverse_logs.toml`). Data: the 69 Argoverse 1 sequences in `../shared/data/argoverse1/data` and "
         "the AV2 sensor logs and scenario in `../shared/data/av2/` cut into sliding windows of 20 observed + 30 "
         "predicted steps at 10 Hz (stride 10); ego-centred, heading-rotated 224 x 224 lane rasters over 100 m from "

@@ -9,7 +9,7 @@ never read: this is a question about the methods, not a setting for the results 
 
 Usage::
 
-    python scripts/subset_check.py [--scenes eth zara2] [--draws 100] [--out docs/results/ethucy_subset_check.json]
+    python -m scripts.subset_check [--scenes eth zara2] [--draws 100] [--out docs/results/ethucy_subset_check.json]
 """
 
 from __future__ import annotations
@@ -27,21 +27,10 @@ from logpipe.model.baselines import ConstantVelocitySampler
 from logpipe.model.predictor import NetPredictor, Predictor
 from logpipe.stages.train import scene_samples
 from logpipe.types import NDArrayFloat, NDArrayInt, SceneSample
-
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from reproduce_ethucy import (
-    K_BEST,
-    LEARNED,
-    REPO,
-    SCENES,
-    best_of_k,
-    ensure_dataset,
-    find_checkpoint,
-    truth_of,
-    tune_inference,
-    tune_sampler,
-    tuned,
-)
+from scripts.ethucy_report import SCENES
+from scripts.locations import REPO, ensure_dataset, find_checkpoint
+from scripts.reproduce_ethucy import LEARNED
+from scripts.validation import K_BEST, best_of_k, truth_of, tune_inference, tune_sampler, tuned
 
 
 def farthest_points(x: NDArrayFloat, k: int) -> NDArrayInt:

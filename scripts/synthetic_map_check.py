@@ -2,7 +2,7 @@
 SYNTHETIC traffic simulated on the real Argoverse 1 lane graphs (``logpipe.synthetic.traffic``), scored on the
 held-out region of each city that no training window touches.
 
-    python scripts/synthetic_map_check.py --full RUN_OR_CKPT --no-en RUN_OR_CKPT --test out/syn20k_test
+    python -m scripts.synthetic_map_check --full RUN_OR_CKPT --no-en RUN_OR_CKPT --test out/syn20k_test
 
 Protocol: 20 observed + 30 predicted steps at 10 Hz; every fully observed vehicle but the AV is a target (the AV's
 past and future are the EMF and ETF inputs); K = 6, Argoverse convention (among the K modes the one with the lowest
@@ -22,15 +22,14 @@ from typing import Any
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-
-from reproduce_ethucy import REPO, find_checkpoint, machine_note, truth_of
-
 from logpipe import metrics
 from logpipe.dataset import Dataset
 from logpipe.rasters import find_raster_run
 from logpipe.stages.train import scene_samples
 from logpipe.types import NDArrayFloat, NDArrayInt, SceneSample
+from scripts.locations import REPO, find_checkpoint
+from scripts.tables import machine_note
+from scripts.validation import truth_of
 
 K = 6
 TARGET_GAIN = 0.15
@@ -126,7 +125,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--note", default="", help="a line on how the checkpoints were trained")
     args = ap.parse_args(argv)
     t0 = time.perf_counter()
-    from logpipe.model.checkpoints import read_meta
+    from logpipe.model.checkpoint_meta import read_meta
     from logpipe.model.predictor import NetPredictor
 
     ds = Dataset.open(args.test)
@@ -183,7 +182,7 @@ def render(result: dict[str, Any], args: argparse.Namespace, seconds: float) -> 
         "**All data here is SYNTHETIC**: traffic simulated by `logpipe.synthetic.traffic` on the real Argoverse 1 "
         "lane graphs (MIA, PIT); no real vehicle moved like this. It tests one thing: whether the full model uses "
         "the lane raster where the lane decides the future.", "",
-        f"Produced by `python scripts/synthetic_map_check.py --full {args.full} --no-en {args.no_en} --test "
+        f"Produced by `python -m scripts.synthetic_map_check --full {args.full} --no-en {args.no_en} --test "
         f"{args.test}`. Test: {result['windows']} windows, {result['targets']} targets, all in the held-out region "
         "of each city (no training window within 75 m of it). Protocol: 20 observed + 30 predicted steps at 10 Hz; "
         "targets are every fully observed vehicle but the AV (its past and future are the EMF and ETF inputs); "

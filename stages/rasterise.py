@@ -61,6 +61,7 @@ from logpipe.rasters import (
 )
 from logpipe.shards import log_slices
 from logpipe.types import NDArrayByte, NDArrayFloat, NDArrayInt
+from logpipe.windows import LogWindows
 
 logger = logging.getLogger(__name__)
 
@@ -85,24 +86,20 @@ class _Centre:
 
 
 class _LogView:
-    """One log's tracks as NumPy arrays, for picking centres quickly."""
+    """One log's tracks for picking centres quickly: ``LogWindows``' per-track row lookups, roles and headings."""
 
     def __init__(self, tracks: pa.Table) -> None:
-        self.track = as_numpy(tracks.column("track_id")).astype(str)
+        self.windows = LogWindows(tracks)
+        self.step, self.x, self.y = self.windows.steps, self.windows.x, self.windows.y
         self.role = as_numpy(tracks.column("role")).astype(str)
-        self.step = as_numpy(tracks.column("step")).astype(np.int64)
-        self.x = as_numpy(tracks.column("x")).astype(np.float64)
-        self.y = as_numpy(tracks.column("y")).astype(np.float64)
         head = tracks.column("heading")
         self.heading = np.asarray(as_numpy(head.fill_null(float("nan"))), dtype=np.float64)
-        egos = np.unique(self.track[self.role == "ego"])
-        self.ego: str | None = str(egos[0]) if len(egos) else None
+        egos = [self.windows.names[c] for c in np.unique(self.windows.codes[self.windows.ego]).tolist()]
+        self.ego: str | None = min(egos) if egos else None
 
     def rows(self, track_id: str, first: int, last: int) -> NDArrayInt:
         """Indices of the track's rows with ``first <= step <= last``, sorted by step."""
-        sel = np.flatnonzero((self.track == track_id) & (self.step >= first) & (self.step <= last))
-        out: NDArrayInt = sel[np.argsort(self.step[sel], kind="stable")]
-        return out
+        return self.windows.track_rows(track_id, first, last)
 
     def centre(self, sample: dict[str, Any], rule: str, store: MapStore | None = None) -> _Centre | None:
         """The centre of one sample under ``rule`` (see module doc), or None when nobody is observed."""
@@ -541,8 +538,8 @@ def _write_preview(
     )
     start, cur, end = int(sample["start_step"]), int(sample["current_step"]), int(sample["end_step"])
     targets = {str(t) for t in sample.get("target_track_ids") or []}
-    for track_id in np.unique(view.track):
-        rows = view.rows(str(track_id), start, end)
+    for track_id in view.windows.track_ids():
+        rows = view.rows(track_id, start, end)
         if not len(rows):
             continue
         xy = np.stack([view.x[rows], view.y[rows]], axis=1)

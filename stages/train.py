@@ -19,9 +19,9 @@ from typing import TYPE_CHECKING, Any
 import pyarrow as pa
 import pyarrow.compute as pc
 
-from logpipe.artifact import FolderLock
 from logpipe.dataset import Dataset
 from logpipe.errors import DatasetError, LogpipeError
+from logpipe.folder_lock import FolderLock
 from logpipe.io import sha256_file
 from logpipe.rasters import RasterShards, find_raster_run
 from logpipe.types import SceneSample
@@ -100,7 +100,7 @@ def train(
         device: ``auto`` (CUDA when torch can use a GPU, else the CPU), ``cpu`` or ``cuda`` (autocast there; see
             ``logpipe.model.device``).
     """
-    from logpipe.model.checkpoints import TrainingData, combined_kind, combined_manifest_hash
+    from logpipe.model.checkpoint_meta import TrainingData, combined_kind, combined_manifest_hash
     from logpipe.model.config import TrainConfig, load_config
     from logpipe.model.device import resolve_device
     from logpipe.model.training import fit

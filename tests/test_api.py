@@ -14,6 +14,7 @@ from typer.testing import CliRunner
 import logpipe
 from logpipe import api
 from logpipe.cli import app
+from logpipe.cli.data import summary_notes
 from logpipe.dataset import Dataset
 from logpipe.errors import LogpipeError, SourceError
 
@@ -122,7 +123,7 @@ def test_identical_copies_are_counted_and_named(bundled: Path, tmp_path: Path) -
                                       "same_as": "eth/train/crowds_zara01_train.txt"}]
     copy = s["duplicate_inputs"][0]
     assert (bundled / "ethucy" / copy["path"]).read_bytes() == (bundled / "ethucy" / copy["same_as"]).read_bytes()
-    assert api.summary_notes(s)[0].startswith("1 inputs were identical copies")
+    assert summary_notes(s)[0].startswith("1 inputs were identical copies")
     again = logpipe.ingest(bundled / "ethucy", out=tmp_path / "e", mcap=False, workers=1)
     assert again["inputs_skipped_already_ingested"] == 3 and again["duplicates"] == 1
     result = runner.invoke(app, ["ingest", str(bundled / "ethucy"), "--out", str(tmp_path / "h"), "--no-mcap"])

@@ -174,7 +174,7 @@ def test_train_preset_trains_a_baseline_with_the_same_schedule(bundled: Path, tm
                                  "hotel/test", "--config", str(config), "--preset", preset, "--out",
                                  str(tmp_path / "run"), "--json"])
     assert result.exit_code == 0, result.output
-    from logpipe.model.checkpoints import read_meta
+    from logpipe.model.checkpoint_meta import read_meta
 
     meta = read_meta(Path(json.loads(result.stdout)["best_checkpoint"]))
     assert not any(dataclasses.asdict(meta.config.model.features).values())  # no AIN, no environment net

@@ -32,22 +32,19 @@ from mcap_ros1.decoder import DecoderFactory as Ros1Decoders
 from mcap_ros2.decoder import DecoderFactory as Ros2Decoders
 
 from logpipe import foxglove as fx
+from logpipe import foxglove_forecast as ff
+from logpipe import foxglove_raster as fr
 from logpipe.dataset import Dataset
 from logpipe.maps import MapSource
 from logpipe.mcapio import EGO_TOPIC, LOG_FRAME, SCENE_TOPIC, TF_TOPIC, WORLD_FRAME
 from logpipe.model.synthetic import make_scene, world_to_raster_affine
+from logpipe.prediction_mcap import RASTER_FRAME, RASTER_GRID_TOPIC, RASTER_TF_TOPIC, RASTER_TOPIC
+from logpipe.prediction_mcap import SCENE_TOPIC as FORECAST_TOPIC
 from logpipe.raster import RasterSpec, world_to_pixel
 from logpipe.rasters import find_raster_run
+from logpipe.sample_filter import parse_filter
 from logpipe.stages.ingest import IngestOptions, ingest
-from logpipe.stages.predict import (
-    RASTER_FRAME,
-    RASTER_GRID_TOPIC,
-    RASTER_TF_TOPIC,
-    RASTER_TOPIC,
-    parse_filter,
-    predict_dataset,
-)
-from logpipe.stages.predict import SCENE_TOPIC as FORECAST_TOPIC
+from logpipe.stages.predict import predict_dataset
 from logpipe.stages.rasterise import rasterise_dataset
 from logpipe.types import OBJECT_TYPES
 
@@ -242,11 +239,11 @@ def check_prediction_mcap(path: Path, ds: Dataset, log_id: str, frame: str, *, r
             truth = [by_key[(s, e.id)] for s in range(sample["current_step"] + 1, sample["end_step"] + 1)
                      if (s, e.id) in by_key]
             styled = {(ln.color.r, ln.color.g, ln.color.b): ln for ln in e.lines}
-            assert bool(truth) == (fx.TRUTH_RGBA[:3] in styled)
+            assert bool(truth) == (ff.TRUTH_RGBA[:3] in styled)
             if truth:
-                points = [(p.x, p.y) for p in styled[fx.TRUTH_RGBA[:3]].points]
+                points = [(p.x, p.y) for p in styled[ff.TRUTH_RGBA[:3]].points]
                 assert points == [current, *truth]
-            modes = [ln for ln in e.lines if (ln.color.r, ln.color.g, ln.color.b) == fx.MODE_RGB]
+            modes = [ln for ln in e.lines if (ln.color.r, ln.color.g, ln.color.b) == ff.MODE_RGB]
             assert modes and all((ln.points[0].x, ln.points[0].y) == current for ln in modes)
     images = opened.topics.get(RASTER_TOPIC, [])
     grids = opened.topics.get(RASTER_GRID_TOPIC, [])
@@ -295,7 +292,7 @@ def test_predictions_with_rasters_lay_the_map_under_the_scene(tmp_path: Path) ->
         sample_id = next(r["sample_id"] for r in ds.samples().to_pylist() if r["log_id"] == log_id)
         raster, affine = rasters.get(sample_id)
         rgb = _png_rgb(image.data)
-        assert np.array_equal(rgb, fx.raster_rgb(np.asarray(raster), rasters.spec.channels)) and rgb.any()
+        assert np.array_equal(rgb, fr.raster_rgb(np.asarray(raster), rasters.spec.channels)) and rgb.any()
         _assert_transform_matches_affine(tf, affine)
 
 
@@ -428,7 +425,7 @@ def test_forecast_update_draws_history_truth_marker_and_modes() -> None:
     targets = np.array([0, 1, 2])
     futures = np.cumsum(np.ones((3, 5, 12, 2)), axis=2)
     scores = np.array([[0.5, 0.2, 0.1, 0.1, 0.1]] * 3)
-    update = SceneUpdate.FromString(fx.forecast_scene_update("map", 1_700_000_000_123_456_789, 4_800_000_000,
+    update = SceneUpdate.FromString(ff.forecast_scene_update("map", 1_700_000_000_123_456_789, 4_800_000_000,
                                                              sample, targets, futures, scores))
     assert [e.id for e in update.entities] == [sample.track_ids[i] for i in targets]
     for j, e in enumerate(update.entities):
@@ -437,11 +434,11 @@ def test_forecast_update_draws_history_truth_marker_and_modes() -> None:
         current = tuple(sample.positions[targets[j], 7])
         assert (e.spheres[0].pose.position.x, e.spheres[0].pose.position.y) == current
         lines = {(ln.color.r, ln.color.g, ln.color.b, ln.color.a): [(p.x, p.y) for p in ln.points] for ln in e.lines}
-        assert lines[fx.HISTORY_RGBA] == [tuple(p) for p in sample.positions[targets[j], :8]]
+        assert lines[ff.HISTORY_RGBA] == [tuple(p) for p in sample.positions[targets[j], :8]]
         future = sample.positions[targets[j], 8:]
         future = future[np.isfinite(future).all(axis=1)]
-        assert lines.get(fx.TRUTH_RGBA) == ([current, *map(tuple, future)] if len(future) else None)
-        modes = [ln for ln in e.lines if (ln.color.r, ln.color.g, ln.color.b) == fx.MODE_RGB]
+        assert lines.get(ff.TRUTH_RGBA) == ([current, *map(tuple, future)] if len(future) else None)
+        modes = [ln for ln in e.lines if (ln.color.r, ln.color.g, ln.color.b) == ff.MODE_RGB]
         assert [ln.color.a for ln in modes] == [1.0, 0.55, 0.4, 0.4, 0.4]  # 0.25 + 0.75 x score / best
         assert [(p.x, p.y) for p in modes[0].points] == [current, *map(tuple, futures[j, 0])]
 
@@ -452,7 +449,7 @@ def test_raster_frame_puts_each_pixel_where_the_affine_says(heading: float | Non
     affines = [world_to_pixel(spec, 2661.4, 1145.2, heading), world_to_raster_affine(np.array([-30.0, 12.5]))]
     for affine in affines:
         tf = fx.MESSAGE_CLASSES["foxglove.FrameTransform"].FromString(
-            fx.raster_transform("world", "raster", 7, affine))
+            fr.raster_transform("world", "raster", 7, affine))
         _assert_transform_matches_affine(tf, affine)
 
 
@@ -470,8 +467,8 @@ def test_grid_cells_lie_on_their_pixels_facing_up() -> None:
     spec = RasterSpec(rotate=True, size_px=8, extent_m=4.0)
     affine = world_to_pixel(spec, 2661.4, 1145.2, 0.7)
     rgb = np.zeros((8, 8, 3), np.uint8)
-    tf = fx.MESSAGE_CLASSES["foxglove.FrameTransform"].FromString(fx.raster_transform("world", "r", 0, affine))
-    grid = fx.MESSAGE_CLASSES["foxglove.Grid"].FromString(fx.raster_grid("r", 0, rgb, fx.raster_resolution(affine)))
+    tf = fx.MESSAGE_CLASSES["foxglove.FrameTransform"].FromString(fr.raster_transform("world", "r", 0, affine))
+    grid = fx.MESSAGE_CLASSES["foxglove.Grid"].FromString(fr.raster_grid("r", 0, rgb, fr.raster_resolution(affine)))
     to_world = _rotation(tf.rotation) @ _rotation(grid.pose.orientation)
     assert np.isclose(to_world[2, 2], 1.0)  # the grid's +z, the side the 3D panel draws, is up
     rows, cols = np.mgrid[0:8, 0:8]
@@ -488,7 +485,7 @@ def test_grid_cells_lie_on_their_pixels_facing_up() -> None:
 def _assert_transform_matches_affine(tf: Any, affine: np.ndarray) -> None:
     """Pixel (u, v)'s centre, at ((u + 0.5) res, (v + 0.5) res, 0) in the raster frame, lands on the world point
     the affine maps to (u, v), just under the ground."""
-    res = fx.raster_resolution(affine)
+    res = fr.raster_resolution(affine)
     rot = _rotation(tf.rotation)
     pixels = np.array([[0, 0], [223, 0], [0, 223], [111.0, 57.0]])
     local = np.column_stack([(pixels + 0.5) * res, np.zeros(len(pixels))])
@@ -500,24 +497,24 @@ def _assert_transform_matches_affine(tf: Any, affine: np.ndarray) -> None:
 
 def test_raster_transform_refuses_an_affine_with_rows_growing_up() -> None:
     with pytest.raises(ValueError, match="rows"):
-        fx.raster_transform("world", "raster", 0, np.array([[2.24, 0.0, 10.0], [0.0, 2.24, 5.0]]))
+        fr.raster_transform("world", "raster", 0, np.array([[2.24, 0.0, 10.0], [0.0, 2.24, 5.0]]))
 
 
 def test_raster_image_and_grid_hold_the_same_pixels() -> None:
     rgb = np.zeros((6, 4, 3), np.uint8)
     rgb[0, 0] = (255, 0, 0)
     rgb[5, 3] = (0, 9, 200)
-    image = fx.MESSAGE_CLASSES["foxglove.CompressedImage"].FromString(fx.compressed_raster("r", 3, rgb))
+    image = fx.MESSAGE_CLASSES["foxglove.CompressedImage"].FromString(fr.compressed_raster("r", 3, rgb))
     decoded = _png_rgb(image.data)
     assert image.format == "png" and np.array_equal(decoded, rgb)
-    grid = fx.MESSAGE_CLASSES["foxglove.Grid"].FromString(fx.raster_grid("r", 3, rgb, 0.5))
+    grid = fx.MESSAGE_CLASSES["foxglove.Grid"].FromString(fr.raster_grid("r", 3, rgb, 0.5))
     assert (grid.column_count, grid.row_stride, grid.cell_stride) == (4, 16, 4)
     assert [f.name for f in grid.fields] == ["red", "green", "blue", "alpha"]
     cells = np.frombuffer(grid.data, np.uint8).reshape(6, 4, 4)
     assert np.array_equal(cells[::-1, :, :3], rgb)
     assert cells[5, 0, 3] == 255 and cells[0, 0, 3] == 64  # drawn cells opaque, empty ones dim
     assert (grid.pose.position.y, grid.pose.orientation.x, grid.cell_size.x) == (3.0, 1.0, 0.5)
-    layers = fx.raster_rgb(np.stack([np.full((2, 2), 9, np.uint8)] * 3), ("drivable_area", "lane_up", "crossing"))
+    layers = fr.raster_rgb(np.stack([np.full((2, 2), 9, np.uint8)] * 3), ("drivable_area", "lane_up", "crossing"))
     assert layers.shape == (2, 2, 3) and (layers == 9).all()
 
 

@@ -12,8 +12,9 @@ import pyarrow.parquet as pq
 import pytest
 
 from logpipe.formats import detect
-from logpipe.formats._text import stem, times_sorted_and_unique
+from logpipe.formats._text import stem
 from logpipe.formats.argoverse1 import Argoverse1Adapter
+from logpipe.formats.text_checks import times_sorted_and_unique
 from logpipe.inputs import collect_sources
 from logpipe.io import parquet_options
 from logpipe.samples import TrackCodes

@@ -19,14 +19,14 @@ import logpipe
 from logpipe.cli import app
 from logpipe.dataset import Dataset
 from logpipe.errors import DatasetError, LogpipeError
-from logpipe.model.checkpoints import (
+from logpipe.model.checkpoint_meta import (
     CheckpointMismatchError,
     TrainingData,
     combined_manifest_hash,
     kind_accepts,
-    load_checkpoint,
     read_meta,
 )
+from logpipe.model.checkpoints import load_checkpoint
 from logpipe.model.registry import check_fit, choose_predictor
 
 runner = CliRunner()

@@ -1,20 +1,18 @@
-"""The validation-only checks of scripts/reproduce_ethucy.py, on a bundled real ETH/UCY file."""
+"""The ETH/UCY reproduction's checks and the scripts' shared pieces (scripts.ethucy_checks, .validation, .seeds,
+.forecasts, .ethucy_report), on a bundled real ETH/UCY file."""
 
 from __future__ import annotations
 
 import json
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 from logpipe.predictions import PredictionRun
+from scripts.ethucy_checks import FRAME_RATE_SHIFT, rate_shifted_text
 
 REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO / "scripts"))
-
-from reproduce_ethucy import FRAME_RATE_SHIFT, rate_shifted_text  # noqa: E402
 
 ZARA = REPO / "tests" / "data" / "ethucy" / "eth" / "train" / "crowds_zara01_train.txt"
 
@@ -54,7 +52,7 @@ def test_rate_shift_interpolates_each_track_on_the_longer_step() -> None:
 
 
 def test_seed_checkpoints_are_found_under_seed_folders(tmp_path: Path) -> None:
-    from reproduce_ethucy import seed_template, training_seeds
+    from scripts.seeds import seed_template, training_seeds
 
     for name in ("seed2/ethucy", "seed10/ethucy", "seed10/apolloscape", "seed4/apolloscape", "seedx/ethucy",
                  "ethucy"):
@@ -62,14 +60,28 @@ def test_seed_checkpoints_are_found_under_seed_folders(tmp_path: Path) -> None:
     (tmp_path / "seed3").write_text("a file, not a checkpoint folder")
     assert training_seeds("ethucy", tmp_path) == [2, 10]
     assert training_seeds("apolloscape", tmp_path) == [4, 10]  # seed 2 trained ETH/UCY only
-    assert seed_template("model/checkpoints/ethucy/{scene}/lstm", 2) == "model/checkpoints/seed2/ethucy/{scene}/lstm"
-    assert seed_template("/elsewhere/run/best", 2) == "/elsewhere/run/best"  # an explicit folder stays as given
+    assert training_seeds("ethucy", tmp_path / "absent") == []  # no seed folder: only seed 0, no error
+    # a shipped template maps into the seeds folder, outside the package
+    assert (seed_template("model/checkpoints/ethucy/{scene}/lstm", 2, tmp_path)
+            == f"{tmp_path.resolve().as_posix()}/seed2/ethucy/{{scene}}/lstm")
+    assert seed_template("/elsewhere/run/best", 2, tmp_path) == "/elsewhere/run/best"  # an explicit folder stays
+
+
+def test_results_files_say_when_there_are_no_seed_checkpoints(tmp_path: Path) -> None:
+    from scripts.ethucy_report import across_seeds_section
+    from scripts.reproduce_apolloscape import render_across_seeds
+
+    results: dict[str, dict[str, object]] = {"seeds": {"eth": {}}, "stale_seeds": {}, "scenes": {}}
+    eth = across_seeds_section(results, tmp_path / "none")
+    assert eth[0] == "## Across training seeds" and f"{tmp_path.resolve() / 'none'}/seedN/ethucy/" in eth[2]
+    apollo = render_across_seeds({}, {}, REPO / "out" / "checkpoints")
+    assert "`out/checkpoints/seedN/apolloscape/`" in apollo[-1] and "only training seed 0" in apollo[-1]
 
 
 def test_a_seed_trained_with_another_recipe_is_left_out(tmp_path: Path) -> None:
     """Seed N counts only while each of its checkpoints has the config of the shipped one beside it, seed and
     step budget aside: a seed trained before a config change is no repeat of the shipped runs."""
-    from reproduce_ethucy import stale_seeds, training_seeds
+    from scripts.seeds import stale_seeds, training_seeds
 
     shipped = json.loads((REPO / "model/checkpoints/ethucy/eth/meta.json").read_text(encoding="utf-8"))
 
@@ -86,14 +98,14 @@ def test_a_seed_trained_with_another_recipe_is_left_out(tmp_path: Path) -> None:
     place("seed1/ethucy/eth", seed=1, steps=1234)
     place("seed2/ethucy/eth", seed=2, mode_gate=not gate, lr=1e-3)
     place("seed2/ethucy/hotel", seed=2, lr=1e-3)  # nothing shipped beside it to compare with
-    assert stale_seeds("ethucy", tmp_path) == {2: ["ethucy/eth: lr, model.mode_gate"]}
-    assert training_seeds("ethucy", tmp_path) == [1]
+    assert stale_seeds("ethucy", tmp_path, tmp_path) == {2: ["ethucy/eth: lr, model.mode_gate"]}
+    assert training_seeds("ethucy", tmp_path, tmp_path) == [1]
 
 
 def test_settings_a_network_cannot_feel_make_no_other_recipe(tmp_path: Path) -> None:
     """A Noise-LSTM trained before ``context_radius_m`` existed and one trained with it collate the same windows
     (no pools read other agents), so they are one recipe; for the paper's method the radius is another recipe."""
-    from reproduce_ethucy import stale_seeds
+    from scripts.seeds import stale_seeds
 
     for method in ("noise_lstm", ""):
         meta = json.loads((REPO / f"model/checkpoints/ethucy/univ/{method}/meta.json").read_text(encoding="utf-8"))
@@ -101,11 +113,11 @@ def test_settings_a_network_cannot_feel_make_no_other_recipe(tmp_path: Path) -> 
             meta["config"]["model"]["context_radius_m"] = radius
             (tmp_path / folder).mkdir(parents=True, exist_ok=True)
             (tmp_path / folder / "meta.json").write_text(json.dumps(meta), encoding="utf-8")
-    assert stale_seeds("ethucy", tmp_path) == {1: ["ethucy/univ: model.context_radius_m"]}
+    assert stale_seeds("ethucy", tmp_path, tmp_path) == {1: ["ethucy/univ: model.context_radius_m"]}
 
 
 def test_stale_seed_lines_are_grouped_by_the_keys_that_differ() -> None:
-    from reproduce_ethucy import stale_summary
+    from scripts.seeds import stale_summary
 
     many = [f"ethucy/{scene}: model.mode_gate" for scene in ("eth", "hotel", "univ", "zara1")]
     assert stale_summary([*many, "ethucy/eth/lstm: lr, model.mode_gate"]) == (
@@ -113,7 +125,7 @@ def test_stale_seed_lines_are_grouped_by_the_keys_that_differ() -> None:
 
 
 def test_across_seeds_table_means_ranges_and_standing() -> None:
-    from reproduce_ethucy import across_seeds_table
+    from scripts.seeds import across_seeds_table
 
     cells = {
         "eth": {"cv_sampler": [(0.50, 0.90), (0.52, 0.86)], "zhu2020": [(0.53, 0.91), (0.49, 0.87)]},
@@ -131,10 +143,11 @@ def test_across_seeds_table_means_ranges_and_standing() -> None:
 
 
 def test_seed_run_scores_the_sampler_like_a_direct_computation(bundled: Path, tmp_path: Path) -> None:
-    from reproduce_ethucy import best_of_k, ensure_dataset, seed_run, truth_of, tune_sampler
-
     from logpipe.model.baselines import ConstantVelocitySampler
     from logpipe.stages.train import scene_samples
+    from scripts.locations import ensure_dataset
+    from scripts.seeds import seed_run
+    from scripts.validation import best_of_k, truth_of, tune_sampler
 
     ds = ensure_dataset(bundled / "ethucy", tmp_path / "ds", "ethucy")
     val, test = scene_samples(ds, "eth/train")[:40], scene_samples(ds, "eth/test")
@@ -153,18 +166,12 @@ def test_seed_run_scores_the_sampler_like_a_direct_computation(bundled: Path, tm
 
 
 def test_motion_breakdown_splits_the_scored_agents(bundled: Path, tmp_path: Path) -> None:
-    from reproduce_ethucy import (
-        STAY_RADIUS_M,
-        STILL_STEP_M,
-        ensure_dataset,
-        motion_breakdown,
-        read_forecasts,
-        write_classical,
-    )
-
     from logpipe.model.baselines import ConstantVelocitySampler
     from logpipe.stages.score import score
     from logpipe.stages.train import scene_samples
+    from scripts.ethucy_checks import STAY_RADIUS_M, STILL_STEP_M, motion_breakdown
+    from scripts.forecasts import read_forecasts, write_classical
+    from scripts.locations import ensure_dataset
 
     ds = ensure_dataset(bundled / "ethucy", tmp_path / "ds", "ethucy")
     test = scene_samples(ds, "eth/test")
@@ -196,19 +203,18 @@ def test_motion_breakdown_splits_the_scored_agents(bundled: Path, tmp_path: Path
 def test_inference_settings_are_the_val_argmin_over_the_joint_grid(bundled: Path, tmp_path: Path) -> None:
     """tune_inference tries every (constant-velocity modes, noise scale) pair, picks the lowest val best-of-20
     ADE, and ``tuned`` reproduces the chosen row; holding a mode at constant velocity changes the forecasts."""
-    from reproduce_ethucy import (
+    from logpipe.model.predictor import NetPredictor
+    from logpipe.stages.train import scene_samples
+    from scripts.locations import ensure_dataset
+    from scripts.validation import (
         CV_MODES_GRID,
         NOISE_SCALE_GRID,
         best_of_k,
-        ensure_dataset,
         grid_row,
         truth_of,
         tune_inference,
         tuned,
     )
-
-    from logpipe.model.predictor import NetPredictor
-    from logpipe.stages.train import scene_samples
 
     ds = ensure_dataset(bundled / "ethucy", tmp_path / "ds", "ethucy")
     val = scene_samples(ds, "eth/train")[:30]
@@ -223,10 +229,11 @@ def test_inference_settings_are_the_val_argmin_over_the_joint_grid(bundled: Path
 
 
 def test_paired_differences_agree_with_the_report(bundled: Path, tmp_path: Path) -> None:
-    from reproduce_ethucy import ensure_dataset, paired_differences, read_forecasts, window_blocks, write_classical
-
     from logpipe.stages.score import score
     from logpipe.stages.train import scene_samples
+    from scripts.ethucy_checks import paired_differences, window_blocks
+    from scripts.forecasts import read_forecasts, write_classical
+    from scripts.locations import ensure_dataset
 
     ds = ensure_dataset(bundled / "ethucy", tmp_path / "ds", "ethucy")
     test = scene_samples(ds, "eth/test")
@@ -256,20 +263,12 @@ def test_paired_differences_agree_with_the_report(bundled: Path, tmp_path: Path)
 
 
 def test_the_neighbour_cap_is_the_training_percentile_and_only_for_pooling_nets(bundled: Path, tmp_path: Path) -> None:
-    from reproduce_ethucy import (
-        NEIGHBOUR_CAP_PERCENTILE,
-        best_of_k,
-        ensure_dataset,
-        grid_row,
-        neighbour_cap,
-        truth_of,
-        tuned,
-        write_learned,
-    )
-
     from logpipe.model.batching import neighbour_counts
     from logpipe.model.predictor import NetPredictor
     from logpipe.stages.train import scene_samples
+    from scripts.forecasts import write_learned
+    from scripts.locations import ensure_dataset
+    from scripts.validation import NEIGHBOUR_CAP_PERCENTILE, best_of_k, grid_row, neighbour_cap, truth_of, tuned
 
     ds = ensure_dataset(bundled / "ethucy", tmp_path / "ds", "ethucy")
     train = scene_samples(ds, "eth/train")
@@ -301,7 +300,7 @@ def test_the_neighbour_cap_is_the_training_percentile_and_only_for_pooling_nets(
 
 
 def test_the_ablation_is_never_a_baseline_and_gets_its_own_standing() -> None:
-    from reproduce_ethucy import ABLATION, SCENES, standing
+    from scripts.ethucy_report import ABLATION, SCENES, standing
 
     def cell(ade: float, fde: float) -> dict[str, dict[str, dict[str, float]]]:
         return {"overall": {"k20": {"ade": ade, "fde": fde}, "k1": {"ade": 9.0, "fde": 9.0}}}

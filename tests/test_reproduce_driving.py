@@ -1,19 +1,15 @@
-"""scripts/reproduce_driving.py: its scoring rules on hand-made forecasts, and a run over the real logs."""
+"""scripts.reproduce_driving: its scoring rules on hand-made forecasts, and a run over the real logs."""
 
 from __future__ import annotations
 
 import json
 import math
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO / "scripts"))
-
-from reproduce_driving import interval, main, scores  # noqa: E402
+from scripts.reproduce_driving import interval, main, scores
 
 
 def _straight(n_steps: int, offset_m: float) -> np.ndarray:

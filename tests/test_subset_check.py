@@ -1,15 +1,10 @@
-"""The k-means reduction of scripts/subset_check.py on forecasts whose clusters are known."""
+"""The k-means reduction of scripts.subset_check on forecasts whose clusters are known."""
 
 from __future__ import annotations
 
-import sys
-from pathlib import Path
-
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "scripts"))
-
-from subset_check import farthest_points, kmeans_centres, reduced
+from scripts.subset_check import farthest_points, kmeans_centres, reduced
 
 
 def test_kmeans_finds_separated_clusters_per_row() -> None:

@@ -21,19 +21,21 @@ import pyarrow as pa
 from logpipe.errors import SourceError
 from logpipe.formats._text import (
     TextBatch,
-    check_finite,
-    check_time_and_duplicates,
     decimal_seconds_to_ns,
     dictionary_column,
-    first_true,
     log_ids_column,
     parse_files,
     relabel,
-    row_error,
     stem,
-    times_sorted_and_unique,
 )
 from logpipe.formats.base import ParsedLogs, files_with_suffix
+from logpipe.formats.text_checks import (
+    check_finite,
+    check_time_and_duplicates,
+    first_true,
+    row_error,
+    times_sorted_and_unique,
+)
 from logpipe.io import as_numpy
 from logpipe.samples import TrackCodes, steps_from_sorted_times
 from logpipe.types import PROTOCOLS, LogMeta, ObjectType, Role, SampleProtocol, SourceFile

@@ -35,9 +35,11 @@ from logpipe.formats.base import (
     as_source_error,
     check_log_id,
     check_tracks,
+    conform_tracks,
+    empty_tracks,
     require_regular,
 )
-from logpipe.formats.ros_messages import conform_tracks, empty_tracks, quat_mul, quat_rotate, quat_yaw
+from logpipe.geometry import quat_mul, quat_rotate, quat_yaw
 from logpipe.types import PROTOCOLS, LogMeta, NDArrayFloat, SampleProtocol, SourceFile
 
 # Scenario object_type → ObjectType (AV2 motion-forecasting vocabulary).

@@ -251,6 +251,26 @@ def _empty_tracks() -> pa.Table:
     return tracks_schema().empty_table()
 
 
+def adapter_schema() -> pa.Schema:
+    """The canonical track schema without ``step`` (the ingest stage computes it): what the log adapters return."""
+    from logpipe.contracts import tracks_schema  # here: as in _empty_tracks
+
+    schema = tracks_schema()
+    return pa.schema([f for f in schema if f.name != "step"], metadata=schema.metadata)
+
+
+def conform_tracks(table: pa.Table) -> pa.Table:
+    """``table`` cast to ``adapter_schema()``."""
+    from logpipe.contracts import conform
+
+    return conform(table, adapter_schema())
+
+
+def empty_tracks() -> pa.Table:
+    """A table with no rows in ``adapter_schema()``."""
+    return adapter_schema().empty_table()
+
+
 def regular_sources(
     sources: list[SourceFile], keep_going: bool
 ) -> tuple[list[SourceFile], list[tuple[SourceFile, SourceError]]]:

@@ -22,14 +22,11 @@ from logpipe.formats._text import (
     ID_LIMIT,
     NumericTextFormat,
     TextBatch,
-    check_finite,
-    check_range,
-    check_time_and_duplicates,
     log_ids_column,
     parse_files,
-    row_error,
 )
 from logpipe.formats.base import TIME_LIMIT_NS, ParsedLogs
+from logpipe.formats.text_checks import check_finite, check_range, check_time_and_duplicates, row_error
 from logpipe.io import as_numpy
 from logpipe.samples import steps_from_sorted_times
 from logpipe.types import PROTOCOLS, LogMeta, ObjectType, Role, SampleProtocol, SourceFile

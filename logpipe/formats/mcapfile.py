@@ -29,10 +29,10 @@ from mcap_ros1.decoder import DecoderFactory as Ros1DecoderFactory
 from mcap_ros2.decoder import DecoderFactory as Ros2DecoderFactory
 
 from logpipe.errors import SourceError
-from logpipe.formats.base import ParsedLogs, read_each, read_head
-from logpipe.formats.extract import ROSBAG_PROTOCOL, ExtractOptions, extract_log
-from logpipe.formats.mapping import Mapping
-from logpipe.formats.ros_messages import TopicSummary, empty_tracks, normalize_type
+from logpipe.formats.base import ParsedLogs, empty_tracks, read_each, read_head
+from logpipe.formats.ros.extract import ROSBAG_PROTOCOL, ExtractOptions, extract_log
+from logpipe.formats.ros.mapping import Mapping, TopicSummary
+from logpipe.formats.ros.message_types import normalize_type
 from logpipe.types import LogMeta, SampleProtocol, SourceFile
 
 MCAP_MAGIC = b"\x89MCAP0\r\n"

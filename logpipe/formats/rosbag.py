@@ -23,11 +23,11 @@ from rosbags.typesys import Stores, get_typestore
 from rosbags.typesys.store import Typestore
 
 from logpipe.errors import SourceError
-from logpipe.formats.base import ParsedLogs, read_each, read_head
-from logpipe.formats.extract import ROSBAG_PROTOCOL, ExtractOptions, ReadStopped, extract_log
-from logpipe.formats.mapping import Mapping
+from logpipe.formats.base import ParsedLogs, empty_tracks, read_each, read_head
 from logpipe.formats.mcapfile import McapAdapter
-from logpipe.formats.ros_messages import TopicSummary, empty_tracks, normalize_type
+from logpipe.formats.ros.extract import ROSBAG_PROTOCOL, ExtractOptions, ReadStopped, extract_log
+from logpipe.formats.ros.mapping import Mapping, TopicSummary
+from logpipe.formats.ros.message_types import normalize_type
 from logpipe.types import LogMeta, SampleProtocol, SourceFile
 
 _SPLIT = re.compile(r"^(?P<stem>.+)_(?P<index>\d+)$")

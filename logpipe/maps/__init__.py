@@ -16,7 +16,9 @@ from pathlib import Path
 
 from logpipe.errors import DatasetError, LogpipeError, SourceError
 from logpipe.maps import argoverse1, av2, lanelet2
-from logpipe.maps.store import KINDS, POLYGON_KINDS, FeatureKind, Layer, MapBuilder, MapStore, Window
+from logpipe.maps.feature_kinds import KINDS, POLYGON_KINDS, FeatureKind
+from logpipe.maps.grid_index import Layer, Window
+from logpipe.maps.store import MapBuilder, MapStore
 
 __all__ = [
     "ADAPTERS",

@@ -22,7 +22,8 @@ import numpy as np
 import pyarrow as pa
 
 from logpipe.errors import SourceError
-from logpipe.maps.store import FeatureKind, MapBuilder, MapStore, map_schema
+from logpipe.maps.feature_kinds import FeatureKind
+from logpipe.maps.store import MapBuilder, MapStore, map_schema
 
 NPZ_SOURCE = "argoverse1_npz"
 XML_SOURCE = "argoverse1_xml"

@@ -24,7 +24,8 @@ from typing import Any
 import numpy as np
 
 from logpipe.errors import SourceError
-from logpipe.maps.store import FeatureKind, MapBuilder, MapStore
+from logpipe.maps.feature_kinds import FeatureKind
+from logpipe.maps.store import MapBuilder, MapStore
 from logpipe.types import NDArrayFloat
 
 SOURCE = "av2_json"

@@ -29,7 +29,8 @@ import numpy as np
 
 from logpipe.errors import SourceError
 from logpipe.maps.av2 import centerline_from_boundaries
-from logpipe.maps.store import FeatureKind, MapBuilder, MapStore
+from logpipe.maps.feature_kinds import FeatureKind
+from logpipe.maps.store import MapBuilder, MapStore
 from logpipe.types import NDArrayFloat
 
 SOURCE = "lanelet2_osm"
@@ -78,10 +79,32 @@ def load(path: Path, map_id: str | None = None, origin: tuple[float, float] | No
         root = ET.parse(path).getroot()
     except ET.ParseError as exc:
         raise SourceError(name, f"malformed XML: {exc}", line=exc.position[0]) from exc
+    ways = _read_ways(root, _read_nodes(root, name, origin), name)
+    builder = MapBuilder(map_id or path.stem, SOURCE)
+    used_bounds: set[str] = set()
+    for rel in root.iter("relation"):
+        rid = rel.attrib.get("id", "")
+        tags = _tags(rel)
+        members = [(m.attrib.get("role", ""), m.attrib.get("type", ""), m.attrib.get("ref", "")) for m in rel]
+        members = [m for m in members if m[1] == "way"]
+        if tags.get("type") == "lanelet":
+            _add_lanelet(builder, rid, tags, members, ways, used_bounds, name)
+        elif tags.get("type") == "multipolygon":
+            _add_area(builder, rid, tags.get("subtype", "road"), members, ways)
+    return builder.build()
 
+
+def _tags(el: ET.Element) -> dict[str, str]:
+    """The ``<tag k v>`` children of an OSM element as a dict."""
+    return {t.attrib.get("k", ""): t.attrib.get("v", "") for t in el.iter("tag")}
+
+
+def _read_nodes(root: ET.Element, name: str, origin: tuple[float, float] | None) -> dict[str, tuple[float, float]]:
+    """Node id → (x, y) metres in the map frame: ``local_x/local_y`` when every node has them, else lat/lon
+    projected about ``origin`` (default: the first node)."""
     raw: dict[str, tuple[float, float, dict[str, str]]] = {}
     for el in root.iter("node"):
-        tags = {t.attrib.get("k", ""): t.attrib.get("v", "") for t in el.iter("tag")}
+        tags = _tags(el)
         try:
             raw[el.attrib["id"]] = (float(el.attrib.get("lat", "nan")), float(el.attrib.get("lon", "nan")), tags)
         except (KeyError, ValueError) as exc:
@@ -98,7 +121,13 @@ def load(path: Path, map_id: str | None = None, origin: tuple[float, float] | No
             if not (math.isfinite(lat) and math.isfinite(lon)):
                 raise SourceError(name, f"node {nid} has neither lat/lon nor local_x/local_y", field="node")
             nodes[nid] = _project(lat, lon, org)
+    return nodes
 
+
+def _read_ways(
+    root: ET.Element, nodes: dict[str, tuple[float, float]], name: str
+) -> dict[str, tuple[NDArrayFloat, dict[str, str]]]:
+    """Way id → ((n, 2) vertices in metres, tags)."""
     ways: dict[str, tuple[NDArrayFloat, dict[str, str]]] = {}
     for el in root.iter("way"):
         wid = el.attrib.get("id", "")
@@ -106,58 +135,70 @@ def load(path: Path, map_id: str | None = None, origin: tuple[float, float] | No
         bad = [r for r in refs if r not in nodes]
         if bad:
             raise SourceError(name, f"way {wid} refers to unknown node(s) {bad[:3]}", field="nd")
-        tags = {t.attrib.get("k", ""): t.attrib.get("v", "") for t in el.iter("tag")}
-        ways[wid] = (np.array([nodes[r] for r in refs], dtype=np.float64).reshape(-1, 2), tags)
+        ways[wid] = (np.array([nodes[r] for r in refs], dtype=np.float64).reshape(-1, 2), _tags(el))
+    return ways
 
-    builder = MapBuilder(map_id or path.stem, SOURCE)
-    used_bounds: set[str] = set()
-    for rel in root.iter("relation"):
-        rid = rel.attrib.get("id", "")
-        tags = {t.attrib.get("k", ""): t.attrib.get("v", "") for t in rel.iter("tag")}
-        members = [(m.attrib.get("role", ""), m.attrib.get("type", ""), m.attrib.get("ref", "")) for m in rel]
-        members = [m for m in members if m[1] == "way"]
-        subtype = tags.get("subtype", "road")
-        if tags.get("type") == "lanelet":
-            lefts = [ref for role, _, ref in members if role == "left"]
-            rights = [ref for role, _, ref in members if role == "right"]
-            if len(lefts) != 1 or len(rights) != 1 or lefts[0] not in ways or rights[0] not in ways:
-                raise SourceError(name, f"lanelet {rid} needs exactly one known left and right way", field=rid)
-            right, right_tags = ways[rights[0]]
-            left, left_tags = ways[lefts[0]]
-            left = _orient_like(left, right)
-            outline = np.vstack([left, right[::-1]])
-            if subtype in _CROSSING_SUBTYPES:
-                builder.add(FeatureKind.CROSSING, rid, outline, lane_type=subtype, derived=True)
-                continue
-            if subtype not in _DRIVABLE_SUBTYPES:
-                continue  # walkways, stairs, ...: not part of the road raster
-            bidir = tags.get("one_way", "yes") == "no"
-            builder.add(
-                FeatureKind.LANE_CENTERLINE,
-                rid,
-                centerline_from_boundaries(left, right),
-                derived=True,
-                lane_id=rid,
-                lane_type=subtype,
-                direction="both" if bidir else "forward",
-            )
-            builder.add(FeatureKind.DRIVABLE_AREA, rid, outline, derived=True, lane_id=rid)
-            for side, wid, geom, wtags in (
-                ("left", lefts[0], left, left_tags),
-                ("right", rights[0], right, right_tags),
-            ):
-                if wid in used_bounds:
-                    continue  # a way shared by two lanelets is one boundary
-                used_bounds.add(wid)
-                mark = "/".join(v for v in (wtags.get("type"), wtags.get("subtype")) if v) or None
-                builder.add(FeatureKind.LANE_BOUNDARY, wid, geom, lane_id=rid, side=side, mark_type=mark)
-        elif tags.get("type") == "multipolygon":
-            outer = [ways[ref][0] for role, _, ref in members if role == "outer" and ref in ways]
-            if not outer:
-                continue
-            ring = np.vstack(outer)
-            if subtype in _CROSSING_SUBTYPES:
-                builder.add(FeatureKind.CROSSING, rid, ring, lane_type=subtype)
-            elif subtype in _AREA_DRIVABLE_SUBTYPES:
-                builder.add(FeatureKind.DRIVABLE_AREA, rid, ring, lane_type=subtype)
-    return builder.build()
+
+def _add_lanelet(
+    builder: MapBuilder,
+    rid: str,
+    tags: dict[str, str],
+    members: list[tuple[str, str, str]],
+    ways: dict[str, tuple[NDArrayFloat, dict[str, str]]],
+    used_bounds: set[str],
+    name: str,
+) -> None:
+    """A lanelet relation's features: a crossing, or centerline + drivable outline + its two bounds (each way
+    once over the map, tracked in ``used_bounds``)."""
+    subtype = tags.get("subtype", "road")
+    lefts = [ref for role, _, ref in members if role == "left"]
+    rights = [ref for role, _, ref in members if role == "right"]
+    if len(lefts) != 1 or len(rights) != 1 or lefts[0] not in ways or rights[0] not in ways:
+        raise SourceError(name, f"lanelet {rid} needs exactly one known left and right way", field=rid)
+    right, right_tags = ways[rights[0]]
+    left, left_tags = ways[lefts[0]]
+    left = _orient_like(left, right)
+    outline = np.vstack([left, right[::-1]])
+    if subtype in _CROSSING_SUBTYPES:
+        builder.add(FeatureKind.CROSSING, rid, outline, lane_type=subtype, derived=True)
+        return
+    if subtype not in _DRIVABLE_SUBTYPES:
+        return  # walkways, stairs, ...: not part of the road raster
+    bidir = tags.get("one_way", "yes") == "no"
+    builder.add(
+        FeatureKind.LANE_CENTERLINE,
+        rid,
+        centerline_from_boundaries(left, right),
+        derived=True,
+        lane_id=rid,
+        lane_type=subtype,
+        direction="both" if bidir else "forward",
+    )
+    builder.add(FeatureKind.DRIVABLE_AREA, rid, outline, derived=True, lane_id=rid)
+    for side, wid, geom, wtags in (
+        ("left", lefts[0], left, left_tags),
+        ("right", rights[0], right, right_tags),
+    ):
+        if wid in used_bounds:
+            continue  # a way shared by two lanelets is one boundary
+        used_bounds.add(wid)
+        mark = "/".join(v for v in (wtags.get("type"), wtags.get("subtype")) if v) or None
+        builder.add(FeatureKind.LANE_BOUNDARY, wid, geom, lane_id=rid, side=side, mark_type=mark)
+
+
+def _add_area(
+    builder: MapBuilder,
+    rid: str,
+    subtype: str,
+    members: list[tuple[str, str, str]],
+    ways: dict[str, tuple[NDArrayFloat, dict[str, str]]],
+) -> None:
+    """A multipolygon relation's outer ring as a crossing or a drivable area (other subtypes are skipped)."""
+    outer = [ways[ref][0] for role, _, ref in members if role == "outer" and ref in ways]
+    if not outer:
+        return
+    ring = np.vstack(outer)
+    if subtype in _CROSSING_SUBTYPES:
+        builder.add(FeatureKind.CROSSING, rid, ring, lane_type=subtype)
+    elif subtype in _AREA_DRIVABLE_SUBTYPES:
+        builder.add(FeatureKind.DRIVABLE_AREA, rid, ring, lane_type=subtype)

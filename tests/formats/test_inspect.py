@@ -127,7 +127,7 @@ def _mapping_round_trip(source: Path, tmp_path: Path) -> int:
 
     from logpipe.cli import app
     from logpipe.dataset import Dataset
-    from logpipe.formats.mapping import mapping_from_dict, read_mapping_document
+    from logpipe.formats.ros.mapping import mapping_from_dict, read_mapping_document
 
     runner = CliRunner()
     shown = runner.invoke(app, ["inspect", str(source), "--format", "toml"])

@@ -7,7 +7,7 @@ from pathlib import Path
 import pytest
 
 from logpipe.errors import SourceError
-from logpipe.formats.mapping import AgentSpec, EgoSpec, Mapping, load_mapping
+from logpipe.formats.ros.mapping import AgentSpec, EgoSpec, Mapping, load_mapping
 
 TOML = """
 map = "barc_lab"

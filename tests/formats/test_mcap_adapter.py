@@ -14,8 +14,8 @@ from mcap.writer import Writer
 from rosbags.typesys import Stores, get_typestore
 
 from logpipe.errors import SourceError
-from logpipe.formats.mapping import load_mapping
 from logpipe.formats.mcapfile import McapAdapter
+from logpipe.formats.ros.mapping import load_mapping
 from logpipe.types import SourceFile
 
 SHARED = Path(__file__).resolve().parents[2].parent / "shared" / "data"

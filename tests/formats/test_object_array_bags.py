@@ -23,8 +23,8 @@ from rosbags.rosbag2 import Writer as Writer2
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from rosbags.typesys.store import Typestore
 
-from logpipe.formats.mapping import Mapping, load_mapping
 from logpipe.formats.mcapfile import McapAdapter
+from logpipe.formats.ros.mapping import Mapping, load_mapping
 from logpipe.formats.rosbag import RosbagAdapter
 from logpipe.types import SourceFile
 

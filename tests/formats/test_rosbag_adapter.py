@@ -12,7 +12,7 @@ import pandas as pd
 import pytest
 
 from logpipe.errors import SourceError
-from logpipe.formats.mapping import load_mapping
+from logpipe.formats.ros.mapping import load_mapping
 from logpipe.formats.rosbag import RosbagAdapter
 from logpipe.types import SourceFile
 

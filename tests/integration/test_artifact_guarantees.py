@@ -13,9 +13,10 @@ from pathlib import Path
 
 import pytest
 
-from logpipe.artifact import MANIFEST, FolderLock, read_manifest
+from logpipe.artifact import MANIFEST, read_manifest
 from logpipe.dataset import Dataset
 from logpipe.errors import ArtifactBusyError, OutputError
+from logpipe.folder_lock import FolderLock
 from logpipe.stages.ingest import IngestOptions, ingest
 
 REPO = Path(__file__).resolve().parents[2]

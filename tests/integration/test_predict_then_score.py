@@ -16,11 +16,12 @@ import pyarrow.compute as pc
 import pytest
 
 import logpipe.stages.predict as stage
-from logpipe.artifact import FolderLock
 from logpipe.errors import ArtifactBusyError, DatasetError, LogpipeError, OutputError
+from logpipe.folder_lock import FolderLock
 from logpipe.predictions import PredictionRun
+from logpipe.sample_filter import parse_filter
 from logpipe.stages.ingest import IngestOptions, ingest
-from logpipe.stages.predict import parse_filter, predict_dataset
+from logpipe.stages.predict import predict_dataset
 from logpipe.stages.score import score
 
 REPO = Path(__file__).resolve().parents[2]
@@ -184,7 +185,8 @@ def test_a_second_writer_fails_at_once_naming_the_first(eth_dataset: Path, tmp_p
 _CRASHING_RUN = """
 import sys
 from pathlib import Path
-from logpipe.stages.predict import parse_filter, predict_dataset
+from logpipe.sample_filter import parse_filter
+from logpipe.stages.predict import predict_dataset
 predict_dataset(Path(sys.argv[1]), Path(sys.argv[2]), predictor="cv_sampler",
                 sample_filter=parse_filter(["time=:12000000000"]), threads=1)
 """

@@ -10,7 +10,7 @@ import pytest
 
 from logpipe.contracts import arrow_schema
 from logpipe.maps import FeatureKind, MapBuilder, MapStore, load_map
-from logpipe.maps.store import _split_polyline
+from logpipe.maps.grid_index import split_polyline
 
 DATA = Path(__file__).parents[1] / "data" / "maps"
 SHARED = (Path(__file__).parents[2] / ".." / "shared" / "data").resolve()
@@ -86,11 +86,11 @@ def test_grid_query_equals_linear_scan(mia_crop: MapStore) -> None:
 
 
 def test_dense_cell_table_equals_bisect_fallback(mia_crop: MapStore, monkeypatch: pytest.MonkeyPatch) -> None:
-    import logpipe.maps.store as store_mod
+    import logpipe.maps.grid_index as grid_mod
 
     dense = mia_crop.render_layer(FeatureKind.LANE_CENTERLINE)
     assert dense.cell_start is not None
-    monkeypatch.setattr(store_mod, "MAX_DENSE_CELLS", 0)  # as for a huge, sparse map
+    monkeypatch.setattr(grid_mod, "MAX_DENSE_CELLS", 0)  # as for a huge, sparse map
     sparse = MapStore(mia_crop.table).render_layer(FeatureKind.LANE_CENTERLINE)
     assert sparse.cell_start is None
     for box in _random_boxes(mia_crop.bounds, seed=1):
@@ -101,12 +101,12 @@ def test_dense_cell_table_equals_bisect_fallback(mia_crop: MapStore, monkeypatch
 def test_band_order_ranges_cover_every_overlapping_chunk(
     mia_crop: MapStore, monkeypatch: pytest.MonkeyPatch, rows: int
 ) -> None:
-    import logpipe.maps.store as store_mod
+    import logpipe.maps.grid_index as grid_mod
 
     layer = mia_crop.render_layer(FeatureKind.LANE_CENTERLINE)
-    dense = store_mod.BandOrder(layer, rows)
-    monkeypatch.setattr(store_mod, "MAX_DENSE_CELLS", 0)
-    sparse = store_mod.BandOrder(layer, rows)
+    dense = grid_mod.BandOrder(layer, rows)
+    monkeypatch.setattr(grid_mod, "MAX_DENSE_CELLS", 0)
+    sparse = grid_mod.BandOrder(layer, rows)
     assert dense.start is not None and sparse.start is None
     assert sorted(dense.order.tolist()) == list(range(len(layer)))
     assert (dense.order[dense.position] == np.arange(len(layer))).all()
@@ -137,10 +137,10 @@ def test_window_is_superset_and_preserves_segments(mia_crop: MapStore) -> None:
     assert exact <= set(layer.features[w.chunks].tolist())
 
 
-def test_split_polyline_limits_width_and_turn() -> None:
+def testsplit_polyline_limits_width_and_turn() -> None:
     t = np.linspace(0, np.pi, 40)
     arc = np.stack([30 * np.cos(t), 30 * np.sin(t)], axis=1)  # a half circle, 94 m long
-    chunks = _split_polyline(arc, 32.0, np.radians(20))
+    chunks = split_polyline(arc, 32.0, np.radians(20))
     assert len(chunks) > 3
     for c in chunks:
         d = np.diff(c, axis=0)

@@ -20,9 +20,9 @@ from logpipe.raster import (
     RasterSpec,
     decode_direction,
     heading_from_motion,
-    render_baseline,
     world_to_pixel,
 )
+from logpipe.raster_reference import render_baseline
 
 DATA = Path(__file__).parents[1] / "data" / "maps"
 SHARED = (Path(__file__).parents[2] / ".." / "shared" / "data").resolve()

@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from logpipe import artifact
+from logpipe import folder_swap
 from logpipe.model.checkpoints import load_checkpoint, save_checkpoint
 from logpipe.model.config import Features, ModelConfig, TrainConfig
 from logpipe.model.nets import TrajectoryNet
@@ -73,7 +73,7 @@ def test_kill_while_saving_leaves_old_or_new(tmp_path: Path, point: str) -> None
 def test_fallback_without_exchange_recovers_a_cut_between_renames(tmp_path: Path,
                                                                    monkeypatch: pytest.MonkeyPatch) -> None:
     _save(tmp_path / "best", 0.25, 1)
-    monkeypatch.setattr(artifact, "_exchange", lambda a, b: False)
+    monkeypatch.setattr(folder_swap, "_exchange", lambda a, b: False)
     _save(tmp_path / "best", 0.5, 2)
     assert _first_weight(tmp_path / "best") == 0.5
     (tmp_path / "best").rename(tmp_path / ".best.old")  # as if killed between the two renames

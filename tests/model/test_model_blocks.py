@@ -12,15 +12,16 @@ from safetensors.torch import save_file
 from logpipe.model.backbone import BackboneWeightsError, ResNet18Stages12, read_state_dict, roi_align
 from logpipe.model.batching import collate
 from logpipe.model.config import Features, ModelConfig
-from logpipe.model.nets import (
+from logpipe.model.encoder import attention_q
+from logpipe.model.interaction import (
     AgentInteractionNet,
     EgoMotionFeature,
     EgoTrajectoryFeature,
     PositionFeature,
     TrackingFeature,
-    TrajectoryNet,
     scene_max,
 )
+from logpipe.model.nets import TrajectoryNet
 from logpipe.model.synthetic import make_scene
 
 SMALL = {"embed_dim": 8, "gru_dim": 12, "lstm_dim": 8, "noise_dim": 3, "obs_len": 4, "pred_len": 3}
@@ -118,7 +119,7 @@ def test_attention_eqs_13_14() -> None:
     fst = torch.randn(1, 2, 8)  # (L, B, d_fst)
     pos = torch.randn(1, 3, 2)
     scene = torch.tensor([1, 0, 1])
-    q = net._q(fst, scene, pos)
+    q = attention_q(net, fst, scene, pos)
     assert q is not None
     gate = torch.sigmoid(pos @ net.attention.weight.T + net.attention.bias)
     torch.testing.assert_close(q, fst[:, scene] * gate)
@@ -241,7 +242,7 @@ def test_backbone_uses_bf16_only_where_the_cpu_has_it() -> None:
 
 
 def test_fused_lstm_step_matches_lstm_cell_eqs_16_18() -> None:
-    from logpipe.model.nets import lstm_step, lstm_weights
+    from logpipe.model.encoder import lstm_step, lstm_weights
 
     torch.manual_seed(0)
     cell = torch.nn.LSTMCell(5, 4)

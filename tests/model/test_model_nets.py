@@ -184,7 +184,7 @@ def test_speed_unit_frame_sees_a_faster_scene_at_a_smaller_size(step_output: str
     net = TrajectoryNet(replace(cfg, features=Features(True, True, False, False, False))).eval()
     out, out_big = _predict(net, [s])[0], _predict(net, [big])[0]
     np.testing.assert_allclose(out_big, 2 * out, rtol=1e-4, atol=1e-4)
-    from logpipe.model.training import evaluate
+    from logpipe.model.evaluation import evaluate
 
     errors, errors_big = (evaluate(net, [scene], num_modes=1) for scene in (s, big))
     assert errors.count == errors_big.count > 0

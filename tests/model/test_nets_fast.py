@@ -202,7 +202,7 @@ def test_agent_velocity_change_reads_the_output_in_each_agents_frame(fast: bool)
 
 
 def test_decode_fast_row_blocks_do_not_change_results(monkeypatch: pytest.MonkeyPatch) -> None:
-    from logpipe.model import nets
+    from logpipe.model import fast_decoder
 
     torch.manual_seed(0)
     cfg = ModelConfig(noise_dim=3, **SMALL)  # type: ignore[arg-type]
@@ -212,7 +212,7 @@ def test_decode_fast_row_blocks_do_not_change_results(monkeypatch: pytest.Monkey
         enc = net.encode(batch)
         noise = torch.randn(3, int(batch.active.sum()), 3)
         whole = net.decode_fast(batch, enc, noise).positions
-        monkeypatch.setattr(nets, "_LSTM_CHUNK_ROWS", 5)
+        monkeypatch.setattr(fast_decoder, "_LSTM_CHUNK_ROWS", 5)
         blocks = net.decode_fast(batch, enc, noise).positions
     torch.testing.assert_close(blocks, whole, rtol=1e-6, atol=1e-6)
 

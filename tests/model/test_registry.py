@@ -10,15 +10,14 @@ import pyarrow as pa
 import pytest
 
 from logpipe.errors import LogpipeError
-from logpipe.model.checkpoints import (
+from logpipe.model.checkpoint_meta import (
     CheckpointError,
     InferenceSettings,
     TrainingData,
     amend_meta,
-    load_checkpoint,
     read_meta,
-    save_checkpoint,
 )
+from logpipe.model.checkpoints import load_checkpoint, save_checkpoint
 from logpipe.model.config import Features, ModelConfig, TrainConfig
 from logpipe.model.nets import TrajectoryNet
 from logpipe.model.registry import (

@@ -15,6 +15,7 @@ from mcap.reader import make_reader
 from mcap.writer import Writer
 
 from logpipe import foxglove as fx
+from logpipe.foxglove_forecast import forecast_scene_update
 from logpipe.mcap_merge import NewChannel, NewMessage, Source, write_merged
 from logpipe.model.synthetic import make_scene
 from logpipe.stages.ingest import IngestOptions, ingest
@@ -43,7 +44,7 @@ def test_forecast_points_are_the_samples_and_forecasts_numbers_to_a_millimetre()
     sample.positions += rng.uniform(-5e3, 5e3, size=(4, 1, 2))  # city-frame metres
     targets = np.flatnonzero(sample.target_mask)
     futures = rng.normal(size=(len(targets), 5, 12, 2)) * 1e3
-    update = fx.MESSAGE_CLASSES["foxglove.SceneUpdate"].FromString(fx.forecast_scene_update(
+    update = fx.MESSAGE_CLASSES["foxglove.SceneUpdate"].FromString(forecast_scene_update(
         "map", 1_700_000_000_123_456_789, 4_800_000_000, sample, targets, futures, np.full((len(targets), 5), 0.2)))
     assert len(update.entities) == len(targets)
     drawn = fx.snap(sample.positions, fx.POSITION_QUANTUM)
@@ -90,7 +91,8 @@ def test_merge_copies_every_record_of_an_mcap(tmp_path: Path) -> None:
 
 @pytest.fixture(scope="module")
 def eth_predicted(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
-    from logpipe.stages.predict import parse_filter, predict_dataset
+    from logpipe.sample_filter import parse_filter
+    from logpipe.stages.predict import predict_dataset
 
     root = tmp_path_factory.mktemp("eth")
     ingest([REPO / "tests" / "data" / "ethucy"], IngestOptions(out=root / "ds"))

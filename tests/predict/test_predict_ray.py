@@ -49,7 +49,7 @@ def _both(dataset: Path, tmp_path: Path, **settings: Any) -> tuple[dict[str, Any
 
 
 def test_network_forecasts_on_ray_write_the_local_bytes(eth: Path, tmp_path: Path) -> None:
-    from logpipe.stages.predict import parse_filter
+    from logpipe.sample_filter import parse_filter
 
     # Small batches so the work is cut into several items over both actors; one torch thread on both sides (the
     # network's float32 reductions round by thread count, locally too).
@@ -63,7 +63,7 @@ def test_network_forecasts_on_ray_write_the_local_bytes(eth: Path, tmp_path: Pat
 
 
 def test_baseline_on_ray_writes_the_local_bytes(eth: Path, tmp_path: Path) -> None:
-    from logpipe.stages.predict import parse_filter
+    from logpipe.sample_filter import parse_filter
 
     local, remote = _both(eth, tmp_path, predictor="cv", batch_size=16,
                           sample_filter=parse_filter(["time=:60000000000"]))
@@ -74,7 +74,7 @@ def test_baseline_on_ray_writes_the_local_bytes(eth: Path, tmp_path: Path) -> No
 def test_a_killed_actor_is_retried_without_duplicate_or_partial_output(eth: Path, tmp_path: Path,
                                                                        monkeypatch: pytest.MonkeyPatch) -> None:
     from logpipe.model.ray_predict import KILL_ONCE_ENV
-    from logpipe.stages.predict import parse_filter
+    from logpipe.sample_filter import parse_filter
 
     marker = tmp_path / "killed"
     monkeypatch.setenv(KILL_ONCE_ENV, str(marker))

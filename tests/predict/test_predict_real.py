@@ -24,8 +24,9 @@ from logpipe.model.config import Features, ModelConfig, TrainConfig
 from logpipe.model.nets import TrajectoryNet
 from logpipe.predictions import PredictionRun
 from logpipe.raster import RasterSpec
+from logpipe.sample_filter import parse_filter
 from logpipe.stages.ingest import IngestOptions, ingest
-from logpipe.stages.predict import parse_filter, predict_dataset
+from logpipe.stages.predict import predict_dataset
 from logpipe.stages.rasterise import rasterise_dataset
 
 pytestmark = pytest.mark.shared

@@ -5,8 +5,10 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import Any
 
 import numpy as np
+import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
 
@@ -16,10 +18,18 @@ from logpipe.model.checkpoints import save_checkpoint
 from logpipe.model.config import Features, ModelConfig, TrainConfig
 from logpipe.model.nets import TrajectoryNet
 from logpipe.predictions import PredictionRun
+from logpipe.sample_filter import SampleFilter, parse_filter
 from logpipe.stages.ingest import IngestOptions, ingest
-from logpipe.stages.predict import SampleFilter, parse_filter, predict_dataset
+from logpipe.stages.predict import predict_dataset
 
 FRAME_STEP = 10  # ETH/UCY frame numbers advance by 10 per 0.4 s step
+SUMMARY_KEYS = [
+    "dataset", "out", "predictor", "checkpoint_id", "num_modes", "seed", "checkpoint", "raster_run", "inference",
+    "warnings", "protocol", "logs_selected", "samples_selected", "shards_skipped_done", "samples", "targets", "rows",
+    "targets_unobserved", "samples_without_targets", "mcap_files", "original_messages", "model_seconds",
+    "io_seconds", "io_wait_seconds", "io_busy_seconds", "device", "backend", "shards", "rows_total", "seconds",
+    "samples_per_s",
+]
 
 
 def _straight_walkers(folder: Path) -> dict[str, tuple[np.ndarray, np.ndarray]]:
@@ -51,6 +61,8 @@ def lines_dataset(tmp_path_factory: pytest.TempPathFactory) -> Path:
 def test_constant_velocity_predictions_of_straight_tracks_are_exact(lines_dataset: Path, tmp_path: Path) -> None:
     summary = predict_dataset(lines_dataset, tmp_path / "out", predictor="cv", write_mcap=False)
     assert summary["samples"] == 11 and summary["num_modes"] == 20  # 30 steps, windows of 8 + 12
+    assert list(summary) == SUMMARY_KEYS  # the --json contract: keys and their order
+    assert summary["samples_per_s"] == round(11 / summary["seconds"], 1) and json.dumps(summary)
     table = pq.read_table(tmp_path / "out" / "predictions" / "part-00000.parquet")
     assert table.schema.equals(arrow_schema("predictions", pred_len=12))  # the contract exactly (metadata aside)
     assert table.num_rows == 11 * 3 * 20 == summary["rows"]  # a row per (sample, agent, mode)
@@ -158,9 +170,31 @@ def test_checkpoint_runs_and_mismatches_fail_before_any_output(lines_dataset: Pa
     assert not (tmp_path / "never").exists()
 
 
-def test_log_windows_cut_the_same_samples_as_the_dataset(tmp_path: Path) -> None:
+def _window_by_rows(tracks: pa.Table, row: dict[str, Any]) -> dict[str, Any]:
+    """A sample's window read row by row from the table (the reference ``LogWindows`` is checked against)."""
+    start, end = int(row["start_step"]), int(row["end_step"])
+    names: list[str] = []
+    xy: dict[tuple[str, int], tuple[float, float]] = {}
+    times: dict[int, int] = {}
+    types: dict[str, str] = {}
+    egos: list[str] = []
+    for r in tracks.to_pylist():
+        if start <= r["step"] <= end:
+            track = str(r["track_id"])
+            if track not in names:
+                names.append(track)
+            xy[track, r["step"] - start] = (r["x"], r["y"])
+            times[r["step"] - start] = r["timestamp_ns"]
+            types[track] = r["object_type"]
+            if r["role"] == "ego":
+                egos.append(track)
+    return {"names": names, "xy": xy, "times": times, "types": types, "egos": egos}
+
+
+def test_log_windows_cut_each_sample_as_its_rows_say(tmp_path: Path) -> None:
     from logpipe.dataset import Dataset, scene_sample
-    from logpipe.stages.predict import LogWindows
+    from logpipe.types import OBJECT_TYPES
+    from logpipe.windows import LogWindows
 
     bundled = Path(__file__).resolve().parents[2] / "tests" / "data"
     ingest([bundled / "ethucy"], IngestOptions(out=tmp_path / "eth"))
@@ -170,17 +204,23 @@ def test_log_windows_cut_the_same_samples_as_the_dataset(tmp_path: Path) -> None
         dataset = Dataset.open(tmp_path / name)
         rows = dataset.samples().to_pylist()
         for log_id, tracks in dataset.iter_logs():
-            windows = LogWindows(tracks, dataset.protocol.obs_len)
-            for row in [r for r in rows if r["log_id"] == log_id][::5]:
-                want, got = scene_sample(tracks, row, dataset.protocol), windows.sample(row)
-                assert got.track_ids == want.track_ids and got.sample_id == want.sample_id
-                np.testing.assert_array_equal(got.positions, want.positions)
-                np.testing.assert_array_equal(got.timestamps_ns, want.timestamps_ns)
-                np.testing.assert_array_equal(got.object_types, want.object_types)
-                np.testing.assert_array_equal(got.target_mask, want.target_mask)
-                assert (got.ego_index, got.obs_len) == (want.ego_index, want.obs_len)
+            windows = LogWindows(tracks)
+            for row in [r for r in rows if r["log_id"] == log_id][::15]:
+                got, want = windows.sample(row, dataset.protocol.obs_len), _window_by_rows(tracks, row)
+                assert got.track_ids == want["names"] and got.sample_id == row["sample_id"]
+                seen = ~np.isnan(got.positions[..., 0])
+                assert int(seen.sum()) == len(want["xy"])
+                for (track, step), (x, y) in want["xy"].items():
+                    assert tuple(got.positions[got.track_ids.index(track), step]) == (x, y)
+                assert {s: int(got.timestamps_ns[s]) for s in want["times"]} == want["times"]
+                assert [OBJECT_TYPES[t] for t in got.object_types] == [want["types"][n] for n in got.track_ids]
+                assert got.target_mask.tolist() == [n in row["target_track_ids"] for n in got.track_ids]
+                ego = min((got.track_ids.index(e) for e in want["egos"]), default=-1)
+                assert (got.ego_index, got.obs_len) == (ego, dataset.protocol.obs_len)
+                same = scene_sample(tracks, row, dataset.protocol)  # the dataset's reader cuts through it
+                np.testing.assert_array_equal(same.positions, got.positions)
                 checked += 1
-    assert checked > 100
+    assert checked > 30
 
 
 def test_background_writer_output_does_not_depend_on_batching(lines_dataset: Path, tmp_path: Path) -> None:
@@ -288,7 +328,7 @@ def test_context_max_neighbours_is_recorded_and_refused_where_it_cannot_apply(li
 def test_checkpoint_settings_are_predicts_defaults_and_training_logs_warn(lines_dataset: Path,
                                                                          tmp_path: Path) -> None:
     from logpipe.dataset import Dataset
-    from logpipe.model.checkpoints import InferenceSettings, TrainingData, amend_meta
+    from logpipe.model.checkpoint_meta import InferenceSettings, TrainingData, amend_meta
 
     folder = _checkpoint(tmp_path / "ck", _small_net_config(step_output="velocity_change"), "ethucy")
     amend_meta(folder, inference=InferenceSettings(num_modes=4, noise_scale=0.5, constant_velocity_modes=1,

@@ -13,7 +13,8 @@ import pytest
 from logpipe.dataset import Dataset
 from logpipe.io import write_parquet
 from logpipe.model.baselines import ConstantVelocity
-from logpipe.predictions import PredictionMeta, samples_table
+from logpipe.prediction_table import samples_table
+from logpipe.predictions import PredictionMeta
 from logpipe.stages.ingest import IngestOptions, ingest
 from logpipe.stages.score import score
 from logpipe.stages.train import scene_samples

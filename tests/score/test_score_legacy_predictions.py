@@ -14,7 +14,8 @@ import pyarrow.parquet as pq
 import pytest
 
 from logpipe.errors import LogpipeError
-from logpipe.predictions import PredictionRun, SampleForecast, build_table, dense_forecasts, is_long
+from logpipe.prediction_table import SampleForecast, build_table
+from logpipe.predictions import PredictionRun, dense_forecasts, is_long
 from logpipe.stages.ingest import IngestOptions, ingest
 from logpipe.stages.predict import predict_dataset
 from logpipe.stages.score import score

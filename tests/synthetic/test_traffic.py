@@ -15,16 +15,9 @@ from logpipe.maps import FeatureKind, MapSource, load_map
 from logpipe.rasters import find_raster_run
 from logpipe.stages.ingest import IngestOptions, ingest
 from logpipe.stages.rasterise import rasterise_dataset
-from logpipe.synthetic.traffic import (
-    LaneGraph,
-    SimConfig,
-    SimWindow,
-    city_maps,
-    generate,
-    main,
-    plan_city,
-    simulate_window,
-)
+from logpipe.synthetic.driving import SimConfig, SimWindow, simulate_window
+from logpipe.synthetic.lanes import LaneGraph
+from logpipe.synthetic.traffic import city_maps, generate, main, plan_city
 
 CFG = SimConfig()
 HALF_LANE_M = 1.85

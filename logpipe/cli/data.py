@@ -1,0 +1,180 @@
+"""``logpipe ingest``, ``index`` and ``rasterise``: the commands that build a dataset folder (tracks, sample
+index, map rasters)."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Annotated, Any
+
+import typer
+
+from logpipe.cli.app import (
+    DatasetArg,
+    JsonOpt,
+    MinTargetsOpt,
+    ObsOpt,
+    PredOpt,
+    ProtocolOpt,
+    StrideOpt,
+    TargetsOpt,
+    TargetTypesOpt,
+    WindowOpt,
+    emit,
+    err,
+    print_summary,
+    stage_progress,
+    user_errors,
+)
+
+
+def ingest(
+    inputs: Annotated[list[Path], typer.Argument(help="Input files or folders.", show_default=False)],
+    out: Annotated[Path, typer.Option("--out", "-o", help="Dataset folder to create or extend.")],
+    fmt: Annotated[str | None, typer.Option("--format", "-f", help="Input format (default: detected).")] = None,
+    protocol: ProtocolOpt = None,
+    obs: ObsOpt = None,
+    pred: PredOpt = None,
+    stride: StrideOpt = None,
+    min_targets: MinTargetsOpt = None,
+    targets: TargetsOpt = None,
+    target_types: TargetTypesOpt = None,
+    window: WindowOpt = None,
+    on_error: Annotated[str, typer.Option(
+        "--on-error", help="fail: stop at the first bad input, write nothing. skip: quarantine bad inputs.")
+    ] = "fail",
+    mcap: Annotated[bool, typer.Option("--mcap/--no-mcap", help="Also write each log as an MCAP file.")] = True,
+    workers: Annotated[int, typer.Option("--workers", "-j", help="Worker processes (0 = all cores).")] = 0,
+    backend: Annotated[str, typer.Option("--backend", help="local | ray")] = "local",
+    batch_files: Annotated[int | None, typer.Option("--batch-files", help="Inputs per shard.")] = None,
+    mapping: Annotated[Path | None, typer.Option(
+        "--mapping", help="Bags/MCAP: TOML or YAML file naming the ego and agent topics (see README).")] = None,
+    overrides: Annotated[list[str] | None, typer.Option(
+        "--set", help="Bags/MCAP: mapping override KEY=VALUE, repeatable (ego=/odom, agent=/red_pose, map=lab).")
+    ] = None,
+    hz: Annotated[float | None, typer.Option(
+        "--hz", help="Bags/MCAP: resample tracks to this rate (default 10; 0 keeps original times).")] = None,
+    allow_empty: Annotated[bool, typer.Option(
+        "--allow-empty", help="Bags/MCAP/AV2: a log without tracks is kept empty instead of being an error.")
+    ] = False,
+    as_json: JsonOpt = False,
+) -> None:
+    """Turn logs (Argoverse 1 CSV, ETH/UCY, ApolloScape, ...) into canonical Parquet shards, a sample index
+    and one MCAP per log. Re-running skips inputs already ingested (by content hash).
+
+    Example: logpipe ingest ../shared/data/argoverse1/data --out out/av1
+    Example: logpipe ingest run.bag --out out/run --set ego=/odom --set agent=/red_pose --hz 10
+    """
+    from logpipe import api
+
+    with user_errors(), stage_progress("ingest", "inputs") as advance:
+        summary = api.ingest(
+            inputs, out=out, format=fmt, protocol=protocol, obs=obs, pred=pred, stride=stride,
+            min_targets=min_targets, targets=targets, target_types=target_types, window=window, on_error=on_error,
+            mcap=mcap,
+            workers=workers, backend=backend, batch_files=batch_files, mapping=mapping, overrides=overrides or (),
+            hz=hz, allow_empty=allow_empty, progress=advance,
+        )
+    emit(dict(summary), as_json, _print_ingest)
+
+
+def _print_ingest(s: dict[str, Any]) -> None:
+    err.print(
+        f"[bold]{s['dataset']}[/] ({s['format']}): {s['inputs_ingested']} inputs ingested, "
+        f"{s['inputs_skipped_already_ingested']} already there, {len(s['quarantined'])} quarantined; "
+        f"{s['logs']} logs, {s['rows']} rows, {s['samples']} samples in {s['seconds']} s. "
+        f"Dataset totals: {s['totals']['logs']} logs, {s['totals']['rows']} rows, {s['totals']['samples']} samples.",
+        highlight=False, soft_wrap=True,  # one line in a CI log, not cut at 80 columns
+    )
+    for q in s["quarantined"]:
+        e = q["error"]
+        where = e["file"] + (f":{e['line']}" if e["line"] else "") + (f" field '{e['field']}'" if e["field"] else "")
+        err.print(f"  quarantined {where}: {e['reason']}", highlight=False, soft_wrap=True)
+    _print_notes(s)
+
+
+def _print_notes(s: dict[str, Any]) -> None:
+    """The lines that explain the counts: inputs that were copies, and why logs gave no sample."""
+    for line in summary_notes(s):
+        err.print(f"  {line}", highlight=False, soft_wrap=True)
+
+
+def summary_notes(summary: Mapping[str, Any]) -> list[str]:
+    """Lines that explain an ingest or index summary's counts, for the human output: the inputs that were
+    copies of others, and one line per reason logs gave no sample."""
+    lines = []
+    if summary.get("duplicates"):
+        copies = summary.get("duplicate_inputs") or []
+        example = f", e.g. {copies[0]['path']} = {copies[0]['same_as']}" if copies else ""
+        lines.append(f"{summary['duplicates']} inputs were identical copies of another and were ingested once "
+                     f"with it{example} (--json lists them)")
+    for reason, count in (summary.get("logs_without_samples") or {}).items():
+        lines.append(f"{count} log{'s' if count != 1 else ''} gave no sample: {reason}")
+    return lines
+
+
+def _print_index(s: dict[str, Any]) -> None:
+    err.print(f"{s['dataset']}: {s['samples']} samples ({s['protocol']})", highlight=False, soft_wrap=True)
+    _print_notes(s)
+
+
+def index(
+    dataset: DatasetArg,
+    protocol: ProtocolOpt = None,
+    obs: ObsOpt = None,
+    pred: PredOpt = None,
+    stride: StrideOpt = None,
+    min_targets: MinTargetsOpt = None,
+    targets: TargetsOpt = None,
+    target_types: TargetTypesOpt = None,
+    window: WindowOpt = None,
+    as_json: JsonOpt = False,
+) -> None:
+    """Rebuild the sample index of a dataset with another protocol (no re-ingest).
+
+    Example: logpipe index out/ethucy --min-targets 2
+    """
+    from logpipe import api
+
+    with user_errors(), stage_progress("index", "logs") as advance:
+        summary = api.index(dataset, protocol=protocol, obs=obs, pred=pred, stride=stride, min_targets=min_targets,
+                            targets=targets, target_types=target_types, window=window, progress=advance)
+    emit(dict(summary), as_json, _print_index)
+
+
+def rasterise(
+    dataset: DatasetArg,
+    maps: Annotated[list[Path] | None, typer.Option(
+        "--maps", help="Folder(s) holding map files (AV1 *_lane_centerlines.npz, AV2 log_map_archive_*.json, "
+        "Lanelet2 .osm, AV1 vector-map .xml); repeatable.")] = None,
+    map_file: Annotated[list[str] | None, typer.Option(
+        "--map", help="MAP_ID=FILE: the map file of logs with that map id (e.g. lab=lab.osm); repeatable.")
+    ] = None,
+    centre: Annotated[str, typer.Option("--centre", help="ego (focal when a log has no ego) | focal")] = "ego",
+    rotate: Annotated[bool, typer.Option("--rotate/--no-rotate", help="Rotate to the centre's heading.")] = False,
+    preview: Annotated[int, typer.Option("--preview", help="Write PNG previews of the first N samples.")] = 0,
+    size: Annotated[int, typer.Option("--size", help="Raster side, pixels.")] = 224,
+    extent: Annotated[float, typer.Option("--extent", help="Raster side, metres.")] = 100.0,
+    channels: Annotated[str | None, typer.Option(
+        "--channels", help="Comma-separated channel names (default: all drawn layers).")] = None,
+    shard_size: Annotated[int, typer.Option("--shard-size", help="Samples per .npy shard.")] = 256,
+    force: Annotated[bool, typer.Option("--force", help="Replace a run made from other data or maps.")] = False,
+    workers: Annotated[int | None, typer.Option(
+        "--workers", "-j", help="Shards rendered at once (0 = all cores; default 1 locally, all with ray); "
+        "each worker loads the maps it needs.")] = None,
+    backend: Annotated[str, typer.Option(
+        "--backend", help="local | ray (ray: DATASET must be on a file system every node shares)")] = "local",
+    as_json: JsonOpt = False,
+) -> None:
+    """Draw one ego-centred map raster per prediction sample (224x224 over 100 m by default) into
+    DATASET/rasters/<run>/, with the settings in the run manifest. Re-running skips finished shards.
+
+    Example: logpipe rasterise out/av1 --maps ../shared/data/argoverse1/maps --rotate --preview 4
+    """
+    from logpipe import api
+
+    with user_errors(), stage_progress("rasterise", "samples") as advance:
+        summary = api.rasterise(dataset, maps=maps, map_file=map_file, centre=centre, rotate=rotate, preview=preview,
+                                size=size, extent=extent, channels=channels, shard_size=shard_size, force=force,
+                                workers=workers, backend=backend, progress=advance)
+    emit(summary, as_json, print_summary)
