@@ -179,10 +179,22 @@ def render(full: dict[str, Any], held: dict[str, Any], choice: dict[str, float],
     lines += [f"- not run: {s}" for s in skipped] or ["All learned methods had checkpoints."]
     lines += [f"- held-out table only: {s}" for s in held_only]
     lines += driving_section(args.results)
+    lines += cost_section(args.results)
     lines += ["", "Full reports (report.json, report.md, horizon.png, scenes_*.png over the lane raster): "
               f"`docs/results/{args.name}/`.", "", "## Time", "",
               machine_note(seconds) + " " + ", ".join(f"{k} {v:.1f} s" for k, v in timings.items()) + ".", ""]
     return "\n".join(lines)
+
+
+def cost_section(results: Path) -> list[str]:
+    """The projected cost of the full sets (``python -m scripts.replica_cost`` writes ``argoverse_cost.md``)."""
+    found = results / "argoverse_cost.md"
+    if not found.exists():
+        return ["", "## The full sets: measured stage costs and projections", "",
+                "Not measured yet: `make replica-cost` writes it."]
+    body = found.read_text().split("\n", 1)[1]  # below its title
+    return ["", "## The full sets: measured stage costs and projections (from `argoverse_cost.md`)",
+            *[("#" + line if line.startswith("## ") else line) for line in body.rstrip().split("\n")]]
 
 
 def driving_section(results: Path) -> list[str]:
