@@ -58,7 +58,7 @@ def _macs_per_sample(dataset: Path, checkpoint: Path, modes: int, **kwargs: Any)
 
     cfg = read_meta(checkpoint).config.model
     counts: list[tuple[int, int]] = []  # (agents, decoded agents) per sample
-    original = stage._run_batch
+    original = stage.run_batch
 
     def spy(run: Any, batch: Any, *args: Any) -> None:
         for _, _, s in batch:
@@ -66,11 +66,11 @@ def _macs_per_sample(dataset: Path, checkpoint: Path, modes: int, **kwargs: Any)
         original(run, batch, *args)
 
     with tempfile.TemporaryDirectory() as tmp:
-        stage._run_batch = spy  # type: ignore[assignment]
+        stage.run_batch = spy
         try:
             stage.predict_dataset(dataset, Path(tmp) / "out", checkpoint=checkpoint, write_mcap=False, **kwargs)
         finally:
-            stage._run_batch = original  # type: ignore[assignment]
+            stage.run_batch = original
     f, d, hid, g = cfg.features, cfg.embed_dim, cfg.lstm_dim, cfg.gru_dim
     d_fst = d * (int(f.ego_trajectory) + int(f.uses_gru))
     env = d if f.environment else 0

@@ -71,10 +71,12 @@ def _names(value: str | Sequence[str] | None) -> tuple[str, ...] | None:
     return tuple(p.strip() for p in parts if p.strip())
 
 
-def sample_protocol(preset: str | None = None, *, obs: int | None = None, pred: int | None = None,
-                    stride: int | None = None, min_targets: int | None = None, targets: str | None = None,
-                    target_types: str | Sequence[str] | None = None, window: str | None = None,
-                    default: SampleProtocol | None = None) -> SampleProtocol | None:
+def sample_protocol(  # noqa: PLR0913  keyword options mirror the CLI's protocol flags one to one
+    preset: str | None = None, *, obs: int | None = None, pred: int | None = None,
+    stride: int | None = None, min_targets: int | None = None, targets: str | None = None,
+    target_types: str | Sequence[str] | None = None, window: str | None = None,
+    default: SampleProtocol | None = None,
+) -> SampleProtocol | None:
     """The protocol the ``--protocol/--obs/--pred/...`` options describe: ``preset`` (or ``default``) with the
     overrides; None when nothing is given. Overrides of a preset are named ``<preset>-custom``.
 
@@ -103,7 +105,7 @@ def sample_protocol(preset: str | None = None, *, obs: int | None = None, pred: 
     return replace(base, **changes)
 
 
-def ingest(
+def ingest(  # noqa: PLR0913  public API: keyword options mirror `logpipe ingest` one to one
     inputs: StrPath | Sequence[StrPath],
     *,
     out: StrPath,
@@ -195,7 +197,7 @@ def _adapter_options(mapping: StrPath | None, overrides: Sequence[str], hz: floa
     return options
 
 
-def index(
+def index(  # noqa: PLR0913  public API: keyword options mirror `logpipe index` one to one
     dataset: StrPath,
     *,
     protocol: str | None = None,
@@ -232,7 +234,7 @@ def index(
     return cast(IndexSummary, reindex(folder, chosen, progress=progress))
 
 
-def rasterise(
+def rasterise(  # noqa: PLR0913  public API: keyword options mirror `logpipe rasterise` one to one
     dataset: StrPath,
     *,
     maps: StrPath | Sequence[StrPath] | None = None,
@@ -291,7 +293,7 @@ def rasterise(
     return summary
 
 
-def train(
+def train(  # noqa: PLR0913  public API: keyword options mirror `logpipe train` one to one
     dataset: StrPath | Sequence[StrPath],
     *,
     out: StrPath,
@@ -356,7 +358,7 @@ def train(
     return summary
 
 
-def predict(
+def predict(  # noqa: PLR0913  public API: keyword options mirror `logpipe predict` one to one
     dataset: StrPath,
     *,
     out: StrPath,
@@ -418,7 +420,7 @@ def predict(
     return summary
 
 
-def score(
+def score(  # noqa: PLR0913  public API: keyword options mirror `logpipe score` one to one
     predictions: StrPath | Sequence[StrPath],
     *,
     truth: StrPath,

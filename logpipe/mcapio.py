@@ -228,8 +228,10 @@ def write_log_mcap(log_id: str, tracks: pa.Table | LogRows, target: Path, map_id
     return count
 
 
-def _write_ego(writer: Writer, pose_channel: int, tf_channel: int, rows: np.ndarray, ts: np.ndarray, x: np.ndarray,
-               y: np.ndarray, yaw: np.ndarray, has_heading: np.ndarray) -> int:
+def _write_ego(  # noqa: PLR0913  the table's parallel column arrays; a holder would only be unpacked
+    writer: Writer, pose_channel: int, tf_channel: int, rows: np.ndarray, ts: np.ndarray, x: np.ndarray,
+    y: np.ndarray, yaw: np.ndarray, has_heading: np.ndarray,
+) -> int:
     """The ego's pose and ``world`` → ``ego`` transform at each ego row (not turned where it has no heading)."""
     times, ex, ey = ts[rows], x[rows], y[rows]
     heading = np.where(has_heading[rows], yaw[rows], np.nan)

@@ -164,9 +164,10 @@ class RasterRunWriter(FolderWriter):
     def commit(self, manifest: dict[str, Any]) -> None:
         self._writer.commit(manifest)
 
-    def manifest_of(self, spec: RasterSpec, centre: str, identity: dict[str, Any], samples: int, shard_size: int,
-                    shards: list[dict[str, Any]], files: dict[str, Any], complete: bool,
-                    counts: dict[str, Any]) -> dict[str, Any]:
+    def manifest_of(  # noqa: PLR0913  one parameter per manifest field it assembles
+        self, spec: RasterSpec, centre: str, identity: dict[str, Any], samples: int, shard_size: int,
+        shards: list[dict[str, Any]], files: dict[str, Any], complete: bool, counts: dict[str, Any],
+    ) -> dict[str, Any]:
         """The run manifest: settings (hashed into the folder name), input identity, shards and files."""
         from logpipe import __version__
 

@@ -107,7 +107,7 @@ def _excluded_rows(tracks: pa.Table, protocol: SampleProtocol) -> NDArrayBool | 
     return excluded
 
 
-def _log_windows(
+def _log_windows(  # noqa: PLR0913  one log's parallel column arrays; a holder would only be unpacked
     out: dict[str, list[object]],
     log_id: str,
     steps: NDArrayInt,
@@ -259,7 +259,7 @@ def _no_sample_reason(steps: NDArrayInt, tracks: NDArrayInt, focal: np.ndarray, 
     return f"fewer than {protocol.min_targets} targets in every window"
 
 
-def _first_windows(
+def _first_windows(  # noqa: PLR0913  all logs' parallel column arrays; a holder would only be unpacked
     log_code: NDArrayInt,
     log_names: list[str],
     track_code: NDArrayInt,

@@ -93,7 +93,7 @@ def _atomic_tensors(path: Path, tensors: dict[str, torch.Tensor]) -> None:
     os.replace(tmp, path)
 
 
-def save_checkpoint(
+def save_checkpoint(  # noqa: PLR0913  keyword-only optional parts, each stored as given
     folder: Path,
     net: TrajectoryNet,
     config: TrainConfig,

@@ -196,7 +196,7 @@ class ModelConfig:
             out = replace(out, interaction_while_decoding=True)
         return out
 
-    def __post_init__(self) -> None:
+    def __post_init__(self) -> None:  # noqa: PLR0912  one flat check per field, in field order
         if self.obs_len < 2 or self.pred_len < 1:
             raise ConfigError(f"obs_len must be >= 2 and pred_len >= 1, got {self.obs_len}, {self.pred_len}")
         for name in ("embed_dim", "gru_dim", "lstm_dim", "raster_channels", "roi_pool", "roi_sampling"):

@@ -1,9 +1,11 @@
 """Forecasts on a Ray cluster for ``logpipe predict --backend ray``: Ray Data ``map_batches`` over work items
 with a pool of actors, each loading the model once (a GPU per actor where the cluster has GPUs).
 
-This module only moves work and results: what a work item is and how it is forecast come from the caller as
-a picklable ``setup`` callable (``logpipe.stages.predict`` builds it from its own windowing code), so the model
-layer never imports a stage and the driver keeps writing every output itself through the committed writer.
+``ray_forecasts`` gives the stage a forecast function that returns, batch after batch, the actors' forecasts of
+exactly the batches the stage's local loop cuts: the actors cut their samples with the run's ``SampleCutter``
+(``logpipe.model_inputs``) from the same batch plan, and the driver checks each batch's sample ids. The driver
+keeps writing every output itself through the committed writer; this module only moves work and results, and
+imports no stage. ``forecast_on_ray`` is the generic part: any picklable ``setup`` callable and work items.
 Actors read their inputs where they lie: paths in work items must name a file system every node shares.
 
 Fault tolerance is Ray Data's: its actor pools restart a dead actor and retry its task (``max_restarts`` and
@@ -13,14 +15,25 @@ so a killed actor never leaves a partial or duplicated result.
 
 from __future__ import annotations
 
+import dataclasses
+import functools
 import os
 import pickle
 from collections.abc import Callable, Iterator, Sequence
+from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from logpipe.dataset import Dataset
 from logpipe.errors import LogpipeError
+from logpipe.io import read_table
+from logpipe.model.device import resolve_device
+from logpipe.model.registry import ChosenPredictor, load_net
+from logpipe.model_inputs import SampleCutter, ShardWindows, WorkItem, work_items
+from logpipe.rasters import RasterShards
+from logpipe.types import SceneSample
 
 Forecast = Callable[[Any], Any]
 """A work item (unpickled) → its picklable result; built once per actor by the ``setup`` callable."""
@@ -112,3 +125,93 @@ def forecast_on_ray(setup: Callable[[], Forecast], items: Sequence[Any], *, size
             raise LogpipeError(f"Ray returned {following} of {len(rows)} forecast items")
     finally:
         context.enable_progress_bars = bars
+
+
+# ---------------------------------------------------------------------------------------------------------
+# predict's batches on the actors.
+
+_ITEMS_PER_ACTOR = 4
+"""Work items per actor: enough to even out uneven items, few enough that each amortises its shard read."""
+
+
+@dataclass(frozen=True)
+class ForecastJob:
+    """What every actor needs to cut and forecast its work items (pickled to each actor).
+
+    Attributes:
+        dataset: the dataset predicted; ``chosen``: the predictor (its model is loaded on each actor).
+        modes: K; ``seed``: the run's seed (each sample's noise comes from it and the sample id).
+        batch_size: samples per batch; ``cutter``: cuts samples from track windows, as the stage does.
+    """
+
+    dataset: Dataset
+    chosen: ChosenPredictor
+    modes: int
+    seed: int
+    batch_size: int
+    cutter: SampleCutter
+
+
+def ray_forecasts(job: ForecastJob, log_ids: list[str], samples_by_log: dict[str, list[dict[str, Any]]],
+                  pending: list[Path], workers: int, threads: int,
+                  device: str) -> Callable[[list[SceneSample]], Sequence[Any]]:
+    """The forecast function of ``--backend ray``: returns, batch after batch, the actors' forecasts of the
+    batches the stage will cut from the ``pending`` shards (checked by sample id).
+
+    Args:
+        job: the run's fixed inputs.
+        log_ids: the selected logs in logs-table order (the order the stage cuts batches in).
+        samples_by_log: the selected sample-index rows of each log.
+        pending: the dataset shards still to predict, in the stage's order.
+        workers: actors (0: one per GPU, else per ``threads`` CPUs); ``threads``: torch threads per actor (0: 1).
+        device: ``--device`` (each actor resolves it).
+
+    Raises:
+        LogpipeError: Ray Data is missing, or (when called) Ray returned another batch than the one asked for.
+    """
+    # Each actor runs torch on ``--threads`` threads (default 1) and reserves as many CPUs. The network's float32
+    # reductions round by thread count, so outputs match a local run's bytes at the same --threads (tested).
+    threads = threads or 1
+    size, gpu = start(workers, threads)
+    planned = [(path, job.cutter.plan_batches(read_table(path), log_ids, samples_by_log, job.batch_size))
+               for path in pending]
+    items = work_items(planned, _ITEMS_PER_ACTOR * size)
+    # A fresh RasterShards has no memory maps to pickle.
+    rasters = job.cutter.rasters and RasterShards(job.cutter.rasters.run_dir, job.cutter.rasters.spec,
+                                                  job.cutter.rasters.index)
+    actor_job = dataclasses.replace(job, cutter=dataclasses.replace(job.cutter, rasters=rasters))
+    setup = functools.partial(_actor, actor_job, threads, device)
+    results = (batch for item in forecast_on_ray(setup, items, size=size, gpu=gpu, cpus=threads) for batch in item)
+
+    def forecast(samples: list[SceneSample]) -> Sequence[Any]:
+        ids, futures = next(results)
+        if ids != [s.sample_id for s in samples]:
+            raise LogpipeError(f"Ray returned forecasts of samples {ids[:3]}... for a batch of "
+                               f"{[s.sample_id for s in samples][:3]}... (the actors cut other batches)")
+        return futures  # type: ignore[no-any-return]
+
+    return forecast
+
+
+def _actor(job: ForecastJob, threads: int, device: str) -> Callable[[WorkItem], list[tuple[list[str], list[Any]]]]:
+    """Runs once in each Ray actor: loads the model, sets ``threads`` torch threads; returns the forecast of a
+    work item (sample ids and forecasts per batch), reading its shard from the shared file system (the last one
+    read is kept)."""
+    import torch
+
+    load_net(job.chosen, job.dataset, job.batch_size,
+             resolve_device(device) if job.chosen.checkpoint is not None else "cpu")
+    torch.set_num_threads(threads)
+    model = job.chosen.model
+    assert model is not None
+    shard = ShardWindows()
+
+    def forecast(item: WorkItem) -> list[tuple[list[str], list[Any]]]:
+        out = []
+        for samples in job.cutter.cut_planned(shard, *item):
+            with torch.inference_mode():
+                futures = model.predict(samples, job.modes, job.seed)
+            out.append(([s.sample_id for s in samples], [np.asarray(f) for f in futures]))
+        return out
+
+    return forecast

@@ -20,7 +20,7 @@ def world_to_raster_affine(centre: np.ndarray, size: int = 224, extent_m: float 
     return np.array([[s, 0.0, c0 - s * centre[0]], [0.0, -s, c0 + s * centre[1]]])
 
 
-def make_scene(
+def make_scene(  # noqa: PLR0913  scene factory for tests: independent knobs, all defaulted
     rng: np.random.Generator,
     num_agents: int = 10,
     obs_len: int = 8,

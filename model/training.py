@@ -135,8 +135,10 @@ class _Run:
     Its methods are ``fit``'s steps; the order they run in (and so the order of every random draw) is ``fit``'s.
     """
 
-    def __init__(self, cfg: TrainConfig, out_dir: Path, ranks: Ranks, dev: torch.device, val: _Scenes | None, *,
-                 dataset_kind: str, manifest_hash: str, training_data: TrainingData | None, start_time: float) -> None:
+    def __init__(  # noqa: PLR0913  fit()'s run context, stored as given
+        self, cfg: TrainConfig, out_dir: Path, ranks: Ranks, dev: torch.device, val: _Scenes | None, *,
+        dataset_kind: str, manifest_hash: str, training_data: TrainingData | None, start_time: float,
+    ) -> None:
         self.cfg, self.ranks, self.dev, self.val = cfg, ranks, dev, val
         self.dataset_kind, self.manifest_hash, self.training_data = dataset_kind, manifest_hash, training_data
         self.start_time = start_time
@@ -378,7 +380,7 @@ def _train_loop(run: _Run, train: Sequence[SceneSample] | Iterable[SceneSample],
 
 
 @leaves_process_group
-def fit(
+def fit(  # noqa: PLR0913  public entry: keyword options mirror `logpipe train`'s
     train: Sequence[SceneSample] | Iterable[SceneSample],
     val: Sequence[SceneSample] | Iterable[SceneSample] | None,
     config: TrainConfig | ModelConfig,

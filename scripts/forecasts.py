@@ -21,11 +21,13 @@ from logpipe.types import NDArrayFloat, SceneSample
 from scripts.validation import neighbour_cap, predicted_best_of_k, shifted_best_of_k, tune_inference, tuned
 
 
-def write_learned(checkpoint: Path, kind: str, val: Sequence[SceneSample], test: Sequence[SceneSample], k: int,
-                  seed: int, pred_len: int, pdir: Path, method: str, as_trained: str | None = None,
-                  speed_shift: bool = False, rate_val: Sequence[SceneSample] | None = None,
-                  train: Sequence[SceneSample] | None = None,
-                  store_as: str | None = None, as_specified: bool = False) -> tuple[list[Path], dict[str, Any] | None]:
+def write_learned(  # noqa: PLR0913  script helper shared by the reproduce_* scripts and seeds.py
+    checkpoint: Path, kind: str, val: Sequence[SceneSample], test: Sequence[SceneSample], k: int,
+    seed: int, pred_len: int, pdir: Path, method: str, as_trained: str | None = None,
+    speed_shift: bool = False, rate_val: Sequence[SceneSample] | None = None,
+    train: Sequence[SceneSample] | None = None,
+    store_as: str | None = None, as_specified: bool = False,
+) -> tuple[list[Path], dict[str, Any] | None]:
     """Test predictions of a learned method: with K > 1 at the inference settings chosen on ``val`` (and, named
     ``as_trained``, at the checkpoint's own too); with K = 1 as it is. A network that pools each target's
     neighbourhood gets the fold's neighbour cap from ``train`` (``neighbour_cap``) in every run but the as-trained

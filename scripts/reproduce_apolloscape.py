@@ -124,9 +124,11 @@ def render_across_seeds(methods: dict[str, Any], seeds: dict[int, dict[str, Any]
             "", *across_seeds_table(["all"], by_seed, with_avg=False)]
 
 
-def render(report: dict[str, Any], choice: dict[str, float], grid: list[Any], noise: dict[str, Any],
-           n_logs: dict[str, int], skipped: list[str], seconds: float, args: argparse.Namespace,
-           seeds: dict[int, dict[str, Any]]) -> str:
+def render(  # noqa: PLR0913  one parameter per section of the rendered page
+    report: dict[str, Any], choice: dict[str, float], grid: list[Any], noise: dict[str, Any],
+    n_logs: dict[str, int], skipped: list[str], seconds: float, args: argparse.Namespace,
+    seeds: dict[int, dict[str, Any]],
+) -> str:
     """``docs/results/apolloscape.md``."""
     methods = report["methods"]
     any_m = next(iter(methods.values()))

@@ -137,9 +137,11 @@ def _table(report: dict[str, Any]) -> list[str]:
     return lines
 
 
-def render(full: dict[str, Any], held: dict[str, Any], choice: dict[str, float], grid: list[Any],
-           skipped: list[str], held_only: list[str], seconds: float, timings: dict[str, float],
-           args: argparse.Namespace) -> str:
+def render(  # noqa: PLR0913  one parameter per section of the rendered page
+    full: dict[str, Any], held: dict[str, Any], choice: dict[str, float], grid: list[Any],
+    skipped: list[str], held_only: list[str], seconds: float, timings: dict[str, float],
+    args: argparse.Namespace,
+) -> str:
     """``docs/results/argoverse.md``."""
     n_all = next(iter(full["methods"].values()))["overall"]["samples"]
     n_held = next(iter(held["methods"].values()))["overall"]["samples"]

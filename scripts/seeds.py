@@ -95,9 +95,11 @@ def seed_template(template: str, seed: int, seeds_dir: Path = SEEDS_DIR) -> str:
     return f"{seeds_dir.resolve().as_posix()}/seed{seed}/{template.removeprefix(SHIPPED_PREFIX)}"
 
 
-def seed_run(seed: int, templates: dict[str, str], learned: dict[str, tuple[str, int]], scene: str, ds: Dataset,
-             val: Sequence[SceneSample], test: Sequence[SceneSample], split: str, min_agents: int,
-             work: Path, train: Sequence[SceneSample] | None = None, seeds_dir: Path = SEEDS_DIR) -> dict[str, Any]:
+def seed_run(  # noqa: PLR0913  one seed's rerun of the caller's loaded data and settings
+    seed: int, templates: dict[str, str], learned: dict[str, tuple[str, int]], scene: str, ds: Dataset,
+    val: Sequence[SceneSample], test: Sequence[SceneSample], split: str, min_agents: int,
+    work: Path, train: Sequence[SceneSample] | None = None, seeds_dir: Path = SEEDS_DIR,
+) -> dict[str, Any]:
     """One extra seed's test ADE/FDE: the sampler with sampling seed ``seed`` (its noise chosen on ``val`` again) and
     each learned method whose ``seed`` checkpoint exists in ``seeds_dir``, trained with ``train.seed = seed`` and
     sampled with it (its inference settings chosen on ``val``); scored like the main table, without plots. Returns

@@ -185,7 +185,7 @@ def duplicate_inputs(found: Sequence[tuple[Path, str]], sources: Sequence[Source
     return out
 
 
-def _ingest_new(
+def _ingest_new(  # noqa: PLR0913  ingest()'s run state handed on; options already in IngestOptions
     writer: DatasetWriter, new: list[SourceFile], manifest: DatasetManifest, fmt: str, default_batch: int,
     protocol: SampleProtocol, options: IngestOptions, summary: dict[str, Any],
     progress: Callable[[int], None] | None, *, reject_twins: bool = False,

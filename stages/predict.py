@@ -7,6 +7,7 @@ that are safe file names) before any work → take the output folder's lock → 
 committed: cut the selected samples (``logpipe.sample_filter``, ``logpipe.model_inputs``), predict in batches
 under ``torch.inference_mode``, write the shard's Parquet and its logs' MCAPs on a writer thread
 (``logpipe.prediction_output``, ``logpipe.prediction_mcap``) → commit the shard by replacing the run manifest.
+With ``--backend ray`` the same batches are forecast on Ray actors (``logpipe.model.ray_predict``) and written here.
 
 Output folder (a committed artifact, ``logpipe.predictions``): ``manifest.json``, ``predictions/part-NNNNN.parquet``
 (one per dataset shard, NNNNN = its index) and ``mcap/part-NNNNN/<log_id>.mcap``. Positions are metres in the
@@ -18,14 +19,12 @@ midway is redone from scratch, so the rerun of an interrupted run gives the same
 from __future__ import annotations
 
 import dataclasses
-import functools
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import pyarrow as pa
 import pyarrow.compute as pc
 
@@ -35,6 +34,7 @@ from logpipe.errors import LogpipeError
 from logpipe.executor import default_workers
 from logpipe.io import read_table, sha256_file
 from logpipe.model.device import check_device_name, resolve_device
+from logpipe.model.ray_predict import ForecastJob, ray_forecasts
 from logpipe.model.registry import (
     ChosenPredictor,
     check_fit,
@@ -43,14 +43,14 @@ from logpipe.model.registry import (
     resolve_inference,
     seen_in_training,
 )
-from logpipe.model_inputs import SampleCutter, ShardWindows, WorkItem, log_windows, raster_problems, work_items
+from logpipe.model_inputs import SampleCutter, log_windows, raster_problems
 from logpipe.originals import find_original
 from logpipe.predict_options import PredictOptions, PredictSummary
 from logpipe.prediction_mcap import PredictionMcaps, check_log_ids
 from logpipe.prediction_output import LogOutput, SamplePrediction, ShardWriter, fast_gil_switching, shard_writer
 from logpipe.predictions import PredictionMeta, PredictionRunWriter, RunSettings, RunShardEntry
 from logpipe.progress import report_total
-from logpipe.rasters import RasterShards, find_raster_run
+from logpipe.rasters import find_raster_run
 from logpipe.sample_filter import SampleFilter, selected_samples
 from logpipe.sample_filter import selected_logs as _selected_logs
 from logpipe.types import SceneSample
@@ -111,7 +111,9 @@ def predict_dataset(dataset_dir: Path, out_dir: Path, options: PredictOptions | 
             torch.set_num_threads(opts.threads or default_workers())
             if opts.backend == "ray":
                 pending = [p for p in run.dataset.shard_paths if p.relative_to(run.dataset.root).as_posix() not in done]
-                run.forecast = _ray_forecasts(run, pending, opts.workers, opts.threads, opts.device)
+                job = ForecastJob(run.dataset, run.chosen, run.modes, run.seed, run.batch_size, run.cutter)
+                run.forecast = ray_forecasts(job, list(run.logs), run.samples_by_log, pending, opts.workers,
+                                             opts.threads, opts.device)
                 summary.device = None  # chosen on each actor
             uncommitted = writer.manifest is None
             for index, path in enumerate(run.dataset.shard_paths):
@@ -256,13 +258,13 @@ def _predict_logs(run: _Run, tracks: pa.Table, shard_logs: list[str], summary: P
             out.expected += 1
             batch.append((out, row, sample))
             if len(batch) >= run.batch_size:
-                _run_batch(run, batch, summary, progress, sink)
+                run_batch(run, batch, summary, progress, sink)
                 batch = []
                 _end_finished(pending, out, sink)
                 sink.throttle()
         _end_finished(pending, out, sink)
     if batch:
-        _run_batch(run, batch, summary, progress, sink)
+        run_batch(run, batch, summary, progress, sink)
     for out in pending:
         sink.end(out)
 
@@ -273,9 +275,10 @@ def _end_finished(pending: list[LogOutput], current: LogOutput, sink: ShardWrite
         sink.end(pending.pop(0))
 
 
-def _run_batch(run: _Run, batch: list[tuple[LogOutput, dict[str, Any], SceneSample]],
+def run_batch(run: _Run, batch: list[tuple[LogOutput, dict[str, Any], SceneSample]],
                summary: PredictSummary, progress: Callable[[int], None] | None, sink: ShardWriter) -> None:
-    """Forecast one batch and hand each sample's result to its log."""
+    """Forecast one batch and hand each sample's result to its log (public: the seam ``benchmarks/bench_predict``
+    wraps to see every batch the stage forecasts)."""
     import torch
 
     samples = [s for _, _, s in batch]
@@ -298,69 +301,3 @@ def _run_batch(run: _Run, batch: list[tuple[LogOutput, dict[str, Any], SceneSamp
     summary.samples += len(batch)
     if progress:
         progress(len(batch))
-
-
-# ---------------------------------------------------------------------------------------------------------
-# --backend ray: the local path's batches, forecast on Ray actors, written here as above. The Ray plumbing is
-# ``logpipe.model.ray_predict`` (it loads the model, so not the core; stages never import each other); the actors
-# cut their samples with the run's ``SampleCutter`` too, so they cut the same ones.
-
-_ITEMS_PER_ACTOR = 4
-"""Work items per actor: enough to even out uneven items, few enough that each amortises its shard read."""
-
-
-def _ray_forecasts(run: _Run, pending: list[Path], workers: int, threads: int,
-                   device: str) -> Callable[[list[SceneSample]], Sequence[Any]]:
-    """``run.forecast`` for ``--backend ray``: returns, batch after batch, the actors' forecasts of the batches
-    ``_predict_logs`` will cut from the ``pending`` shards (checked by sample id)."""
-    from logpipe.model import ray_predict
-
-    # Each actor runs torch on ``--threads`` threads (default 1) and reserves as many CPUs. The network's float32
-    # reductions round by thread count, so outputs match a local run's bytes at the same --threads (tested).
-    threads = threads or 1
-    size, gpu = ray_predict.start(workers, threads)
-    # The batches ``_predict_logs`` will cut (logs-table order, as ``_predict_shard`` takes them).
-    planned = [(path, run.cutter.plan_batches(read_table(path), list(run.logs), run.samples_by_log, run.batch_size))
-               for path in pending]
-    items = work_items(planned, _ITEMS_PER_ACTOR * size)
-    # Actors need neither the per-log tables nor the MCAP writer; a fresh RasterShards has no memory maps to pickle.
-    rasters = run.cutter.rasters and RasterShards(run.cutter.rasters.run_dir, run.cutter.rasters.spec,
-                                                  run.cutter.rasters.index)
-    actor_run = dataclasses.replace(run, logs={}, samples_by_log={}, mcaps=None,
-                                    cutter=dataclasses.replace(run.cutter, rasters=rasters))
-    setup = functools.partial(_ray_actor, actor_run, threads, device)
-    results = (batch for item in ray_predict.forecast_on_ray(setup, items, size=size, gpu=gpu, cpus=threads)
-               for batch in item)
-
-    def forecast(samples: list[SceneSample]) -> Sequence[Any]:
-        ids, futures = next(results)
-        if ids != [s.sample_id for s in samples]:
-            raise LogpipeError(f"Ray returned forecasts of samples {ids[:3]}... for a batch of "
-                               f"{[s.sample_id for s in samples][:3]}... (the actors cut other batches)")
-        return futures  # type: ignore[no-any-return]
-
-    return forecast
-
-
-def _ray_actor(run: _Run, threads: int, device: str) -> Callable[[WorkItem], list[tuple[list[str], list[Any]]]]:
-    """Runs once in each Ray actor: loads the model, sets ``threads`` torch threads; returns the forecast of a
-    work item (sample ids and forecasts per batch), reading its shard from the shared file system (the last one
-    read is kept)."""
-    import torch
-
-    load_net(run.chosen, run.dataset, run.batch_size,
-             resolve_device(device) if run.chosen.checkpoint is not None else "cpu")
-    torch.set_num_threads(threads)
-    model = run.chosen.model
-    assert model is not None
-    shard = ShardWindows()
-
-    def forecast(item: WorkItem) -> list[tuple[list[str], list[Any]]]:
-        out = []
-        for samples in run.cutter.cut_planned(shard, *item):
-            with torch.inference_mode():
-                futures = model.predict(samples, run.modes, run.seed)
-            out.append(([s.sample_id for s in samples], [np.asarray(f) for f in futures]))
-        return out
-
-    return forecast

@@ -137,7 +137,7 @@ def _check_thresholds(fail_above: dict[str, float]) -> None:
 
 
 # Long only for its Args docstring: the body is the stage's steps in order.
-def score(
+def score(  # noqa: PLR0913  stage entry: keyword options mirror `logpipe score` one to one
     predictions: Sequence[Path],
     truth: Path,
     out_dir: Path,

@@ -58,7 +58,7 @@ def _log_samples(
     return samples
 
 
-def train(
+def train(  # noqa: PLR0913  stage entry: keyword options mirror `logpipe train` one to one
     dataset_dir: Path | Sequence[Path],
     out_dir: Path,
     *,

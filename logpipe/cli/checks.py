@@ -13,7 +13,7 @@ import typer
 from logpipe.cli.app import JsonOpt, err, output, user_errors
 
 
-def score(
+def score(  # noqa: PLR0913  typer command: one parameter per CLI option
     predictions: Annotated[list[Path], typer.Argument(help="Prediction run folders (logpipe predict --out) or "
                                                       "predictions files; one method each.",
                                                       show_default=False)],

@@ -28,7 +28,7 @@ from logpipe.cli.app import (
 )
 
 
-def ingest(
+def ingest(  # noqa: PLR0913  typer command: one parameter per CLI option
     inputs: Annotated[list[Path], typer.Argument(help="Input files or folders.", show_default=False)],
     out: Annotated[Path, typer.Option("--out", "-o", help="Dataset folder to create or extend.")],
     fmt: Annotated[str | None, typer.Option("--format", "-f", help="Input format (default: detected).")] = None,
@@ -118,7 +118,7 @@ def _print_index(s: dict[str, Any]) -> None:
     _print_notes(s)
 
 
-def index(
+def index(  # noqa: PLR0913  typer command: one parameter per CLI option
     dataset: DatasetArg,
     protocol: ProtocolOpt = None,
     obs: ObsOpt = None,
@@ -142,7 +142,7 @@ def index(
     emit(dict(summary), as_json, _print_index)
 
 
-def rasterise(
+def rasterise(  # noqa: PLR0913  typer command: one parameter per CLI option
     dataset: DatasetArg,
     maps: Annotated[list[Path] | None, typer.Option(
         "--maps", help="Folder(s) holding map files (AV1 *_lane_centerlines.npz, AV2 log_map_archive_*.json, "

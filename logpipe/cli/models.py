@@ -23,7 +23,7 @@ DeviceOpt = Annotated[str, typer.Option(
     "(autocast in bf16, or fp16 where the GPU lacks bf16).")]
 
 
-def train(
+def train(  # noqa: PLR0913  typer command: one parameter per CLI option
     dataset: Annotated[list[Path], typer.Argument(
         help="Dataset folder(s) written by `logpipe ingest`; several train one model on all of them (splits "
              "apply in each, samples in this order).", show_default=False)],
@@ -78,7 +78,7 @@ def train(
     emit(summary, as_json, print_summary)
 
 
-def predict(
+def predict(  # noqa: PLR0913  typer command: one parameter per CLI option
     dataset: DatasetArg,
     out: Annotated[Path, typer.Option("--out", "-o", help="Output folder; rerunning resumes.")],
     checkpoint: Annotated[Path | None, typer.Option(

@@ -80,9 +80,11 @@ def plan_city(path: Path, holdout_fraction: float, holdout_margin: float) -> Cit
     return CityPlan(graph, box, train, test)
 
 
-def generate(maps: Path, out: Path, windows: int, seed: int, *, test_fraction: float = 0.2,
-             holdout_fraction: float = 0.15, holdout_margin: float = 75.0, cfg: SimConfig | None = None,
-             cities: Sequence[str] | None = None, progress: bool = True) -> dict[str, object]:
+def generate(  # noqa: PLR0913  independent keyword knobs of the generator, all defaulted
+    maps: Path, out: Path, windows: int, seed: int, *, test_fraction: float = 0.2,
+    holdout_fraction: float = 0.15, holdout_margin: float = 75.0, cfg: SimConfig | None = None,
+    cities: Sequence[str] | None = None, progress: bool = True,
+) -> dict[str, object]:
     """Write ``windows`` SYNTHETIC windows as AV1 CSVs: ``out/train/`` and ``out/test/`` (held-out regions).
 
     Windows alternate over the cities; every ``1/test_fraction``-th round over the cities is drawn in the

@@ -26,7 +26,7 @@ from corpus import REPO, Case, Sample, available, cases, place_good  # type: ign
 
 from logpipe.dataset import Dataset
 from logpipe.errors import LogpipeError
-from stages.ingest import IngestOptions, ingest
+from logpipe.stages.ingest import IngestOptions, ingest
 
 ALL = cases()
 RESULTS: list[dict[str, Any]] = []
@@ -156,7 +156,7 @@ def _sane(rows: pa.Table) -> str | None:
     return None
 
 
-def _check_ingest(case: Case, tmp_path: Path) -> dict[str, Any]:
+def _check_ingest(case: Case, tmp_path: Path) -> dict[str, Any]:  # noqa: PLR0912  one return per fuzz outcome
     sample = case.sample
     reference = _reference(sample, tmp_path)
     folder = tmp_path / "in"
@@ -303,8 +303,8 @@ def test_cli_never_prints_a_traceback(case_id: str, tmp_path: Path) -> None:
 def test_damaged_safetensors_is_one_line(blob: bytes, tmp_path: Path) -> None:
     from types import SimpleNamespace
 
-    from model.checkpoint_meta import CheckpointError
-    from model.checkpoints import _sha256, _verified_weights
+    from logpipe.model.checkpoint_meta import CheckpointError
+    from logpipe.model.checkpoints import _sha256, _verified_weights
 
     weights = tmp_path / "weights.safetensors"
     weights.write_bytes(blob)
