@@ -86,6 +86,7 @@ class _Forecaster:
             else:
                 os._exit(1)
         # Results travel pickled: forecasts are ragged arrays (targets x K x T x 2) Arrow cannot hold as one column.
+        # Only bytes this job pickled itself, in memory through Ray's object store, are unpickled: never a file.
         results = [pickle.dumps(self._forecast(pickle.loads(item)), protocol=pickle.HIGHEST_PROTOCOL)
                    for item in batch["item"]]
         return {"index": batch["index"], "result": np.array(results, dtype=object)}

@@ -36,7 +36,6 @@ from logpipe.io import read_table, sha256_file
 from logpipe.model.device import check_device_name, resolve_device
 from logpipe.model.ray_predict import ForecastJob, ray_forecasts
 from logpipe.model.registry import (
-    ChosenPredictor,
     check_fit,
     choose_predictor,
     load_net,
@@ -64,14 +63,10 @@ def default_modes(protocol_name: str) -> int:
 
 @dataclass
 class _Run:
-    """Everything fixed for one invocation (shared by the per-shard work)."""
+    """Everything fixed for one invocation (shared by the per-shard work): what every forecast needs (``job``, the
+    same record the Ray actors get) and what the local writer adds."""
 
-    dataset: Dataset
-    chosen: ChosenPredictor
-    modes: int
-    seed: int
-    batch_size: int
-    cutter: SampleCutter
+    job: ForecastJob
     logs: dict[str, dict[str, Any]]
     samples_by_log: dict[str, list[dict[str, Any]]]
     meta: PredictionMeta
@@ -103,21 +98,21 @@ def predict_dataset(dataset_dir: Path, out_dir: Path, options: PredictOptions | 
         with output_errors(), PredictionRunWriter(out_dir) as writer, fast_gil_switching():
             shards, files = writer.committed(settings)
             if opts.backend == "local":  # with ray the actors load it
-                load_net(run.chosen, run.dataset, run.batch_size, torch_device or "cpu")
+                load_net(run.job.chosen, run.job.dataset, run.job.batch_size, torch_device or "cpu")
             done = {s["shard"] for s in shards}
             done_names = {Path(d).name for d in done}  # progress counts the samples of the shards left to do
             report_total(progress, sum(len(rows) for log_id, rows in run.samples_by_log.items()
                                        if Path(str(run.logs[log_id]["shard"])).name not in done_names))
             torch.set_num_threads(opts.threads or default_workers())
             if opts.backend == "ray":
-                pending = [p for p in run.dataset.shard_paths if p.relative_to(run.dataset.root).as_posix() not in done]
-                job = ForecastJob(run.dataset, run.chosen, run.modes, run.seed, run.batch_size, run.cutter)
-                run.forecast = ray_forecasts(job, list(run.logs), run.samples_by_log, pending, opts.workers,
+                root = run.job.dataset.root
+                pending = [p for p in run.job.dataset.shard_paths if p.relative_to(root).as_posix() not in done]
+                run.forecast = ray_forecasts(run.job, list(run.logs), run.samples_by_log, pending, opts.workers,
                                              opts.threads, opts.device)
                 summary.device = None  # chosen on each actor
             uncommitted = writer.manifest is None
-            for index, path in enumerate(run.dataset.shard_paths):
-                key = path.relative_to(run.dataset.root).as_posix()
+            for index, path in enumerate(run.job.dataset.shard_paths):
+                key = path.relative_to(run.job.dataset.root).as_posix()
                 if key in done:
                     summary.shards_skipped_done += 1
                     continue
@@ -201,7 +196,7 @@ def _prepare(dataset_dir: Path, out_dir: Path, opts: PredictOptions) -> tuple[_R
                             rasters.spec.channels if raster_images and rasters is not None else None, logs, originals)
     raster_ids = frozenset(rasters.index.column("sample_id").to_pylist()) if rasters is not None else frozenset()
     cutter = SampleCutter(protocol.obs_len, sample_filter.object_types, rasters, raster_ids)
-    run = _Run(dataset, chosen, modes, opts.seed, opts.batch_size, cutter, logs, samples_by_log, meta,
+    run = _Run(ForecastJob(dataset, chosen, modes, opts.seed, opts.batch_size, cutter), logs, samples_by_log, meta,
                mcaps if opts.write_mcap else None)
     return run, settings, summary, torch_device
 
@@ -227,7 +222,7 @@ def _predict_shard(run: _Run, index: int, key: str, path: Path, out_dir: Path, s
     write_mcap = run.mcaps.write if run.mcaps is not None else None
     sink: ShardWriter | None = None
     try:
-        with shard_writer(run.meta, run.batch_size, out_dir, index, entry, write_mcap) as sink:
+        with shard_writer(run.meta, run.job.batch_size, out_dir, index, entry, write_mcap) as sink:
             _predict_logs(run, tracks, shard_logs, summary, progress, sink)
     finally:
         if sink is not None:
@@ -249,7 +244,7 @@ def _predict_logs(run: _Run, tracks: pa.Table, shard_logs: list[str], summary: P
         out = LogOutput(log_id)
         pending.append(out)
         for row in run.samples_by_log.get(log_id, []):
-            sample = run.cutter.cut(windows, row)
+            sample = run.job.cutter.cut(windows, row)
             if sample is None:
                 summary.samples_without_targets += 1
                 if progress:
@@ -257,7 +252,7 @@ def _predict_logs(run: _Run, tracks: pa.Table, shard_logs: list[str], summary: P
                 continue
             out.expected += 1
             batch.append((out, row, sample))
-            if len(batch) >= run.batch_size:
+            if len(batch) >= run.job.batch_size:
                 run_batch(run, batch, summary, progress, sink)
                 batch = []
                 _end_finished(pending, out, sink)
@@ -286,11 +281,11 @@ def run_batch(run: _Run, batch: list[tuple[LogOutput, dict[str, Any], SceneSampl
     with torch.inference_mode():
         # Predictors draw each sample's noise from (--seed, sample id): batching and resuming change nothing.
         futures = (run.forecast(samples) if run.forecast is not None
-                   else run.chosen.model.predict(samples, run.modes, run.seed))
+                   else run.job.chosen.model.predict(samples, run.job.modes, run.job.seed))
     summary.model_seconds += time.perf_counter() - t0
     by_log: dict[str, tuple[LogOutput, list[SamplePrediction]]] = {}
     for (out, row, sample), forecast in zip(batch, futures, strict=True):
-        prediction, unobserved = SamplePrediction.of(row, sample, forecast, run.dataset.protocol, run.modes,
+        prediction, unobserved = SamplePrediction.of(row, sample, forecast, run.job.dataset.protocol, run.job.modes,
                                                      int(run.logs[out.log_id]["median_dt_ns"]))
         by_log.setdefault(out.log_id, (out, []))[1].append(prediction)
         out.finished += 1
