@@ -41,9 +41,13 @@ SHARED = REPO.parent / "shared" / "data" / "argoverse1"
 FALLBACK = REPO / "tests" / "data" / "maps"
 AV_TYPE = "AV"
 OBS_LAST = 19
+Sample = tuple[str, float, float, float | None]
+"""(city, x, y, heading) of one raster centre: world metres, radians (None: north-up)."""
+Passes = list[tuple[float, float]]
+"""(CPU seconds, wall seconds) of each timed pass over all samples."""
 
 
-def _samples(folder: Path) -> list[tuple[str, float, float, float | None]]:
+def _samples(folder: Path) -> list[Sample]:
     """(city, x, y, heading) of the AV at step 19 of every CSV in ``folder``."""
     out = []
     for path in sorted(folder.glob("*.csv")):
@@ -59,28 +63,100 @@ def _samples(folder: Path) -> list[tuple[str, float, float, float | None]]:
     return out
 
 
-def _pass(fn: Any, samples: list[tuple[str, float, float, float | None]]) -> tuple[float, float]:
+def _pass(fn: Any, samples: list[Sample]) -> tuple[float, float]:
     c0, w0 = time.process_time(), time.perf_counter()
     for city, x, y, h in samples:
         fn(city, x, y, h)
     return time.process_time() - c0, time.perf_counter() - w0
 
 
+def _inputs() -> tuple[bool, list[Sample], dict[str, MapStore], float]:
+    """Whether the shared AV1 data is there, the samples, the two cities' maps and their load time (s); the
+    repo's fixtures (2 samples, cropped maps) when it is not."""
+    full = (SHARED / "maps/lane_centerlines/derived/MIA_lane_centerlines.npz").exists()
+    csvs, maps = (SHARED / "data", SHARED / "maps") if full else (FALLBACK, FALLBACK)
+    samples = _samples(csvs)
+    t0 = time.perf_counter()
+    stores: dict[str, MapStore] = {c: load_map(c, roots=[maps]) for c in ("MIA", "PIT")}
+    return full, samples, stores, time.perf_counter() - t0
+
+
+def _timed_passes(
+    configs: dict[str, RasterSpec], stores: dict[str, MapStore], samples: list[Sample], repeats: int,
+    base_repeats: int,
+) -> tuple[dict[str, dict[str, Rasteriser]], dict[str, float], dict[str, Passes], dict[str, Passes]]:
+    """Per configuration: its rasterisers (one per city), their build time (s), and the timed passes of ours
+    and of the baseline."""
+    # Build every rasteriser first, then interleave the timed passes of all configurations and the
+    # baseline (config A, B, C, baseline A, ... per round): load from other processes on a shared machine
+    # then hits all of them alike instead of whichever happened to run during a busy spell.
+    fast_by: dict[str, dict[str, Rasteriser]] = {}
+    index_s_by: dict[str, float] = {}
+    for label, spec in configs.items():
+        t0 = time.perf_counter()
+        fast_by[label] = {c: Rasteriser(s, spec) for c, s in stores.items()}
+        index_s_by[label] = time.perf_counter() - t0
+        _pass(lambda c, x, y, h, f=fast_by[label]: f[c].render(x, y, h, warn=False), samples)  # warm-up
+    ours_by: dict[str, Passes] = {k: [] for k in configs}
+    base_by: dict[str, Passes] = {k: [] for k in configs}
+    for r in range(repeats):
+        for label, spec in configs.items():
+            f = fast_by[label]
+            ours_by[label].append(_pass(lambda c, x, y, h, f=f: f[c].render(x, y, h, warn=False), samples))
+            if r < base_repeats:
+                base_by[label].append(
+                    _pass(lambda c, x, y, h, sp=spec: render_baseline(stores[c], sp, x, y, h), samples)
+                )
+    return fast_by, index_s_by, ours_by, base_by
+
+
+def _pixel_diff(fast: dict[str, Rasteriser], stores: dict[str, MapStore], spec: RasterSpec,
+                samples: list[Sample]) -> dict[str, dict[str, Any]]:
+    """Per channel: max / mean absolute difference of our images from the baseline's and the share (%) of
+    differing pixels, over all samples."""
+    diffs = []
+    for city, x, y, h in samples:
+        a = fast[city].render(x, y, h, warn=False).image.astype(np.int16)
+        b = render_baseline(stores[city], spec, x, y, h).astype(np.int16)
+        diffs.append(np.abs(a - b))
+    d = np.stack(diffs)  # (S, C, H, W)
+    return {
+        name: {
+            "max": int(d[:, i].max()),
+            "mean": round(float(d[:, i].mean()), 5),
+            "pixels_differing_pct": round(100.0 * float((d[:, i] > 0).mean()), 4),
+        }
+        for i, name in enumerate(spec.channels)
+    }
+
+
+def _config_result(fast: dict[str, Rasteriser], spec: RasterSpec, n: int, ours: Passes, base: Passes,
+                   index_s: float) -> dict[str, Any]:
+    """One configuration's figures: medians (and the best pass) of ``n`` rasters per pass; pixel differences
+    are added by the caller."""
+    ours_cpu = statistics.median(o[0] for o in ours)
+    ours_wall = statistics.median(o[1] for o in ours)
+    base_cpu = statistics.median(b[0] for b in base)
+    base_wall = statistics.median(b[1] for b in base)
+    return {
+        "channels": list(spec.channels),
+        "ours_rasters_per_s_per_core": round(n / ours_cpu, 1),
+        "ours_rasters_per_s_wall": round(n / ours_wall, 1),
+        "ours_rasters_per_s_per_core_best_pass": round(n / min(o[0] for o in ours), 1),
+        "ours_us_per_raster_cpu": round(1e6 * ours_cpu / n, 1),
+        "baseline_rasters_per_s_per_core": round(n / base_cpu, 1),
+        "baseline_rasters_per_s_wall": round(n / base_wall, 1),
+        "speedup_vs_baseline_cpu": round(base_cpu / ours_cpu, 1),
+        "index_build_s": round(index_s, 3),
+        "index_bytes_both_cities": int(sum(r.memory_bytes() for r in fast.values())),
+    }
+
+
 def run(quick: bool = False) -> dict[str, Any]:
     """Measure; returns a JSON-able dict (rates in rasters/s, times in microseconds)."""
     cv2.setNumThreads(1)
     load_start = round(os.getloadavg()[0], 2)
-    full = (SHARED / "maps/lane_centerlines/derived/MIA_lane_centerlines.npz").exists()
-    if full:
-        samples = _samples(SHARED / "data")
-        t0 = time.perf_counter()
-        stores: dict[str, MapStore] = {c: load_map(c, roots=[SHARED / "maps"]) for c in ("MIA", "PIT")}
-        map_load_s = time.perf_counter() - t0
-    else:  # smoke run on the repo's fixtures (2 samples, cropped maps)
-        samples = _samples(FALLBACK)
-        t0 = time.perf_counter()
-        stores = {c: load_map(c, roots=[FALLBACK]) for c in ("MIA", "PIT")}
-        map_load_s = time.perf_counter() - t0
+    full, samples, stores, map_load_s = _inputs()
     repeats = 3 if quick else 9
     base_repeats = 1 if quick else 3
     result: dict[str, Any] = {
@@ -100,65 +176,14 @@ def run(quick: bool = False) -> dict[str, Any]:
         # Alternative encoding: plain centerline + the 16-sector lane_direction code channel.
         "rotate_centerline_plus_direction_sectors": RasterSpec(rotate=True, channels=legacy),
     }
-    # Build every rasteriser first, then interleave the timed passes of all configurations and the
-    # baseline (config A, B, C, baseline A, ... per round): load from other processes on a shared machine
-    # then hits all of them alike instead of whichever happened to run during a busy spell.
-    fast_by: dict[str, dict[str, Rasteriser]] = {}
-    index_s_by: dict[str, float] = {}
+    fast_by, index_s_by, ours_by, base_by = _timed_passes(configs, stores, samples, repeats, base_repeats)
     for label, spec in configs.items():
-        t0 = time.perf_counter()
-        fast_by[label] = {c: Rasteriser(s, spec) for c, s in stores.items()}
-        index_s_by[label] = time.perf_counter() - t0
-        _pass(lambda c, x, y, h, f=fast_by[label]: f[c].render(x, y, h, warn=False), samples)  # warm-up
-    ours_by: dict[str, list[tuple[float, float]]] = {k: [] for k in configs}
-    base_by: dict[str, list[tuple[float, float]]] = {k: [] for k in configs}
-    for r in range(repeats):
-        for label, spec in configs.items():
-            f = fast_by[label]
-            ours_by[label].append(_pass(lambda c, x, y, h, f=f: f[c].render(x, y, h, warn=False), samples))
-            if r < base_repeats:
-                base_by[label].append(
-                    _pass(lambda c, x, y, h, sp=spec: render_baseline(stores[c], sp, x, y, h), samples)
-                )
-    for label, spec in configs.items():
-        fast = fast_by[label]
-        index_s = index_s_by[label]
-        ours = ours_by[label]
-        base = base_by[label]
-        n = len(samples)
-        ours_cpu = statistics.median(o[0] for o in ours)
-        ours_wall = statistics.median(o[1] for o in ours)
-        base_cpu = statistics.median(b[0] for b in base)
-        base_wall = statistics.median(b[1] for b in base)
-        diffs = []
-        for city, x, y, h in samples:
-            a = fast[city].render(x, y, h, warn=False).image.astype(np.int16)
-            b = render_baseline(stores[city], spec, x, y, h).astype(np.int16)
-            diffs.append(np.abs(a - b))
-        d = np.stack(diffs)  # (S, C, H, W)
-        per_channel = {
-            name: {
-                "max": int(d[:, i].max()),
-                "mean": round(float(d[:, i].mean()), 5),
-                "pixels_differing_pct": round(100.0 * float((d[:, i] > 0).mean()), 4),
-            }
-            for i, name in enumerate(spec.channels)
-        }
-        layer_bytes = sum(r.memory_bytes() for r in fast.values())
-        result[label] = {
-            "channels": list(spec.channels),
-            "ours_rasters_per_s_per_core": round(n / ours_cpu, 1),
-            "ours_rasters_per_s_wall": round(n / ours_wall, 1),
-            "ours_rasters_per_s_per_core_best_pass": round(n / min(o[0] for o in ours), 1),
-            "ours_us_per_raster_cpu": round(1e6 * ours_cpu / n, 1),
-            "baseline_rasters_per_s_per_core": round(n / base_cpu, 1),
-            "baseline_rasters_per_s_wall": round(n / base_wall, 1),
-            "speedup_vs_baseline_cpu": round(base_cpu / ours_cpu, 1),
-            "index_build_s": round(index_s, 3),
-            "index_bytes_both_cities": int(layer_bytes),
-            "pixel_diff_vs_baseline": per_channel,
-            "target_rasters_per_s_per_core": 5000,
-        }
+        # Renders first: the scratch buffers that memory_bytes counts may grow while rendering.
+        diff = _pixel_diff(fast_by[label], stores, spec, samples)
+        entry = _config_result(fast_by[label], spec, len(samples), ours_by[label], base_by[label], index_s_by[label])
+        entry["pixel_diff_vs_baseline"] = diff
+        entry["target_rasters_per_s_per_core"] = 5000
+        result[label] = entry
     result["peak_rss_mb"] = round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1)
     # Other processes' load: CPU-time rates drop on a busy machine too (shared caches, hyper-threads).
     result["load_average_1m"] = {"start": load_start, "end": round(os.getloadavg()[0], 2), "cpus": os.cpu_count()}

@@ -26,83 +26,26 @@ Importing this module is cheap: the stages (and torch, pyarrow) are imported by 
 
 from __future__ import annotations
 
-import os
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import replace
-from pathlib import Path
-from typing import TYPE_CHECKING, Any, cast
+from typing import Any, cast
 
 from logpipe.errors import LogpipeError
+from logpipe.options import (
+    StrPath,
+    adapter_options,
+    as_path,
+    as_paths,
+    check_choice,
+    gates,
+    map_files,
+    names,
+    optional_path,
+    sample_protocol,
+)
 from logpipe.summaries import IndexSummary, IngestSummary, VerifyReport
-
-if TYPE_CHECKING:
-    from logpipe.types import SampleProtocol
-
-StrPath = str | os.PathLike[str]
-"""A path given as ``str`` or ``pathlib.Path``."""
 
 Progress = Callable[[int], None]
 """Called with the number of items (inputs, samples) each finished batch covered."""
-
-
-def _path(value: StrPath) -> Path:
-    return Path(os.fspath(value))
-
-
-def _paths(values: StrPath | Sequence[StrPath] | None) -> list[Path]:
-    """One path or several (a lone ``str`` is one path, not a sequence of characters)."""
-    if values is None:
-        return []
-    if isinstance(values, str | os.PathLike):
-        return [_path(values)]
-    return [_path(v) for v in values]
-
-
-def _choice(option: str, value: str, allowed: Sequence[str]) -> None:
-    if value not in allowed:
-        raise LogpipeError(f"{option} must be {' or '.join(allowed)}, got {value!r}")
-
-
-def _names(value: str | Sequence[str] | None) -> tuple[str, ...] | None:
-    """Comma-separated names (``"vehicle,bus_truck"``) or a sequence of them; None when not given."""
-    if value is None:
-        return None
-    parts = value.split(",") if isinstance(value, str) else list(value)
-    return tuple(p.strip() for p in parts if p.strip())
-
-
-def sample_protocol(  # noqa: PLR0913  keyword options mirror the CLI's protocol flags one to one
-    preset: str | None = None, *, obs: int | None = None, pred: int | None = None,
-    stride: int | None = None, min_targets: int | None = None, targets: str | None = None,
-    target_types: str | Sequence[str] | None = None, window: str | None = None,
-    default: SampleProtocol | None = None,
-) -> SampleProtocol | None:
-    """The protocol the ``--protocol/--obs/--pred/...`` options describe: ``preset`` (or ``default``) with the
-    overrides; None when nothing is given. Overrides of a preset are named ``<preset>-custom``.
-
-    Raises:
-        LogpipeError: an unknown preset or ``window`` (``sliding`` or ``first``).
-    """
-    from logpipe.types import PROTOCOLS, WINDOWS, SampleProtocol
-
-    types = _names(target_types)
-    if window is not None:
-        _choice("--window", window, WINDOWS)
-    if preset is None and all(v is None for v in (obs, pred, stride, min_targets, targets, types, window)):
-        return None
-    if preset is not None and preset not in PROTOCOLS:
-        raise LogpipeError(f"unknown protocol {preset!r}; presets: {', '.join(PROTOCOLS)}")
-    base = PROTOCOLS[preset] if preset else default
-    if base is None:
-        base = SampleProtocol("custom", obs_len=obs or 8, pred_len=pred or 12)
-    changes: dict[str, Any] = {}
-    for key, value in (("obs_len", obs), ("pred_len", pred), ("stride", stride), ("min_targets", min_targets),
-                       ("targets", targets), ("target_types", types), ("window", window)):
-        if value is not None:
-            changes[key] = value
-    if changes and base.name != "custom":
-        changes["name"] = f"{base.name.removesuffix('-custom')}-custom"
-    return replace(base, **changes)
 
 
 def ingest(  # noqa: PLR0913  public API: keyword options mirror `logpipe ingest` one to one
@@ -161,40 +104,25 @@ def ingest(  # noqa: PLR0913  public API: keyword options mirror `logpipe ingest
     from logpipe.stages.ingest import IngestOptions
     from logpipe.stages.ingest import ingest as run_ingest
 
-    roots = _paths(inputs)
+    roots = as_paths(inputs)
     if not roots:
         raise LogpipeError("give at least one input file or folder")
-    _choice("--on-error", on_error, ("fail", "skip"))
-    _choice("--backend", backend, ("local", "ray"))
+    check_choice("--on-error", on_error, ("fail", "skip"))
+    check_choice("--backend", backend, ("local", "ray"))
     own = None
     if protocol is None:  # overrides alone change the input format's own preset, not a generic 8 + 12 one
         from logpipe.formats import adapter_class, detect
 
         own = adapter_class(format or detect(roots[0])).default_protocol
     options = IngestOptions(
-        out=_path(out), format=format,
+        out=as_path(out), format=format,
         protocol=sample_protocol(protocol, obs=obs, pred=pred, stride=stride, min_targets=min_targets,
                                  targets=targets, target_types=target_types, window=window, default=own),
         on_error="skip" if on_error == "skip" else "fail", write_mcap=mcap, workers=workers,
         backend="ray" if backend == "ray" else "local", batch_files=batch_files,
-        adapter_options=_adapter_options(mapping, overrides, hz, allow_empty),
+        adapter_options=adapter_options(mapping, overrides, hz, allow_empty),
     )
     return cast(IngestSummary, run_ingest(roots, options, progress=progress))
-
-
-def _adapter_options(mapping: StrPath | None, overrides: Sequence[str], hz: float | None,
-                     allow_empty: bool) -> dict[str, Any]:
-    """Only the options the user gave, so formats that do not take them are not handed them."""
-    options: dict[str, Any] = {}
-    if mapping is not None:
-        options["mapping"] = os.fspath(mapping)
-    if overrides:
-        options["mapping_overrides"] = tuple(overrides)
-    if hz is not None:
-        options["hz"] = hz
-    if allow_empty:
-        options["allow_empty"] = True
-    return options
 
 
 def index(  # noqa: PLR0913  public API: keyword options mirror `logpipe index` one to one
@@ -225,7 +153,7 @@ def index(  # noqa: PLR0913  public API: keyword options mirror `logpipe index` 
     from logpipe.dataset import Dataset
     from logpipe.stages.ingest import reindex
 
-    folder = _path(dataset)
+    folder = as_path(dataset)
     chosen = sample_protocol(protocol, obs=obs, pred=pred, stride=stride, min_targets=min_targets, targets=targets,
                              target_types=target_types, window=window, default=Dataset.open(folder).protocol)
     if chosen is None:
@@ -270,22 +198,14 @@ def rasterise(  # noqa: PLR0913  public API: keyword options mirror `logpipe ras
     from logpipe.raster import DEFAULT_CHANNELS, RasterSpec
     from logpipe.stages.rasterise import rasterise_dataset
 
-    _choice("--backend", backend, ("local", "ray"))
-    files: dict[str, Path] = {}
-    if isinstance(map_file, Mapping):
-        files = {str(k): _path(v) for k, v in map_file.items()}
-    else:
-        for item in map_file or ():
-            key, sep, value = item.partition("=")
-            if not sep:
-                raise LogpipeError(f"--map expects MAP_ID=FILE, got {item!r}")
-            files[key] = Path(value)
+    check_choice("--backend", backend, ("local", "ray"))
+    files = map_files(map_file)
     try:
-        spec = RasterSpec(size_px=size, extent_m=extent, rotate=rotate, channels=_names(channels) or DEFAULT_CHANNELS)
+        spec = RasterSpec(size_px=size, extent_m=extent, rotate=rotate, channels=names(channels) or DEFAULT_CHANNELS)
     except ValueError as err:
         raise LogpipeError(str(err)) from None
     summary: dict[str, Any] = rasterise_dataset(
-        _path(dataset), MapSource(roots=tuple(_paths(maps)), files=files), centre=centre, rotate=rotate,
+        as_path(dataset), MapSource(roots=tuple(as_paths(maps)), files=files), centre=centre, rotate=rotate,
         preview=preview, spec=spec, shard_size=shard_size, force=force, progress=progress,
         workers=workers if workers is not None else (0 if backend == "ray" else 1),
         backend="ray" if backend == "ray" else "local",
@@ -335,7 +255,7 @@ def train(  # noqa: PLR0913  public API: keyword options mirror `logpipe train` 
     from logpipe.dataset import is_split_expression
     from logpipe.stages.train import train as run_train
 
-    folders = _paths(dataset)
+    folders = as_paths(dataset)
     if not folders:
         raise LogpipeError("give at least one dataset")
     chosen_train = train_split or (f"{scene}/train" if scene else "hash/train")
@@ -349,11 +269,11 @@ def train(  # noqa: PLR0913  public API: keyword options mirror `logpipe train` 
     if seed is not None:
         overrides["seed"] = seed
     summary: dict[str, Any] = run_train(
-        folders[0] if len(folders) == 1 else folders, _path(out), train_split=chosen_train,
+        folders[0] if len(folders) == 1 else folders, as_path(out), train_split=chosen_train,
         val_split=None if chosen_val == "none" else chosen_val,
-        config_path=_path(config) if config is not None else None, overrides=overrides, preset=preset,
+        config_path=optional_path(config), overrides=overrides, preset=preset,
         resume=resume, raster_run=raster_run, loader_workers=loader_workers,
-        init_from=_path(init_from) if init_from is not None else None, progress=progress, device=device,
+        init_from=optional_path(init_from), progress=progress, device=device,
     )
     return summary
 
@@ -409,14 +329,14 @@ def predict(  # noqa: PLR0913  public API: keyword options mirror `logpipe predi
     from logpipe.stages.predict import predict_dataset
 
     options = PredictOptions(
-        checkpoint=_path(checkpoint) if checkpoint is not None else None,
+        checkpoint=optional_path(checkpoint),
         predictor=predictor, modes=modes, seed=seed, noise_scale=noise_scale,
         constant_velocity_modes=constant_velocity_modes, context_max_neighbours=context_max_neighbours,
-        as_trained=as_trained, sample_filter=parse_filter(list(filters)), inputs=_paths(inputs), raster_run=raster_run,
-        raster_images=raster_images, write_mcap=mcap, batch_size=batch_size, threads=threads,
+        as_trained=as_trained, sample_filter=parse_filter(list(filters)), inputs=as_paths(inputs),
+        raster_run=raster_run, raster_images=raster_images, write_mcap=mcap, batch_size=batch_size, threads=threads,
         device=device, backend=backend, workers=workers,
     )
-    summary: dict[str, Any] = predict_dataset(_path(dataset), _path(out), options, progress=progress)
+    summary: dict[str, Any] = predict_dataset(as_path(dataset), as_path(out), options, progress=progress)
     return summary
 
 
@@ -454,22 +374,11 @@ def score(  # noqa: PLR0913  public API: keyword options mirror `logpipe score` 
     """
     from logpipe.stages.score import score as run_score
 
-    _choice("--agents", agents, ("all", "focal"))
-    thresholds: dict[str, float] = {}
-    if isinstance(fail_above, Mapping):
-        thresholds = {str(key): float(value) for key, value in fail_above.items()}
-    else:
-        for item in fail_above or ():
-            key, sep, value = item.partition("=")
-            try:
-                if not sep:
-                    raise ValueError(item)
-                thresholds[key.strip()] = float(value)
-            except ValueError:
-                raise LogpipeError(f"--fail-above {item!r}: expected kN.METRIC=NUMBER") from None
+    check_choice("--agents", agents, ("all", "focal"))
+    thresholds = gates(fail_above)
     report: dict[str, Any] = run_score(
-        _paths(predictions), _path(truth), _path(out), agents=cast(Any, agents), min_agents=min_agents, split=split,
-        ks=list(k) if k else None, miss_threshold_m=miss_threshold, fail_above=thresholds,
+        as_paths(predictions), as_path(truth), as_path(out), agents=cast(Any, agents), min_agents=min_agents,
+        split=split, ks=list(k) if k else None, miss_threshold_m=miss_threshold, fail_above=thresholds,
         labels=list(label) if label else None, allow_missing=allow_missing, plots=plots, plot_samples=plot_samples,
     )
     return report
@@ -486,7 +395,7 @@ def verify(folders: StrPath | Sequence[StrPath], *, repair: bool = False, shallo
     """
     from logpipe.verify import verify_tree
 
-    return cast(VerifyReport, verify_tree(_paths(folders), repair=repair, deep=not shallow))
+    return cast(VerifyReport, verify_tree(as_paths(folders), repair=repair, deep=not shallow))
 
 
 def inspect(paths: StrPath | Sequence[StrPath]) -> list[dict[str, Any]]:
@@ -505,4 +414,4 @@ def inspect(paths: StrPath | Sequence[StrPath]) -> list[dict[str, Any]]:
     """
     from logpipe.inspect import inspect_paths
 
-    return inspect_paths(_paths(paths))
+    return inspect_paths(as_paths(paths))

@@ -36,7 +36,8 @@ from logpipe import __version__
 from logpipe import foxglove as fx
 from logpipe.contracts import json_schema
 from logpipe.io import as_numpy
-from logpipe.types import Role
+from logpipe.shards import log_runs
+from logpipe.types import LogMeta, Role
 
 AGENTS_TOPIC = "/logpipe/agents"
 SCENE_TOPIC = "/logpipe/scene"
@@ -226,6 +227,22 @@ def write_log_mcap(log_id: str, tracks: pa.Table | LogRows, target: Path, map_id
             count += _write_ego(writer, ego, tf_channel, np.asarray(ego_rows), ts, rows.x, rows.y, yaw, has_heading)
         writer.finish()  # type: ignore[no-untyped-call]
     return count
+
+
+def write_log_mcaps(tracks: pa.Table, metas: list[LogMeta], folder: Path) -> int:
+    """Write ``folder/<log_id>.mcap`` for every log of ``tracks`` (an ingest batch in canonical order, logs
+    contiguous), each with its map id from ``metas``; returns the number of messages written."""
+    # Log boundaries from the log codes (no string per row), every column converted once for the batch.
+    logs = pc.dictionary_encode(tracks.column("log_id")).combine_chunks()
+    codes, names = as_numpy(logs.indices), logs.dictionary.to_pylist()
+    maps = {m.log_id: m.map_id for m in metas}
+    rows = LogRows.of(tracks)
+    messages = 0
+    starts, ends = log_runs(codes)
+    for lo, hi in zip(starts.tolist(), ends.tolist(), strict=True):
+        log_id = names[codes[lo]]
+        messages += write_log_mcap(log_id, rows.slice(lo, hi), folder / f"{log_id}.mcap", maps.get(log_id))
+    return messages
 
 
 def _write_ego(  # noqa: PLR0913  the table's parallel column arrays; a holder would only be unpacked

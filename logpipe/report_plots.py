@@ -24,7 +24,7 @@ from logpipe.types import NDArrayFloat, SceneSample
 
 
 class Forecasts(Protocol):
-    """What the plots read of one method's forecasts (``logpipe.stages.score.MethodForecasts``)."""
+    """What the plots read of one method's forecasts (``logpipe.method_forecasts.MethodForecasts``)."""
 
     sample_ids: Any  # (N,) sample of each agent row
     track_ids: Any  # (N,) track of each agent row

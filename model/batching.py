@@ -31,7 +31,7 @@ import torch
 from torch import Tensor
 
 from logpipe.errors import LogpipeError
-from logpipe.types import NDArrayBool, NDArrayFloat, NDArrayInt, SceneSample
+from logpipe.types import NDArrayBool, NDArrayFloat, NDArrayFloat32, NDArrayInt, SceneSample
 
 from .config import SPEED_SCALE_MAX, SPEED_SCALE_MIN, ModelConfig
 
@@ -241,81 +241,120 @@ def collate(
         # Only the pools of eqs. 2 and 4 read other agents: without them the windows are collated as they are.
         return _collate_in_context(samples, config, rotations, with_raster)
     t_total = config.obs_len + config.pred_len
-    b = len(samples)
     counts = np.array([len(s.positions) for s in samples], np.int64)
     offsets = np.concatenate(([0], np.cumsum(counts)))
-    n = int(offsets[-1])
     use_raster = config.features.environment if with_raster is None else with_raster
-    positions = np.zeros((n, t_total, 2), np.float32)
-    valid = np.zeros((n, t_total), bool)
-    target = np.zeros(n, bool)
-    ego = np.zeros(n, bool)
-    has_raster = np.zeros(b, bool)
-    frame_to_px = np.zeros((b, 2, 3), np.float32)
-    px_per_m = np.ones(b, np.float32)
-    origin = np.zeros((b, 2))
-    rotation = np.zeros((b, 2, 2))
-    scale = np.ones(b)
-    raster = (
-        np.zeros((b, config.raster_channels, *_raster_hw(samples)), np.float32) if use_raster else None
-    )
+    raster_shape = (len(samples), config.raster_channels, *_raster_hw(samples)) if use_raster else None
+    buffers = _Buffers.zeros(int(offsets[-1]), len(samples), t_total, raster_shape)
     for i, s in enumerate(samples):
         lo, hi = int(offsets[i]), int(offsets[i + 1])
         pos = _padded(s, t_total)
         org, rot, k = _window_frame(s, pos[:, : config.obs_len], config) if frames is None else frames[i]
         if rotations is not None:
             rot = _rot(rotations[i]) @ rot
+        buffers.put_agents(lo, hi, s, pos, (org, rot, k))
+        buffers.put_frame(i, s, (org, rot, k))
+        buffers.put_raster(i, s, config.raster_channels)
+    return buffers.batch(samples, counts, offsets, config.obs_len)
+
+
+@dataclass
+class _Buffers:
+    """The host-side arrays ``collate`` fills scene by scene before wrapping them as tensors (shapes, units and
+    frames as the ``Batch`` fields of the same names; ``raster`` None when not built)."""
+
+    positions: NDArrayFloat32
+    valid: NDArrayBool
+    target: NDArrayBool
+    ego: NDArrayBool
+    has_raster: NDArrayBool
+    frame_to_px: NDArrayFloat32
+    px_per_m: NDArrayFloat32
+    origin: NDArrayFloat
+    rotation: NDArrayFloat
+    scale: NDArrayFloat
+    raster: NDArrayFloat32 | None
+
+    @classmethod
+    def zeros(cls, n: int, b: int, t_total: int, raster_shape: tuple[int, int, int, int] | None) -> _Buffers:
+        """Empty buffers for ``n`` agent rows of ``b`` scenes over ``t_total`` steps (unit scale and px/m)."""
+        return cls(
+            positions=np.zeros((n, t_total, 2), np.float32), valid=np.zeros((n, t_total), bool),
+            target=np.zeros(n, bool), ego=np.zeros(n, bool), has_raster=np.zeros(b, bool),
+            frame_to_px=np.zeros((b, 2, 3), np.float32), px_per_m=np.ones(b, np.float32),
+            origin=np.zeros((b, 2)), rotation=np.zeros((b, 2, 2)), scale=np.ones(b),
+            raster=None if raster_shape is None else np.zeros(raster_shape, np.float32),
+        )
+
+    def put_agents(self, lo: int, hi: int, s: SceneSample, pos: NDArrayFloat,
+                   frame: tuple[NDArrayFloat, NDArrayFloat, float]) -> None:
+        """Rows ``lo:hi``: the scene's world positions ``pos`` (A, T, 2, NaN unobserved) in the model frame
+        ``frame`` (origin, R, scale), 0 where unobserved; its targets and ego."""
+        org, rot, k = frame
         ok = np.isfinite(pos[..., 0]) & np.isfinite(pos[..., 1])
         local = k * np.einsum("ij,atj->ati", rot, np.nan_to_num(pos - org))
-        positions[lo:hi] = np.where(ok[..., None], local, 0.0)
-        valid[lo:hi] = ok
-        target[lo:hi] = s.target_mask.astype(bool)
+        self.positions[lo:hi] = np.where(ok[..., None], local, 0.0)
+        self.valid[lo:hi] = ok
+        self.target[lo:hi] = s.target_mask.astype(bool)
         if 0 <= s.ego_index < hi - lo:
-            ego[lo + s.ego_index] = True
-        origin[i], rotation[i], scale[i] = org, rot, k
+            self.ego[lo + s.ego_index] = True
+
+    def put_frame(self, i: int, s: SceneSample, frame: tuple[NDArrayFloat, NDArrayFloat, float]) -> None:
+        """Scene ``i``'s model frame (origin, R, scale) and, with a raster transform, model frame → pixels."""
+        org, rot, k = frame
+        self.origin[i], self.rotation[i], self.scale[i] = org, rot, k
         if s.world_to_raster is not None:
             w2r = np.asarray(s.world_to_raster, np.float64)
             lin = w2r[:, :2]
             # px = lin (R^T p / k + origin) + offset
-            frame_to_px[i, :, :2] = lin @ rot.T / k
-            frame_to_px[i, :, 2] = lin @ org + w2r[:, 2]
-            px_per_m[i] = np.sqrt(abs(np.linalg.det(lin)))
-        if raster is not None and s.raster is not None:
-            if s.raster.shape[0] != config.raster_channels:
-                raise SampleError(
-                    f"{s.sample_id}: raster has {s.raster.shape[0]} channels, model expects "
-                    f"{config.raster_channels}"
-                )
-            if s.world_to_raster is None:
-                raise SampleError(f"{s.sample_id}: raster without world_to_raster")
-            raster[i] = s.raster.astype(np.float32) * (1.0 / 255.0)
-            has_raster[i] = True
-    active = valid[:, config.obs_len - 1]
-    if raster is not None and not has_raster.any():
-        raster = None  # no scene has a map: skip the backbone, the environment feature is zero
-    scene = np.repeat(np.arange(b), counts)
-    slot = np.arange(n) - offsets[scene]
-    return Batch(
-        positions=torch.from_numpy(positions),
-        valid=torch.from_numpy(valid),
-        active=torch.from_numpy(active),
-        target=torch.from_numpy(target & active),
-        ego=torch.from_numpy(ego & active),
-        scene=torch.from_numpy(scene),
-        slot=torch.from_numpy(slot),
-        max_agents=int(counts.max()),
-        raster=None if raster is None else torch.from_numpy(raster),
-        has_raster=torch.from_numpy(has_raster),
-        frame_to_px=torch.from_numpy(frame_to_px),
-        px_per_m=torch.from_numpy(px_per_m),
-        origin=origin,
-        rotation=rotation,
-        scale=scale,
-        offsets=offsets,
-        obs_len=config.obs_len,
-        sample_targets=[lo + np.flatnonzero(s.target_mask) for lo, s in zip(offsets[:-1], samples, strict=True)],
-        sample=scene,
-    )
+            self.frame_to_px[i, :, :2] = lin @ rot.T / k
+            self.frame_to_px[i, :, 2] = lin @ org + w2r[:, 2]
+            self.px_per_m[i] = np.sqrt(abs(np.linalg.det(lin)))
+
+    def put_raster(self, i: int, s: SceneSample, channels: int) -> None:
+        """Scene ``i``'s raster scaled to [0, 1], when rasters are built and the scene has one.
+
+        Raises:
+            SampleError: the raster has other than ``channels`` channels, or no ``world_to_raster``.
+        """
+        if self.raster is None or s.raster is None:
+            return
+        if s.raster.shape[0] != channels:
+            raise SampleError(f"{s.sample_id}: raster has {s.raster.shape[0]} channels, model expects {channels}")
+        if s.world_to_raster is None:
+            raise SampleError(f"{s.sample_id}: raster without world_to_raster")
+        self.raster[i] = s.raster.astype(np.float32) * (1.0 / 255.0)
+        self.has_raster[i] = True
+
+    def batch(self, samples: Sequence[SceneSample], counts: NDArrayInt, offsets: NDArrayInt, obs_len: int) -> Batch:
+        """The filled buffers as a ``Batch`` of ``samples`` (``counts`` agents per scene, row ``offsets``)."""
+        active = self.valid[:, obs_len - 1]
+        # No scene has a map: skip the backbone, the environment feature is zero.
+        raster = self.raster if self.raster is not None and self.has_raster.any() else None
+        b, n = len(samples), int(offsets[-1])
+        scene = np.repeat(np.arange(b), counts)
+        slot = np.arange(n) - offsets[scene]
+        return Batch(
+            positions=torch.from_numpy(self.positions),
+            valid=torch.from_numpy(self.valid),
+            active=torch.from_numpy(active),
+            target=torch.from_numpy(self.target & active),
+            ego=torch.from_numpy(self.ego & active),
+            scene=torch.from_numpy(scene),
+            slot=torch.from_numpy(slot),
+            max_agents=int(counts.max()),
+            raster=None if raster is None else torch.from_numpy(raster),
+            has_raster=torch.from_numpy(self.has_raster),
+            frame_to_px=torch.from_numpy(self.frame_to_px),
+            px_per_m=torch.from_numpy(self.px_per_m),
+            origin=self.origin,
+            rotation=self.rotation,
+            scale=self.scale,
+            offsets=offsets,
+            obs_len=obs_len,
+            sample_targets=[lo + np.flatnonzero(s.target_mask) for lo, s in zip(offsets[:-1], samples, strict=True)],
+            sample=scene,
+        )
 
 
 def _collate_in_context(samples: Sequence[SceneSample], config: ModelConfig, rotations: Sequence[float] | None,

@@ -1,16 +1,15 @@
 """``logpipe ingest``: input logs → canonical Parquet shards, logs table, sample index, MCAP per log.
 
-Reads top-down: lock the dataset folder and clean what no commit names → find and hash inputs → skip
-those already ingested (by content) → parse batches in parallel, each batch one shard written to a staging
-folder → move the shards into place, write the new generation's tables → commit by the manifest swap
-(``logpipe.artifact``). A crash at any point leaves the previous state, and a rerun gives the same bytes.
-With ``on_error="fail"`` the first bad input stops the run and nothing becomes visible; with ``"skip"``
+Reads top-down: lock the dataset folder and clean what no commit names → find and hash inputs → skip those already
+ingested (by content) → parse batches in parallel (rows in canonical order, logs rows: ``logpipe.log_table``), each
+one shard (and MCAPs) in a staging folder → move the shards into place, write the new generation's tables → commit
+by the manifest swap (``logpipe.artifact``). A crash at any point leaves the previous state, and a rerun gives the
+same bytes. With ``on_error="fail"`` the first bad input stops the run and nothing becomes visible; with ``"skip"``
 bad inputs are quarantined (listed in the manifest and the summary) and the rest lands.
 """
 
 from __future__ import annotations
 
-import json
 import shutil
 import time
 from collections import Counter
@@ -19,24 +18,34 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Literal
 
-import numpy as np
 import pyarrow as pa
-import pyarrow.compute as pc
 
 from logpipe.artifact import FileEntry, file_entry, output_errors
-from logpipe.contracts import arrow_schema, conform, tracks_schema
+from logpipe.contracts import arrow_schema
 from logpipe.dataset import mcap_folder, shard_name, shard_number
-from logpipe.dataset_writer import DatasetManifest, DatasetWriter, InputEntry, NewShard, QuarantineEntry, ShardEntry
+from logpipe.dataset_writer import (
+    DatasetManifest,
+    DatasetWriter,
+    InputEntry,
+    NewShard,
+    QuarantineEntry,
+    ShardEntry,
+    add_input_roots,
+    known_input_digests,
+    known_input_sizes,
+    write_track_shard,
+)
 from logpipe.errors import DatasetError, SourceError
 from logpipe.executor import Backend, default_workers, run_ordered, warm_up
 from logpipe.formats import detect, get_adapter
 from logpipe.formats.base import FormatAdapter
+from logpipe.input_copies import duplicate_inputs
 from logpipe.inputs import complete_hashes, find_inputs, fingerprint_inputs, read_ahead, unhashed_inputs
-from logpipe.io import as_numpy, parquet_options, read_table, sha256_file, sha256_tree, write_parquet
+from logpipe.io import read_table
+from logpipe.log_table import canonical_order, log_metas, log_rows
 from logpipe.progress import report_total
-from logpipe.samples import TrackCodes, build_samples, no_sample_reasons, steps_from_sorted_times
-from logpipe.shards import log_runs
-from logpipe.types import PENDING_SHA256, LogMeta, NDArrayBool, NDArrayInt, Role, SampleProtocol, SourceFile
+from logpipe.samples import TrackCodes, build_samples, no_sample_reasons
+from logpipe.types import SampleProtocol, SourceFile
 
 OnError = Literal["fail", "skip"]
 
@@ -124,22 +133,17 @@ def _ingest_locked(writer: DatasetWriter, roots: Sequence[Path], options: Ingest
                    started: float) -> dict[str, Any]:
     """``ingest`` while holding the dataset folder's lock."""
     default_batch = adapter.batch_files
-    out = options.out
     manifest = writer.start(fmt, protocol)
     found = find_inputs(roots, adapter)
-    known_sizes = _known_sizes(manifest)
+    known_sizes = known_input_sizes(manifest)
     # A first ingest hashes nothing up front when twins are unlikely; a run that finds some is redone below.
     optimistic = unhashed_inputs(found) if known_sizes == set() else None
     sources = optimistic or fingerprint_inputs(found, known_sizes, threads=default_workers())
-    # Where the inputs were, so later stages (predict copies bag channels through) can find the originals.
-    known_roots = manifest.setdefault("input_roots", [])
-    for root in roots:
-        if str(root.resolve()) not in known_roots:
-            known_roots.append(str(root.resolve()))
-    known = {i["sha256"] for i in manifest["inputs"]} | {q["sha256"] for q in manifest["quarantined"]}
+    add_input_roots(manifest, roots)
+    known = known_input_digests(manifest)
     new = [s for s in sources if s.sha256 not in known]
     summary: dict[str, Any] = {
-        "dataset": str(out), "format": fmt, "protocol": protocol.to_dict(), "inputs_found": len(sources),
+        "dataset": str(options.out), "format": fmt, "protocol": protocol.to_dict(), "inputs_found": len(sources),
         "inputs_skipped_already_ingested": len(sources) - len(new), "inputs_ingested": 0, "quarantined": [],
         "logs": 0, "rows": 0, "samples": 0, "shards_written": [], "logs_without_samples": {},
     }
@@ -149,40 +153,10 @@ def _ingest_locked(writer: DatasetWriter, roots: Sequence[Path], options: Ingest
         summary["inputs_found"] = len(new)
         _ingest_new(writer, new, manifest, fmt, default_batch, protocol, options, summary, progress)
     copies = duplicate_inputs(found, sources)
-    summary["duplicates"] = len(copies)
-    summary["duplicate_inputs"] = copies
+    summary.update(duplicates=len(copies), duplicate_inputs=copies)
     summary["seconds"] = round(time.perf_counter() - started, 3)
     summary["totals"] = manifest["totals"]
     return summary
-
-
-def duplicate_inputs(found: Sequence[tuple[Path, str]], sources: Sequence[SourceFile]) -> list[dict[str, str]]:
-    """``{"path", "same_as"}`` (relative paths) for every input found that ``fingerprint_inputs`` merged into
-    an identical one it kept, so a summary can say why fewer inputs than files were ingested.
-
-    The merge keeps no record of the copies; a copy is matched to the kept input of its size, and hashed again
-    only when several kept inputs have that size or when it is a folder (a bag).
-    """
-    kept = {s.relpath for s in sources}
-    copies = [(path, rel) for path, rel in found if rel not in kept]
-    if not copies:
-        return []
-    by_size: dict[int, list[SourceFile]] = {}
-    for s in sources:
-        if s.sha256 != PENDING_SHA256:  # a pending digest means no other input could equal it
-            by_size.setdefault(s.size, []).append(s)
-    out = []
-    for path, rel in copies:
-        if path.is_dir():  # a bag folder: matched by its digest, which every folder input has
-            digest = sha256_tree(path)
-            candidates = [s for s in sources if s.sha256 == digest]
-        else:
-            candidates = by_size.get(path.stat().st_size, [])
-            if len(candidates) != 1:
-                digest = sha256_file(path)
-                candidates = [s for s in candidates if s.sha256 == digest]
-        out.append({"path": rel, "same_as": candidates[0].relpath if candidates else "?"})
-    return out
 
 
 def _ingest_new(  # noqa: PLR0913  ingest()'s run state handed on; options already in IngestOptions
@@ -233,184 +207,36 @@ def _ingest_batch(job: _BatchJob) -> _BatchResult:
     by_path = {s.relpath: s for s in sources}
     failures += [(source_of(e.file, by_path), e) for e in parsed.failures]
     presorted = "step" in parsed.tracks.column_names
-    tracks = _canonical_order(parsed.tracks)
+    tracks = canonical_order(parsed.tracks)
     # The adapter's codes describe its row order, which a re-sort would break.
     codes = parsed.codes if presorted and parsed.codes is not None else (
         TrackCodes.of(tracks) if tracks.num_rows else None)
-    logs, empty = _log_rows(tracks, parsed.logs, job.shard_file, codes)
+    logs, empty = log_rows(tracks, parsed.logs, job.shard_file, codes)
     for meta in empty:
         error = SourceError(meta.source_file, "produced no track rows")
         if not job.keep_going:
             raise error
         failures.append((by_path[meta.source_file], error))
-    staging = Path(job.staging)
-    shard = None
-    files: dict[str, FileEntry] = {}
-    samples = arrow_schema("samples").empty_table()
-    no_samples: dict[str, str] = {}
-    messages = 0
-    if tracks.num_rows:
-        path = staging / job.shard_file
-        # Statistics on log_id (readers filter shards by log) but not on the other strings, and LZ4: the
-        # shard is written once per input and read by every later stage; LZ4 costs ~20% less to write than
-        # zstd-1 here and decodes faster, for ~4% more bytes (Argoverse shards).
-        options = parquet_options(tracks.schema, string_statistics=["log_id"]) | {"compression": "lz4"}
-        options.pop("compression_level", None)
-        write_parquet(tracks, path, options, dictionaries_as_values=True)
-        files[job.shard_file] = file_entry(path, rows=tracks.num_rows)
-        shard = ShardEntry(file=job.shard_file, rows=tracks.num_rows, sha256=files[job.shard_file]["sha256"],
-                           logs=logs.num_rows)
-        kept = [m for m in parsed.logs if m not in empty]
-        samples = build_samples(tracks, kept, job.protocol, codes)
-        no_samples = no_sample_reasons(tracks, job.protocol, samples, codes)
-        if job.write_mcap:
-            folder = mcap_folder(job.shard_file)
-            messages = _write_mcaps(tracks, kept, staging / folder)
-            for mcap in sorted((staging / folder).iterdir()):
-                files[f"{folder}/{mcap.name}"] = file_entry(mcap)
     failed = {s.relpath for s, _ in failures}
     ingested = [s for s in sources if s.relpath not in failed]
-    return _BatchResult(shard, logs, samples, ingested, failures, messages, files, no_samples)
-
-
-def _canonical_order(tracks: pa.Table) -> pa.Table:
-    """Rows sorted by log, time, track with ``step`` filled in, in the track-table schema.
-
-    Adapters that return ``step`` promise this order already (the text adapters keep file order, which is
-    by time), which saves a sort of millions of rows.
-    """
-    if "step" not in tracks.column_names:
-        tracks = tracks.sort_by([("log_id", "ascending"), ("timestamp_ns", "ascending"),
-                                 ("track_id", "ascending")])
-        log_ids = as_numpy(pc.dictionary_encode(tracks.column("log_id")).combine_chunks().indices)
-
-        steps = steps_from_sorted_times(as_numpy(tracks.column("timestamp_ns")), log_ids.astype(np.int64))
-        tracks = tracks.append_column("step", pa.array(steps.astype(np.int32)))
-    return conform(tracks, tracks_schema(), keep_dictionaries=True)
-
-
-def _log_rows(
-    tracks: pa.Table, metas: list[LogMeta], shard: str, codes: TrackCodes | None
-) -> tuple[pa.Table, list[LogMeta]]:
-    """The logs-table rows for ``metas`` (stats from ``tracks``), and the metas that have no rows.
-
-    ``tracks`` is in canonical order (logs contiguous, time ascending), so every statistic is a slice
-    boundary or a reduction over contiguous runs: no hashing group-by.
-    """
-    stats = _log_stats(tracks, codes) if codes is not None else {}
-    kept = [m for m in metas if m.log_id in stats]
-    empty = [m for m in metas if m.log_id not in stats]
-    rows = [stats[m.log_id] for m in kept]
-    # Column by column (one comprehension each): a per-log loop of appends costs as much as the statistics.
-    columns: dict[str, list[Any]] = {
-        "log_id": [m.log_id for m in kept],
-        "source_format": [m.source_format for m in kept],
-        "source_file": [m.source_file for m in kept],
-        "source_sha256": [m.source_sha256 for m in kept],
-        "map_id": [m.map_id for m in kept],
-        "frame_rate_hz": [m.frame_rate_hz for m in kept],
-        "memberships": [list(m.memberships) for m in kept],
-        "attributes": [json.dumps(m.attributes, sort_keys=True) for m in kept],
-        "shard": [shard] * len(kept),
-    }
-    for key in _STAT_KEYS:
-        columns[key] = [row[key] for row in rows]
-    return conform(pa.table({name: columns[name] for name in arrow_schema("logs").names}), arrow_schema("logs")), \
-        empty
-
-
-_STAT_KEYS = ("num_rows", "num_tracks", "num_steps", "start_ns", "end_ns", "median_dt_ns", "has_ego")
-
-
-def _log_stats(tracks: pa.Table, codes: TrackCodes) -> dict[str, dict[str, Any]]:
-    """Per-log row count, distinct tracks and steps, time span, median step and whether an ego exists."""
-    logs, names, tracks_code = codes.log_code, codes.log_names, codes.track_code
-    steps = as_numpy(tracks.column("step"))
-    ts = as_numpy(tracks.column("timestamp_ns"))
-    ego = _equals(tracks.column("role"), Role.EGO.value)
-    starts, ends = log_runs(logs)
-    distinct = _distinct_per_group(logs, tracks_code, len(names))
-    egos = np.zeros(len(names), dtype=bool)
-    egos[logs[ego]] = True
-    first_of_step = np.flatnonzero(np.concatenate([[True], (steps[1:] != steps[:-1]) | (logs[1:] != logs[:-1])]))
-    median_dt = _median_step(logs[first_of_step], ts[first_of_step], len(names))
-    stats = {}
-    for i, lo, hi in zip(logs[starts].tolist(), starts.tolist(), ends.tolist(), strict=True):
-        stats[names[i]] = {
-            "num_rows": hi - lo,
-            "num_tracks": int(distinct[i]),
-            "num_steps": int(steps[hi - 1]) + 1,
-            "start_ns": int(ts[lo]),
-            "end_ns": int(ts[hi - 1]),
-            "median_dt_ns": int(median_dt[i]),
-            "has_ego": bool(egos[i]),
-        }
-    return stats
-
-
-def _equals(column: pa.ChunkedArray, value: str) -> NDArrayBool:
-    """``column == value`` as numpy; for a dictionary column by its codes (no string compare per row)."""
-    if pa.types.is_dictionary(column.type) and column.num_chunks == 1:
-        encoded = column.chunk(0)
-        matches = np.flatnonzero(as_numpy(pc.equal(encoded.dictionary, value)))
-        found: NDArrayBool = np.isin(as_numpy(encoded.indices), matches)
-        return found
-    plain: NDArrayBool = as_numpy(pc.equal(column, value)).astype(bool)
-    return plain
-
-
-def _distinct_per_group(groups: NDArrayInt, codes: NDArrayInt, n_groups: int) -> NDArrayInt:
-    """Number of distinct ``codes`` in each group: a presence table when it is small, else a sort."""
-    n_codes = int(codes.max()) + 1 if len(codes) else 1
-    if n_groups * n_codes <= 1 << 24:  # 16 MB of booleans: a scatter beats sorting every row
-        seen = np.zeros((n_groups, n_codes), dtype=bool)
-        seen[groups, codes] = True
-        counts: NDArrayInt = seen.sum(axis=1)
-        return counts
-    pairs = np.unique(groups * n_codes + codes)
-    return np.bincount(pairs // n_codes, minlength=n_groups)
-
-
-def _median_step(step_logs: NDArrayInt, step_ts: NDArrayInt, n_logs: int) -> NDArrayInt:
-    """Median gap between consecutive step timestamps of each log (0 for a one-step log), vectorised."""
-    same = step_logs[1:] == step_logs[:-1]
-    gaps, owners = np.diff(step_ts)[same], step_logs[1:][same]
-    order = np.lexsort((gaps, owners))
-    gaps, owners = gaps[order], owners[order]
-    counts = np.bincount(owners, minlength=n_logs)
-    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
-    result = np.zeros(n_logs, dtype=np.int64)
-    has = counts > 0
-    lower = gaps[starts[has] + (counts[has] - 1) // 2]
-    upper = gaps[starts[has] + counts[has] // 2]
-    result[has] = (lower + upper) // 2  # the mean of the middle two for an even count, as np.median
-    return result
-
-
-def _write_mcaps(tracks: pa.Table, metas: list[LogMeta], folder: Path) -> int:
-    # Log boundaries from the log codes (no string per row), every column converted once for the batch.
-    logs = pc.dictionary_encode(tracks.column("log_id")).combine_chunks()
-    codes, names = as_numpy(logs.indices), logs.dictionary.to_pylist()
-    maps = {m.log_id: m.map_id for m in metas}
-    # Imported here: the mcap writer's imports (~35 ms) are wasted on the --no-mcap path.
-    from logpipe.mcapio import LogRows, write_log_mcap
-
-    rows = LogRows.of(tracks)
+    if not tracks.num_rows:
+        return _BatchResult(None, logs, arrow_schema("samples").empty_table(), ingested, failures, 0)
+    staging = Path(job.staging)
+    files = {job.shard_file: write_track_shard(tracks, staging / job.shard_file)}
+    shard = ShardEntry(file=job.shard_file, rows=tracks.num_rows, sha256=files[job.shard_file]["sha256"],
+                       logs=logs.num_rows)
+    kept = [m for m in parsed.logs if m not in empty]
+    samples = build_samples(tracks, kept, job.protocol, codes)
+    no_samples = no_sample_reasons(tracks, job.protocol, samples, codes)
     messages = 0
-    starts, ends = log_runs(codes)
-    for lo, hi in zip(starts.tolist(), ends.tolist(), strict=True):
-        log_id = names[codes[lo]]
-        messages += write_log_mcap(log_id, rows.slice(lo, hi), folder / f"{log_id}.mcap", maps.get(log_id))
-    return messages
+    if job.write_mcap:
+        # Imported here: the mcap writer's imports (~35 ms) are wasted on the --no-mcap path.
+        from logpipe.mcapio import write_log_mcaps
 
-
-def _known_sizes(manifest: DatasetManifest) -> set[int] | None:
-    """Sizes of every input the dataset already holds or quarantined; None when a quarantine entry predates
-    recording sizes (then every new input is hashed before the skip check)."""
-    entries = [*manifest["inputs"], *manifest["quarantined"]]
-    if any("bytes" not in e for e in entries):
-        return None
-    return {int(e["bytes"]) for e in entries}
+        folder = mcap_folder(job.shard_file)
+        messages = write_log_mcaps(tracks, kept, staging / folder)
+        files |= {f"{folder}/{mcap.name}": file_entry(mcap) for mcap in sorted((staging / folder).iterdir())}
+    return _BatchResult(shard, logs, samples, ingested, failures, messages, files, no_samples)
 
 
 def _commit(writer: DatasetWriter, results: list[_BatchResult], manifest: DatasetManifest, staging: Path,
@@ -457,13 +283,7 @@ def reindex(dataset_dir: Path, protocol: SampleProtocol,
             # that happened after the commit only had leftovers to clean, done on entering the writer).
             return {"dataset": str(dataset_dir), "protocol": protocol.to_dict(),
                     "samples": dataset.manifest["totals"]["samples"], "unchanged": True}
-        logs = dataset.logs()
-        metas = [
-            LogMeta(log_id=r["log_id"], source_format=r["source_format"], source_file=r["source_file"],
-                    source_sha256=r["source_sha256"], map_id=r["map_id"], frame_rate_hz=r["frame_rate_hz"])
-            for r in logs.select(["log_id", "source_format", "source_file", "source_sha256", "map_id",
-                                  "frame_rate_hz"]).to_pylist()
-        ]
+        metas = log_metas(dataset.logs())
         report_total(progress, len(metas))
         parts = []
         reasons: list[str] = []

@@ -1,12 +1,12 @@
 """``logpipe score``: ADE/FDE reports for one or more prediction runs against a dataset's ground truth.
 
 Reads top-down: open each input (a ``logpipe predict`` output folder, or a predictions file; one method each,
-read through ``logpipe.predictions`` with its protocol, K and horizon from its metadata) → check the protocol
-against the dataset's → decide which agents count and look up their true futures (``logpipe.scored_agents``)
-→ per-step L2 errors → metrics per method (``logpipe.metrics.group_metrics``), overall / per object type / per
-log, for every K asked → ``report.json``, ``report.md`` (``logpipe.reports``), PNG plots
-(``logpipe.report_plots``), committed as one artifact folder (``manifest.json``, ``logpipe.artifact``) →
-threshold gate for CI.
+read by ``logpipe.method_forecasts`` with its protocol, K and horizon from its metadata), label it and check
+its protocol against the dataset's → decide which agents count and look up their true futures
+(``logpipe.scored_agents``) → per-step L2 errors → metrics per method (``logpipe.metrics.group_metrics``),
+overall / per object type / per log, for every K asked → threshold gate for CI → ``report.json``,
+``report.md`` (``logpipe.reports``), PNG plots (``logpipe.report_plots``), committed as one artifact folder
+(``manifest.json``, ``logpipe.artifact``).
 
 Conventions are those of ``logpipe.metrics`` (ADE = mean Euclidean distance in metres; per-agent and joint
 best-of-K; the Argoverse min-FDE mode with its ADE and a 2.0 m miss rate). The protocol is written next to
@@ -18,7 +18,6 @@ from __future__ import annotations
 import json
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -29,102 +28,10 @@ from logpipe.artifact import MANIFEST
 from logpipe.dataset import Dataset
 from logpipe.errors import ScoreError
 from logpipe.io import sha256_file
-from logpipe.predictions import PredictionMeta, PredictionRun
+from logpipe.method_forecasts import MethodForecasts, check_protocol, load_method, name_methods
 from logpipe.report_plots import ScoredMethod, render_plots
 from logpipe.reports import CONVENTIONS, REPORT_JSON, REPORT_MD, REPORT_VERSION, render_markdown, write_report_folder
 from logpipe.scored_agents import Agents, Selection, select_agents, step_seconds, truth_futures
-from logpipe.types import NDArrayFloat
-
-
-@dataclass
-class MethodForecasts:
-    """One method's forecasts (one prediction run folder or predictions file), as dense arrays.
-
-    Attributes:
-        name: label in reports (the predictor unless relabelled or colliding).
-        predictor: the metadata's predictor.
-        checkpoint_ids: distinct ``checkpoint_id`` values.
-        source: the folder or file.
-        run_name: the folder's name or the file's stem (the label when predictor names collide).
-        meta: what the forecasts were made with (protocol, K, horizon, seed, ...).
-        sample_ids: (N,) sample of each agent row.
-        track_ids: (N,) track of each agent row.
-        object_types: (N,) normalised class of each agent row.
-        pred: (N, K, T, 2) metres, world frame; mode 0 the most likely.
-    """
-
-    name: str
-    predictor: str
-    checkpoint_ids: list[str]
-    source: str
-    run_name: str
-    meta: PredictionMeta
-    sample_ids: Any
-    track_ids: Any
-    object_types: Any
-    pred: NDArrayFloat
-
-    @property
-    def num_modes(self) -> int:
-        """K."""
-        return int(self.pred.shape[1])
-
-
-def load_method(path: Path) -> MethodForecasts:
-    """Read one method: a ``logpipe predict`` output folder (its committed predictions) or a predictions file.
-
-    Raises:
-        PredictionsError: missing, damaged, not a prediction run, or not one row per (agent, mode) with the
-            metadata's K and lists of its T steps (version 1 tables: one row per (agent, mode, step)).
-    """
-    run = PredictionRun.open(Path(path))
-    dense = run.dense()
-    return MethodForecasts(
-        name=run.meta.predictor, predictor=run.meta.predictor, checkpoint_ids=dense.checkpoint_ids,
-        source=str(path), run_name=run.name, meta=run.meta, sample_ids=dense.sample_ids, track_ids=dense.track_ids,
-        object_types=dense.object_types, pred=dense.pred,
-    )
-
-
-def _name_methods(methods: list[MethodForecasts], labels: Sequence[str] | None) -> None:
-    """Labels given, else the predictor; methods whose predictors collide (two checkpoints of one method) are
-    named by their folder or file, and ``#N`` is added where even those collide."""
-    if labels:
-        if len(labels) != len(methods):
-            raise ScoreError(f"{len(labels)} labels for {len(methods)} methods (one per predictions folder or "
-                             f"file: {', '.join(m.source for m in methods)})")
-        for m, label in zip(methods, labels, strict=True):
-            m.name = label
-    else:
-        counts: dict[str, int] = {}
-        for m in methods:
-            counts[m.name] = counts.get(m.name, 0) + 1
-        for m in methods:
-            if counts[m.name] > 1:
-                m.name = m.run_name
-    seen: dict[str, int] = {}
-    for m in methods:
-        if m.name in seen:
-            seen[m.name] += 1
-            m.name = f"{m.name}#{seen[m.name]}"
-        else:
-            seen[m.name] = 1
-
-
-def _check_protocol(methods: Sequence[MethodForecasts], ds: Dataset) -> None:
-    """Every method was predicted under the dataset's protocol (name, observed and predicted steps)."""
-    p = ds.protocol
-    for m in methods:
-        meta = m.meta
-        wrong = []
-        if meta.protocol is not None and meta.protocol != p.name:
-            wrong.append(f"protocol {meta.protocol!r}, the dataset's is {p.name!r}")
-        if meta.obs_len and meta.obs_len != p.obs_len:
-            wrong.append(f"{meta.obs_len} observed steps, the dataset's protocol {p.obs_len}")
-        if meta.pred_len != p.pred_len:
-            wrong.append(f"horizon {meta.pred_len} steps, the dataset's protocol {p.pred_len}")
-        if wrong:
-            raise ScoreError(f"{m.source}: predicted with " + "; ".join(wrong) + f" ({ds.root})")
 
 
 def _check_thresholds(fail_above: dict[str, float]) -> None:
@@ -136,7 +43,6 @@ def _check_thresholds(fail_above: dict[str, float]) -> None:
                              "e.g. k1.ade=0.6 or k6.miss_rate=0.2")
 
 
-# Long only for its Args docstring: the body is the stage's steps in order.
 def score(  # noqa: PLR0913  stage entry: keyword options mirror `logpipe score` one to one
     predictions: Sequence[Path],
     truth: Path,
@@ -193,17 +99,9 @@ def score(  # noqa: PLR0913  stage entry: keyword options mirror `logpipe score`
     if agents not in ("all", "focal"):
         raise ScoreError(f"agents must be 'all' or 'focal', not {agents!r}")
     ds = Dataset.open(truth)
-    methods = [load_method(Path(p)) for p in predictions]
-    if not methods:
-        raise ScoreError("no predictions given")
-    _name_methods(methods, labels)
-    _check_protocol(methods, ds)
+    methods = _load_methods(predictions, labels, ds)
     truth_sha = sha256_file(ds.root / MANIFEST)
-    predicted = {s for m in methods for s in m.sample_ids.tolist()}
-    sel = select_agents(ds, predicted, split=split, agents=agents, min_agents=min_agents)
-    if not sel.expected:
-        raise ScoreError(f"no agent counts under agents={agents!r}, min_agents={min_agents}, split={split!r} "
-                         f"({sel.dropped}); e.g. agents='focal' needs a dataset with focal tracks")
+    sel = _select(ds, methods, split=split, agents=agents, min_agents=min_agents)
     protocol = _protocol_block(ds, truth, agents=agents, min_agents=min_agents, split=split,
                                miss_threshold_m=miss_threshold_m)
     report: dict[str, Any] = {
@@ -215,16 +113,45 @@ def score(  # noqa: PLR0913  stage entry: keyword options mirror `logpipe score`
             m, ds, sel, ks=ks, miss_threshold_m=miss_threshold_m, allow_missing=allow_missing, protocol=protocol,
             truth_sha=truth_sha)
     report["gate"] = _gate(report, fail_above)
+    outputs = _render(report, scored, ds, plot_samples if plots else None, title)
+    write_report_folder(Path(out_dir), outputs, [m.source for m in methods], str(truth))
+    return {**report, "seconds": round(time.perf_counter() - t0, 3)}
+
+
+def _load_methods(predictions: Sequence[Path], labels: Sequence[str] | None, ds: Dataset) -> list[MethodForecasts]:
+    """Every input read as one method, labelled (``name_methods``) and checked against ``ds``'s protocol."""
+    methods = [load_method(Path(p)) for p in predictions]
+    if not methods:
+        raise ScoreError("no predictions given")
+    name_methods(methods, labels)
+    check_protocol(methods, ds)
+    return methods
+
+
+def _select(ds: Dataset, methods: Sequence[MethodForecasts], *, split: str | None, agents: Agents,
+            min_agents: int) -> Selection:
+    """The agents that count (``scored_agents.select_agents``) among the samples any method predicted."""
+    predicted = {s for m in methods for s in m.sample_ids.tolist()}
+    sel = select_agents(ds, predicted, split=split, agents=agents, min_agents=min_agents)
+    if not sel.expected:
+        raise ScoreError(f"no agent counts under agents={agents!r}, min_agents={min_agents}, split={split!r} "
+                         f"({sel.dropped}); e.g. agents='focal' needs a dataset with focal tracks")
+    return sel
+
+
+def _render(report: dict[str, Any], scored: dict[str, ScoredMethod], ds: Dataset, plot_samples: int | None,
+            title: str | None) -> dict[str, bytes]:
+    """The report folder's files: the plots (none when ``plot_samples`` is None; listed in ``report["plots"]``),
+    ``report.json`` and ``report.md``."""
     report["plots"] = []
     outputs: dict[str, bytes] = {}
-    if plots:
+    if plot_samples is not None:
         outputs = render_plots(report, scored, ds, plot_samples)
         report["plots"] = list(outputs)
     # Key-sorted, no timings: the same inputs give the same bytes.
     outputs[REPORT_JSON] = (json.dumps(report, indent=2, sort_keys=True) + "\n").encode()
     outputs[REPORT_MD] = render_markdown(report, title).encode()
-    write_report_folder(Path(out_dir), outputs, [m.source for m in methods], str(truth))
-    return {**report, "seconds": round(time.perf_counter() - t0, 3)}
+    return outputs
 
 
 def _protocol_block(ds: Dataset, truth: Path, *, agents: Agents, min_agents: int, split: str | None,

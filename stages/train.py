@@ -1,18 +1,18 @@
 """``logpipe train``: fit the predictor on a dataset's samples (or on several datasets' together).
 
-Reads top-down: open the dataset(s) → pick the train/validation logs (a folder split such as ``eth/train``, or
-a ``hash/…`` split, applied in each dataset) → cut their samples into ``SceneSample``s (concatenated in the
-order the datasets are given, each with its own raster run) → ``model.training.fit`` (checkpoints, the
-JSON-lines log, early stopping, resume) → a summary.
+Reads top-down: open the dataset(s) → build the config (``model.train_config``) → pick the train/validation
+logs (a folder split such as ``eth/train``, or a ``hash/…`` split, applied in each dataset) → cut their samples
+into ``SceneSample``s (concatenated in the order the datasets are given, each with its own raster run) →
+``model.training.fit`` inside ``model.train_run.run_folder`` (the run folder's lock; ``fit`` writes the
+checkpoints and the JSON-lines log, stops early, resumes) → a summary.
 """
 
 from __future__ import annotations
 
-import dataclasses
 import math
-import os
 import time
-from collections.abc import Callable, Iterable, Iterator, Sequence
+from collections.abc import Callable, Iterable, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -21,13 +21,13 @@ import pyarrow.compute as pc
 
 from logpipe.dataset import Dataset
 from logpipe.errors import DatasetError, LogpipeError
-from logpipe.folder_lock import FolderLock
 from logpipe.io import sha256_file
 from logpipe.rasters import RasterShards, find_raster_run
 from logpipe.types import SceneSample
 
 if TYPE_CHECKING:
     from logpipe.model.config import TrainConfig
+    from logpipe.model.training import TrainResult
 
 
 def scene_samples(
@@ -101,83 +101,89 @@ def train(  # noqa: PLR0913  stage entry: keyword options mirror `logpipe train`
             ``logpipe.model.device``).
     """
     from logpipe.model.checkpoint_meta import TrainingData, combined_kind, combined_manifest_hash
-    from logpipe.model.config import TrainConfig, load_config
-    from logpipe.model.device import resolve_device
+    from logpipe.model.train_config import train_config, with_protocol_lengths
+    from logpipe.model.train_run import run_folder, train_device
     from logpipe.model.training import fit
 
     started = time.perf_counter()
-    # A bad --device fails before any data is read. torchrun's data-parallel training is CPU only (gloo, see
-    # ``fit``): there ``auto`` is the CPU.
-    torch_device = resolve_device("cpu" if device == "auto" and int(os.environ.get("WORLD_SIZE", "1")) > 1 else device)
+    torch_device = train_device(device)  # a bad --device fails before any data is read
     datasets = _open_datasets([dataset_dir] if isinstance(dataset_dir, Path) else list(dataset_dir))
-    dataset = datasets[0]
-    config = load_config(config_path) if config_path else TrainConfig()
-    if overrides:
-        config = dataclasses.replace(config, **overrides)
-    if preset is not None:
-        config = with_preset(config, preset)
-    protocol = dataset.protocol
-    _check_lengths(datasets)
-    if (config.model.obs_len, config.model.pred_len) != (protocol.obs_len, protocol.pred_len):
-        config = dataclasses.replace(
-            config, model=dataclasses.replace(config.model, obs_len=protocol.obs_len, pred_len=protocol.pred_len)
+    config = train_config(config_path, overrides, preset)
+    _check_lengths(datasets)  # one model: every dataset's windows of the same steps, which the config takes
+    config = with_protocol_lengths(config, datasets[0].protocol)
+    inputs = _resolve_inputs(datasets, config, train_split, val_split, raster_run, loader_workers)
+    with run_folder(out_dir):
+        result = fit(
+            inputs.train_samples, inputs.val_samples, config, out_dir, resume=resume, progress=progress,
+            dataset_kind=combined_kind([ds.kind for ds in datasets]),
+            manifest_hash=combined_manifest_hash([sha256_file(ds.root / "manifest.json") for ds in datasets]),
+            init_from=init_from,
+            training_data=TrainingData.of_logs(list(zip(datasets, inputs.train_logs, inputs.val_logs, strict=True)),
+                                               train_split, val_split),
+            device=torch_device,
         )
+    return _summary(dataset_dir, out_dir, inputs, result, init_from, started)
+
+
+@dataclass
+class _Inputs:
+    """What a run trains and validates on: per dataset (in the order given) its raster run, logs and samples."""
+
+    datasets: list[Dataset]
+    runs: list[RasterShards | None]
+    train_split: str
+    val_split: str | None
+    train_logs: list[list[str]]
+    val_logs: list[list[str]]
+    train_samples: Sequence[SceneSample] | Iterable[SceneSample]
+    train_counts: list[int | str]
+    """Samples each dataset gave, ``streamed`` for a dataset streamed through a DataLoader."""
+    val_samples: list[SceneSample] | None
+    val_counts: list[int | str]
+
+
+def _resolve_inputs(datasets: list[Dataset], config: TrainConfig, train_split: str, val_split: str | None,
+                    raster_run: str | None, loader_workers: int) -> _Inputs:
+    """Each dataset's raster run (checked against the config's environment net), train/val logs and samples:
+    in memory, or streamed from the shards with ``loader_workers`` > 0."""
     runs = [find_raster_run(ds.root, raster_run, None) for ds in datasets]  # several unnamed runs: an error
     _check_rasters(datasets, runs, needed=config.model.features.environment)
-    rasters = runs[0]
     train_logs = _split_logs(datasets, train_split)
     val_logs = _split_logs(datasets, val_split) if val_split else [[] for _ in datasets]
     train_samples: Sequence[SceneSample] | Iterable[SceneSample]
     train_counts: list[int | str]
     if loader_workers > 0:
         from logpipe.model.data import scene_loader
+        from logpipe.model.train_run import ChainedScenes
 
         loaders = [scene_loader(ds.root, logs, workers=loader_workers,
                                 raster_run=run.run_dir.name if run is not None else None)
                    for ds, logs, run in zip(datasets, train_logs, runs, strict=True) if logs]
-        train_samples = loaders[0] if len(loaders) == 1 else _Chained(loaders)
+        train_samples = loaders[0] if len(loaders) == 1 else ChainedScenes(loaders)
         train_counts = ["streamed" if logs else 0 for logs in train_logs]
     else:
         train_samples, train_counts = _samples(datasets, train_logs, runs, train_split)
     val_samples, val_counts = _samples(datasets, val_logs, runs, val_split) if val_split else (None, [])
-    # One training per run folder: under torchrun only process 0 writes, so only it holds the lock.
-    lock = FolderLock(out_dir) if os.environ.get("RANK", "0") == "0" else None
-    created = not out_dir.exists()
-    if lock is not None:
-        out_dir.mkdir(parents=True, exist_ok=True)
-        lock.acquire()
-    try:
-        result = fit(
-            train_samples,
-            val_samples,
-            config,
-            out_dir,
-            resume=resume,
-            progress=progress,
-            dataset_kind=combined_kind([ds.kind for ds in datasets]),
-            manifest_hash=combined_manifest_hash([sha256_file(ds.root / "manifest.json") for ds in datasets]),
-            init_from=init_from,
-            training_data=TrainingData.of_logs(list(zip(datasets, train_logs, val_logs, strict=True)), train_split,
-                                               val_split),
-            device=torch_device,
-        )
-    finally:
-        if lock is not None:
-            lock.release()
-            if created and not any(out_dir.iterdir()):
-                out_dir.rmdir()  # a run that could not start leaves no folder
+    return _Inputs(datasets, runs, train_split, val_split, train_logs, val_logs, train_samples, train_counts,
+                   val_samples, val_counts)
+
+
+def _summary(dataset_dir: Path | Sequence[Path], out_dir: Path, inputs: _Inputs, result: TrainResult,
+             init_from: Path | None, started: float) -> dict[str, Any]:
+    """The run summary ``train`` returns (and ``logpipe train --json`` prints)."""
+    datasets, runs, val_counts, val_samples = inputs.datasets, inputs.runs, inputs.val_counts, inputs.val_samples
     several = len(datasets) > 1
     return {
         # With several datasets: their folders and raster runs as lists, and the samples each gave.
         "dataset": [str(ds.root) for ds in datasets] if several else str(dataset_dir),
         **({"per_dataset": [{"dataset": str(ds.root), "format": ds.kind, "train_samples": n,
                              "val_samples": val_counts[i] if val_counts else 0}
-                            for i, (ds, n) in enumerate(zip(datasets, train_counts, strict=True))]}
+                            for i, (ds, n) in enumerate(zip(datasets, inputs.train_counts, strict=True))]}
            if several else {}),
         "run": str(out_dir),
-        "train_split": train_split,
-        "val_split": val_split,
-        "train_samples": len(train_samples) if isinstance(train_samples, list) else "streamed",
+        "train_split": inputs.train_split,
+        "val_split": inputs.val_split,
+        "train_samples": len(inputs.train_samples) if isinstance(inputs.train_samples, list) else "streamed",
         "val_samples": len(val_samples) if val_samples else 0,
         "steps": result.steps,
         "best_step": result.best_step,
@@ -188,7 +194,7 @@ def train(  # noqa: PLR0913  stage entry: keyword options mirror `logpipe train`
         "last_checkpoint": str(result.last_checkpoint),
         "train_samples_per_s": round(result.train_samples_per_s, 1),
         "raster_run": ([r.run_dir.name if r is not None else None for r in runs] if several
-                       else rasters.run_dir.name if rasters is not None else None),
+                       else runs[0].run_dir.name if runs[0] is not None else None),
         "init_from": str(init_from) if init_from is not None and result.resumed_at_step is None else None,
         "environment_net": result.config.model.features.environment,
         "device": result.device,
@@ -199,19 +205,6 @@ def train(  # noqa: PLR0913  stage entry: keyword options mirror `logpipe train`
             "seconds_total": round(result.total_elapsed_s, 1) if math.isfinite(result.total_elapsed_s) else None}
            if result.resumed_at_step is not None else {}),
     }
-
-
-def with_preset(config: TrainConfig, name: str) -> TrainConfig:
-    """``config`` with the features (and noise) of preset ``name``; every other setting is kept, so a baseline
-    trains with the same schedule, data and augmentation as the method it is compared with."""
-    from logpipe.model.config import preset
-
-    row = preset(name)
-    if row.noise_dim:
-        return dataclasses.replace(config, model=dataclasses.replace(config.model, features=row.features))
-    # Without noise all modes are equal: one is drawn, so none is held at constant velocity.
-    model = dataclasses.replace(config.model, features=row.features, noise_dim=0, constant_velocity_modes=0)
-    return dataclasses.replace(config, model=model, num_modes=1, val_modes=1)
 
 
 def _open_datasets(folders: Sequence[Path]) -> list[Dataset]:
@@ -289,13 +282,3 @@ def _samples(datasets: Sequence[Dataset], logs: Sequence[Sequence[str]], runs: S
                            "prediction samples")
     return samples, counts
 
-
-class _Chained:
-    """Re-iterable sample streams read one after the other (``fit`` re-iterates its input every epoch)."""
-
-    def __init__(self, parts: Sequence[Iterable[SceneSample]]) -> None:
-        self.parts = list(parts)
-
-    def __iter__(self) -> Iterator[SceneSample]:
-        for part in self.parts:
-            yield from part

@@ -17,8 +17,8 @@ from logpipe.formats.argoverse1 import Argoverse1Adapter
 from logpipe.formats.text_checks import times_sorted_and_unique
 from logpipe.inputs import collect_sources
 from logpipe.io import parquet_options
+from logpipe.log_table import canonical_order
 from logpipe.samples import TrackCodes
-from logpipe.stages.ingest import _canonical_order
 
 
 @pytest.mark.parametrize(
@@ -93,7 +93,7 @@ def test_adapter_codes_equal_recomputed_codes(bundled: Path) -> None:
     adapter = Argoverse1Adapter()
     parsed = adapter.read(collect_sources([bundled / "argoverse1"], adapter), keep_going=False)
     assert parsed.codes is not None
-    tracks = _canonical_order(parsed.tracks)
+    tracks = canonical_order(parsed.tracks)
     fresh = TrackCodes.of(tracks)
     assert np.array_equal(parsed.codes.log_code, fresh.log_code) and parsed.codes.log_names == fresh.log_names
     ours = parsed.codes.track_names[parsed.codes.track_code]

@@ -95,3 +95,20 @@ def test_log_rows_slices_write_what_each_log_alone_writes(tmp_path: Path) -> Non
     write_log_mcap("L", rows.slice(5, 10), tmp_path / "sliced.mcap", "MIA")
     write_log_mcap("L", _log(True), tmp_path / "alone.mcap", "MIA")
     assert _messages(tmp_path / "sliced.mcap") == _messages(tmp_path / "alone.mcap")
+
+
+def test_a_batch_of_logs_writes_one_file_per_log_as_each_log_alone(tmp_path: Path) -> None:
+    from logpipe.mcapio import write_log_mcaps
+    from logpipe.types import LogMeta
+
+    second = _log(False).set_column(0, _log(False).schema.field("log_id"), pa.array(["M"] * 5))
+    batch = pa.concat_tables([_log(False), second])
+    metas = [LogMeta("L", "argoverse1", "L.csv", "0" * 64, "MIA", 10.0),
+             LogMeta("M", "argoverse1", "M.csv", "1" * 64, None, 10.0)]
+    messages = write_log_mcaps(batch, metas, tmp_path / "batch")
+    assert sorted(p.name for p in (tmp_path / "batch").iterdir()) == ["L.mcap", "M.mcap"]
+    alone = write_log_mcap("L", _log(False), tmp_path / "L.mcap", "MIA")
+    alone += write_log_mcap("M", second, tmp_path / "M.mcap", None)
+    assert messages == alone
+    for name in ("L.mcap", "M.mcap"):
+        assert (tmp_path / "batch" / name).read_bytes() == (tmp_path / name).read_bytes()

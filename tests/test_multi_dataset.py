@@ -180,10 +180,10 @@ def test_train_on_two_datasets_records_both(two_formats: tuple[Path, Path, Path]
 
 def test_train_streams_several_datasets_one_after_the_other(two_formats: tuple[Path, Path, Path],
                                                             tmp_path: Path) -> None:
-    from logpipe.stages.train import _Chained
+    from logpipe.model.train_run import ChainedScenes
 
     eth, apo, _ = two_formats
-    chained = _Chained([[1, 2], [], [3]])
+    chained = ChainedScenes([[1, 2], [], [3]])
     assert list(chained) == list(chained) == [1, 2, 3]  # re-iterable: fit reads it every epoch
     config = tmp_path / "c.toml"
     config.write_text(CONFIG)

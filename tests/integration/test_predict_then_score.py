@@ -10,14 +10,15 @@ import os
 import subprocess
 import sys
 from pathlib import Path
+from typing import Any
 
 import pyarrow as pa
 import pyarrow.compute as pc
 import pytest
 
-import logpipe.stages.predict as stage
+from logpipe.dataset import Dataset
 from logpipe.errors import ArtifactBusyError, DatasetError, LogpipeError, OutputError
-from logpipe.folder_lock import FolderLock
+from logpipe.folder_lock import LOCK_FILE, FolderLock
 from logpipe.predictions import PredictionRun
 from logpipe.sample_filter import parse_filter
 from logpipe.stages.ingest import IngestOptions, ingest
@@ -29,7 +30,7 @@ BUNDLED = REPO / "tests" / "data"
 SHARED = (REPO.parent / "shared" / "data").resolve()
 
 # kind -> (inputs, score options); small samples, every kind logpipe ingests
-KINDS = {
+KINDS: dict[str, tuple[list[Path], dict[str, Any]]] = {
     "argoverse1": ([BUNDLED / "maps" / "2645.csv", BUNDLED / "maps" / "3861.csv"], {"agents": "focal"}),
     "ethucy": ([BUNDLED / "ethucy"], {"split": "eth/test", "min_agents": 2}),
     "apolloscape": ([BUNDLED / "apolloscape"], {}),
@@ -37,6 +38,17 @@ KINDS = {
     "av2": ([SHARED / "av2" / "scenario_0a1e6f0a-1817-4a98-b02e-db8c9327d151.parquet"], {"agents": "focal"}),
     "mcap": ([SHARED / "mcap" / "evo" / "nav2_turtlebot.mcap"], {}),
 }
+
+
+# A predict run in its own process, for LOGPIPE_CRASH_AT/TRACE (read at import): cv_sampler over 3 shards.
+_CRASHING_RUN = """
+import sys
+from pathlib import Path
+from logpipe.sample_filter import parse_filter
+from logpipe.stages.predict import predict_dataset
+predict_dataset(Path(sys.argv[1]), Path(sys.argv[2]), predictor="cv_sampler",
+                sample_filter=parse_filter(["time=:12000000000"]), threads=1)
+"""
 
 
 def _files(root: Path) -> dict[str, bytes]:
@@ -62,7 +74,7 @@ def test_score_reads_the_folder_predict_wrote(kind: str, tmp_path: Path) -> None
     summary = predict_dataset(tmp_path / "ds", tmp_path / "cv", predictor="cv", sample_filter=sample_filter,
                               threads=1)
     assert summary["samples"] > 0 and summary["mcap_files"] == summary["logs_selected"]
-    report = score([tmp_path / "cv"], tmp_path / "ds", tmp_path / "report", plots=False, **options)  # type: ignore[arg-type]
+    report = score([tmp_path / "cv"], tmp_path / "ds", tmp_path / "report", plots=False, **options)
     entry = report["methods"]["cv"]
     run = PredictionRun.open(tmp_path / "cv")
     assert entry["num_modes"] == run.meta.num_modes == summary["num_modes"]
@@ -116,14 +128,16 @@ def test_a_damaged_run_is_one_line_and_score_never_overwrites_another_artifact(e
 
 def test_a_log_id_that_is_a_path_is_refused_and_nothing_is_written(eth_dataset: Path, tmp_path: Path,
                                                                   monkeypatch: pytest.MonkeyPatch) -> None:
-    selected = stage._selected_logs
+    """A hand-made dataset (ingest refuses such ids) whose logs table names a log ``../../x``: the reader's
+    table is what predict sees."""
+    read_logs = Dataset.logs
 
-    def escaping(dataset: object, f: stage.SampleFilter) -> pa.Table:
-        logs = selected(dataset, f)  # type: ignore[arg-type]
+    def escaping(dataset: Dataset) -> pa.Table:
+        logs = read_logs(dataset)
         ids = pc.replace_substring(logs.column("log_id"), "biwi_eth", "../../x")
         return logs.set_column(logs.schema.get_field_index("log_id"), "log_id", ids)
 
-    monkeypatch.setattr(stage, "_selected_logs", escaping)
+    monkeypatch.setattr(Dataset, "logs", escaping)
     out = tmp_path / "deep" / "er" / "out"
     with pytest.raises(DatasetError, match="not a single file name"):
         predict_dataset(eth_dataset, out, predictor="cv", threads=1)
@@ -132,26 +146,23 @@ def test_a_log_id_that_is_a_path_is_refused_and_nothing_is_written(eth_dataset: 
 
 def test_an_os_error_is_one_line_and_keeps_the_committed_state(eth_dataset: Path, tmp_path: Path,
                                                               monkeypatch: pytest.MonkeyPatch) -> None:
-    """Shard 0 committed, then a read-only file system (os.replace refused; tests run as root, so chmod cannot
-    show it): OutputError, the folder as committed; a rerun then finishes it to an uninterrupted run's bytes."""
-    f = parse_filter(["time=:12000000000"])
-    whole = predict_dataset(eth_dataset, tmp_path / "whole", predictor="cv_sampler", sample_filter=f, threads=1)
-    assert whole["shards"] == 3 and whole["mcap_files"] == 3
-    real_shard = stage._predict_shard
-    calls = []
-
-    def stop_at_second(*args: object, **kwargs: object) -> object:
-        calls.append(1)
-        if len(calls) == 2:
-            raise KeyboardInterrupt  # the user's ^C during shard 1
-        return real_shard(*args, **kwargs)  # type: ignore[arg-type]
-
+    """A run killed (SIGKILL, at a crash point) just after committing shard 0, then a read-only file system
+    (os.replace refused; tests run as root, so chmod cannot show it): OutputError, the folder as committed; a
+    rerun then skips shard 0 and finishes the run to an uninterrupted run's bytes."""
+    f = parse_filter(["time=:12000000000"])  # _CRASHING_RUN's
+    trace = tmp_path / "trace"
+    subprocess.run([sys.executable, "-c", _CRASHING_RUN, str(eth_dataset), str(tmp_path / "whole")],
+                   env={**os.environ, "LOGPIPE_CRASH_TRACE": str(trace)}, check=True)
+    assert len(json.loads((tmp_path / "whole" / "manifest.json").read_text())["shards"]) == 3
+    assert len(list((tmp_path / "whole" / "mcap").rglob("*.mcap"))) == 3
+    steps = trace.read_text().splitlines()
+    first_commit = next(int(s.split("\t")[0]) for s in steps if s.endswith("\tafter manifest"))
     out = tmp_path / "out"
-    with monkeypatch.context() as m:
-        m.setattr(stage, "_predict_shard", stop_at_second)
-        with pytest.raises(KeyboardInterrupt):
-            predict_dataset(eth_dataset, out, predictor="cv_sampler", sample_filter=f, threads=1)
+    killed = subprocess.run([sys.executable, "-c", _CRASHING_RUN, str(eth_dataset), str(out)],
+                            env={**os.environ, "LOGPIPE_CRASH_AT": str(first_commit)}, check=False)
+    assert killed.returncode == -9
     committed = _files(out)
+    assert committed.pop(LOCK_FILE)  # the killed writer's note; the next writer's lock replaces and removes it
     assert json.loads(committed["manifest.json"])["shards"][0]["file"] == "predictions/part-00000.parquet"
     assert len(json.loads(committed["manifest.json"])["shards"]) == 1
 
@@ -180,16 +191,6 @@ def test_a_second_writer_fails_at_once_naming_the_first(eth_dataset: Path, tmp_p
     finally:
         lock.release()
     assert not (out / "manifest.json").exists()
-
-
-_CRASHING_RUN = """
-import sys
-from pathlib import Path
-from logpipe.sample_filter import parse_filter
-from logpipe.stages.predict import predict_dataset
-predict_dataset(Path(sys.argv[1]), Path(sys.argv[2]), predictor="cv_sampler",
-                sample_filter=parse_filter(["time=:12000000000"]), threads=1)
-"""
 
 
 def test_a_crash_at_any_commit_step_resumes_to_the_same_bytes(eth_dataset: Path, tmp_path: Path) -> None:

@@ -295,13 +295,3 @@ def test_weight_average_is_validated_kept_as_best_and_resumes(tmp_path: Path) ->
     assert all(torch.equal(again[k], kept[k]) for k in kept)
     with pytest.raises(ConfigError, match="ema_decay"):
         _cfg(ema_decay=1.0)
-
-
-def test_no_position_preset_is_the_full_model_without_pf() -> None:
-    from logpipe.model.config import PRESETS, TrainConfig
-    from logpipe.stages.train import with_preset
-
-    full, ablation = PRESETS["full"], PRESETS["no_position"]
-    assert not ablation.position and ablation == replace(full, position=False)
-    config = with_preset(TrainConfig(model=replace(MODEL, noise_dim=4)), "no_position")
-    assert config.model.features == ablation and config.model.noise_dim == 4 and config.num_modes == 20

@@ -13,11 +13,12 @@ import pytest
 from logpipe.dataset import Dataset
 from logpipe.errors import LogpipeError, ScoreError
 from logpipe.io import write_parquet
+from logpipe.method_forecasts import load_method
 from logpipe.model.baselines import ConstantVelocity, ConstantVelocitySampler
 from logpipe.prediction_table import samples_table
 from logpipe.predictions import PredictionMeta
 from logpipe.stages.ingest import IngestOptions, ingest
-from logpipe.stages.score import load_method, score
+from logpipe.stages.score import score
 from logpipe.stages.train import scene_samples
 from logpipe.types import SceneSample
 
