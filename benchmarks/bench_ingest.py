@@ -126,7 +126,7 @@ def floor_cpu(folder: Path, n_files: int = 1000) -> dict[str, float]:
 
     from logpipe.formats._text import join_bodies, parse_batch
     from logpipe.formats.argoverse1 import _TYPES, COLUMNS
-    from logpipe.io import parquet_options, sha256_bytes
+    from logpipe.storage.io import parquet_options, sha256_bytes
 
     files = sorted(folder.glob("*.csv"))[:n_files]
     spent = dict.fromkeys(("read", "sha256", "join", "parse", "write"), 0.0)

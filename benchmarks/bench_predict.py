@@ -119,7 +119,7 @@ def _backbone_rate(dataset: Path, spec: Any, repeats: int) -> float:
 
     from logpipe.model.config import ModelConfig
     from logpipe.model.nets import TrajectoryNet
-    from logpipe.rasters import RasterShards
+    from logpipe.raster.runs import RasterShards
 
     shards = RasterShards.open(dataset, spec, "ego")
     ids = shards.index.column("sample_id").to_pylist()
@@ -142,13 +142,13 @@ def run(quick: bool = False) -> dict[str, Any]:
     """Every figure as a dict (``benchmarks/run.py`` collects it)."""
     import torch
 
+    from logpipe.dataset.sample_filter import parse_filter
     from logpipe.executor import default_workers
     from logpipe.maps import MapSource
     from logpipe.model.checkpoints import save_checkpoint
     from logpipe.model.config import ModelConfig, TrainConfig
     from logpipe.model.nets import TrajectoryNet
-    from logpipe.raster import RasterSpec
-    from logpipe.sample_filter import parse_filter
+    from logpipe.raster.rasteriser import RasterSpec
     from logpipe.stages.ingest import IngestOptions, ingest
     from logpipe.stages.rasterise import rasterise_dataset
 

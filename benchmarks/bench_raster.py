@@ -33,8 +33,8 @@ import numpy as np
 import pyarrow.csv as pacsv
 
 from logpipe.maps import FeatureKind, MapStore, load_map
-from logpipe.raster import DEFAULT_CHANNELS, Rasteriser, RasterSpec, heading_from_motion
-from logpipe.raster_reference import render_baseline
+from logpipe.raster.rasteriser import DEFAULT_CHANNELS, Rasteriser, RasterSpec, heading_from_motion
+from logpipe.raster.reference import render_baseline
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED = REPO.parent / "shared" / "data" / "argoverse1"

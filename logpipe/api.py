@@ -150,7 +150,7 @@ def index(  # noqa: PLR0913  public API: keyword options mirror `logpipe index` 
         s = logpipe.index("/tmp/ethucy", obs=400, pred=400)
         s["logs_without_samples"]   # {'no agent observed over the whole window': 2, 'too short for 400+400 steps': 1}
     """
-    from logpipe.dataset import Dataset
+    from logpipe.dataset.reader import Dataset
     from logpipe.stages.ingest import reindex
 
     folder = as_path(dataset)
@@ -195,7 +195,7 @@ def rasterise(  # noqa: PLR0913  public API: keyword options mirror `logpipe ras
         logpipe.rasterise("out/av1", maps="../shared/data/argoverse1/maps", rotate=True, preview=4)
     """
     from logpipe.maps import MapSource
-    from logpipe.raster import DEFAULT_CHANNELS, RasterSpec
+    from logpipe.raster.rasteriser import DEFAULT_CHANNELS, RasterSpec
     from logpipe.stages.rasterise import rasterise_dataset
 
     check_choice("--backend", backend, ("local", "ray"))
@@ -252,7 +252,7 @@ def train(  # noqa: PLR0913  public API: keyword options mirror `logpipe train` 
         s = logpipe.train("/tmp/ethucy", out="/tmp/run", scene="eth", config="configs/ethucy.toml", steps=100)
         s["best_checkpoint"]                        # the folder ``predict(checkpoint=...)`` takes
     """
-    from logpipe.dataset import is_split_expression
+    from logpipe.dataset.reader import is_split_expression
     from logpipe.stages.train import train as run_train
 
     folders = as_paths(dataset)
@@ -324,8 +324,8 @@ def predict(  # noqa: PLR0913  public API: keyword options mirror `logpipe predi
 
         logpipe.predict("/tmp/ethucy", out="/tmp/pred_cv", predictor="cv", filters=["split=eth/test"])
     """
-    from logpipe.predict_options import PredictOptions
-    from logpipe.sample_filter import parse_filter
+    from logpipe.dataset.sample_filter import parse_filter
+    from logpipe.prediction.options import PredictOptions
     from logpipe.stages.predict import predict_dataset
 
     options = PredictOptions(

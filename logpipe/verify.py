@@ -9,9 +9,9 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-from logpipe.artifact import EVERYTHING, MANIFEST, ArtifactWriter, Ownership, read_manifest, verify_folder
-from logpipe.dataset import DATASET_ARTIFACT, DATASET_OWNED
+from logpipe.dataset.reader import DATASET_ARTIFACT, DATASET_OWNED
 from logpipe.errors import DatasetError
+from logpipe.storage.artifact import EVERYTHING, MANIFEST, ArtifactWriter, Ownership, read_manifest, verify_folder
 
 
 def _kind_and_owned(folder: Path) -> tuple[str, Ownership, int]:
@@ -36,7 +36,7 @@ def _verify_checkpoint(folder: Path) -> list[str]:
     """Problems of a checkpoint folder: unreadable metadata, or weights whose sha256 is not the recorded one."""
     import json
 
-    from logpipe.io import sha256_file
+    from logpipe.storage.io import sha256_file
 
     try:
         meta = json.loads((folder / CHECKPOINT_META).read_text(encoding="utf-8"))

@@ -16,10 +16,10 @@ from importlib import metadata
 from pathlib import Path
 from typing import Any
 
-from logpipe.dataset import Dataset
+from logpipe.dataset.reader import Dataset
 from logpipe.errors import LogpipeError
-from logpipe.folder_lock import FolderLock
-from logpipe.io import atomic_path
+from logpipe.storage.folder_lock import FolderLock
+from logpipe.storage.io import atomic_path
 
 from .config import (
     ConfigError,

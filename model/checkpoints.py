@@ -33,7 +33,7 @@ from typing import Any, NotRequired, TypedDict
 import torch
 from safetensors.torch import load_file, save_file
 
-from logpipe.folder_swap import recover_folder, replace_folder, staging_folder_for
+from logpipe.storage.folder_swap import recover_folder, replace_folder, staging_folder_for
 
 from .checkpoint_meta import (
     CheckpointError,

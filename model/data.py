@@ -15,7 +15,7 @@ import pyarrow as pa
 import pyarrow.compute as pc
 from torch.utils.data import DataLoader, IterableDataset, get_worker_info
 
-from logpipe.dataset import Dataset, scene_sample
+from logpipe.dataset.reader import Dataset, scene_sample
 from logpipe.types import SceneSample
 
 
@@ -42,7 +42,7 @@ class ShardScenes(IterableDataset[SceneSample]):
             shards = shards[info.id :: info.num_workers]
         rasters = None
         if self.raster_run is not None:
-            from logpipe.rasters import find_raster_run
+            from logpipe.raster.runs import find_raster_run
 
             rasters = find_raster_run(self.root, self.raster_run, None)
         samples = dataset.samples()

@@ -3,10 +3,10 @@ with a pool of actors, each loading the model once (a GPU per actor where the cl
 
 ``ray_forecasts`` gives the stage a forecast function that returns, batch after batch, the actors' forecasts of
 exactly the batches the stage's local loop cuts: the actors cut their samples with the run's ``SampleCutter``
-(``logpipe.model_inputs``) from the same batch plan, and the driver checks each batch's sample ids. The driver
-keeps writing every output itself through the committed writer; this module only moves work and results, and
-imports no stage. ``forecast_on_ray`` is the generic part: any picklable ``setup`` callable and work items.
-Actors read their inputs where they lie: paths in work items must name a file system every node shares.
+(``logpipe.prediction.model_inputs``) from the same batch plan, and the driver checks each batch's sample ids. The
+driver keeps writing every output itself through the committed writer; this module only moves work and results, and
+imports no stage. ``forecast_on_ray`` is the generic part: any picklable ``setup`` callable and work items. Actors
+read their inputs where they lie: paths in work items must name a file system every node shares.
 
 Fault tolerance is Ray Data's: its actor pools restart a dead actor and retry its task (``max_restarts`` and
 ``max_task_retries`` default to unlimited there); a task's result reaches the driver only once it succeeded,
@@ -26,13 +26,13 @@ from typing import Any
 
 import numpy as np
 
-from logpipe.dataset import Dataset
+from logpipe.dataset.reader import Dataset
 from logpipe.errors import LogpipeError
-from logpipe.io import read_table
 from logpipe.model.device import resolve_device
 from logpipe.model.registry import ChosenPredictor, load_net
-from logpipe.model_inputs import SampleCutter, ShardWindows, WorkItem, work_items
-from logpipe.rasters import RasterShards
+from logpipe.prediction.model_inputs import SampleCutter, ShardWindows, WorkItem, work_items
+from logpipe.raster.runs import RasterShards
+from logpipe.storage.io import read_table
 from logpipe.types import SceneSample
 
 Forecast = Callable[[Any], Any]

@@ -15,9 +15,9 @@ import pyarrow as pa
 import pyarrow.compute as pc
 import torch
 
-from logpipe.dataset import Dataset
+from logpipe.dataset.reader import Dataset
 from logpipe.errors import LogpipeError
-from logpipe.io import read_json, read_table
+from logpipe.storage.io import read_json, read_table
 
 from .checkpoint_meta import InferenceSettings, TrainingData, kind_accepts, read_meta
 from .predictor import NetPredictor, Predictor, inference_id

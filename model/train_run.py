@@ -15,7 +15,7 @@ from pathlib import Path
 
 import torch
 
-from logpipe.folder_lock import FolderLock
+from logpipe.storage.folder_lock import FolderLock
 from logpipe.types import SceneSample
 
 from .device import resolve_device

@@ -11,12 +11,12 @@ from typing import Any
 
 import numpy as np
 
-from logpipe import metrics
-from logpipe.dataset import Dataset
+from logpipe.dataset.reader import Dataset
+from logpipe.dataset.resample import ResampleSpec, resample_track
 from logpipe.formats.ethucy import FRAME_PERIOD_NS
-from logpipe.io import atomic_open
 from logpipe.model.predictor import NetPredictor, Predictor
-from logpipe.resample import ResampleSpec, resample_track
+from logpipe.scoring import metrics
+from logpipe.storage.io import atomic_open
 from logpipe.types import NDArrayBool, NDArrayFloat, NDArrayInt, SceneSample
 from scripts.locations import ensure_dataset, find_checkpoint
 from scripts.validation import K_BEST, best_of_k, truth_of, tuned

@@ -10,13 +10,13 @@ from typing import Any
 
 import numpy as np
 
-from logpipe.io import write_parquet
-from logpipe.method_forecasts import load_method
 from logpipe.model.baselines import ConstantVelocity, ConstantVelocitySampler, KalmanCV, LinearFit
 from logpipe.model.checkpoint_meta import InferenceSettings, amend_meta, read_meta
 from logpipe.model.predictor import NetPredictor, Predictor, inference_id
-from logpipe.prediction_table import samples_table
-from logpipe.predictions import PredictionMeta
+from logpipe.prediction.runs import PredictionMeta
+from logpipe.prediction.table import samples_table
+from logpipe.scoring.method_forecasts import load_method
+from logpipe.storage.io import write_parquet
 from logpipe.types import NDArrayFloat, SceneSample
 from scripts.validation import neighbour_cap, predicted_best_of_k, shifted_best_of_k, tune_inference, tuned
 

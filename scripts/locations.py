@@ -8,7 +8,7 @@ import argparse
 from collections.abc import Sequence
 from pathlib import Path
 
-from logpipe.dataset import Dataset
+from logpipe.dataset.reader import Dataset
 from logpipe.stages.ingest import IngestOptions, ingest
 
 REPO = Path(__file__).resolve().parents[1]

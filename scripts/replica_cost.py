@@ -64,9 +64,9 @@ def flops_per_sample(checkpoint: Path, dataset: Path, count: int = 8) -> dict[st
     (forward at the training K = 20 times 3: backward costs about twice the forward), counted by torch."""
     from torch.utils.flop_counter import FlopCounterMode
 
-    from logpipe.dataset import Dataset
+    from logpipe.dataset.reader import Dataset
     from logpipe.model.predictor import NetPredictor
-    from logpipe.rasters import find_raster_run
+    from logpipe.raster.runs import find_raster_run
     from logpipe.stages.train import scene_samples
 
     ds = Dataset.open(dataset)

@@ -2,7 +2,7 @@
 
 Split (documented in the results file): the ApolloScape training files are the only ones with a future, so
 the dataset's fixed by-file split is used: ``hash/train`` / ``hash/val`` / ``hash/test`` take 70 / 15 / 15 %
-of the files by the sha256 of their log id (``logpipe.dataset.HASH_SPLITS``; stable across machines). The
+of the files by the sha256 of their log id (``logpipe.dataset.reader.HASH_SPLITS``; stable across machines). The
 paper's own split is not published. 6 observed + 6 predicted steps at 2 Hz; every agent type (vehicle,
 bus_truck, pedestrian, cyclist, unknown) present in all 12 steps of a window is a target; errors are reported
 overall and per type. The constant-velocity sampler's noise is chosen on ``hash/val``.

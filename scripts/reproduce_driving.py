@@ -26,13 +26,13 @@ from typing import Any
 
 import numpy as np
 
-from logpipe import metrics
 from logpipe.api import ingest, rasterise, train
-from logpipe.dataset import Dataset
+from logpipe.dataset.reader import Dataset
 from logpipe.errors import DatasetError
 from logpipe.model.baselines import ConstantVelocity, ConstantVelocitySampler, KalmanCV
 from logpipe.model.predictor import NetPredictor, Predictor
-from logpipe.rasters import find_raster_run
+from logpipe.raster.runs import find_raster_run
+from logpipe.scoring import metrics
 from logpipe.stages.train import scene_samples
 from logpipe.types import NDArrayFloat, SceneSample
 from scripts.locations import REPO

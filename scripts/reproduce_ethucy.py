@@ -26,7 +26,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from logpipe.dataset import Dataset
+from logpipe.dataset.reader import Dataset
 from logpipe.model.baselines import ConstantVelocitySampler
 from logpipe.stages.score import score
 from logpipe.stages.train import scene_samples

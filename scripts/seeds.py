@@ -11,7 +11,7 @@ from typing import Any
 
 import numpy as np
 
-from logpipe.dataset import Dataset
+from logpipe.dataset.reader import Dataset
 from logpipe.model.baselines import ConstantVelocitySampler
 from logpipe.model.checkpoint_meta import read_meta
 from logpipe.stages.score import score

@@ -22,9 +22,9 @@ from typing import Any
 
 import numpy as np
 
-from logpipe import metrics
-from logpipe.dataset import Dataset
-from logpipe.rasters import find_raster_run
+from logpipe.dataset.reader import Dataset
+from logpipe.raster.runs import find_raster_run
+from logpipe.scoring import metrics
 from logpipe.stages.train import scene_samples
 from logpipe.types import NDArrayFloat, NDArrayInt, SceneSample
 from scripts.locations import REPO, find_checkpoint

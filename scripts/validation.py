@@ -11,10 +11,10 @@ from typing import Any
 
 import numpy as np
 
-from logpipe import metrics
 from logpipe.model.baselines import ConstantVelocitySampler
 from logpipe.model.batching import neighbour_counts
 from logpipe.model.predictor import NetPredictor, Predictor
+from logpipe.scoring import metrics
 from logpipe.types import NDArrayFloat, SceneSample
 
 K_BEST = 20

@@ -1,11 +1,12 @@
 """``logpipe ingest``: input logs → canonical Parquet shards, logs table, sample index, MCAP per log.
 
 Reads top-down: lock the dataset folder and clean what no commit names → find and hash inputs → skip those already
-ingested (by content) → parse batches in parallel (rows in canonical order, logs rows: ``logpipe.log_table``), each
-one shard (and MCAPs) in a staging folder → move the shards into place, write the new generation's tables → commit
-by the manifest swap (``logpipe.artifact``). A crash at any point leaves the previous state, and a rerun gives the
-same bytes. With ``on_error="fail"`` the first bad input stops the run and nothing becomes visible; with ``"skip"``
-bad inputs are quarantined (listed in the manifest and the summary) and the rest lands.
+ingested (by content) → parse batches in parallel (rows in canonical order, logs rows:
+``logpipe.dataset.log_table``), each one shard (and MCAPs) in a staging folder → move the shards into place, write
+the new generation's tables → commit by the manifest swap (``logpipe.storage.artifact``). A crash at any point
+leaves the previous state, and a rerun gives the same bytes. With ``on_error="fail"`` the first bad input stops the
+run and nothing becomes visible; with ``"skip"`` bad inputs are quarantined (listed in the manifest and the summary)
+and the rest lands.
 """
 
 from __future__ import annotations
@@ -20,10 +21,11 @@ from typing import Any, Literal
 
 import pyarrow as pa
 
-from logpipe.artifact import FileEntry, file_entry, output_errors
 from logpipe.contracts import arrow_schema
-from logpipe.dataset import mcap_folder, shard_name, shard_number
-from logpipe.dataset_writer import (
+from logpipe.dataset.log_table import canonical_order, log_metas, log_rows
+from logpipe.dataset.reader import mcap_folder, shard_name, shard_number
+from logpipe.dataset.samples import TrackCodes, build_samples, no_sample_reasons
+from logpipe.dataset.writer import (
     DatasetManifest,
     DatasetWriter,
     InputEntry,
@@ -39,12 +41,11 @@ from logpipe.errors import DatasetError, SourceError
 from logpipe.executor import Backend, default_workers, run_ordered, warm_up
 from logpipe.formats import detect, get_adapter
 from logpipe.formats.base import FormatAdapter
-from logpipe.input_copies import duplicate_inputs
-from logpipe.inputs import complete_hashes, find_inputs, fingerprint_inputs, read_ahead, unhashed_inputs
-from logpipe.io import read_table
-from logpipe.log_table import canonical_order, log_metas, log_rows
+from logpipe.formats.input_copies import duplicate_inputs
+from logpipe.formats.inputs import complete_hashes, find_inputs, fingerprint_inputs, read_ahead, unhashed_inputs
 from logpipe.progress import report_total
-from logpipe.samples import TrackCodes, build_samples, no_sample_reasons
+from logpipe.storage.artifact import FileEntry, file_entry, output_errors
+from logpipe.storage.io import read_table
 from logpipe.types import SampleProtocol, SourceFile
 
 OnError = Literal["fail", "skip"]
@@ -99,7 +100,7 @@ class _BatchResult:
     files: dict[str, FileEntry] = field(default_factory=dict)
     """Entries of the files written into staging (paths relative to the dataset), hashed by the worker."""
     no_samples: dict[str, str] = field(default_factory=dict)
-    """Why each log of the batch that gives no sample gives none (``samples.no_sample_reasons``)."""
+    """Why each log of the batch that gives no sample gives none (``dataset.samples.no_sample_reasons``)."""
 
 
 def ingest(roots: Sequence[Path], options: IngestOptions,
@@ -117,9 +118,8 @@ def ingest(roots: Sequence[Path], options: IngestOptions,
     """
     started = time.perf_counter()
     if any(root.is_dir() for root in roots):
-        # A folder usually means several batches. When the workers cannot fork from this process, the
-        # worker server's imports (~0.5 s of one core) then overlap detection, discovery and fingerprinting
-        # instead of delaying the first batch. (Started once per process; a no-op with one worker.)
+        # A folder usually means several batches: start the workers' imports (~0.5 s of a core, once per process)
+        # now, to overlap detection, discovery and hashing instead of delaying the first batch; no-op with 1 worker.
         warm_up(_ingest_batch, workers=options.workers, backend=options.backend)
     fmt = options.format or detect(roots[0])
     adapter = get_adapter(fmt, **options.adapter_options)
@@ -231,7 +231,7 @@ def _ingest_batch(job: _BatchJob) -> _BatchResult:
     messages = 0
     if job.write_mcap:
         # Imported here: the mcap writer's imports (~35 ms) are wasted on the --no-mcap path.
-        from logpipe.mcapio import write_log_mcaps
+        from logpipe.mcap.tracks import write_log_mcaps
 
         folder = mcap_folder(job.shard_file)
         messages = write_log_mcaps(tracks, kept, staging / folder)
@@ -272,7 +272,7 @@ def reindex(dataset_dir: Path, protocol: SampleProtocol,
             progress: Callable[[int], None] | None = None) -> dict[str, Any]:
     """Rebuild the sample index with ``protocol``, one shard in memory at a time, as one new commit;
     ``progress`` is called with the number of logs each shard held."""
-    from logpipe.dataset import Dataset
+    from logpipe.dataset.reader import Dataset
 
     with output_errors(), DatasetWriter(dataset_dir) as writer:
         if writer.manifest is None:

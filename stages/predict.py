@@ -2,14 +2,14 @@
 log, an MCAP with the original recording plus prediction channels.
 
 Reads top-down: open the dataset and the predictor (a checkpoint, the shipped one for the dataset kind, or a
-baseline) → check that they fit (kind, obs/pred lengths, frame rate, agent types, rasters, originals, log ids
-that are safe file names) before any work → take the output folder's lock → per dataset shard not yet
-committed: cut the selected samples (``logpipe.sample_filter``, ``logpipe.model_inputs``), predict in batches
-under ``torch.inference_mode``, write the shard's Parquet and its logs' MCAPs on a writer thread
-(``logpipe.prediction_output``, ``logpipe.prediction_mcap``) → commit the shard by replacing the run manifest.
+baseline) → check that they fit (kind, obs/pred lengths, frame rate, agent types, rasters, originals, log ids that
+are safe file names) before any work → take the output folder's lock → per dataset shard not yet committed: cut the
+selected samples (``logpipe.dataset.sample_filter``, ``logpipe.prediction.model_inputs``), predict in batches under
+``torch.inference_mode``, write the shard's Parquet and its logs' MCAPs on a writer thread
+(``logpipe.prediction.output``, ``logpipe.prediction.mcap_logs``) → commit the shard by replacing the run manifest.
 With ``--backend ray`` the same batches are forecast on Ray actors (``logpipe.model.ray_predict``) and written here.
 
-Output folder (a committed artifact, ``logpipe.predictions``): ``manifest.json``, ``predictions/part-NNNNN.parquet``
+Output folder (a committed artifact, ``logpipe.prediction.runs``): ``manifest.json``, ``predictions/part-NNNNN.parquet``
 (one per dataset shard, NNNNN = its index) and ``mcap/part-NNNNN/<log_id>.mcap``. Positions are metres in the
 log's world frame; times are ns on the log's clock; a sample's prediction time is its current (last observed)
 step. Resuming: shards the committed manifest lists with the same settings are skipped; a shard interrupted
@@ -28,11 +28,11 @@ from typing import Any
 import pyarrow as pa
 import pyarrow.compute as pc
 
-from logpipe.artifact import MANIFEST, FileEntry, output_errors
-from logpipe.dataset import Dataset
+from logpipe.dataset.reader import Dataset
+from logpipe.dataset.sample_filter import SampleFilter, selected_samples
+from logpipe.dataset.sample_filter import selected_logs as _selected_logs
 from logpipe.errors import LogpipeError
 from logpipe.executor import default_workers
-from logpipe.io import read_table, sha256_file
 from logpipe.model.device import check_device_name, resolve_device
 from logpipe.model.ray_predict import ForecastJob, ray_forecasts
 from logpipe.model.registry import (
@@ -42,16 +42,16 @@ from logpipe.model.registry import (
     resolve_inference,
     seen_in_training,
 )
-from logpipe.model_inputs import SampleCutter, log_windows, raster_problems
-from logpipe.originals import find_original
-from logpipe.predict_options import PredictOptions, PredictSummary
-from logpipe.prediction_mcap import PredictionMcaps, check_log_ids
-from logpipe.prediction_output import LogOutput, SamplePrediction, ShardWriter, fast_gil_switching, shard_writer
-from logpipe.predictions import PredictionMeta, PredictionRunWriter, RunSettings, RunShardEntry
+from logpipe.prediction.mcap_logs import PredictionMcaps, check_log_ids
+from logpipe.prediction.model_inputs import SampleCutter, log_windows, raster_problems
+from logpipe.prediction.options import PredictOptions, PredictSummary
+from logpipe.prediction.originals import find_original
+from logpipe.prediction.output import LogOutput, SamplePrediction, ShardWriter, fast_gil_switching, shard_writer
+from logpipe.prediction.runs import PredictionMeta, PredictionRunWriter, RunSettings, RunShardEntry
 from logpipe.progress import report_total
-from logpipe.rasters import find_raster_run
-from logpipe.sample_filter import SampleFilter, selected_samples
-from logpipe.sample_filter import selected_logs as _selected_logs
+from logpipe.raster.runs import find_raster_run
+from logpipe.storage.artifact import MANIFEST, FileEntry, output_errors
+from logpipe.storage.io import read_table, sha256_file
 from logpipe.types import SceneSample
 
 

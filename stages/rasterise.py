@@ -17,8 +17,8 @@ leaves finished work byte-identical.
 
 Reads top-down: check the options and open the dataset → name the inputs (sample index, map files, shard size)
 → take the run folder's lock → one ``ShardTask`` per shard no commit names → render them on the executor
-(``logpipe.raster_render``: centres and headings by ``logpipe.raster_centre``'s rules, previews by
-``logpipe.raster_preview``), committing the manifest after each → the last commit marks the run complete.
+(``logpipe.raster.render``: centres and headings by ``logpipe.raster.centre``'s rules, previews by
+``logpipe.raster.preview``), committing the manifest after each → the last commit marks the run complete.
 """
 
 from __future__ import annotations
@@ -33,16 +33,16 @@ from typing import Any
 
 import pyarrow as pa
 
-from logpipe.artifact import output_errors
-from logpipe.dataset import Dataset
+from logpipe.dataset.reader import Dataset
 from logpipe.errors import DatasetError
 from logpipe.executor import Backend, run_ordered
-from logpipe.io import read_table, sha256_file
 from logpipe.maps import MapSource
 from logpipe.progress import report_total
-from logpipe.raster import RasterSpec
-from logpipe.raster_render import ShardTask, clear_worker_cache, render_shard
-from logpipe.rasters import CENTRES, RASTER_DIR, RasterRunWriter, inputs_tag, run_id, shard_file
+from logpipe.raster.rasteriser import RasterSpec
+from logpipe.raster.render import ShardTask, clear_worker_cache, render_shard
+from logpipe.raster.runs import CENTRES, RASTER_DIR, RasterRunWriter, inputs_tag, run_id, shard_file
+from logpipe.storage.artifact import output_errors
+from logpipe.storage.io import read_table, sha256_file
 
 logger = logging.getLogger(__name__)
 

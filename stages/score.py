@@ -1,14 +1,14 @@
 """``logpipe score``: ADE/FDE reports for one or more prediction runs against a dataset's ground truth.
 
 Reads top-down: open each input (a ``logpipe predict`` output folder, or a predictions file; one method each,
-read by ``logpipe.method_forecasts`` with its protocol, K and horizon from its metadata), label it and check
+read by ``logpipe.scoring.method_forecasts`` with its protocol, K and horizon from its metadata), label it and check
 its protocol against the dataset's → decide which agents count and look up their true futures
-(``logpipe.scored_agents``) → per-step L2 errors → metrics per method (``logpipe.metrics.group_metrics``),
+(``logpipe.scoring.agents``) → per-step L2 errors → metrics per method (``logpipe.scoring.metrics.group_metrics``),
 overall / per object type / per log, for every K asked → threshold gate for CI → ``report.json``,
-``report.md`` (``logpipe.reports``), PNG plots (``logpipe.report_plots``), committed as one artifact folder
-(``manifest.json``, ``logpipe.artifact``).
+``report.md`` (``logpipe.scoring.reports``), PNG plots (``logpipe.scoring.plots``), committed as one artifact folder
+(``manifest.json``, ``logpipe.storage.artifact``).
 
-Conventions are those of ``logpipe.metrics`` (ADE = mean Euclidean distance in metres; per-agent and joint
+Conventions are those of ``logpipe.scoring.metrics`` (ADE = mean Euclidean distance in metres; per-agent and joint
 best-of-K; the Argoverse min-FDE mode with its ADE and a 2.0 m miss rate). The protocol is written next to
 every method's numbers so a number never travels without it.
 """
@@ -23,15 +23,22 @@ from typing import Any
 
 import numpy as np
 
-from logpipe import metrics
-from logpipe.artifact import MANIFEST
-from logpipe.dataset import Dataset
+from logpipe.dataset.reader import Dataset
 from logpipe.errors import ScoreError
-from logpipe.io import sha256_file
-from logpipe.method_forecasts import MethodForecasts, check_protocol, load_method, name_methods
-from logpipe.report_plots import ScoredMethod, render_plots
-from logpipe.reports import CONVENTIONS, REPORT_JSON, REPORT_MD, REPORT_VERSION, render_markdown, write_report_folder
-from logpipe.scored_agents import Agents, Selection, select_agents, step_seconds, truth_futures
+from logpipe.scoring import metrics
+from logpipe.scoring.agents import Agents, Selection, select_agents, step_seconds, truth_futures
+from logpipe.scoring.method_forecasts import MethodForecasts, check_protocol, load_method, name_methods
+from logpipe.scoring.plots import ScoredMethod, render_plots
+from logpipe.scoring.reports import (
+    CONVENTIONS,
+    REPORT_JSON,
+    REPORT_MD,
+    REPORT_VERSION,
+    render_markdown,
+    write_report_folder,
+)
+from logpipe.storage.artifact import MANIFEST
+from logpipe.storage.io import sha256_file
 
 
 def _check_thresholds(fail_above: dict[str, float]) -> None:
@@ -130,7 +137,7 @@ def _load_methods(predictions: Sequence[Path], labels: Sequence[str] | None, ds:
 
 def _select(ds: Dataset, methods: Sequence[MethodForecasts], *, split: str | None, agents: Agents,
             min_agents: int) -> Selection:
-    """The agents that count (``scored_agents.select_agents``) among the samples any method predicted."""
+    """The agents that count (``scoring.agents.select_agents``) among the samples any method predicted."""
     predicted = {s for m in methods for s in m.sample_ids.tolist()}
     sel = select_agents(ds, predicted, split=split, agents=agents, min_agents=min_agents)
     if not sel.expected:

@@ -19,10 +19,10 @@ from typing import TYPE_CHECKING, Any
 import pyarrow as pa
 import pyarrow.compute as pc
 
-from logpipe.dataset import Dataset
+from logpipe.dataset.reader import Dataset
 from logpipe.errors import DatasetError, LogpipeError
-from logpipe.io import sha256_file
-from logpipe.rasters import RasterShards, find_raster_run
+from logpipe.raster.runs import RasterShards, find_raster_run
+from logpipe.storage.io import sha256_file
 from logpipe.types import SceneSample
 
 if TYPE_CHECKING:

@@ -15,7 +15,7 @@ import logpipe
 from logpipe import api
 from logpipe.cli import app
 from logpipe.cli.data import summary_notes
-from logpipe.dataset import Dataset
+from logpipe.dataset.reader import Dataset
 from logpipe.errors import LogpipeError, SourceError
 
 runner = CliRunner()

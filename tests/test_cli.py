@@ -120,7 +120,7 @@ def test_ingest_bag_with_mapping_overrides_and_rate(bundled: Path, tmp_path: Pat
     assert result.exit_code == 0, result.output
     summary = json.loads(result.stdout)
     assert summary["format"] == "rosbag" and summary["logs"] == 1
-    from logpipe.dataset import Dataset
+    from logpipe.dataset.reader import Dataset
 
     tracks = Dataset.open(tmp_path / "b").tracks()
     assert sorted(set(tracks.column("track_id").to_pylist())) == ["blue", "ego"]

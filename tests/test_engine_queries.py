@@ -14,7 +14,7 @@ import pyarrow as pa
 import pyarrow.dataset as pds
 import pytest
 
-from logpipe.dataset import Dataset
+from logpipe.dataset.reader import Dataset
 from logpipe.stages.ingest import IngestOptions, ingest, reindex
 from logpipe.stages.predict import predict_dataset
 from logpipe.stages.score import score
@@ -72,7 +72,7 @@ def test_dictionaries_and_fixed_size_lists_survive(outputs: tuple[Path, Path]) -
             assert arrow.field(column).type == pa.dictionary(pa.int32(), pa.string()), (name, column)
             assert polars[column] == pl.Categorical, (name, column)
         for column in ("log_id", "track_id") if name == "tracks" else ():
-            assert polars[column] == pl.String  # tracks keep plain strings (see logpipe/dataset.py)
+            assert polars[column] == pl.String  # tracks keep plain strings (see logpipe/dataset/reader.py)
     glob = _globs(outputs)["predictions"][0]
     arrow = pds.dataset(Path(glob).parent, format="parquet").schema
     polars = pl.scan_parquet(glob).collect_schema()

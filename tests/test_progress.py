@@ -180,7 +180,7 @@ def test_ingest_off_a_terminal_prints_progress_lines_to_stderr_only(
 
 def test_predict_off_a_terminal_counts_every_selected_sample(
         apollo: tuple[Path, subprocess.CompletedProcess[str]], tmp_path: Path) -> None:
-    from logpipe.dataset import Dataset
+    from logpipe.dataset.reader import Dataset
 
     dataset, _ = apollo
     run = _logpipe("predict", str(dataset), "--predictor", "cv", "--out", str(tmp_path / "p"), "--no-mcap",

@@ -111,7 +111,7 @@ def user_errors() -> Iterator[None]:
     except OSError as exc:
         # Disk full, read-only or forbidden outputs: the writers commit only by the manifest swap, so the
         # folder still holds its previous state; one line, not a traceback.
-        from logpipe.artifact import os_error_message
+        from logpipe.storage.artifact import os_error_message
 
         err.print(f"[bold red]error:[/] {os_error_message(exc)}", highlight=False, soft_wrap=True)
         raise typer.Exit(code=2) from None

@@ -26,7 +26,7 @@ import pyarrow.csv as pacsv
 
 from logpipe.errors import SourceError
 from logpipe.formats.base import TIME_LIMIT_NS, files_with_suffix, require_regular
-from logpipe.io import as_numpy
+from logpipe.storage.io import as_numpy
 from logpipe.types import PENDING_SHA256, NDArrayByte, NDArrayInt, SourceFile
 
 ID_LIMIT = float(2**53)

@@ -15,6 +15,7 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.compute as pc
 
+from logpipe.dataset.samples import steps_from_sorted_times
 from logpipe.errors import SourceError
 from logpipe.formats._text import (
     ID_LIMIT,
@@ -25,8 +26,7 @@ from logpipe.formats._text import (
 )
 from logpipe.formats.base import TIME_LIMIT_NS, ParsedLogs
 from logpipe.formats.text_checks import check_finite, check_range, check_time_and_duplicates, row_error
-from logpipe.io import as_numpy
-from logpipe.samples import steps_from_sorted_times
+from logpipe.storage.io import as_numpy
 from logpipe.types import PROTOCOLS, LogMeta, ObjectType, Role, SampleProtocol, SourceFile
 
 COLUMNS = ["frame_id", "object_id", "object_type", "x", "y", "z", "length", "width", "height", "heading"]

@@ -18,6 +18,7 @@ from typing import ClassVar
 import numpy as np
 import pyarrow as pa
 
+from logpipe.dataset.samples import TrackCodes, steps_from_sorted_times
 from logpipe.errors import SourceError
 from logpipe.formats._text import (
     TextBatch,
@@ -36,8 +37,7 @@ from logpipe.formats.text_checks import (
     row_error,
     times_sorted_and_unique,
 )
-from logpipe.io import as_numpy
-from logpipe.samples import TrackCodes, steps_from_sorted_times
+from logpipe.storage.io import as_numpy
 from logpipe.types import PROTOCOLS, LogMeta, ObjectType, Role, SampleProtocol, SourceFile
 
 COLUMNS = ["TIMESTAMP", "TRACK_ID", "OBJECT_TYPE", "X", "Y", "CITY_NAME"]

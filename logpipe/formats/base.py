@@ -20,9 +20,9 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.compute as pc
 
-from logpipe.artifact import unsafe_file_name
+from logpipe.dataset.samples import TrackCodes
 from logpipe.errors import LogpipeError, SourceError
-from logpipe.samples import TrackCodes
+from logpipe.storage.artifact import unsafe_file_name
 from logpipe.types import LogMeta, SampleProtocol, SourceFile
 
 
@@ -85,7 +85,7 @@ def require_regular(path: str | Path, relpath: str, *, folder_ok: bool = False) 
 
 def check_log_id(log_id: object, relpath: str, field: str = "log_id") -> str:
     """``log_id`` when it is safe as one path component (ids become file names), else a ``SourceError``
-    (the rule: ``logpipe.artifact.unsafe_file_name``)."""
+    (the rule: ``logpipe.storage.artifact.unsafe_file_name``)."""
     if not isinstance(log_id, str):
         raise SourceError(relpath, f"log id {log_id!r} is not text; log ids become file names", field=field)
     reason = unsafe_file_name(log_id)

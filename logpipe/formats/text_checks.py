@@ -13,7 +13,7 @@ import pyarrow as pa
 
 from logpipe.errors import SourceError
 from logpipe.formats._text import TextBatch
-from logpipe.io import as_numpy
+from logpipe.storage.io import as_numpy
 from logpipe.types import NDArrayBool, NDArrayInt, SourceFile
 
 

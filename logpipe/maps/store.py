@@ -20,9 +20,9 @@ import pyarrow.parquet as pq
 
 from logpipe.contracts import arrow_schema, conform
 from logpipe.errors import DatasetError
-from logpipe.io import write_parquet
 from logpipe.maps.feature_kinds import KINDS, POLYGON_KINDS, FeatureKind
 from logpipe.maps.grid_index import DEFAULT_CELL_M, Layer, chain_polylines
+from logpipe.storage.io import write_parquet
 from logpipe.types import NDArrayFloat, NDArrayInt
 
 # Attribute columns an adapter may fill (everything in schemas/map.json except geometry and bookkeeping).

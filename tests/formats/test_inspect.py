@@ -126,7 +126,7 @@ def _mapping_round_trip(source: Path, tmp_path: Path) -> int:
     from typer.testing import CliRunner
 
     from logpipe.cli import app
-    from logpipe.dataset import Dataset
+    from logpipe.dataset.reader import Dataset
     from logpipe.formats.ros.mapping import mapping_from_dict, read_mapping_document
 
     runner = CliRunner()

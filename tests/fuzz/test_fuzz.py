@@ -24,7 +24,7 @@ import pyarrow.compute as pc
 import pytest
 from corpus import REPO, Case, Sample, available, cases, place_good  # type: ignore[import-not-found]
 
-from logpipe.dataset import Dataset
+from logpipe.dataset.reader import Dataset
 from logpipe.errors import LogpipeError
 from logpipe.stages.ingest import IngestOptions, ingest
 

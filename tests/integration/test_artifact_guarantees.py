@@ -13,11 +13,11 @@ from pathlib import Path
 
 import pytest
 
-from logpipe.artifact import MANIFEST, read_manifest
-from logpipe.dataset import Dataset
+from logpipe.dataset.reader import Dataset
 from logpipe.errors import ArtifactBusyError, OutputError
-from logpipe.folder_lock import FolderLock
 from logpipe.stages.ingest import IngestOptions, ingest
+from logpipe.storage.artifact import MANIFEST, read_manifest
+from logpipe.storage.folder_lock import FolderLock
 
 REPO = Path(__file__).resolve().parents[2]
 DATA = REPO / "tests" / "data"

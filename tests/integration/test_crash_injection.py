@@ -3,7 +3,7 @@ and at random times; the rerun must give the same bytes as an uninterrupted run,
 process may remain.
 
 Every stage runs as a real ``logpipe`` process. ``LOGPIPE_CRASH_TRACE`` lists the commit steps a run
-reaches (``logpipe.durability.crash_point``); ``LOGPIPE_CRASH_AT=N`` makes the process kill itself at the
+reaches (``logpipe.storage.durability.crash_point``); ``LOGPIPE_CRASH_AT=N`` makes the process kill itself at the
 N-th. Random-time kills hit the whole process group, workers included, at any instruction.
 """
 
@@ -22,8 +22,8 @@ from pathlib import Path
 
 import pytest
 
-from logpipe.artifact import MANIFEST, verify_folder
-from logpipe.dataset import Dataset
+from logpipe.dataset.reader import Dataset
+from logpipe.storage.artifact import MANIFEST, verify_folder
 
 REPO = Path(__file__).resolve().parents[2]
 DATA = REPO / "tests" / "data"

@@ -21,7 +21,7 @@ import pytest
 from typer.testing import CliRunner
 
 from logpipe.cli import app
-from logpipe.predictions import PredictionRun
+from logpipe.prediction.runs import PredictionRun
 
 REPO = Path(__file__).resolve().parents[2]
 DATA = REPO / "tests" / "data"

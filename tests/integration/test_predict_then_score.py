@@ -16,14 +16,14 @@ import pyarrow as pa
 import pyarrow.compute as pc
 import pytest
 
-from logpipe.dataset import Dataset
+from logpipe.dataset.reader import Dataset
+from logpipe.dataset.sample_filter import parse_filter
 from logpipe.errors import ArtifactBusyError, DatasetError, LogpipeError, OutputError
-from logpipe.folder_lock import LOCK_FILE, FolderLock
-from logpipe.predictions import PredictionRun
-from logpipe.sample_filter import parse_filter
+from logpipe.prediction.runs import PredictionRun
 from logpipe.stages.ingest import IngestOptions, ingest
 from logpipe.stages.predict import predict_dataset
 from logpipe.stages.score import score
+from logpipe.storage.folder_lock import LOCK_FILE, FolderLock
 
 REPO = Path(__file__).resolve().parents[2]
 BUNDLED = REPO / "tests" / "data"
@@ -44,7 +44,7 @@ KINDS: dict[str, tuple[list[Path], dict[str, Any]]] = {
 _CRASHING_RUN = """
 import sys
 from pathlib import Path
-from logpipe.sample_filter import parse_filter
+from logpipe.dataset.sample_filter import parse_filter
 from logpipe.stages.predict import predict_dataset
 predict_dataset(Path(sys.argv[1]), Path(sys.argv[2]), predictor="cv_sampler",
                 sample_filter=parse_filter(["time=:12000000000"]), threads=1)

@@ -13,11 +13,11 @@ from mcap.reader import make_reader
 from typer.testing import CliRunner
 
 from logpipe.cli import app
-from logpipe.dataset import Dataset
+from logpipe.dataset.reader import Dataset
 from logpipe.model.checkpoint_meta import read_meta
 from logpipe.model.predictor import NetPredictor
 from logpipe.model.registry import default_checkpoint
-from logpipe.rasters import find_raster_run
+from logpipe.raster.runs import find_raster_run
 from logpipe.stages.train import scene_samples
 
 MAPS = Path(__file__).resolve().parents[1] / "data" / "driving"

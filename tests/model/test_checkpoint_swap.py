@@ -12,10 +12,10 @@ from pathlib import Path
 import pytest
 import torch
 
-from logpipe import folder_swap
 from logpipe.model.checkpoints import load_checkpoint, save_checkpoint
 from logpipe.model.config import Features, ModelConfig, TrainConfig
 from logpipe.model.nets import TrajectoryNet
+from logpipe.storage import folder_swap
 
 CONFIG = TrainConfig(model=ModelConfig(features=Features(False, False, False, False, False), embed_dim=8, gru_dim=8,
                                        lstm_dim=8, obs_len=8, pred_len=12))

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from logpipe.dataset import Dataset
+from logpipe.dataset.reader import Dataset
 from logpipe.errors import LogpipeError
 from logpipe.model.batching import Batch, collate, context_scenes, neighbour_counts
 from logpipe.model.config import ConfigError, Features, ModelConfig, TrainConfig

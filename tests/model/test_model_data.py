@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
-from logpipe.dataset import Dataset
+from logpipe.dataset.reader import Dataset
 from logpipe.model.data import scene_loader
 from logpipe.stages.ingest import IngestOptions, ingest
 from logpipe.stages.train import scene_samples

@@ -10,9 +10,9 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from logpipe.dataset import Dataset
+from logpipe.dataset.reader import Dataset
 from logpipe.maps import FeatureKind, MapSource, load_map
-from logpipe.rasters import find_raster_run
+from logpipe.raster.runs import find_raster_run
 from logpipe.stages.ingest import IngestOptions, ingest
 from logpipe.stages.rasterise import rasterise_dataset
 from logpipe.synthetic.driving import SimConfig, SimWindow, simulate_window

@@ -14,6 +14,7 @@ from typing import Any
 
 import pyarrow as pa
 
+from logpipe.dataset.resample import ResampleSpec
 from logpipe.errors import SourceError
 from logpipe.formats.base import empty_tracks
 from logpipe.formats.ros.mapping import (
@@ -28,7 +29,6 @@ from logpipe.formats.ros.message_types import OBJECT_KINDS, normalize_type, topi
 from logpipe.formats.ros.messages import TopicExtractor
 from logpipe.formats.ros.tf import TfBuffer
 from logpipe.formats.ros.world import FrameError, WorldTracks, ego_from_tf, to_world, world_frame_for, world_to_table
-from logpipe.resample import ResampleSpec
 from logpipe.types import PROTOCOLS
 
 ROSBAG_PROTOCOL = PROTOCOLS["rosbag"]

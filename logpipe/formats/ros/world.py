@@ -15,12 +15,12 @@ from typing import Any
 import numpy as np
 import pyarrow as pa
 
+from logpipe.dataset.resample import ResampleSpec, resample_track
 from logpipe.formats.base import conform_tracks
 from logpipe.formats.ros.mapping import EgoSpec, Mapping
 from logpipe.formats.ros.messages import NAN2, NAN3, Pose, TopicExtractor, clean_frame
 from logpipe.formats.ros.tf import TfBuffer
 from logpipe.geometry import normalize_quat, quat_mul, quat_rotate, quat_yaw
-from logpipe.resample import ResampleSpec, resample_track
 from logpipe.types import NDArrayFloat, NDArrayInt
 
 

@@ -1,0 +1,111 @@
+"""Which samples of a dataset a run covers: ``SampleFilter`` (the ``--filter`` strings parsed) and the logs and
+sample-index rows it selects.
+
+Times are ns on each log's clock; a sample's time is its prediction time (``current_ns``, the last observed step).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import pyarrow as pa
+import pyarrow.compute as pc
+
+from logpipe.dataset.reader import Dataset
+from logpipe.errors import DatasetError, LogpipeError
+from logpipe.types import OBJECT_TYPES
+
+
+@dataclass(frozen=True)
+class SampleFilter:
+    """Which samples to predict; empty fields select everything.
+
+    Attributes:
+        log_ids: only these logs.
+        split: only logs of this split (``eth/test``, ``hash/val``; see ``Dataset.logs_in_split``).
+        start_ns: only samples whose prediction time (current step) is >= this, ns on the log clock.
+        end_ns: ... and <= this.
+        object_types: only targets of these classes (``OBJECT_TYPES``); samples left without targets are dropped.
+    """
+
+    log_ids: tuple[str, ...] = ()
+    split: str | None = None
+    start_ns: int | None = None
+    end_ns: int | None = None
+    object_types: tuple[str, ...] = ()
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain dict (run settings)."""
+        return dataclasses.asdict(self)
+
+
+def parse_filter(items: Sequence[str]) -> SampleFilter:
+    """``SampleFilter`` from ``--filter`` strings: ``log=ID[,ID..]``, ``split=eth/test``,
+    ``time=START_NS:END_NS`` (either side may be empty), ``type=pedestrian[,cyclist..]``; repeatable.
+
+    Raises:
+        LogpipeError: an unknown key, a malformed time range or an unknown object type.
+    """
+    logs: list[str] = []
+    types: list[str] = []
+    split = start = end = None
+    for item in items:
+        key, sep, value = item.partition("=")
+        if not sep:
+            raise LogpipeError(f"--filter expects KEY=VALUE (log=, split=, time=, type=), got {item!r}")
+        if key == "log":
+            logs += [v for v in value.split(",") if v]
+        elif key == "split":
+            split = value
+        elif key == "time":
+            lo, colon, hi = value.partition(":")
+            try:
+                start = int(lo) if lo else None
+                end = int(hi) if hi else None
+            except ValueError:
+                colon = ""
+            if not colon:
+                raise LogpipeError(f"--filter time= expects START_NS:END_NS (integers, ns), got {value!r}")
+        elif key == "type":
+            bad = [t for t in value.split(",") if t not in OBJECT_TYPES]
+            if bad:
+                raise LogpipeError(f"--filter type=: unknown object types {bad}; known: {', '.join(OBJECT_TYPES)}")
+            types += value.split(",")
+        else:
+            raise LogpipeError(f"--filter: unknown key {key!r}; use log=, split=, time= or type=")
+    return SampleFilter(tuple(logs), split, start, end, tuple(types))
+
+
+def selected_logs(dataset: Dataset, f: SampleFilter) -> pa.Table:
+    """The rows of the dataset's logs table that ``f`` selects (in the table's order).
+
+    Raises:
+        DatasetError: ``f`` names logs the dataset does not have.
+    """
+    logs = dataset.logs()
+    keep = set(logs.column("log_id").to_pylist())
+    if f.log_ids:
+        missing = sorted(set(f.log_ids) - keep)
+        if missing:
+            raise DatasetError(f"{dataset.root}: no logs {missing}")
+        keep &= set(f.log_ids)
+    if f.split is not None:
+        keep &= set(dataset.logs_in_split(f.split))
+    return logs.filter(pc.is_in(logs.column("log_id"), value_set=pa.array(sorted(keep), pa.string())))
+
+
+def selected_samples(dataset: Dataset, logs: pa.Table, f: SampleFilter) -> dict[str, list[dict[str, Any]]]:
+    """The sample-index rows of the ``logs`` rows within ``f``'s time range, by log id (index order)."""
+    samples = dataset.samples()
+    mask = pc.is_in(samples.column("log_id"), value_set=logs.column("log_id"))
+    if f.start_ns is not None:
+        mask = pc.and_(mask, pc.greater_equal(samples.column("current_ns"), f.start_ns))
+    if f.end_ns is not None:
+        mask = pc.and_(mask, pc.less_equal(samples.column("current_ns"), f.end_ns))
+    by_log: dict[str, list[dict[str, Any]]] = {}
+    for row in samples.filter(mask).to_pylist():
+        by_log.setdefault(row["log_id"], []).append(row)
+    return by_log

@@ -1,0 +1,282 @@
+"""Copy a recorded log into a new MCAP unchanged and append channels to it.
+
+Sources (``Source``):
+
+* **MCAP** (plain MCAP, ROS2 bags stored as MCAP, the MCAP ingest wrote): every schema, channel, message,
+  metadata record and attachment is copied record by record, in file order — same bytes, encodings,
+  schemas, channel metadata, sequence numbers and timestamps. Only the file-level framing (chunking,
+  compression, indexes) is the writer's own.
+* **ROS bags** (ROS1 ``.bag``, ROS2 ``.db3`` bags) read with ``rosbags``: converted the way the MCAP ROS
+  profiles define it — a ``ros1msg``/``ros2msg`` schema per message type (the bag's own message
+  definition, generated from the type store when a ROS2 bag stores none), one channel per bag connection,
+  and the raw serialized message bytes (``ros1``/``cdr``) at the bag's record time.
+
+Schema and channel ids of an MCAP source are kept when they are numbered 1, 2, ... in order of first
+appearance (as writers number them); otherwise they are renumbered consistently. Appended channels come
+after every original one, and their messages after the original messages, so the originals keep their
+ids and order; readers that want time order (``iter_messages(log_time_order=True)``, Foxglove) sort by the
+chunk indexes.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal
+
+from mcap.records import Attachment, Channel, Message, Metadata, Schema
+from mcap.stream_reader import StreamReader
+from mcap.writer import CompressionType, Writer
+
+from logpipe import __version__
+from logpipe.errors import SourceError
+from logpipe.storage.io import atomic_path
+
+SourceKind = Literal["mcap", "rosbag"]
+
+
+@dataclass(frozen=True)
+class Source:
+    """One original recording.
+
+    Attributes:
+        paths: the file(s): one MCAP or ROS1 bag, or the storage files / folder of one ROS2 bag.
+        kind: ``mcap`` (copied record by record) or ``rosbag`` (converted with rosbags).
+        name: how errors name it (the input's relative path).
+    """
+
+    paths: tuple[Path, ...]
+    kind: SourceKind
+    name: str
+
+
+@dataclass(frozen=True)
+class NewChannel:
+    """A channel to append.
+
+    Attributes:
+        topic: channel topic.
+        schema_name: e.g. ``foxglove.SceneUpdate`` (``logpipe.mcap.foxglove.new_channel`` makes Foxglove channels).
+        schema_encoding: e.g. ``protobuf`` (a ``FileDescriptorSet``) or ``jsonschema``.
+        schema_data: the schema document (bytes).
+        message_encoding: e.g. ``protobuf`` or ``json``.
+        metadata: channel metadata.
+    """
+
+    topic: str
+    schema_name: str
+    schema_encoding: str
+    schema_data: bytes
+    message_encoding: str = "json"
+    metadata: dict[str, str] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class NewMessage:
+    """A message on an appended channel: ``channel`` indexes the ``channels`` given to ``write_merged``;
+    times are ns on the log's clock."""
+
+    channel: int
+    log_time: int
+    publish_time: int
+    data: bytes
+
+
+@dataclass
+class MergeStats:
+    """What ``write_merged`` wrote: original schemas, channels and messages copied, messages appended."""
+
+    schemas: int = 0
+    channels: int = 0
+    messages: int = 0
+    metadata: int = 0
+    attachments: int = 0
+    appended: int = 0
+
+
+class _Copier:
+    """Registers original schemas/channels in the writer once each and maps their ids."""
+
+    def __init__(self, writer: Writer, stats: MergeStats) -> None:
+        self.writer = writer
+        self.stats = stats
+        self.schema_ids: dict[tuple[Any, ...], int] = {}
+        self.channel_ids: dict[tuple[Any, ...], int] = {}
+
+    def schema(self, name: str, encoding: str, data: bytes) -> int:
+        key = (name, encoding, bytes(data))
+        if key not in self.schema_ids:
+            self.schema_ids[key] = self.writer.register_schema(name=name, encoding=encoding, data=bytes(data))
+            self.stats.schemas += 1
+        return self.schema_ids[key]
+
+    def channel(self, topic: str, encoding: str, schema_id: int, metadata: dict[str, str]) -> int:
+        key = (topic, encoding, schema_id, tuple(sorted(metadata.items())))
+        if key not in self.channel_ids:
+            self.channel_ids[key] = self.writer.register_channel(
+                topic=topic, message_encoding=encoding, schema_id=schema_id, metadata=dict(metadata)
+            )
+            self.stats.channels += 1
+        return self.channel_ids[key]
+
+
+def write_merged(
+    target: Path,
+    sources: Sequence[Source],
+    channels: Sequence[NewChannel],
+    messages: Iterable[NewMessage],
+    *,
+    metadata: dict[str, dict[str, str]] | None = None,
+) -> MergeStats:
+    """Write ``target`` (atomically): every record of ``sources`` copied unchanged, then ``channels`` and
+    ``messages`` appended, then ``metadata`` records.
+
+    Raises:
+        SourceError: a source cannot be read.
+    """
+    stats = MergeStats()
+    with atomic_path(target) as tmp, tmp.open("wb") as fh:
+        writer = Writer(fh, compression=CompressionType.ZSTD)
+        writer.start(profile=_profile(sources), library=f"logpipe {__version__}")
+        copier = _Copier(writer, stats)
+        for source in sources:
+            try:
+                if source.kind == "mcap":
+                    for path in source.paths:
+                        _copy_mcap(path, copier)
+                else:
+                    _copy_rosbag(source, copier)
+            except SourceError:
+                raise
+            except Exception as exc:  # mcap/rosbags raise many types for a damaged file
+                raise SourceError(source.name, f"cannot copy the original log: {exc}") from exc
+        ids = [
+            writer.register_channel(
+                topic=c.topic,
+                message_encoding=c.message_encoding,
+                schema_id=writer.register_schema(name=c.schema_name, encoding=c.schema_encoding, data=c.schema_data),
+                metadata=dict(c.metadata),
+            )
+            for c in channels
+        ]
+        sequence = [0] * len(ids)
+        for m in messages:
+            writer.add_message(ids[m.channel], log_time=m.log_time, publish_time=m.publish_time, data=m.data,
+                               sequence=sequence[m.channel])
+            sequence[m.channel] += 1
+            stats.appended += 1
+        for name, values in (metadata or {}).items():
+            writer.add_metadata(name, values)
+        writer.finish()  # type: ignore[no-untyped-call]
+    return stats
+
+
+def _profile(sources: Sequence[Source]) -> str:
+    """The MCAP profile of the output: the first MCAP source's own, ``ros1``/``ros2`` for bags."""
+    for source in sources:
+        if source.kind == "mcap":
+            with source.paths[0].open("rb") as fh:
+                for record in StreamReader(fh, skip_magic=False).records:
+                    return str(getattr(record, "profile", ""))
+        else:
+            return "ros1" if source.paths[0].suffix == ".bag" else "ros2"
+    return ""
+
+
+def _copy_mcap(path: Path, copier: _Copier) -> None:
+    """Stream every record of one MCAP file into the writer, in file order."""
+    schemas: dict[int, Schema] = {}
+    channel_map: dict[int, int] = {}
+    writer, stats = copier.writer, copier.stats
+    with path.open("rb") as fh:
+        for record in StreamReader(fh, skip_magic=False).records:
+            if isinstance(record, Schema):
+                schemas.setdefault(record.id, record)
+            elif isinstance(record, Channel):
+                if record.id in channel_map:
+                    continue  # repeated in the summary section
+                schema_id = 0
+                if record.schema_id != 0:
+                    s = schemas[record.schema_id]
+                    schema_id = copier.schema(s.name, s.encoding, s.data)
+                channel_map[record.id] = copier.channel(record.topic, record.message_encoding, schema_id,
+                                                        dict(record.metadata))
+            elif isinstance(record, Message):
+                writer.add_message(channel_map[record.channel_id], log_time=record.log_time,
+                                   publish_time=record.publish_time, data=record.data, sequence=record.sequence)
+                stats.messages += 1
+            elif isinstance(record, Metadata):
+                writer.add_metadata(record.name, dict(record.metadata))
+                stats.metadata += 1
+            elif isinstance(record, Attachment):
+                writer.add_attachment(create_time=record.create_time, log_time=record.log_time, name=record.name,
+                                      media_type=record.media_type, data=record.data)
+                stats.attachments += 1
+
+
+def ros1_schema_name(msgtype: str) -> str:
+    """``geometry_msgs/msg/PoseStamped`` (rosbags' normalised name) -> ``geometry_msgs/PoseStamped`` (ROS1)."""
+    pkg, _, name = msgtype.rpartition("/")
+    return f"{pkg.removesuffix('/msg')}/{name}"
+
+
+def _copy_rosbag(source: Source, copier: _Copier) -> None:
+    """Convert one bag's connections and raw messages (MCAP ROS1/ROS2 profiles)."""
+    from rosbags.highlevel import AnyReader
+    from rosbags.interfaces import MessageDefinitionFormat
+
+    writer, stats = copier.writer, copier.stats
+    with AnyReader(list(source.paths)) as reader:
+        ros1 = reader.is2 is False
+        channel_of: dict[int, int] = {}
+        for conn in reader.connections:
+            msgdef = conn.msgdef
+            if ros1:
+                schema_id = copier.schema(ros1_schema_name(conn.msgtype), "ros1msg", msgdef.data.encode())
+                ext: Any = conn.ext
+                meta = {"md5sum": conn.digest, "callerid": str(getattr(ext, "callerid", "") or ""),
+                        "latching": str(int(getattr(ext, "latching", 0) or 0))}
+                encoding = "ros1"
+            else:
+                schema_id = _ros2_schema(copier, reader, conn.msgtype, msgdef.format, msgdef.data,
+                                         MessageDefinitionFormat)
+                ext = conn.ext
+                meta = {"offered_qos_profiles": _qos_text(getattr(ext, "offered_qos_profiles", ""))}
+                encoding = str(getattr(ext, "serialization_format", "cdr") or "cdr")
+            channel_of[conn.id] = copier.channel(conn.topic, encoding, schema_id, meta)
+        for conn, timestamp, raw in reader.messages():
+            writer.add_message(channel_of[conn.id], log_time=timestamp, publish_time=timestamp, data=bytes(raw),
+                               sequence=0)
+            stats.messages += 1
+
+
+def _qos_text(value: Any) -> str:
+    """rosbag2 stores QoS profiles as YAML text; newer rosbags parse them into objects."""
+    if isinstance(value, str):
+        return value
+    if not value:
+        return ""
+    import yaml
+
+    def plain(obj: Any) -> Any:
+        if hasattr(obj, "__dataclass_fields__"):
+            return {k: plain(getattr(obj, k)) for k in obj.__dataclass_fields__}
+        if isinstance(obj, list | tuple):
+            return [plain(v) for v in obj]
+        return getattr(obj, "value", obj)
+
+    return str(yaml.safe_dump(plain(value), sort_keys=False))
+
+
+def _ros2_schema(copier: _Copier, reader: Any, msgtype: str, fmt: Any, data: str, formats: Any) -> int:
+    """``ros2msg``/``ros2idl`` schema from the bag's definition, else generated from the type store."""
+    if fmt == formats.MSG and data:
+        return copier.schema(msgtype, "ros2msg", data.encode())
+    if fmt == formats.IDL and data:
+        return copier.schema(msgtype, "ros2idl", data.encode())
+    try:
+        text, _ = reader.typestore.generate_msgdef(msgtype, ros_version=2)
+    except Exception:  # a type the store does not know: the channel keeps no schema
+        return 0
+    return copier.schema(msgtype, "ros2msg", str(text).encode())

@@ -1,0 +1,158 @@
+"""A prediction run's per-log MCAP: the original recording plus the prediction channels, one message of each
+per sample at its prediction time (the Foxglove messages are built by ``logpipe.mcap.foxglove``).
+
+Channels::
+
+    /logpipe/predictions        logpipe.Predictions (JSON, schemas/logpipe.Predictions.json)
+    /logpipe/predictions/scene  foxglove.SceneUpdate: history, truth, modes
+    /logpipe/raster/tf          foxglove.FrameTransform placing frame logpipe_raster      } with raster
+    /logpipe/raster             foxglove.CompressedImage (PNG) in frame logpipe_raster    } images only
+    /logpipe/raster/grid        foxglove.Grid in frame logpipe_raster                     }
+
+Positions are metres in the log's world frame (``prediction.originals.world_frame``); times are ns on the log's clock.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Iterable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from logpipe import __version__
+from logpipe.errors import DatasetError
+from logpipe.mcap import foxglove as fx
+from logpipe.mcap import raster_image as fr
+from logpipe.mcap.forecast_scene import forecast_scene_update
+from logpipe.mcap.merge import NewChannel, NewMessage, Source, write_merged
+from logpipe.mcap.tracks import json_schema_bytes
+from logpipe.prediction.originals import world_frame
+from logpipe.prediction.output import SamplePrediction
+from logpipe.storage.artifact import unsafe_file_name
+from logpipe.types import OBJECT_TYPES, SampleProtocol
+
+try:  # orjson encodes numpy arrays ~30x faster than json; the output is the same compact JSON
+    import orjson
+
+    def dumps(obj: Any) -> bytes:
+        """Compact JSON (numpy arrays as nested lists)."""
+        return orjson.dumps(obj, option=orjson.OPT_SERIALIZE_NUMPY)
+
+except ImportError:  # pragma: no cover - orjson is a dependency; keep working without it
+
+    def dumps(obj: Any) -> bytes:
+        """Compact JSON (numpy arrays as nested lists)."""
+        return json.dumps(obj, separators=(",", ":"), default=lambda a: a.tolist()).encode()
+
+
+PREDICTIONS_TOPIC = "/logpipe/predictions"
+SCENE_TOPIC = "/logpipe/predictions/scene"
+RASTER_TOPIC = "/logpipe/raster"
+RASTER_GRID_TOPIC = "/logpipe/raster/grid"
+RASTER_TF_TOPIC = "/logpipe/raster/tf"
+RASTER_FRAME = "logpipe_raster"
+
+
+def check_log_ids(root: Path, log_ids: Iterable[str]) -> None:
+    """Refuse, before any output, a log (of the dataset at ``root``) whose id cannot be a file name: MCAPs are
+    named after log ids, and an id like ``../../x`` would put one outside the output folder.
+
+    Raises:
+        DatasetError: naming the first such id.
+    """
+    for log_id in log_ids:
+        reason = unsafe_file_name(log_id)
+        if reason:
+            raise DatasetError(f"{root}: log id {log_id[:80]!r} {reason}; log ids become file names, so "
+                               "predict refuses it (damaged or hand-made dataset? re-ingest it)")
+
+
+def new_channels(with_raster: bool, frame: str) -> list[NewChannel]:
+    """Appended channels, indexed by ``NewMessage.channel``: predictions, scene and, with rasters, the raster
+    frame's transform, the PNG and the grid the 3D panel draws."""
+    channels = [
+        NewChannel(PREDICTIONS_TOPIC, "logpipe.Predictions", "jsonschema", json_schema_bytes("logpipe.Predictions"),
+                   metadata={"frame_id": frame}),
+        fx.new_channel(SCENE_TOPIC, "foxglove.SceneUpdate", frame),
+    ]
+    if with_raster:
+        channels += [fx.new_channel(RASTER_TF_TOPIC, "foxglove.FrameTransform", frame),
+                     fx.new_channel(RASTER_TOPIC, "foxglove.CompressedImage", RASTER_FRAME),
+                     fx.new_channel(RASTER_GRID_TOPIC, "foxglove.Grid", RASTER_FRAME)]
+    return channels
+
+
+@dataclass(frozen=True)
+class PredictionMcaps:
+    """What every log MCAP of a run shares; ``write`` is a ``prediction.output.LogMcapWriter``.
+
+    Attributes:
+        protocol: the dataset's sample protocol; ``predictor``, ``checkpoint_id``, ``modes``, ``seed``: the run's.
+        raster_channels: the raster layers, when raster images are added (None: no raster channels).
+        logs: logs-table row of each log; ``originals``: its original recording.
+    """
+
+    protocol: SampleProtocol
+    predictor: str
+    checkpoint_id: str
+    modes: int
+    seed: int
+    raster_channels: tuple[str, ...] | None
+    logs: dict[str, dict[str, Any]]
+    originals: dict[str, Source]
+
+    def write(self, log_id: str, predictions: Iterator[SamplePrediction], target: Path) -> int:
+        """Original log + the prediction channels, one message per sample at its prediction time; returns the
+        number of original messages copied."""
+        row = self.logs[log_id]
+        frame = world_frame(row)
+        layers = self.raster_channels
+        horizon_ns = int(row["median_dt_ns"]) * self.protocol.pred_len
+
+        def messages() -> Iterator[NewMessage]:
+            for p in predictions:
+                now = int(p.row["current_ns"])
+                yield NewMessage(0, now, now, self._predictions_json(log_id, frame, p))
+                yield NewMessage(1, now, now, forecast_scene_update(frame, now, horizon_ns, p.sample, p.targets,
+                                                                    p.futures, p.scores))
+                affine = p.sample.world_to_raster
+                if layers is not None and p.sample.raster is not None and affine is not None:
+                    rgb = fr.raster_rgb(np.asarray(p.sample.raster), layers)
+                    yield NewMessage(2, now, now, fr.raster_transform(frame, RASTER_FRAME, now, affine))
+                    yield NewMessage(3, now, now, fr.compressed_raster(RASTER_FRAME, now, rgb))
+                    yield NewMessage(4, now, now, fr.raster_grid(RASTER_FRAME, now, rgb,
+                                                                 fr.raster_resolution(affine)))
+
+        stats = write_merged(
+            target, [self.originals[log_id]], new_channels(layers is not None, frame), messages(),
+            metadata={"logpipe.predictions": {"log_id": log_id, "frame_id": frame, "predictor": self.predictor,
+                                              "checkpoint_id": self.checkpoint_id, "num_modes": str(self.modes),
+                                              "seed": str(self.seed), "logpipe_version": __version__}},
+        )
+        return stats.messages
+
+    def _predictions_json(self, log_id: str, frame: str, p: SamplePrediction) -> bytes:
+        current = p.sample.positions[p.targets, self.protocol.obs_len - 1]
+        message = {
+            "log_id": log_id,
+            "sample_id": p.sample.sample_id,
+            "timestamp_ns": int(p.row["current_ns"]),
+            "frame_id": frame,
+            "predictor": self.predictor,
+            "checkpoint_id": self.checkpoint_id,
+            "obs_len": self.protocol.obs_len,
+            "pred_len": self.protocol.pred_len,
+            "num_modes": self.modes,
+            "step_timestamps_ns": p.step_ns.tolist(),
+            "track_id": [p.sample.track_ids[i] for i in p.targets],
+            "object_type": [OBJECT_TYPES[int(p.sample.object_types[i])] for i in p.targets],
+            "current_x": np.ascontiguousarray(current[:, 0]),
+            "current_y": np.ascontiguousarray(current[:, 1]),
+            "score": np.ascontiguousarray(p.scores),
+            "x": np.ascontiguousarray(p.futures[..., 0]),
+            "y": np.ascontiguousarray(p.futures[..., 1]),
+        }
+        return dumps(message)

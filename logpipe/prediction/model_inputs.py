@@ -1,0 +1,131 @@
+"""Sample-index rows → model inputs for prediction: ``SampleCutter`` cuts each sample's window out of its log
+(``logpipe.dataset.windows``), keeps the targets of the object types asked for, attaches the sample's raster, and plans
+the batches a shard's samples form (the same on every process that cuts them: the predict stage, Ray actors).
+
+Positions are metres in the log's world frame; times are ns on the log's clock.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pyarrow as pa
+
+from logpipe.dataset.shards import log_slices
+from logpipe.dataset.windows import LogWindows
+from logpipe.errors import LogpipeError
+from logpipe.raster.runs import RasterShards
+from logpipe.storage.io import read_table
+from logpipe.types import OBJECT_TYPES, SceneSample
+
+BatchPlan = list[list[tuple[str, dict[str, Any]]]]
+"""Consecutive batches of (log id, sample-index row)."""
+WorkItem = tuple[str, BatchPlan]
+"""A shard path and consecutive batches of it (a Ray actor's unit of work)."""
+
+
+@dataclass(frozen=True)
+class SampleCutter:
+    """How a run cuts its samples.
+
+    Attributes:
+        obs_len: the protocol's observed steps.
+        object_types: only targets of these classes (``SampleFilter.object_types``; empty: all).
+        rasters: the raster run whose rasters are attached (None: none); ``raster_ids`` its sample ids.
+    """
+
+    obs_len: int
+    object_types: tuple[str, ...] = ()
+    rasters: RasterShards | None = None
+    raster_ids: frozenset[str] = field(default_factory=frozenset)
+
+    def cut(self, windows: LogWindows, row: dict[str, Any], raster: bool = True) -> SceneSample | None:
+        """The sample of ``row`` with the object-type filter applied to its targets and (``raster``) its raster
+        attached; None when no target is left."""
+        sample = windows.sample(row, self.obs_len)
+        if self.object_types:
+            keep = np.isin(np.asarray(OBJECT_TYPES)[sample.object_types], self.object_types)
+            sample.target_mask = sample.target_mask & keep
+        if not sample.target_mask.any():
+            return None
+        if raster and self.rasters is not None and sample.sample_id in self.raster_ids:
+            sample.raster, sample.world_to_raster = self.rasters.get(sample.sample_id)
+        return sample
+
+    def plan_batches(self, tracks: pa.Table, log_ids: Sequence[str],
+                     samples_by_log: dict[str, list[dict[str, Any]]], batch_size: int) -> BatchPlan:
+        """The batches of one shard's ``tracks``: the samples of ``log_ids`` (in that order) left with targets,
+        ``batch_size`` at a time."""
+        kept = [(log_id, row) for log_id, windows in log_windows(tracks, log_ids)
+                for row in samples_by_log.get(log_id, []) if self.cut(windows, row, raster=False) is not None]
+        return [kept[i : i + batch_size] for i in range(0, len(kept), batch_size)]
+
+    def cut_planned(self, shard: ShardWindows, path: str, batches: BatchPlan) -> Iterator[list[SceneSample]]:
+        """The samples of each planned batch of the shard file at ``path``.
+
+        Raises:
+            LogpipeError: a planned sample has no targets (the plan was made with another cutter).
+        """
+        for batch in batches:
+            samples = []
+            for log_id, row in batch:
+                sample = self.cut(shard.get(path, log_id), row)
+                if sample is None:
+                    raise LogpipeError(f"{path}: sample {row['sample_id']} has no targets on a Ray actor")
+                samples.append(sample)
+            yield samples
+
+
+def work_items(planned: Sequence[tuple[Path, BatchPlan]], parts: int) -> list[WorkItem]:
+    """The planned batches of each shard split into runs of consecutive batches, about ``parts`` in all."""
+    per_item = max(1, -(-sum(len(b) for _, b in planned) // parts))
+    return [(str(path), batches[i : i + per_item]) for path, batches in planned
+            for i in range(0, len(batches), per_item)]
+
+
+def raster_problems(dataset_dir: Path, rasters: RasterShards | None,
+                    samples_by_log: dict[str, list[dict[str, Any]]]) -> list[str]:
+    """Why the raster run ``rasters`` cannot feed a network that needs a raster for each selected sample (the
+    rows of ``samples_by_log``); empty when it can."""
+    if rasters is None:
+        return [f"the checkpoint uses the environment net but {dataset_dir} has no raster run with the channels "
+                "it expects; run `logpipe rasterise`"]
+    have = set(rasters.index.column("sample_id").to_pylist())
+    missing = [s["sample_id"] for rows in samples_by_log.values() for s in rows if s["sample_id"] not in have]
+    if missing:
+        return [f"raster run {rasters.run_dir.name} lacks {len(missing)} selected samples (e.g. {missing[0]}); "
+                "re-run `logpipe rasterise`"]
+    return []
+
+
+def log_windows(tracks: pa.Table, log_ids: Sequence[str]) -> Iterator[tuple[str, LogWindows]]:
+    """The windows of each of ``log_ids`` that ``tracks`` (a shard) holds, in the order of ``log_ids``."""
+    slices = log_slices(tracks)
+    for log_id in (i for i in log_ids if i in slices):
+        lo, hi = slices[log_id]
+        yield log_id, LogWindows(tracks.slice(lo, hi - lo))
+
+
+class ShardWindows:
+    """The windows of the logs of the last shard file read (a Ray actor's work items name shards by path)."""
+
+    def __init__(self) -> None:
+        self._path: str | None = None
+        self._tracks: pa.Table | None = None
+        self._slices: dict[str, tuple[int, int]] = {}
+        self._windows: dict[str, LogWindows] = {}
+
+    def get(self, path: str, log_id: str) -> LogWindows:
+        """The windows of ``log_id`` in the shard at ``path``."""
+        if self._path != path:
+            self._tracks = read_table(Path(path))
+            self._path, self._slices, self._windows = path, log_slices(self._tracks), {}
+        if log_id not in self._windows:
+            assert self._tracks is not None
+            lo, hi = self._slices[log_id]
+            self._windows[log_id] = LogWindows(self._tracks.slice(lo, hi - lo))
+        return self._windows[log_id]

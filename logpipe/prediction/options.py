@@ -1,0 +1,125 @@
+"""What ``logpipe predict`` is asked (``PredictOptions``) and what it reports (``PredictSummary``, its ``--json``)."""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from logpipe.dataset.sample_filter import SampleFilter
+
+if TYPE_CHECKING:
+    from logpipe.prediction.output import ShardWriter
+
+
+@dataclass(frozen=True)
+class PredictOptions:
+    """The options of one predict run (the arguments of ``predict_dataset`` after the folders).
+
+    Attributes:
+        checkpoint: a checkpoint folder (default: ``default_checkpoint`` for the dataset kind and filter split).
+        predictor: a baseline instead (``cv``, ``linear``, ``kalman``, ``cv_sampler``).
+        modes: K futures per target (default: the K the checkpoint's inference settings were chosen at, else
+            ``default_modes``).
+        seed: fixes every random draw (noise z, sampler); same seed and settings give the same output.
+        noise_scale: standard deviation of the network's noise z (1 = as trained, eq. 21); the spread of the
+            K futures. Default: the checkpoint's inference settings (chosen on validation data, ``meta.json``
+            ``inference``), else 1. Recorded in ``checkpoint_id`` when not 1.
+        constant_velocity_modes: how many of the K futures are the constant-velocity forecast (the network's
+            step outputs held at zero). Default: the checkpoint's inference settings, else its training config.
+            Recorded in ``checkpoint_id`` when set.
+        context_max_neighbours: at most this many of the agents within the checkpoint's ``context_radius_m``
+            (the nearest) join each target's context. Default: the checkpoint's inference settings, else all.
+            Recorded in ``checkpoint_id`` when set.
+        as_trained: ignore the checkpoint's stored inference settings (noise scale 1, its training config).
+        sample_filter: which samples (default: all).
+        inputs: the roots ROS bags / MCAP files were ingested from (their originals are copied into the output);
+            default: the manifest's ``input_roots`` (absolute paths), when ingest records them.
+        raster_run: the raster run folder under ``rasters/`` (default: the only one that fits).
+        raster_images: add the raster of each sample (PNG image and grid) to the MCAPs when rasters exist.
+        write_mcap: write the per-log MCAPs (off: the predictions table only).
+        batch_size: samples per forward pass.
+        threads: torch intra-op threads (0 = the cores this process may use).
+        device: where a checkpoint's network runs: ``auto`` (CUDA when torch can use a GPU, else the CPU), ``cpu``
+            or ``cuda`` (autocast there; see ``logpipe.model.device``). Baselines run on the CPU whatever it says.
+        backend: ``local`` (this process) or ``ray``: forecasts on Ray actors (``logpipe.model.ray_predict``;
+            the dataset must be on a file system every node shares), outputs written here, the same bytes.
+        workers: Ray actors (0: one per GPU of the cluster, else one per CPU); ``local`` ignores it.
+    """
+
+    checkpoint: Path | None = None
+    predictor: str | None = None
+    modes: int | None = None
+    seed: int = 0
+    noise_scale: float | None = None
+    constant_velocity_modes: int | None = None
+    context_max_neighbours: int | None = None
+    as_trained: bool = False
+    sample_filter: SampleFilter | None = None
+    inputs: Sequence[Path] = ()
+    raster_run: str | None = None
+    raster_images: bool = True
+    write_mcap: bool = True
+    batch_size: int = 64
+    threads: int = 0
+    device: str = "auto"
+    backend: str = "local"
+    workers: int = 0
+
+
+@dataclass
+class PredictSummary:
+    """The run summary; ``to_dict()`` is the ``--json`` output (keys in this order, seconds rounded to ms).
+
+    Counts cover this invocation (shards skipped as already committed are not counted again), except
+    ``shards`` and ``rows_total``: the whole committed run.
+    """
+
+    dataset: str
+    out: str
+    predictor: str
+    checkpoint_id: str
+    num_modes: int
+    seed: int
+    checkpoint: str | None
+    raster_run: str | None
+    inference: dict[str, object] | None
+    warnings: list[str]
+    protocol: dict[str, Any]
+    logs_selected: int
+    samples_selected: int
+    shards_skipped_done: int = 0
+    samples: int = 0
+    targets: int = 0
+    rows: int = 0
+    targets_unobserved: int = 0
+    samples_without_targets: int = 0
+    mcap_files: int = 0
+    original_messages: int = 0
+    model_seconds: float = 0.0
+    io_seconds: float = 0.0
+    io_wait_seconds: float = 0.0
+    io_busy_seconds: float = 0.0
+    device: str | None = None
+    backend: str = "local"
+    shards: int = 0
+    rows_total: int = 0
+    seconds: float = 0.0
+
+    def count_writer(self, sink: ShardWriter) -> None:
+        """Add a shard writer's counts and times (its busy time overlapped with the model, on its thread)."""
+        self.io_seconds += sink.busy_seconds + sink.files_seconds
+        self.io_busy_seconds += sink.busy_seconds
+        self.io_wait_seconds += sink.wait_seconds
+        self.mcap_files += sink.mcap_files
+        self.original_messages += sink.original_messages
+
+    def to_dict(self) -> dict[str, Any]:
+        """The ``--json`` summary (``samples_per_s`` over the whole run's wall time)."""
+        out = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
+        for key in ("model_seconds", "io_seconds", "io_wait_seconds", "io_busy_seconds", "seconds"):
+            out[key] = round(out[key], 3)
+        out["samples_per_s"] = round(self.samples / out["seconds"], 1) if out["seconds"] else None
+        return out

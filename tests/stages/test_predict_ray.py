@@ -1,0 +1,91 @@
+"""``logpipe predict --backend ray``: the same output bytes as a local run, also when an actor dies mid-run."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pyarrow.parquet as pq
+import pytest
+
+from logpipe.stages.ingest import IngestOptions, ingest
+
+ray = pytest.importorskip("ray", reason="Ray is a dev dependency; install logpipe[dev]")
+pytest.importorskip("ray.data", reason="--backend ray needs Ray Data (logpipe[ray])")
+
+REPO = Path(__file__).resolve().parents[2]
+ETH_CHECKPOINT = REPO / "model" / "checkpoints" / "ethucy" / "eth"
+
+
+@pytest.fixture(scope="module", autouse=True)
+def ray_cluster() -> Iterator[None]:
+    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
+    yield
+    ray.shutdown()
+
+
+@pytest.fixture(scope="module")
+def eth(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    root = tmp_path_factory.mktemp("eth")
+    ingest([REPO / "tests" / "data" / "ethucy"], IngestOptions(out=root / "ds"))
+    return root / "ds"
+
+
+def _files(out: Path) -> dict[str, str]:
+    """sha256 of every file of a run folder, by relative path (the manifest included, the lock file not)."""
+    return {p.relative_to(out).as_posix(): hashlib.sha256(p.read_bytes()).hexdigest()
+            for p in sorted(out.rglob("*")) if p.is_file() and p.name != ".lock"}
+
+
+def _both(dataset: Path, tmp_path: Path, **settings: Any) -> tuple[dict[str, Any], dict[str, Any]]:
+    from logpipe.stages.predict import predict_dataset
+
+    local = predict_dataset(dataset, tmp_path / "local", backend="local", **settings)
+    remote = predict_dataset(dataset, tmp_path / "ray", backend="ray", workers=2, **settings)
+    return local, remote
+
+
+def test_network_forecasts_on_ray_write_the_local_bytes(eth: Path, tmp_path: Path) -> None:
+    from logpipe.dataset.sample_filter import parse_filter
+
+    # Small batches so the work is cut into several items over both actors; one torch thread on both sides (the
+    # network's float32 reductions round by thread count, locally too).
+    local, remote = _both(eth, tmp_path, checkpoint=ETH_CHECKPOINT, batch_size=2, threads=1,
+                          sample_filter=parse_filter(["split=eth/test", "time=:60000000000"]))
+    assert (local["backend"], remote["backend"]) == ("local", "ray")
+    assert remote["samples"] == local["samples"] >= 5 and remote["rows"] == local["rows"] > 0
+    files = _files(tmp_path / "local")
+    assert {"predictions/part-00000.parquet", "mcap/part-00000/biwi_eth.mcap", "manifest.json"} <= set(files)
+    assert _files(tmp_path / "ray") == files
+
+
+def test_baseline_on_ray_writes_the_local_bytes(eth: Path, tmp_path: Path) -> None:
+    from logpipe.dataset.sample_filter import parse_filter
+
+    local, remote = _both(eth, tmp_path, predictor="cv", batch_size=16,
+                          sample_filter=parse_filter(["time=:60000000000"]))
+    assert remote["samples"] == local["samples"] > 100 and remote["mcap_files"] == 3
+    assert _files(tmp_path / "ray") == _files(tmp_path / "local")
+
+
+def test_a_killed_actor_is_retried_without_duplicate_or_partial_output(eth: Path, tmp_path: Path,
+                                                                       monkeypatch: pytest.MonkeyPatch) -> None:
+    from logpipe.dataset.sample_filter import parse_filter
+    from logpipe.model.ray_predict import KILL_ONCE_ENV
+
+    marker = tmp_path / "killed"
+    monkeypatch.setenv(KILL_ONCE_ENV, str(marker))
+    local, remote = _both(eth, tmp_path, predictor="cv_sampler", modes=5, batch_size=16,
+                          sample_filter=parse_filter(["time=:60000000000"]))
+    assert marker.exists()  # an actor did die (os._exit at its first work item)
+    assert remote["samples"] == local["samples"] > 100
+    keys = ["sample_id", "track_id", "mode"]
+    table = pq.read_table(tmp_path / "ray" / "predictions" / "part-00000.parquet", columns=keys)
+    rows = list(zip(*(table.column(k).to_pylist() for k in keys), strict=True))
+    assert len(rows) == len(set(rows)) == remote["rows"]  # each sample's targets and modes once
+    assert _files(tmp_path / "ray") == _files(tmp_path / "local")
+    manifest = json.loads((tmp_path / "ray" / "manifest.json").read_text())
+    assert sorted(manifest["files"]) == sorted(k for k in _files(tmp_path / "ray") if k != "manifest.json")
