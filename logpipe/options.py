@@ -8,7 +8,7 @@ Importing this module is cheap (``logpipe.api``'s promise): what it needs beyond
 from __future__ import annotations
 
 import os
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -55,17 +55,22 @@ def names(value: str | Sequence[str] | None) -> tuple[str, ...] | None:
     return tuple(p.strip() for p in parts if p.strip())
 
 
+def _key_values(items: Sequence[str] | None, error: Callable[[str], str]) -> list[tuple[str, str]]:
+    """``KEY=VALUE`` option strings split at the first ``=``; ``error(item)`` is the message for one without."""
+    pairs = []
+    for item in items or ():
+        key, sep, value = item.partition("=")
+        if not sep:
+            raise LogpipeError(error(item))
+        pairs.append((key, value))
+    return pairs
+
+
 def map_files(map_file: Sequence[str] | Mapping[str, StrPath] | None) -> dict[str, Path]:
     """``rasterise``'s ``--map``: ``MAP_ID=FILE`` strings or ``{map_id: file}`` → map id → file."""
     if isinstance(map_file, Mapping):
         return {str(k): as_path(v) for k, v in map_file.items()}
-    files: dict[str, Path] = {}
-    for item in map_file or ():
-        key, sep, value = item.partition("=")
-        if not sep:
-            raise LogpipeError(f"--map expects MAP_ID=FILE, got {item!r}")
-        files[key] = Path(value)
-    return files
+    return {key: Path(value) for key, value in _key_values(map_file, _map_error)}
 
 
 def gates(fail_above: Sequence[str] | Mapping[str, float] | None) -> dict[str, float]:
@@ -73,15 +78,20 @@ def gates(fail_above: Sequence[str] | Mapping[str, float] | None) -> dict[str, f
     if isinstance(fail_above, Mapping):
         return {str(key): float(value) for key, value in fail_above.items()}
     thresholds: dict[str, float] = {}
-    for item in fail_above or ():
-        key, sep, value = item.partition("=")
+    for key, value in _key_values(fail_above, _gate_error):
         try:
-            if not sep:
-                raise ValueError(item)
             thresholds[key.strip()] = float(value)
         except ValueError:
-            raise LogpipeError(f"--fail-above {item!r}: expected kN.METRIC=NUMBER") from None
+            raise LogpipeError(_gate_error(f"{key}={value}")) from None
     return thresholds
+
+
+def _map_error(item: str) -> str:
+    return f"--map expects MAP_ID=FILE, got {item!r}"
+
+
+def _gate_error(item: str) -> str:
+    return f"--fail-above {item!r}: expected kN.METRIC=NUMBER"
 
 
 def sample_protocol(  # noqa: PLR0913  keyword options mirror the CLI's protocol flags one to one
