@@ -27,7 +27,7 @@ Importing this module is cheap: the stages (and torch, pyarrow) are imported by 
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping, Sequence
-from typing import Any, cast
+from typing import TYPE_CHECKING, Any, cast
 
 from logpipe.errors import LogpipeError
 from logpipe.options import (
@@ -42,7 +42,10 @@ from logpipe.options import (
     optional_path,
     sample_protocol,
 )
-from logpipe.summaries import IndexSummary, IngestSummary, VerifyReport
+from logpipe.summaries import IndexSummary, IngestSummary, RasteriseSummary, TrainSummary, VerifyReport
+
+if TYPE_CHECKING:  # its module loads the storage layer; the API imports it only in score (cheap `import logpipe`)
+    from logpipe.scoring.reports import ScoreResult
 
 Progress = Callable[[int], None]
 """Called with the number of items (inputs, samples) each finished batch covered."""
@@ -178,7 +181,7 @@ def rasterise(  # noqa: PLR0913  public API: keyword options mirror `logpipe ras
     workers: int | None = None,
     backend: str = "local",
     progress: Progress | None = None,
-) -> dict[str, Any]:
+) -> RasteriseSummary:
     """``logpipe rasterise``: one ego-centred map raster per sample into ``DATASET/rasters/<run>/``.
 
     Args:
@@ -204,7 +207,7 @@ def rasterise(  # noqa: PLR0913  public API: keyword options mirror `logpipe ras
         spec = RasterSpec(size_px=size, extent_m=extent, rotate=rotate, channels=names(channels) or DEFAULT_CHANNELS)
     except ValueError as err:
         raise LogpipeError(str(err)) from None
-    summary: dict[str, Any] = rasterise_dataset(
+    summary: RasteriseSummary = rasterise_dataset(
         as_path(dataset), MapSource(roots=tuple(as_paths(maps)), files=files), centre=centre, rotate=rotate,
         preview=preview, spec=spec, shard_size=shard_size, force=force, progress=progress,
         workers=workers if workers is not None else (0 if backend == "ray" else 1),
@@ -230,7 +233,7 @@ def train(  # noqa: PLR0913  public API: keyword options mirror `logpipe train` 
     init_from: StrPath | None = None,
     device: str = "auto",
     progress: bool | Progress = False,
-) -> dict[str, Any]:
+) -> TrainSummary:
     """``logpipe train``: train the predictor on ``dataset`` into the run folder ``out``.
 
     Args:
@@ -268,7 +271,7 @@ def train(  # noqa: PLR0913  public API: keyword options mirror `logpipe train` 
         overrides["steps"] = steps
     if seed is not None:
         overrides["seed"] = seed
-    summary: dict[str, Any] = run_train(
+    summary: TrainSummary = run_train(
         folders[0] if len(folders) == 1 else folders, as_path(out), train_split=chosen_train,
         val_split=None if chosen_val == "none" else chosen_val,
         config_path=optional_path(config), overrides=overrides, preset=preset,
@@ -355,7 +358,7 @@ def score(  # noqa: PLR0913  public API: keyword options mirror `logpipe score` 
     allow_missing: bool = False,
     plots: bool = True,
     plot_samples: int = 6,
-) -> dict[str, Any]:
+) -> ScoreResult:
     """``logpipe score``: ADE/FDE (metres) of prediction run folders (or files), one method each, against the
     dataset ``truth``; writes ``report.json``, ``report.md`` and plots into ``out`` and returns the report.
 
@@ -376,7 +379,7 @@ def score(  # noqa: PLR0913  public API: keyword options mirror `logpipe score` 
 
     check_choice("--agents", agents, ("all", "focal"))
     thresholds = gates(fail_above)
-    report: dict[str, Any] = run_score(
+    report: ScoreResult = run_score(
         as_paths(predictions), as_path(truth), as_path(out), agents=cast(Any, agents), min_agents=min_agents,
         split=split, ks=list(k) if k else None, miss_threshold_m=miss_threshold, fail_above=thresholds,
         labels=list(label) if label else None, allow_missing=allow_missing, plots=plots, plot_samples=plot_samples,

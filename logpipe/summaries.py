@@ -52,3 +52,92 @@ class VerifyReport(TypedDict):
     files_checked: int
     problems: list[str]
     leftovers: list[str]
+
+
+class RasteriseSummary(TypedDict):
+    """What ``rasterise_dataset`` returns (``logpipe rasterise --json``). Counts are of this invocation:
+    ``skipped_existing`` samples were in shards an earlier run committed (their counts are in the run manifest's
+    ``counts``, not here).
+
+    ``spec`` is ``RasterSpec.to_dict()`` (open JSON: its keys follow the spec's version). ``heading_source`` and
+    ``centre_role`` count rendered samples by rule (``column``/``motion``/``lane``/``none``; ``ego``/``focal``);
+    ``previews`` are PNG paths. The timings are set once the run is committed: ``seconds`` (wall), ``render_seconds``
+    (drawing only) and ``rasters_per_s`` (None when nothing was rendered).
+    """
+
+    run_dir: str
+    run_id: str
+    spec: dict[str, Any]
+    fingerprint: str
+    centre: str
+    samples: int
+    rendered: int
+    skipped_existing: int
+    empty: int
+    no_centre: int
+    logs_without_map: int
+    logs_without_map_examples: list[str]
+    heading_source: dict[str, int]
+    centre_role: dict[str, int]
+    previews: list[str]
+    seconds: NotRequired[float]
+    render_seconds: NotRequired[float]
+    rasters_per_s: NotRequired[float | None]
+
+
+class TrainDatasetCount(TypedDict):
+    """One dataset of a run trained on several (``TrainSummary.per_dataset``): its samples (``train_samples``
+    is ``"streamed"`` for a dataset streamed through a DataLoader)."""
+
+    dataset: str
+    format: str
+    train_samples: int | str
+    val_samples: int | str
+
+
+class TrainPerDataset(TypedDict, total=False):
+    """``TrainSummary``'s ``per_dataset`` key, present only with several datasets (kept in its own record so the
+    summary's keys keep their order)."""
+
+    per_dataset: list[TrainDatasetCount]
+
+
+class TrainResumed(TypedDict, total=False):
+    """``TrainSummary``'s keys of a resumed run: the step this part started from and the training wall time of
+    all parts in seconds (None when an earlier part predates the training state's clock)."""
+
+    resumed_at_step: int
+    seconds_total: float | None
+
+
+class TrainSummary(TypedDict):
+    """What ``train`` returns (``logpipe train --json``).
+
+    With several datasets ``dataset`` and ``raster_run`` are lists (one per dataset, in the order given) and
+    ``per_dataset`` says what each gave. ``train_samples`` is ``"streamed"`` with ``--loader-workers``.
+    ``best_val_ade``/``best_val_fde`` are metres (NaN without validation), ``train_samples_per_s`` scenes per
+    second of optimiser steps, ``seconds`` this call's wall time.
+    """
+
+    dataset: str | list[str]
+    per_dataset: NotRequired[list[TrainDatasetCount]]
+    run: str
+    train_split: str
+    val_split: str | None
+    train_samples: int | str
+    val_samples: int
+    steps: int
+    best_step: int
+    best_val_ade: float
+    best_val_fde: float
+    stopped_early: bool
+    best_checkpoint: str | None
+    last_checkpoint: str
+    train_samples_per_s: float
+    raster_run: str | list[str | None] | None
+    init_from: str | None
+    environment_net: bool
+    device: str
+    seconds: float
+    resumed_at_step: NotRequired[int]
+    seconds_total: NotRequired[float | None]

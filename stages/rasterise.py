@@ -40,9 +40,22 @@ from logpipe.maps import MapSource
 from logpipe.progress import report_total
 from logpipe.raster.rasteriser import RasterSpec
 from logpipe.raster.render import ShardTask, clear_worker_cache, render_shard
-from logpipe.raster.runs import CENTRES, RASTER_DIR, RasterRunWriter, inputs_tag, run_id, shard_file
-from logpipe.storage.artifact import output_errors
+from logpipe.raster.runs import (
+    CENTRES,
+    RASTER_DIR,
+    CommittedShard,
+    RasterRunCounts,
+    RasterRunIdentity,
+    RasterRunManifest,
+    RasterRunWriter,
+    RasterShardEntry,
+    inputs_tag,
+    run_id,
+    shard_file,
+)
+from logpipe.storage.artifact import FileEntry, output_errors
 from logpipe.storage.io import read_table, sha256_file
+from logpipe.summaries import RasteriseSummary
 
 logger = logging.getLogger(__name__)
 
@@ -63,7 +76,7 @@ class _Job:
     centre: str
     preview: int
     shard_size: int
-    identity: dict[str, Any]
+    identity: RasterRunIdentity
     log_map: dict[str, str | None]
     shard_of: dict[str, str]
     map_files: dict[str, Path | None]
@@ -83,7 +96,7 @@ def rasterise_dataset(  # noqa: PLR0913  public API: the command's options one t
     progress: Callable[[int], None] | None = None,
     workers: int = 1,
     backend: Backend = "local",
-) -> dict[str, Any]:
+) -> RasteriseSummary:
     """Rasterise every sample of an ingested dataset.
 
     Args:
@@ -121,8 +134,8 @@ def rasterise_dataset(  # noqa: PLR0913  public API: the command's options one t
     # (it decides which sample lands in which file).
     map_files: dict[str, Path | None] = {lid: maps.resolve(mid, lid) for lid, mid in log_map.items()}
     map_hashes = {str(p): sha256_file(p) for p in sorted({p for p in map_files.values() if p is not None})}
-    identity = {"samples_sha256": ds.manifest["tables"]["samples"]["sha256"], "maps": map_hashes,
-                "shard_size": shard_size}
+    identity: RasterRunIdentity = {"samples_sha256": ds.manifest["tables"]["samples"]["sha256"], "maps": map_hashes,
+                                   "shard_size": shard_size}
     job = _Job(ds, spec, centre, preview, shard_size, identity, log_map,
                dict(zip(log_ids, logs.column("shard").to_pylist(), strict=True)), map_files, map_hashes)
     with output_errors(), RasterRunWriter(out) as writer:
@@ -130,7 +143,7 @@ def rasterise_dataset(  # noqa: PLR0913  public API: the command's options one t
 
 
 def _rasterise_locked(writer: RasterRunWriter, job: _Job, force: bool, progress: Callable[[int], None] | None,
-                      workers: int, backend: Backend, started: float) -> dict[str, Any]:
+                      workers: int, backend: Backend, started: float) -> RasteriseSummary:
     """``rasterise_dataset`` while holding the run folder's lock: render the shards no commit names, committing
     the manifest after each (so an interrupted run resumes), the last commit marking the run complete."""
     out = writer.root
@@ -139,7 +152,7 @@ def _rasterise_locked(writer: RasterRunWriter, job: _Job, force: bool, progress:
     n = samples.num_rows
     report_total(progress, n)
     no_map = sorted(lid for lid, p in job.map_files.items() if p is None)
-    summary: dict[str, Any] = {
+    summary: RasteriseSummary = {
         "run_dir": str(out),
         "run_id": out.name,
         "spec": job.spec.to_dict(),
@@ -156,13 +169,14 @@ def _rasterise_locked(writer: RasterRunWriter, job: _Job, force: bool, progress:
         "centre_role": {"ego": 0, "focal": 0},
         "previews": [],
     }
-    shard_meta: list[dict[str, Any]] = []  # one per shard: committed entries now, new ones as they come back
-    files: dict[str, Any] = {}
+    # One per shard: committed entries now, new ones as they come back (None until then).
+    shard_meta: list[RasterShardEntry | None] = []
+    files: dict[str, FileEntry] = {}
     tasks = _plan(job, out, samples.to_pylist(), committed, shard_meta, files, summary, progress)
     render_seconds = 0.0
 
-    def manifest(complete: bool) -> dict[str, Any]:
-        done = [m for m in shard_meta if m]
+    def manifest(complete: bool) -> RasterRunManifest:
+        done = [m for m in shard_meta if m is not None]
         return writer.manifest_of(job.spec, job.centre, job.identity, n, job.shard_size, done, files, complete,
                                   _index_counts(out, done) if complete else {})
 
@@ -187,12 +201,12 @@ def _rasterise_locked(writer: RasterRunWriter, job: _Job, force: bool, progress:
     return summary
 
 
-def _plan(job: _Job, out: Path, rows: list[dict[str, Any]], committed: dict[str, dict[str, Any]],
-          shard_meta: list[dict[str, Any]], files: dict[str, Any], summary: dict[str, Any],
+def _plan(job: _Job, out: Path, rows: list[dict[str, Any]], committed: dict[str, CommittedShard],
+          shard_meta: list[RasterShardEntry | None], files: dict[str, FileEntry], summary: RasteriseSummary,
           progress: Callable[[int], None] | None) -> list[ShardTask]:
     """The tasks of the shards still to render. Committed shards (with their previews, when they fall in
     ``--preview``) are counted as skipped and their entries and files appended to ``shard_meta`` / ``files``;
-    each shard to render gets an empty placeholder there, filled in order as its result comes back."""
+    each shard to render gets a None placeholder there, filled in order as its result comes back."""
     tag = inputs_tag(job.identity)
     tasks: list[ShardTask] = []
     for si in range(max(1, math.ceil(len(rows) / job.shard_size))):
@@ -205,7 +219,7 @@ def _plan(job: _Job, out: Path, rows: list[dict[str, Any]], committed: dict[str,
             if progress:
                 progress(len(chunk))
             continue
-        shard_meta.append({})
+        shard_meta.append(None)
         log_ids = sorted({str(r["log_id"]) for r in chunk})
         tasks.append(ShardTask(
             root=job.ds.root, out=out, shard=si, tag=tag, first=si * job.shard_size, samples=chunk, spec=job.spec,
@@ -218,18 +232,19 @@ def _plan(job: _Job, out: Path, rows: list[dict[str, Any]], committed: dict[str,
     return tasks
 
 
-def _add_counts(summary: dict[str, Any], res: dict[str, Any]) -> None:
-    """Add one rendered shard's counts and previews to the summary."""
+def _add_counts(summary: RasteriseSummary, res: dict[str, Any]) -> None:
+    """Add one rendered shard's counts and previews (``render_shard``'s result) to the summary."""
     summary["rendered"] += res["rendered"]
-    for key in ("empty", "no_centre"):
-        summary[key] += res[key]
-    for key in ("heading_source", "centre_role"):
-        for k, v in res[key].items():
-            summary[key][k] += v
+    summary["empty"] += res["empty"]
+    summary["no_centre"] += res["no_centre"]
+    for k, v in res["heading_source"].items():
+        summary["heading_source"][k] += v
+    for k, v in res["centre_role"].items():
+        summary["centre_role"][k] += v
     summary["previews"].extend(res["previews"])
 
 
-def _index_counts(out: Path, shard_meta: list[dict[str, Any]]) -> dict[str, Any]:
+def _index_counts(out: Path, shard_meta: list[RasterShardEntry]) -> RasterRunCounts:
     """Counts over the whole run's index (not just this invocation), so the manifest is the same however
     many reruns it took to finish."""
     index = pa.concat_tables([read_table(out / s["index"]) for s in shard_meta])

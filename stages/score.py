@@ -34,6 +34,12 @@ from logpipe.scoring.reports import (
     REPORT_JSON,
     REPORT_MD,
     REPORT_VERSION,
+    Gate,
+    GateViolation,
+    MethodReport,
+    ScoreProtocol,
+    ScoreReport,
+    ScoreResult,
     render_markdown,
     write_report_folder,
 )
@@ -66,7 +72,7 @@ def score(  # noqa: PLR0913  stage entry: keyword options mirror `logpipe score`
     plots: bool = True,
     plot_samples: int = 6,
     title: str | None = None,
-) -> dict[str, Any]:
+) -> ScoreResult:
     """Score prediction tables against a dataset and write ``report.json``, ``report.md`` and PNG plots.
 
     Args:
@@ -111,15 +117,17 @@ def score(  # noqa: PLR0913  stage entry: keyword options mirror `logpipe score`
     sel = _select(ds, methods, split=split, agents=agents, min_agents=min_agents)
     protocol = _protocol_block(ds, truth, agents=agents, min_agents=min_agents, split=split,
                                miss_threshold_m=miss_threshold_m)
-    report: dict[str, Any] = {
-        "report_version": REPORT_VERSION, "protocol": protocol, "conventions": CONVENTIONS, "methods": {},
-    }
+    entries: dict[str, MethodReport] = {}
     scored: dict[str, ScoredMethod] = {}
     for m in methods:
-        report["methods"][m.name], scored[m.name] = _score_method(
+        entries[m.name], scored[m.name] = _score_method(
             m, ds, sel, ks=ks, miss_threshold_m=miss_threshold_m, allow_missing=allow_missing, protocol=protocol,
             truth_sha=truth_sha)
-    report["gate"] = _gate(report, fail_above)
+    # ``plots`` is filled by ``_render``, once the plots are drawn.
+    report: ScoreReport = {
+        "report_version": REPORT_VERSION, "protocol": protocol, "conventions": CONVENTIONS, "methods": entries,
+        "gate": _gate(entries, fail_above), "plots": [],
+    }
     outputs = _render(report, scored, ds, plot_samples if plots else None, title)
     write_report_folder(Path(out_dir), outputs, [m.source for m in methods], str(truth))
     return {**report, "seconds": round(time.perf_counter() - t0, 3)}
@@ -146,14 +154,14 @@ def _select(ds: Dataset, methods: Sequence[MethodForecasts], *, split: str | Non
     return sel
 
 
-def _render(report: dict[str, Any], scored: dict[str, ScoredMethod], ds: Dataset, plot_samples: int | None,
+def _render(report: ScoreReport, scored: dict[str, ScoredMethod], ds: Dataset, plot_samples: int | None,
             title: str | None) -> dict[str, bytes]:
     """The report folder's files: the plots (none when ``plot_samples`` is None; listed in ``report["plots"]``),
     ``report.json`` and ``report.md``."""
     report["plots"] = []
     outputs: dict[str, bytes] = {}
     if plot_samples is not None:
-        outputs = render_plots(report, scored, ds, plot_samples)
+        outputs = render_plots(dict(report), scored, ds, plot_samples)
         report["plots"] = list(outputs)
     # Key-sorted, no timings: the same inputs give the same bytes.
     outputs[REPORT_JSON] = (json.dumps(report, indent=2, sort_keys=True) + "\n").encode()
@@ -162,7 +170,7 @@ def _render(report: dict[str, Any], scored: dict[str, ScoredMethod], ds: Dataset
 
 
 def _protocol_block(ds: Dataset, truth: Path, *, agents: Agents, min_agents: int, split: str | None,
-                    miss_threshold_m: float) -> dict[str, Any]:
+                    miss_threshold_m: float) -> ScoreProtocol:
     """``report.json`` ``protocol``: what every number of the report was computed under."""
     pred_len = ds.protocol.pred_len
     dt_s = step_seconds(ds)
@@ -176,8 +184,8 @@ def _protocol_block(ds: Dataset, truth: Path, *, agents: Agents, min_agents: int
 
 
 def _score_method(m: MethodForecasts, ds: Dataset, sel: Selection, *, ks: Sequence[int] | None,
-                  miss_threshold_m: float, allow_missing: bool, protocol: dict[str, Any],
-                  truth_sha: str) -> tuple[dict[str, Any], ScoredMethod]:
+                  miss_threshold_m: float, allow_missing: bool, protocol: ScoreProtocol,
+                  truth_sha: str) -> tuple[MethodReport, ScoredMethod]:
     """One method's ``report.json`` entry (metrics overall, per type, per log) and what its plots need."""
     keep, counts = _keep_rows(m, sel, allow_missing)
     sub_pred = m.pred[keep]
@@ -191,7 +199,7 @@ def _score_method(m: MethodForecasts, ds: Dataset, sel: Selection, *, ks: Sequen
     method_ks = sorted({k for k in (ks or [1, m.num_modes]) if k <= m.num_modes})
     types = m.object_types[keep][ok]
     logs = log_ids[ok]
-    entry: dict[str, Any] = {
+    entry: MethodReport = {
         "predictor": m.predictor, "checkpoint_ids": m.checkpoint_ids, "source": m.source,
         "metadata": dict(m.meta.to_dict()),
         "same_dataset": None if m.meta.dataset_manifest_sha256 is None
@@ -229,9 +237,10 @@ def _keep_rows(m: MethodForecasts, sel: Selection, allow_missing: bool) -> tuple
     return counts_keep & finite, counts
 
 
-def _gate(report: dict[str, Any], fail_above: dict[str, float]) -> dict[str, Any]:
-    violations = []
-    for name, entry in report["methods"].items():
+def _gate(methods: dict[str, MethodReport], fail_above: dict[str, float]) -> Gate:
+    """``report.json`` ``gate``: every method's overall value above its ``--fail-above`` limit."""
+    violations: list[GateViolation] = []
+    for name, entry in methods.items():
         for key, limit in sorted(fail_above.items()):
             k, _, metric = key.partition(".")
             block = entry["overall"].get(k)

@@ -23,6 +23,7 @@ from logpipe.dataset.reader import Dataset
 from logpipe.errors import DatasetError, LogpipeError
 from logpipe.raster.runs import RasterShards, find_raster_run
 from logpipe.storage.io import sha256_file
+from logpipe.summaries import TrainPerDataset, TrainResumed, TrainSummary
 from logpipe.types import SceneSample
 
 if TYPE_CHECKING:
@@ -73,7 +74,7 @@ def train(  # noqa: PLR0913  stage entry: keyword options mirror `logpipe train`
     progress: bool | Callable[[int], None] = True,
     init_from: Path | None = None,
     device: str = "auto",
-) -> dict[str, Any]:
+) -> TrainSummary:
     """Train on ``train_split`` of ``dataset_dir``, validating on ``val_split``; returns the run summary.
 
     Args:
@@ -169,17 +170,26 @@ def _resolve_inputs(datasets: list[Dataset], config: TrainConfig, train_split: s
 
 
 def _summary(dataset_dir: Path | Sequence[Path], out_dir: Path, inputs: _Inputs, result: TrainResult,
-             init_from: Path | None, started: float) -> dict[str, Any]:
+             init_from: Path | None, started: float) -> TrainSummary:
     """The run summary ``train`` returns (and ``logpipe train --json`` prints)."""
     datasets, runs, val_counts, val_samples = inputs.datasets, inputs.runs, inputs.val_counts, inputs.val_samples
     several = len(datasets) > 1
+    # The optional keys as records of their own, unpacked where they have always stood in the summary.
+    per_dataset: TrainPerDataset = (
+        {"per_dataset": [{"dataset": str(ds.root), "format": ds.kind, "train_samples": n,
+                          "val_samples": val_counts[i] if val_counts else 0}
+                         for i, (ds, n) in enumerate(zip(datasets, inputs.train_counts, strict=True))]}
+        if several else {})
+    # A resumed run: where this part started, and the training wall time of all parts (None for a run whose
+    # earlier part predates the training state's clock).
+    resumed: TrainResumed = (
+        {"resumed_at_step": result.resumed_at_step,
+         "seconds_total": round(result.total_elapsed_s, 1) if math.isfinite(result.total_elapsed_s) else None}
+        if result.resumed_at_step is not None else {})
     return {
         # With several datasets: their folders and raster runs as lists, and the samples each gave.
         "dataset": [str(ds.root) for ds in datasets] if several else str(dataset_dir),
-        **({"per_dataset": [{"dataset": str(ds.root), "format": ds.kind, "train_samples": n,
-                             "val_samples": val_counts[i] if val_counts else 0}
-                            for i, (ds, n) in enumerate(zip(datasets, inputs.train_counts, strict=True))]}
-           if several else {}),
+        **per_dataset,
         "run": str(out_dir),
         "train_split": inputs.train_split,
         "val_split": inputs.val_split,
@@ -199,11 +209,7 @@ def _summary(dataset_dir: Path | Sequence[Path], out_dir: Path, inputs: _Inputs,
         "environment_net": result.config.model.features.environment,
         "device": result.device,
         "seconds": round(time.perf_counter() - started, 1),
-        # A resumed run: where this part started, and the training wall time of all parts (None for a run whose
-        # earlier part predates the training state's clock).
-        **({"resumed_at_step": result.resumed_at_step,
-            "seconds_total": round(result.total_elapsed_s, 1) if math.isfinite(result.total_elapsed_s) else None}
-           if result.resumed_at_step is not None else {}),
+        **resumed,
     }
 
 

@@ -177,4 +177,4 @@ def rasterise(  # noqa: PLR0913  typer command: one parameter per CLI option
         summary = api.rasterise(dataset, maps=maps, map_file=map_file, centre=centre, rotate=rotate, preview=preview,
                                 size=size, extent=extent, channels=channels, shard_size=shard_size, force=force,
                                 workers=workers, backend=backend, progress=advance)
-    emit(summary, as_json, print_summary)
+    emit(dict(summary), as_json, print_summary)

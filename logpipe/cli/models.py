@@ -75,7 +75,7 @@ def train(  # noqa: PLR0913  typer command: one parameter per CLI option
                             config=config, steps=steps, seed=seed, preset=preset, resume=resume,
                             raster_run=raster_run, loader_workers=loader_workers, init_from=init_from,
                             device=device, progress=(not as_json) if advance is None else advance)
-    emit(summary, as_json, print_summary)
+    emit(dict(summary), as_json, print_summary)
 
 
 def predict(  # noqa: PLR0913  typer command: one parameter per CLI option

@@ -10,14 +10,14 @@ from __future__ import annotations
 import hashlib
 import json
 from pathlib import Path
-from typing import Any
+from typing import Any, TypedDict
 
 import numpy as np
 import pyarrow as pa
 
 from logpipe.errors import DatasetError
 from logpipe.raster.rasteriser import RasterSpec
-from logpipe.storage.artifact import EVERYTHING, FolderWriter, check_files, read_manifest
+from logpipe.storage.artifact import EVERYTHING, FileEntry, FolderWriter, check_files, read_manifest
 from logpipe.storage.io import read_table
 from logpipe.types import NDArrayByte, NDArrayFloat
 
@@ -32,6 +32,71 @@ LANE_HEADING_MAX_DIST_M = 3.0
 """Stationary agents take the direction of a centerline at most this far away (metres)."""
 
 
+class RasterRunIdentity(TypedDict):
+    """A run's inputs (manifest ``identity``): the sample index's sha256, every map file the run resolves to
+    (sha256 by path) and the shard size (it decides which sample lands in which file)."""
+
+    samples_sha256: str
+    maps: dict[str, str]
+    shard_size: int
+
+
+class RasterRunSettings(TypedDict):
+    """Everything that determines a run's pixels (manifest ``settings``, hashed into ``run_id``); ``spec`` is
+    ``RasterSpec.to_dict()`` (open JSON: its keys follow the spec's version). Distances in metres."""
+
+    spec: dict[str, Any]
+    centre: str
+    min_heading_disp_m: float
+    lane_heading_max_dist_m: float
+
+
+class RasterShardEntry(TypedDict):
+    """One rendered shard in the manifest's ``shards``: its ``.npy`` and index file names (in the run folder), its
+    rows (samples) and the ``.npy``'s sha256."""
+
+    file: str
+    index: str
+    rows: int
+    sha256: str
+
+
+class RasterRunCounts(TypedDict, total=False):
+    """Manifest ``counts`` over the whole run's index: empty rasters, samples with no centre, samples by heading
+    rule and by centre role (only the values that occur). Empty (``{}``) until the run is complete."""
+
+    empty: int
+    no_centre: int
+    heading_source: dict[str, int]
+    centre_role: dict[str, int]
+
+
+class RasterRunManifest(TypedDict):
+    """What ``RasterRunWriter`` commits as ``manifest.json`` (the storage layer adds ``artifact``, ``owns`` and
+    ``checksum``); ``complete`` stays false until the last shard is committed."""
+
+    logpipe_version: str
+    run_id: str
+    settings: RasterRunSettings
+    fingerprint: str
+    identity: RasterRunIdentity
+    samples: int
+    shard_size: int
+    shards: list[RasterShardEntry]
+    complete: bool
+    counts: RasterRunCounts
+    files: dict[str, FileEntry]
+
+
+class CommittedShard(TypedDict):
+    """A shard a previous invocation committed (``RasterRunWriter.committed_shards``): its manifest entry, its
+    files' entries (with every committed preview) and whether previews were written."""
+
+    entry: RasterShardEntry
+    files: dict[str, FileEntry]
+    previews: bool
+
+
 def shard_file(i: int, tag: str) -> str:
     """``shard-TAG-NNNNN.npy``; ``tag`` names the run's inputs (``inputs_tag``), so files made from other
     samples, maps or shard size never take the name of a committed one."""
@@ -43,12 +108,12 @@ def index_file(i: int, tag: str) -> str:
     return f"index-{tag}-{i:05d}.parquet"
 
 
-def inputs_tag(identity: dict[str, Any]) -> str:
+def inputs_tag(identity: RasterRunIdentity) -> str:
     """Short hash of a run's input identity (sample index, map files, shard size)."""
     return hashlib.sha256(json.dumps(identity, sort_keys=True).encode()).hexdigest()[:8]
 
 
-def run_settings(spec: RasterSpec, centre: str) -> dict[str, Any]:
+def run_settings(spec: RasterSpec, centre: str) -> RasterRunSettings:
     """Everything that determines the pixels of a run (hashed into ``run_id``)."""
     return {
         "spec": spec.to_dict(),
@@ -161,13 +226,13 @@ class RasterRunWriter(FolderWriter):
     ownership = EVERYTHING
     kind = RASTER_ARTIFACT
 
-    def commit(self, manifest: dict[str, Any]) -> None:
-        self._writer.commit(manifest)
+    def commit(self, manifest: RasterRunManifest) -> None:
+        self._writer.commit(dict(manifest))
 
     def manifest_of(  # noqa: PLR0913  one parameter per manifest field it assembles
-        self, spec: RasterSpec, centre: str, identity: dict[str, Any], samples: int, shard_size: int,
-        shards: list[dict[str, Any]], files: dict[str, Any], complete: bool, counts: dict[str, Any],
-    ) -> dict[str, Any]:
+        self, spec: RasterSpec, centre: str, identity: RasterRunIdentity, samples: int, shard_size: int,
+        shards: list[RasterShardEntry], files: dict[str, FileEntry], complete: bool, counts: RasterRunCounts,
+    ) -> RasterRunManifest:
         """The run manifest: settings (hashed into the folder name), input identity, shards and files."""
         from logpipe import __version__
 
@@ -175,7 +240,7 @@ class RasterRunWriter(FolderWriter):
                 "fingerprint": spec.fingerprint(), "identity": identity, "samples": samples,
                 "shard_size": shard_size, "shards": shards, "complete": complete, "counts": counts, "files": files}
 
-    def committed_shards(self, identity: dict[str, Any], force: bool) -> dict[str, dict[str, Any]]:
+    def committed_shards(self, identity: RasterRunIdentity, force: bool) -> dict[str, CommittedShard]:
         """Shards a previous run of the same inputs committed (by ``.npy`` name), with their files and whether
         their previews were written; refuses a run of other inputs unless ``force`` (then nothing is reused).
 
@@ -189,14 +254,16 @@ class RasterRunWriter(FolderWriter):
         if old != json.loads(json.dumps(identity)):
             if force:
                 return {}
-            changed = sorted(k for k in identity if (old or {}).get(k) != identity[k])
+            changed = sorted(k for k, v in identity.items() if (old or {}).get(k) != v)
             was = f" (shard size was {(old or {}).get('shard_size')})" if "shard_size" in changed else ""
             raise DatasetError(f"{out} holds rasters made with other {', '.join(changed) or 'inputs'}{was}; "
                                "rerun with --force to replace them")
-        files = manifest.get("files", {})
+        # Read from disk as committed by ``manifest_of`` (the checksum vouches for it), hence typed as written.
+        files: dict[str, FileEntry] = manifest.get("files", {})
         previews = {rel: e for rel, e in files.items() if rel.startswith("previews/")}
-        committed = {}
-        for entry in manifest.get("shards", []):
+        shards: list[RasterShardEntry] = manifest.get("shards", [])
+        committed: dict[str, CommittedShard] = {}
+        for entry in shards:
             own = {rel: files[rel] for rel in (entry["file"], entry["index"]) if rel in files}
             committed[entry["file"]] = {"entry": entry, "files": {**own, **previews}, "previews": bool(previews)}
         return committed

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import Any
+from typing import Any, TypedDict
 
 from logpipe import __version__
 from logpipe.errors import DatasetError
@@ -34,6 +34,85 @@ CONVENTIONS = {
                  "joint choice then made among the group's agents of each sample",
 }
 """``report.json`` ``conventions``: what each metric key means (``logpipe.scoring.metrics`` computes them)."""
+
+
+class ScoreProtocol(TypedDict):
+    """``report.json`` ``protocol`` (also in every method's entry): what every number was computed under.
+    ``dataset_protocol`` is the dataset's ``SampleProtocol.to_dict()`` (open JSON); ``step_s`` and ``horizon_s``
+    (each predicted step's horizon) are seconds, ``miss_threshold_m`` metres; ``split`` None scores the predicted
+    samples."""
+
+    dataset: str
+    dataset_format: str
+    dataset_protocol: dict[str, Any]
+    obs_len: int
+    pred_len: int
+    step_s: float
+    horizon_s: list[float]
+    agents: str
+    min_agents: int
+    split: str | None
+    miss_threshold_m: float
+    unit: str
+
+
+class MethodReport(TypedDict):
+    """One method's entry in ``report.json`` ``methods``.
+
+    Open JSON inside: ``metadata`` (the predictions' ``PredictionMeta.to_dict()``); ``counts`` (agent
+    bookkeeping by name, including the selection's drop reasons); ``overall`` and each value of ``by_type`` /
+    ``by_log`` (by object type / log id) are ``logpipe.scoring.metrics.group_metrics`` blocks: ``samples``,
+    ``agents`` and one ``kN`` block of metres (None for a group without agents) per K of ``ks``.
+    ``same_dataset``: whether the predictions were made on this dataset's manifest (None: not recorded).
+    """
+
+    predictor: str
+    checkpoint_ids: list[str]
+    source: str
+    metadata: dict[str, Any]
+    same_dataset: bool | None
+    num_modes: int
+    ks: list[int]
+    protocol: ScoreProtocol
+    counts: dict[str, int]
+    overall: dict[str, Any]
+    by_type: dict[str, dict[str, Any]]
+    by_log: dict[str, dict[str, Any]]
+
+
+class GateViolation(TypedDict):
+    """A method whose overall ``metric`` (``kN.METRIC``) is above its ``--fail-above`` limit (metres or a rate)."""
+
+    method: str
+    metric: str
+    value: float
+    limit: float
+
+
+class Gate(TypedDict):
+    """``report.json`` ``gate``: the thresholds asked, their violations, and whether the gate failed (exit 1)."""
+
+    thresholds: dict[str, float]
+    violations: list[GateViolation]
+    failed: bool
+
+
+class ScoreReport(TypedDict):
+    """``report.json``: methods by label (in input order), the protocol, the metric ``conventions`` (name ->
+    meaning), the gate and the plot file names (in the report folder)."""
+
+    report_version: int
+    protocol: ScoreProtocol
+    conventions: dict[str, str]
+    methods: dict[str, MethodReport]
+    gate: Gate
+    plots: list[str]
+
+
+class ScoreResult(ScoreReport):
+    """What ``score`` returns (``logpipe score --json``): the report plus this call's wall time, seconds."""
+
+    seconds: float
 
 
 REPORT_OWNED = Ownership([REPORT_JSON, REPORT_MD, "horizon.png", "scenes_*.png"])
@@ -81,7 +160,7 @@ def _refuse_other_artifact(out_dir: Path) -> None:
 
 
 
-def read_report(out_dir: Path) -> dict[str, Any]:
+def read_report(out_dir: Path) -> ScoreReport:
     """``report.json`` of a committed report folder (checked against its manifest's size).
 
     Raises:
@@ -95,7 +174,7 @@ def read_report(out_dir: Path) -> dict[str, Any]:
     data = (Path(out_dir) / REPORT_JSON).read_bytes()
     if entry is None or sha256_bytes(data) != entry["sha256"]:
         raise DatasetError(f"{Path(out_dir) / REPORT_JSON}: differs from its manifest; `logpipe verify` says more")
-    report: dict[str, Any] = json.loads(data)
+    report: ScoreReport = json.loads(data)
     return report
 
 
@@ -105,7 +184,7 @@ def _pair(block: dict[str, Any] | None, a: str = "ade", f: str = "fde") -> str:
     return f"{block[a]:.2f}/{block[f]:.2f}"
 
 
-def render_markdown(report: dict[str, Any], title: str | None = None) -> str:
+def render_markdown(report: ScoreReport, title: str | None = None) -> str:
     """``report.md``: protocol, then tables in the paper's layout (methods x groups, cells "ADE/FDE")."""
     p = report["protocol"]
     lines = [f"# {title or 'logpipe score report'}", ""]
@@ -125,18 +204,22 @@ def render_markdown(report: dict[str, Any], title: str | None = None) -> str:
             mr = f"{b['miss_rate']:.3f}" if b else "—"
             lines.append(f"| {name} | {k} | {o['samples']} | {o['agents']} | {_pair(b)} | "
                          f"{_pair(b, 'ade_joint', 'fde_joint')} | {_pair(b, 'argo_ade', 'argo_fde')} | {mr} |")
-    for group, heading in (("by_type", "Per object type"), ("by_log", "Per log")):
-        cols = sorted({g for e in methods.values() for g in e[group]})
+    # Each grouping's blocks by method, so the loop below reads them without naming the key.
+    groupings = (("Per object type", {name: e["by_type"] for name, e in methods.items()}),
+                 ("Per log", {name: e["by_log"] for name, e in methods.items()}))
+    for heading, by_method in groupings:
+        cols = sorted({g for groups in by_method.values() for g in groups})
         if not cols or len(cols) > 40:
             continue
         lines += ["", f"## {heading} (ADE/FDE, per-agent best-of-K, largest K of each method)", "",
                   "| method | K | " + " | ".join(cols) + " | all |", "|---|---|" + "---|" * (len(cols) + 1)]
         for name, e in methods.items():
-            k = f"k{e['ks'][-1]}"
-            cells = [_pair(e[group][c].get(k)) if c in e[group] else "—" for c in cols]
-            lines.append(f"| {name} | {e['ks'][-1]} | " + " | ".join(cells) + f" | {_pair(e['overall'].get(k))} |")
+            top = f"k{e['ks'][-1]}"
+            groups = by_method[name]
+            cells = [_pair(groups[c].get(top)) if c in groups else "—" for c in cols]
+            lines.append(f"| {name} | {e['ks'][-1]} | " + " | ".join(cells) + f" | {_pair(e['overall'].get(top))} |")
         lines += ["", "agents: " + "; ".join(
-            f"{c} {max(e[group][c]['agents'] for e in methods.values() if c in e[group])}" for c in cols)]
+            f"{c} {max(groups[c]['agents'] for groups in by_method.values() if c in groups)}" for c in cols)]
     steps = _horizon_steps(p["horizon_s"])
     lines += ["", "## Error by horizon (metres, mode with the lowest ADE of the first K)", "",
               "| method | K | " + " | ".join(f"{p['horizon_s'][i]:g} s" for i in steps) + " |",
