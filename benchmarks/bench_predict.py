@@ -189,7 +189,54 @@ def run(quick: bool = False) -> dict[str, Any]:
         result["cv_ethucy"] = _predict(eth, tmp / "cv_eth", repeats, predictor="cv", sample_filter=chosen)
         result["cv_ethucy_no_mcap"] = _predict(eth, tmp / "cv_eth_nomcap", repeats, predictor="cv",
                                                sample_filter=chosen, write_mcap=False)
+        result["cv_ethucy_no_mcap"]["parquet_write_alone_samples_per_s"] = _parquet_write_rate(
+            tmp / "cv_eth_nomcap" / "run0", result["cv_ethucy_no_mcap"]["samples"], repeats)
+    result["targets"] = targets(result)
     return result
+
+
+def _parquet_write_rate(run: Path, samples: int, repeats: int) -> float:
+    """Samples/s of writing the run's predictions table alone (pyarrow, the stage's Parquet settings read back
+    from its files): the floor of any predict path that writes it."""
+    import pyarrow.parquet as pq
+
+    files = sorted((run / "predictions").glob("*.parquet"))
+    tables = [pq.read_table(f) for f in files]
+    codec = pq.ParquetFile(files[0]).metadata.row_group(0).column(0).compression.lower()
+    rates = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for _ in range(max(repeats, 3)):
+            t0 = time.perf_counter()
+            for i, table in enumerate(tables):
+                pq.write_table(table, Path(tmp) / f"{i}.parquet", compression=codec)
+            rates.append(samples / (time.perf_counter() - t0))
+    return round(statistics.median(rates), 1)
+
+
+TARGETS = (  # issue 35: (name, result path, measured key, reference, target)
+    ("full model with EN, AV1: share of backbone-alone rate", "env_net_argoverse1", "ratio_to_backbone", None, 0.6),
+    ("network without EN, ETH/UCY K=20: share of matmul floor", "no_env_net_ethucy", "samples_per_s",
+     "floor.bound_samples_per_s", 0.6),
+    ("constant velocity, ETH/UCY, Parquet only: samples/s", "cv_ethucy_no_mcap", "samples_per_s", None, 20_000),
+    ("constant velocity, ETH/UCY, Parquet + MCAP: samples/s", "cv_ethucy", "samples_per_s", None, 5_000),
+    ("constant velocity, AV1 with rasters in the MCAP: samples/s", "cv_argoverse1", "samples_per_s", None, 2_000),
+)
+
+
+def targets(result: dict[str, Any]) -> list[dict[str, Any]]:
+    """Each issue-35 target beside what this run measured (a ratio where the target is one) and whether it is met."""
+    rows = []
+    for name, path, key, reference, target in TARGETS:
+        if path not in result:
+            continue
+        measured = float(result[path][key])
+        if reference is not None:
+            ref: Any = result[path]
+            for part in reference.split("."):
+                ref = ref[part]
+            measured /= float(ref)
+        rows.append({"target": name, "measured": round(measured, 3), "required": target, "met": measured >= target})
+    return rows
 
 
 if __name__ == "__main__":

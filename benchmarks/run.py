@@ -34,6 +34,15 @@ def main() -> int:
         started = time.perf_counter()
         results[name] = module.run(quick=args.quick)
         print(f"[bench] {name} done in {time.perf_counter() - started:.1f} s", file=sys.stderr, flush=True)
+    # Every target with what this run measured against it, in one list (each module keeps its own too).
+    targets: list[dict[str, object]] = []
+    for name, r in results.items():
+        if isinstance(r, dict):
+            targets += [dict(t, benchmark=name) for t in r.get("targets", [])]
+    results["targets"] = targets
+    for t in targets:
+        print(f"[bench] {'met' if t['met'] else 'NOT met'}: {t['target']}: {t['measured']} (required "
+              f"{t['required']})", file=sys.stderr)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(results, indent=2) + "\n")
     print(json.dumps(results, indent=2))
