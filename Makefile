@@ -8,7 +8,7 @@ OUT ?= out
 SHARED ?= ../shared/data
 ETHUCY_SCENES := eth hotel univ zara1 zara2
 
-.PHONY: setup demo test bench lint clean train-ethucy train-apolloscape train-ethucy-paper train-apolloscape-paper reproduce-ethucy reproduce-apolloscape reproduce-argoverse reproduce-driving replica-cost fuzz synthetic-map-check
+.PHONY: setup demo test bench lint clean train-ethucy train-apolloscape train-ethucy-paper train-apolloscape-paper reproduce-ethucy reproduce-apolloscape reproduce-argoverse reproduce-driving replica-cost scaling fuzz synthetic-map-check
 
 # torch first and pinned: a looser pin would pull a multi-GB CUDA build; 2.13.0 is a local CPU wheel here.
 $(STAMP): pyproject.toml
@@ -67,13 +67,18 @@ MAPS ?= $(SHARED)/argoverse1/maps
 reproduce-argoverse: setup
 	$(PY) -m scripts.reproduce_argoverse --data $(DATA) --maps $(MAPS)
 
-# The driving model on the real AV1 + AV2 logs (docs/results/argoverse_logs.md): trains what is missing (resumable),
-# then scores hash/test.
 # Every stage timed on a 2,000-sequence AV1 replica; the projected cost of the full Argoverse sets
 # (docs/results/argoverse_cost.md, embedded in argoverse.md by reproduce-argoverse). About 6 minutes.
 replica-cost: setup
 	$(PY) -m scripts.replica_cost
 
+# ingest → rasterise → predict on a 50,000-log AV1 replica, locally and on Ray with 1 and 2 workers (docs/scaling.md).
+# About 30 minutes and ~25 GB of scratch space in out/scaling (removed at the end).
+scaling: setup
+	$(PY) -m scripts.scaling
+
+# The driving model on the real AV1 + AV2 logs (docs/results/argoverse_logs.md): trains what is missing (resumable),
+# then scores hash/test.
 reproduce-driving: setup
 	$(PY) -m scripts.reproduce_driving
 

@@ -1,0 +1,301 @@
+"""Scaling evidence for the batch stages: ingest → rasterise → predict on a large AV1 replica, locally and on a local
+Ray cluster with 1 and 2 workers; writes ``docs/scaling.md`` (and the measurements beside it as JSON).
+
+The corpus is the 69 real AV1 sequences copied to ``--logs`` files with distinct AV track ids (``replica_cost``'s
+replica). Each stage runs as its own ``logpipe`` process (as a CI job would), Parquet only (``--no-mcap``), timed
+wall-clock; its peak memory is the largest sum of resident memory over the process and all its descendants (Ray's
+raylet, GCS and workers included), sampled every 0.1 s from ``/proc`` (Linux). Per configuration:
+
+* ``ingest`` of every CSV (every fully observed vehicle but the AV a target, as the driving model trains);
+* ``rasterise`` of every sample (ego-centred, turned to the ego's heading, AV1 lane centerlines);
+* ``predict`` with constant velocity on every sample, and with the shipped full driving model (K = 6) on the
+  first ``--full-part`` logs.
+
+Ray's fixed cost per stage is the same stage on the 69 real sequences with ``--backend ray`` minus without it (1
+worker). Peak memory is also measured on a quarter of the corpus, to show whether it grows with corpus size.
+
+    python -m scripts.scaling [--logs 50000] [--full-part 2000] [--work out/scaling] [--out docs/scaling.md]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+from scripts.locations import CHECKPOINTS, REPO
+from scripts.replica_cost import CLUSTER_CORES, GPU_SUSTAINED_TFLOPS, flops_per_sample, make_replica
+
+LOGPIPE = [sys.executable, "-m", "logpipe.cli", "-q"]  # the installed CLI, in this interpreter
+STAGES = ("ingest", "rasterise", "predict_cv", "predict_full")
+AV1_FULL_SEQUENCES = 205_942 + 39_472 + 78_143  # train + val + test (Chang et al., CVPR 2019)
+CONFIGS = (("local", 1), ("local", 2), ("ray", 1), ("ray", 2))
+
+
+def _descendants_rss(root: int) -> int:
+    """Resident bytes of ``root`` and every process below it (``/proc``; processes that vanish mid-read count 0)."""
+    children: dict[int, list[int]] = {}
+    for entry in os.scandir("/proc"):
+        if not entry.name.isdigit():
+            continue
+        try:
+            with open(f"/proc/{entry.name}/stat", "rb") as handle:
+                stat = handle.read()
+        except OSError:
+            continue
+        ppid = int(stat[stat.rindex(b")") + 2 :].split()[1])  # the name may hold spaces; fields follow ")"
+        children.setdefault(ppid, []).append(int(entry.name))
+    total, todo = 0, [root]
+    page = os.sysconf("SC_PAGE_SIZE")
+    while todo:
+        pid = todo.pop()
+        todo += children.get(pid, [])
+        try:
+            with open(f"/proc/{pid}/statm", "rb") as handle:
+                total += int(handle.read().split()[1]) * page
+        except OSError:
+            pass
+    return total
+
+
+def run_stage(args: list[str]) -> dict[str, Any]:
+    """Run ``logpipe ARGS --json`` in a child process; its wall seconds, peak process-tree memory (MB) and the
+    stage's JSON summary.
+
+    Raises:
+        RuntimeError: the stage failed (its stderr is in the message).
+    """
+    started = time.perf_counter()
+    proc = subprocess.Popen([*LOGPIPE, *args, "--json"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, cwd=REPO)
+    peak = 0
+    done = threading.Event()
+
+    def sample() -> None:
+        nonlocal peak
+        while not done.wait(0.1):
+            peak = max(peak, _descendants_rss(proc.pid))
+
+    sampler = threading.Thread(target=sample, daemon=True)
+    sampler.start()
+    out, err = proc.communicate()
+    seconds = time.perf_counter() - started
+    done.set()
+    sampler.join()
+    if proc.returncode != 0:
+        raise RuntimeError(f"logpipe {' '.join(args[:3])} ... failed ({proc.returncode}):\n{err.decode()[-3000:]}")
+    return {"seconds": round(seconds, 2), "peak_mb": round(peak / 2**20, 1), "summary": json.loads(out)}
+
+
+def pipeline(csv: Path, maps: Path, work: Path, backend: str, workers: int, full_logs: list[str] | None,
+             keep: bool = False) -> dict[str, Any]:
+    """ingest → rasterise → predict (CV on all; the full model on ``full_logs``) with ``workers`` on ``backend``;
+    each stage's measurement. The folder is removed afterwards unless ``keep``."""
+    shutil.rmtree(work, ignore_errors=True)
+    ds = work / "dataset"
+    ray = ["--backend", "ray"] if backend == "ray" else []
+    parallel = ["-j", str(workers), *ray]
+    # Predict: locally the forecasts run in this process on ``workers`` torch threads; on Ray on ``workers``
+    # actors of one thread each.
+    forecasters = [*ray, "-j", str(workers), "--threads", "1"] if ray else ["--threads", str(workers)]
+    m: dict[str, Any] = {"backend": backend, "workers": workers}
+    m["ingest"] = run_stage(["ingest", str(csv), "--out", str(ds), "--protocol", "argoverse", "--no-mcap",
+                             "--targets", "fully_observed_no_ego", *parallel])
+    m["rasterise"] = run_stage(["rasterise", str(ds), "--maps", str(maps), "--rotate", *parallel])
+    m["predict_cv"] = run_stage(["predict", str(ds), "--out", str(work / "cv"), "--predictor", "cv", "--no-mcap",
+                                 *forecasters])
+    if full_logs is not None:
+        m["predict_full"] = run_stage(["predict", str(ds), "--out", str(work / "full"), "--no-mcap",
+                                       "--checkpoint", str(CHECKPOINTS / "argoverse" / "zhu2020"),
+                                       "--filter", "log=" + ",".join(full_logs), *forecasters])
+    if not keep:
+        shutil.rmtree(work, ignore_errors=True)
+    return m
+
+
+def _units(m: dict[str, Any], stage: str) -> int:
+    """What a stage's rate counts: input files for ingest, samples for the others."""
+    summary = m[stage]["summary"]
+    if stage == "ingest":
+        return int(summary.get("files", summary.get("inputs", 0)) or m["logs"])
+    return int(summary.get("samples", 0))
+
+
+def render(r: dict[str, Any]) -> str:
+    """docs/scaling.md from the measurements."""
+    n = r["logs"]
+    runs = {(m["backend"], m["workers"]): m for m in r["runs"]}
+    lines = [
+        "# Scaling: ingest → rasterise → predict on one machine and on Ray",
+        "",
+        f"Produced by `python -m scripts.scaling --logs {n}` in {r['seconds'] / 60:.0f} min on this machine "
+        f"({r['cpu_count']} cores; load average {r['load_before'][0]:.1f} before, {r['load_after'][0]:.1f} after; "
+        "the machine is shared, so rates are lower bounds of a quiet core's). Corpus: a replica of "
+        f"{n:,} AV1 sequences (the 69 real ones copied with distinct AV track ids), one 2 s + 3 s sample each, every "
+        "fully observed vehicle but the AV a target. Each stage is its own `logpipe` process, Parquet only "
+        f"(`--no-mcap`); the full driving model (K = 6) predicts the first {r['full_part']:,} logs. Peak memory: the "
+        "largest sum of resident memory over the stage's process tree (Ray's own processes included), sampled every "
+        "0.1 s. Locally, ingest and rasterise run `-j` worker processes and predict runs on `--threads`; on Ray, "
+        "ingest and rasterise run Ray tasks on a local cluster of `-j` CPUs and predict runs `-j` actors of one "
+        "thread (the driver cuts samples and writes every output itself).",
+        "",
+        "## Measured",
+        "",
+        "| stage | units | local 1 | local 2 | local scaling | Ray 1 | Ray 2 | Ray scaling | Ray fixed cost |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for stage in STAGES:
+        if stage not in runs[("local", 1)]:
+            continue
+        units = _units(runs[("local", 1)], stage)
+        t = {k: runs[k][stage]["seconds"] for k in runs}
+        overhead = r["ray_overhead"].get(stage)
+        lines.append(
+            f"| {stage.replace('_', ' ')} | {units:,} | {t['local', 1]:.1f} s | {t['local', 2]:.1f} s | "
+            f"{t['local', 1] / t['local', 2]:.2f}x | {t['ray', 1]:.1f} s | {t['ray', 2]:.1f} s | "
+            f"{t['ray', 1] / t['ray', 2]:.2f}x | {'—' if overhead is None else f'{overhead:.1f} s'} |")
+    lines += [
+        "",
+        "Scaling: time with 1 worker / time with 2 (the target is >= 1.7x). Ray fixed cost: the stage on the 69 "
+        "real sequences with `--backend ray` minus without it, 1 worker (cluster start, task or actor set-up).",
+        "",
+        "### Peak memory (MB) against corpus size",
+        "",
+        f"| stage | local 2, {r['small_logs']:,} logs | local 2, {n:,} logs | Ray 2, {r['small_logs']:,} logs | "
+        f"Ray 2, {n:,} logs |",
+        "|---|---|---|---|---|",
+    ]
+    small = {(m["backend"], m["workers"]): m for m in r["small_runs"]}
+    for stage in STAGES[:3]:
+        lines.append(f"| {stage.replace('_', ' ')} | {small['local', 2][stage]['peak_mb']:,.0f} | "
+                     f"{runs['local', 2][stage]['peak_mb']:,.0f} | {small['ray', 2][stage]['peak_mb']:,.0f} | "
+                     f"{runs['ray', 2][stage]['peak_mb']:,.0f} |")
+    lines += ["", *_against_targets(r, runs, small), "", "## Projected: the full Argoverse 1 (train + val + test)", "",
+              _projection(r, runs), ""]
+    return "\n".join(lines)
+
+
+def _against_targets(r: dict[str, Any], runs: dict[tuple[str, int], dict[str, Any]],
+                     small: dict[tuple[str, int], dict[str, Any]]) -> list[str]:
+    """The issue's targets (scaling >= 1.7x from 1 to 2 workers; peak memory flat in corpus size), met or not."""
+    lines = ["### Against the targets", ""]
+    for stage in STAGES:
+        if stage not in runs[("local", 1)]:
+            continue
+        ratios = {b: runs[b, 1][stage]["seconds"] / runs[b, 2][stage]["seconds"] for b in ("local", "ray")}
+        verdict = ", ".join(f"{b} {v:.2f}x ({'met' if v >= 1.7 else 'NOT met'})" for b, v in ratios.items())
+        lines.append(f"- {stage.replace('_', ' ')}, scaling >= 1.7x: {verdict}")
+    growth = r["logs"] / r["small_logs"]
+    for stage in STAGES[:3]:
+        more = {b: runs[b, 2][stage]["peak_mb"] / small[b, 2][stage]["peak_mb"] - 1 for b in ("local", "ray")}
+        lines.append(f"- {stage.replace('_', ' ')}, peak memory for {growth:.0f}x the logs: "
+                     + ", ".join(f"{b} {100 * v:+.0f} %" for b, v in more.items()))
+    return [*lines, "", (
+        "Why (read from the code, not measured apart): predict's driver cuts every sample and writes every output "
+        "itself, so constant velocity, whose forecast is negligible, runs at the driver's pace with any number of "
+        "actors; the full model scales only as far as its network share. Predict's memory grows with the logs "
+        "selected because the selection (a row per log and per sample, as Python dicts) is held for the whole run, "
+        "and on Ray every batch is planned before the first is sent. Why ingest reaches 1.5x and not 1.7x was not "
+        "looked into.")]
+
+
+def _projection(r: dict[str, Any], runs: dict[tuple[str, int], dict[str, Any]]) -> str:
+    """The projection table: this machine (the best 2-worker rate), a 16-node CPU Ray cluster (the Ray 1-worker
+    rate per core, plus the fixed cost), per GPU (network FLOPs at an assumed rate; network stages only)."""
+    full = AV1_FULL_SEQUENCES
+    # predict's driver cuts every sample and writes every output however many actors forecast: constant velocity
+    # on Ray with 2 actors is (almost) only that work, so its rate bounds any predict run on any cluster.
+    driver = runs["ray", 2]["predict_cv"]["seconds"] / _units(runs["ray", 2], "predict_cv")
+    rows = ["| stage | this machine | CPU Ray cluster (16 x 32 cores) | per GPU |", "|---|---|---|---|"]
+    for stage in STAGES:
+        if stage not in runs[("local", 1)]:
+            continue
+        units = _units(runs[("local", 1)], stage)
+        best2 = min(runs["local", 2][stage]["seconds"], runs["ray", 2][stage]["seconds"]) / units
+        per_core = runs["ray", 1][stage]["seconds"] / units
+        overhead = r["ray_overhead"].get(stage, 0.0)
+        gpu = "—"
+        if stage == "predict_full":
+            gpu = _duration(full * r["flops"]["predict"] / (GPU_SUSTAINED_TFLOPS * 1e12))
+        cluster = full * per_core / CLUSTER_CORES
+        if stage.startswith("predict"):
+            cluster = max(cluster, full * driver)
+        rows.append(f"| {stage.replace('_', ' ')} | {_duration(full * best2)} | "
+                    f"{_duration(cluster + overhead)} | {gpu} |")
+    return "\n".join(rows) + (
+        f"\n\n{full:,} sequences, one sample each. This machine: the faster of local and Ray at 2 workers. CPU "
+        f"cluster: {CLUSTER_CORES} cores at the measured Ray 1-worker rate per core plus Ray's fixed cost, i.e. "
+        "perfect scaling across nodes (a lower bound: the measured 1 → 2 scaling above says how far from it one "
+        "machine already is); for predict, never faster than its single driver, which cuts every sample and "
+        f"writes every output ({1e6 * driver:.0f} µs per sample: constant velocity on Ray with 2 actors, where the "
+        "forecast itself is negligible), so predict does not scale out until the actors write their own "
+        "outputs. Per GPU: not measurable here (no GPU); the "
+        f"network's FLOPs per sample ({r['flops']['predict'] / 1e9:.2f} GFLOP at K = 6, counted by torch) at an "
+        f"assumed {GPU_SUSTAINED_TFLOPS:.0f} TFLOP/s, a lower bound that leaves out the CPU work around it. "
+        "These are projections from the measured rates, not runs on the full set.")
+
+
+def _duration(seconds: float) -> str:
+    if seconds >= 3600:
+        return f"{seconds / 3600:.1f} h"
+    return f"{seconds / 60:.1f} min" if seconds >= 60 else f"{seconds:.0f} s"
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Build the replica, run every configuration, write the report; returns the exit code."""
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    shared = REPO.parent / "shared" / "data" / "argoverse1"
+    ap.add_argument("--source", type=Path, default=shared / "data")
+    ap.add_argument("--maps", type=Path, default=shared / "maps")
+    ap.add_argument("--logs", type=int, default=50_000)
+    ap.add_argument("--full-part", type=int, default=2000, help="logs the full model predicts")
+    ap.add_argument("--work", type=Path, default=REPO / "out" / "scaling")
+    ap.add_argument("--out", type=Path, default=REPO / "docs" / "scaling.md")
+    ap.add_argument("--from-json", type=Path, help="re-render the report from a measurements file")
+    args = ap.parse_args(argv)
+    measurements = args.out.with_suffix(".json")
+    if args.from_json is not None:
+        args.out.write_text(render(json.loads(args.from_json.read_text())))
+        return 0
+    started = time.perf_counter()
+    shutil.rmtree(args.work, ignore_errors=True)
+    r: dict[str, Any] = {"logs": args.logs, "full_part": args.full_part, "small_logs": args.logs // 4,
+                         "cpu_count": os.cpu_count(), "load_before": os.getloadavg(), "runs": [], "small_runs": []}
+    csv = args.work / "csv"
+    make_replica(args.source, csv, args.logs)
+    full_logs = [p.stem for p in sorted(csv.glob("*.csv"))[: args.full_part]]
+    small = args.work / "csv_small"
+    make_replica(args.source, small, r["small_logs"])
+    # Ray's fixed cost: the 69 real sequences with and without Ray, 1 worker.
+    tiny = [pipeline(args.source, args.maps, args.work / f"tiny_{b}", b, 1, [p.stem for p in args.source.glob("*.csv")])
+            for b in ("local", "ray")]
+    r["ray_overhead"] = {s: tiny[1][s]["seconds"] - tiny[0][s]["seconds"] for s in STAGES}
+    for backend, workers in CONFIGS:
+        print(f"[scaling] {backend} x {workers} on {args.logs} logs", file=sys.stderr, flush=True)
+        m = pipeline(csv, args.maps, args.work / f"{backend}{workers}", backend, workers, full_logs)
+        m["logs"] = args.logs
+        r["runs"].append(m)
+        if workers == 2:
+            s = pipeline(small, args.maps, args.work / f"{backend}{workers}_small", backend, workers, None)
+            s["logs"] = r["small_logs"]
+            r["small_runs"].append(s)
+    flop_ds = args.work / "flops"
+    pipeline(args.source, args.maps, flop_ds, "local", 1, None, keep=True)
+    r["flops"] = flops_per_sample(CHECKPOINTS / "argoverse" / "zhu2020", flop_ds / "dataset")
+    r["load_after"] = os.getloadavg()
+    r["seconds"] = time.perf_counter() - started
+    measurements.write_text(json.dumps(r, indent=1, sort_keys=True) + "\n")
+    args.out.write_text(render(r))
+    shutil.rmtree(args.work, ignore_errors=True)
+    print(f"wrote {args.out} and {measurements} in {r['seconds'] / 60:.0f} min", file=sys.stderr)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
