@@ -26,6 +26,7 @@ from torch import Tensor
 from .batching import Batch
 from .config import ConfigError, ModelConfig
 from .encoder import Encoded, attention_q, lstm_step, lstm_weights, map_features
+from .row_blocks import sigmoid
 
 if TYPE_CHECKING:
     from .nets import TrajectoryNet
@@ -60,7 +61,10 @@ def agent_output_basis(config: ModelConfig, carried: Tensor | None) -> Tensor | 
     floored at ``agent_min_step_m``; None for the other step outputs."""
     if config.step_output != "agent_velocity_change" or carried is None:
         return None
-    length = torch.linalg.vector_norm(carried, dim=-1, keepdim=True)
+    # At inference as products, a sum and a root per row: a norm's reduction took other kernels for one agent than
+    # for several and moved its bits (see ``row_blocks``).
+    length = (torch.linalg.vector_norm(carried, dim=-1, keepdim=True) if torch.is_grad_enabled()
+              else torch.sqrt(carried[:, :1] * carried[:, :1] + carried[:, 1:] * carried[:, 1:]))
     unit = torch.where(length > 1e-6, carried / length.clamp(min=1e-6), carried.new_tensor([1.0, 0.0]))
     s = length.clamp(min=config.agent_min_step_m)
     along = unit * s
@@ -75,7 +79,7 @@ def mode_open(net: TrajectoryNet, h0: Tensor, constant_velocity_modes: int | Non
     constant-velocity forecast (standing still for an agent standing still), a mode the learned gate may
     never reach; None when every factor is 1. ``constant_velocity_modes`` None: the config's
     (``ModelConfig.held_modes``)."""
-    gate = None if net.mode_gate is None else torch.sigmoid(net.mode_gate(h0))
+    gate = None if net.mode_gate is None else sigmoid(net.mode_gate(h0))  # row_blocks.sigmoid: see there
     num_modes = h0.shape[mode_dim]
     if constant_velocity_modes is None:
         constant_velocity_modes = net.config.held_modes(num_modes)

@@ -20,6 +20,7 @@ import torch
 from torch import Tensor, nn
 
 from .batching import Batch
+from .row_blocks import row_mm, scale_down
 
 if TYPE_CHECKING:
     from .nets import TrajectoryNet
@@ -35,7 +36,8 @@ def lstm_weights(cell: nn.LSTMCell) -> tuple[Tensor, Tensor]:
 def lstm_step(weights: tuple[Tensor, Tensor], x: Tensor, h: Tensor, c: Tensor) -> tuple[Tensor, Tensor]:
     """``nn.LSTMCell`` arithmetic (gates i, f, g, o) with one fused matmul: ~25% faster on CPU here."""
     w, b = weights
-    gates = torch.addmm(b, torch.cat((x, h), dim=1), w)
+    xh = torch.cat((x, h), dim=1)
+    gates = torch.addmm(b, xh, w) if torch.is_grad_enabled() else row_mm(xh, w, b)  # see row_blocks
     i, f, g, o = gates.chunk(4, dim=1)
     c_new = torch.sigmoid(f) * c + torch.sigmoid(i) * torch.tanh(g)
     return torch.sigmoid(o) * torch.tanh(c_new), c_new
@@ -96,7 +98,7 @@ def encode(net: TrajectoryNet, batch: Batch, feature_map: Tensor | None = None) 
     # Displacements where both ends are observed (eq. 15); the first step has none.
     disp = torch.zeros_like(obs)
     disp[1:] = torch.where((ok[1:] & ok[:-1])[..., None], obs[1:] - obs[:-1], 0.0)
-    e_p = net.disp_embed(disp / ds)  # (T_obs, N, d): eq. 15 for all steps at once
+    e_p = net.disp_embed(scale_down(disp, ds))  # (T_obs, N, d): eq. 15 for all steps at once
     # Ego track per scene, used by EMF/ETF and by the decoder's ego override.
     ego_rows = batch.ego.nonzero().squeeze(1)
     ego_pos = batch.positions.new_zeros(b, batch.positions.shape[1], 2)
@@ -109,12 +111,12 @@ def encode(net: TrajectoryNet, batch: Batch, feature_map: Tensor | None = None) 
         ego_disp[:, 1:] = ego_pos[:, 1:] - ego_pos[:, :-1]
         ego_disp_ok = torch.zeros_like(ego_ok)
         ego_disp_ok[:, 1:] = ego_ok[:, 1:] & ego_ok[:, :-1]
-        m_all = net.ain.ego_motion(ego_disp / ds, ego_disp_ok)  # eq. 5, (B, T, d)
+        m_all = net.ain.ego_motion(scale_down(ego_disp, ds), ego_disp_ok)  # eq. 5, (B, T, d)
     if net.ain.ego_trajectory is not None:
-        f_all = net.ain.ego_trajectory(ego_pos / ps, ego_ok)  # eqs. 8-9, (B, T, d)
+        f_all = net.ain.ego_trajectory(scale_down(ego_pos, ps), ego_ok)  # eqs. 8-9, (B, T, d)
     o_all = None
     if net.ain.position is not None:  # eqs. 1-2 for all observed steps at once: (T_obs, B, d)
-        o_all = net.ain.position(obs / ps, ok, batch, rows)
+        o_all = net.ain.position(scale_down(obs, ps), ok, batch, rows)
     proj = v_all = None
     if net.env is not None:
         if batch.raster is not None:
@@ -122,7 +124,7 @@ def encode(net: TrajectoryNet, batch: Batch, feature_map: Tensor | None = None) 
             proj = net.env.project(fmap)
         v_all = map_features(net, proj, obs, batch, rows)  # (T_obs, N, d_v)
         v_all = torch.where(ok[..., None], v_all, torch.zeros_like(v_all))
-    gate = torch.sigmoid(net.attention(obs / ps)) if net.attention is not None else None  # eq. 13
+    gate = torch.sigmoid(net.attention(scale_down(obs, ps))) if net.attention is not None else None  # eq. 13
     hid = cfg.lstm_dim
     h = obs.new_zeros(n, hid)
     c = obs.new_zeros(n, hid)

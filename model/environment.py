@@ -15,6 +15,7 @@ from torch.nn import functional as F  # noqa: N812
 from .backbone import BACKBONE_CHANNELS, BACKBONE_STRIDE, ResNet18Stages12, roi_align
 from .batching import Batch
 from .config import ModelConfig
+from .row_blocks import RowLinear
 
 
 def _bag_picks(k: int, s: int, device: torch.device) -> tuple[Tensor, Tensor]:
@@ -43,7 +44,7 @@ class EnvironmentNet(nn.Module):
         self.pool_size = config.roi_pool
         self.sampling = config.roi_sampling
         self.half_size_m = config.roi_half_size_m
-        self.embed = nn.Linear(BACKBONE_CHANNELS * config.roi_pool**2, config.embed_dim)  # W_v, b_v
+        self.embed = RowLinear(BACKBONE_CHANNELS * config.roi_pool**2, config.embed_dim)  # W_v, b_v
         self.frozen = config.freeze_backbone
         if self.frozen:
             self.backbone.requires_grad_(False)

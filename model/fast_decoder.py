@@ -23,6 +23,7 @@ from torch import Tensor
 from .batching import Batch
 from .decoder import Prediction, agent_output_basis, carried_first_step, mode_open
 from .encoder import Encoded, lstm_weights
+from .row_blocks import row_mm, scale_down
 
 if TYPE_CHECKING:
     from .nets import TrajectoryNet
@@ -83,7 +84,7 @@ def _lstm_d_step(buf: _InputBuffer, w_in: Tensor, c: Tensor, hid: int) -> None:
     rows = buf.rows.shape[0]
     for lo in range(0, rows, _LSTM_CHUNK_ROWS):
         hi = min(lo + _LSTM_CHUNK_ROWS, rows)
-        gates = torch.mm(buf.rows[lo:hi], w_in)
+        gates = row_mm(buf.rows[lo:hi], w_in)  # batch-shape invariant (row_blocks)
         sig = torch.sigmoid(gates[:, : 3 * hid])
         c_blk = c[lo:hi]
         c_blk.mul_(sig[:, hid : 2 * hid]).addcmul_(sig[:, :hid], torch.tanh(gates[:, 3 * hid :]))
@@ -162,9 +163,10 @@ def decode_fast(net: TrajectoryNet, batch: Batch, enc: Encoded, noise: Tensor,
     outputs = noise.new_empty(r, mm, cfg.pred_len, 2)
     for k in range(cfg.pred_len):
         if k > 0:  # one LSTM_D step at t = T_obs + k on the predicted positions
-            pos_scaled = p_cur / ps
+            pos_scaled = scale_down(p_cur, ps)
             fst, h_gru = _interaction(net, enc, pos_scaled, h, h_gru, t_obs - 1 + k, pool)
-            torch.div(p_cur - p_prev, ds, out=buf.disp)  # eq. 17 (W_p folded into LSTM_D)
+            # eq. 17 (W_p folded into LSTM_D); times 1 / ds, not divided: see row_blocks.scale_down
+            torch.mul(p_cur - p_prev, 1.0 / ds, out=buf.disp)
             if net.env is not None:
                 v = _map_features(net, enc.proj, p_cur, batch, rows)
                 buf.env.copy_(v if all_raster else torch.where(raster_ok, v, torch.zeros_like(v)))
@@ -175,7 +177,10 @@ def decode_fast(net: TrajectoryNet, batch: Batch, enc: Encoded, noise: Tensor,
         o = net.out(h).view(r, mm, 2)
         if open_factor is not None:  # ModelConfig.mode_gate, constant_velocity_modes
             o = o * open_factor
-        p_next = p_cur + (o * ds if basis is None else torch.einsum("rmj,rij->rmi", o, basis))  # eqs. 19-20
+        # eqs. 19-20: the turn into each agent's basis as products and a sum (an einsum's bmm took other kernels
+        # for one agent than for several and moved its bits)
+        turned = None if basis is None else o[..., :1] * basis[:, None, :, 0] + o[..., 1:] * basis[:, None, :, 1]
+        p_next = p_cur + (o * ds if turned is None else turned)
         if carried is not None:
             p_next = p_next + (carried[:, None] if k == 0 else p_cur - p_prev)
         if ego_ok is not None:  # the ego follows its given (planned) future

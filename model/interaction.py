@@ -15,6 +15,7 @@ from torch import Tensor, nn
 
 from .batching import Batch
 from .config import ModelConfig
+from .row_blocks import RowLinear, gru_cell
 
 
 def masked_max(x: Tensor, mask: Tensor) -> Tensor:
@@ -53,7 +54,7 @@ class PositionFeature(nn.Module):
 
     def __init__(self, dim: int) -> None:
         super().__init__()
-        self.embed = nn.Linear(2, dim)  # W_o, b_o
+        self.embed = RowLinear(2, dim)  # W_o, b_o
 
     def forward(self, pos: Tensor, mask: Tensor, batch: Batch, rows: Tensor) -> Tensor:
         """pos (L, R, 2) scaled positions of ``rows``, mask (L, R) -> o (L, B, d_o)."""
@@ -65,7 +66,7 @@ class TrackingFeature(nn.Module):
 
     def __init__(self, hidden: int, dim: int) -> None:
         super().__init__()
-        self.embed = nn.Linear(hidden, dim)  # W_r, b_r
+        self.embed = RowLinear(hidden, dim)  # W_r, b_r
 
     def forward(self, hidden: Tensor, mask: Tensor, batch: Batch, rows: Tensor) -> Tensor:
         """hidden (L, R, H) of ``rows``, mask (L, R) -> r (L, B, d_r)."""
@@ -77,7 +78,7 @@ class EgoMotionFeature(nn.Module):
 
     def __init__(self, dim: int) -> None:
         super().__init__()
-        self.embed = nn.Linear(2, dim)  # W_m, b_m
+        self.embed = RowLinear(2, dim)  # W_m, b_m
 
     def forward(self, disp: Tensor, ok: Tensor) -> Tensor:
         """disp (..., 2) scaled ego displacement, ok (...) -> (..., d_m)."""
@@ -90,7 +91,7 @@ class EgoTrajectoryFeature(nn.Module):
 
     def __init__(self, dim: int) -> None:
         super().__init__()
-        self.embed = nn.Linear(2, dim)  # W_f, b_f
+        self.embed = RowLinear(2, dim)  # W_f, b_f
 
     def forward(self, ego_pos: Tensor, ok: Tensor) -> Tensor:
         """ego_pos (B, T, 2) scaled, ok (B, T) -> f (B, T, d_f), f[:, t] pooling steps k > t only.
@@ -116,7 +117,7 @@ class AgentInteractionNet(nn.Module):
         self.ego_trajectory = EgoTrajectoryFeature(d) if feats.ego_trajectory else None
         gru_in = d * (int(feats.position) + int(feats.tracking) + int(feats.ego_motion))
         self.gru = nn.GRUCell(gru_in, config.gru_dim) if gru_in else None  # eq. 6, 128 cells
-        self.st = nn.Linear(config.gru_dim, d) if gru_in else None  # eq. 7, W_s, b_s
+        self.st = RowLinear(config.gru_dim, d) if gru_in else None  # eq. 7, W_s, b_s
         self.out_dim = d * (int(feats.ego_trajectory) + int(gru_in > 0))
 
     def step(
@@ -133,7 +134,7 @@ class AgentInteractionNet(nn.Module):
             fst^(t) (S, out_dim), or None when the AIN is empty, and the new GRU state.
         """
         if self.gru is not None:
-            h_gru = self.gru(torch.cat(parts, dim=-1), h_gru)  # eq. 6
+            h_gru = gru_cell(self.gru, torch.cat(parts, dim=-1), h_gru)  # eq. 6
         return self.output(f_t, h_gru), h_gru
 
     def output(self, f_t: Tensor | None, h_gru: Tensor | None) -> Tensor | None:

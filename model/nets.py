@@ -30,6 +30,7 @@ from .encoder import Encoded, encode
 from .environment import EnvironmentNet
 from .fast_decoder import decode_fast
 from .interaction import AgentInteractionNet
+from .row_blocks import RowLinear
 
 
 class TrajectoryNet(nn.Module):
@@ -45,14 +46,14 @@ class TrajectoryNet(nn.Module):
         if self.env is not None and config.backbone_weights and load_backbone:
             self.env.backbone.load_torchvision_state_dict(read_state_dict(Path(config.backbone_weights)))
         d_fst = self.ain.out_dim
-        self.attention = nn.Linear(2, d_fst) if d_fst else None  # eq. 13, W_c, b_c
-        self.disp_embed = nn.Linear(2, d)  # eqs. 15/17, W_p, b_p
+        self.attention = RowLinear(2, d_fst) if d_fst else None  # eq. 13, W_c, b_c
+        self.disp_embed = RowLinear(2, d)  # eqs. 15/17, W_p, b_p
         lstm_in = d + (d if self.env is not None else 0) + d_fst
         self.encoder = nn.LSTMCell(lstm_in, hid)  # eq. 16, LSTM_E
         self.decoder = nn.LSTMCell(lstm_in, hid)  # eq. 18, LSTM_D
-        self.out = nn.Linear(hid, 2)  # eq. 19, W_u, b_u
-        self.init_decoder = nn.Linear(hid + config.noise_dim, hid)  # eqs. 21-22, W_phi, b_phi
-        self.mode_gate = nn.Linear(hid, 1) if config.mode_gate else None  # see ModelConfig.mode_gate
+        self.out = RowLinear(hid, 2)  # eq. 19, W_u, b_u
+        self.init_decoder = RowLinear(hid + config.noise_dim, hid)  # eqs. 21-22, W_phi, b_phi
+        self.mode_gate = RowLinear(hid, 1) if config.mode_gate else None  # see ModelConfig.mode_gate
 
     def encode(self, batch: Batch, feature_map: Tensor | None = None) -> Encoded:
         """LSTM_E and the AIN over the observed steps (eqs. 1-16; ``encoder.encode``); ``feature_map``: the

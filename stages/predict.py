@@ -279,8 +279,8 @@ def run_batch(run: _Run, batch: list[tuple[LogOutput, dict[str, Any], SceneSampl
     samples = [s for _, _, s in batch]
     t0 = time.perf_counter()
     with torch.inference_mode():
-        # Predictors draw each sample's noise from (--seed, sample id), so batching and resuming change no random
-        # draw; a network's float32 reductions still round by batch shape (up to 1.6e-5 m on ETH, batch 1 vs 64).
+        # Each sample's noise comes from (--seed, sample id) and a network's arithmetic from batch-shape invariant
+        # kernels (logpipe.model.row_blocks): batching and resuming change no bit of a forecast.
         futures = (run.forecast(samples) if run.forecast is not None
                    else run.job.chosen.model.predict(samples, run.job.modes, run.job.seed))
     summary.model_seconds += time.perf_counter() - t0
