@@ -114,9 +114,10 @@ def encode(net: TrajectoryNet, batch: Batch, feature_map: Tensor | None = None) 
         m_all = net.ain.ego_motion(scale_down(ego_disp, ds), ego_disp_ok)  # eq. 5, (B, T, d)
     if net.ain.ego_trajectory is not None:
         f_all = net.ain.ego_trajectory(scale_down(ego_pos, ps), ego_ok)  # eqs. 8-9, (B, T, d)
+    obs_scaled = scale_down(obs, ps)  # PF's and the attention gate's input
     o_all = None
     if net.ain.position is not None:  # eqs. 1-2 for all observed steps at once: (T_obs, B, d)
-        o_all = net.ain.position(scale_down(obs, ps), ok, batch, rows)
+        o_all = net.ain.position(obs_scaled, ok, batch, rows)
     proj = v_all = None
     if net.env is not None:
         if batch.raster is not None:
@@ -124,7 +125,7 @@ def encode(net: TrajectoryNet, batch: Batch, feature_map: Tensor | None = None) 
             proj = net.env.project(fmap)
         v_all = map_features(net, proj, obs, batch, rows)  # (T_obs, N, d_v)
         v_all = torch.where(ok[..., None], v_all, torch.zeros_like(v_all))
-    gate = torch.sigmoid(net.attention(scale_down(obs, ps))) if net.attention is not None else None  # eq. 13
+    gate = torch.sigmoid(net.attention(obs_scaled)) if net.attention is not None else None  # eq. 13
     hid = cfg.lstm_dim
     h = obs.new_zeros(n, hid)
     c = obs.new_zeros(n, hid)
