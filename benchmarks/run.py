@@ -41,8 +41,9 @@ def main() -> int:
             targets += [dict(t, benchmark=name) for t in r.get("targets", [])]
     results["targets"] = targets
     for t in targets:
+        floor = f"; {t['share_of_floor']} of this machine's floor {t['floor']}" if "floor" in t else ""
         print(f"[bench] {'met' if t['met'] else 'NOT met'}: {t['target']}: {t['measured']} (required "
-              f"{t['required']})", file=sys.stderr)
+              f"{t['required']}{floor})", file=sys.stderr)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(results, indent=2) + "\n")
     print(json.dumps(results, indent=2))

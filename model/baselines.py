@@ -50,13 +50,18 @@ class ConstantVelocity:
     def predict(self, samples: Sequence[SceneSample], num_modes: int, seed: int) -> list[NDArrayFloat]:
         """Deterministic: the forecast repeated ``num_modes`` times."""
         del seed
+        return [self.predict_tracks(_observed(s)[0], num_modes) for s in samples]
+
+    def predict_tracks(self, observed: NDArrayFloat, num_modes: int) -> NDArrayFloat:
+        """(N, K, pred_len, 2) forecasts of N targets from their own (N, T_obs, 2) observed tracks (world
+        metres, NaN where unobserved) alone: the columnar path (``logpipe.dataset.target_tracks``)."""
+        ok = np.all(np.isfinite(observed), axis=-1)
+        cur, vel = _last_velocity(observed, ok)
         steps = np.arange(1, self.pred_len + 1, dtype=np.float64)[None, :, None]
-        out = []
-        for s in samples:
-            cur, vel = _last_velocity(*_observed(s))
-            fut = cur[:, None] + vel[:, None] * steps
-            out.append(np.repeat(fut[:, None], num_modes, axis=1))
-        return out
+        fut = cur[:, None] + vel[:, None] * steps
+        # A read-only view of the K equal modes: whoever lays them out copies them once.
+        modes: NDArrayFloat = np.broadcast_to(fut[:, None], (len(fut), num_modes, *fut.shape[1:]))
+        return modes
 
 
 @dataclass

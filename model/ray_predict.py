@@ -27,6 +27,7 @@ from typing import Any
 import numpy as np
 
 from logpipe.dataset.reader import Dataset
+from logpipe.dataset.sample_filter import SelectedSamples
 from logpipe.errors import LogpipeError
 from logpipe.model.device import resolve_device
 from logpipe.model.registry import ChosenPredictor, load_net
@@ -153,7 +154,7 @@ class ForecastJob:
     cutter: SampleCutter
 
 
-def ray_forecasts(job: ForecastJob, log_ids: list[str], samples_by_log: dict[str, list[dict[str, Any]]],
+def ray_forecasts(job: ForecastJob, log_ids: list[str], samples: SelectedSamples,
                   pending: list[Path], workers: int, threads: int,
                   device: str) -> Callable[[list[SceneSample]], Sequence[Any]]:
     """The forecast function of ``--backend ray``: returns, batch after batch, the actors' forecasts of the
@@ -162,7 +163,7 @@ def ray_forecasts(job: ForecastJob, log_ids: list[str], samples_by_log: dict[str
     Args:
         job: the run's fixed inputs.
         log_ids: the selected logs in logs-table order (the order the stage cuts batches in).
-        samples_by_log: the selected sample-index rows of each log.
+        samples: the selected sample-index rows.
         pending: the dataset shards still to predict, in the stage's order.
         workers: actors (0: one per GPU, else per ``threads`` CPUs); ``threads``: torch threads per actor (0: 1).
         device: ``--device`` (each actor resolves it).
@@ -174,7 +175,7 @@ def ray_forecasts(job: ForecastJob, log_ids: list[str], samples_by_log: dict[str
     # reductions round by thread count, so outputs match a local run's bytes at the same --threads (tested).
     threads = threads or 1
     size, gpu = start(workers, threads)
-    planned = [(path, job.cutter.plan_batches(read_table(path), log_ids, samples_by_log, job.batch_size))
+    planned = [(path, job.cutter.plan_batches(read_table(path), log_ids, samples, job.batch_size))
                for path in pending]
     items = work_items(planned, _ITEMS_PER_ACTOR * size)
     # A fresh RasterShards has no memory maps to pickle.

@@ -25,12 +25,14 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pyarrow as pa
 import pyarrow.compute as pc
 
 from logpipe.dataset.reader import Dataset
-from logpipe.dataset.sample_filter import SampleFilter, selected_samples
+from logpipe.dataset.sample_filter import SampleFilter, SelectedSamples, selected_samples
 from logpipe.dataset.sample_filter import selected_logs as _selected_logs
+from logpipe.dataset.target_tracks import ShardTracks
 from logpipe.errors import LogpipeError
 from logpipe.executor import default_workers
 from logpipe.model.device import check_device_name, resolve_device
@@ -42,9 +44,10 @@ from logpipe.model.registry import (
     resolve_inference,
     seen_in_training,
 )
+from logpipe.prediction.columnar import chunk_rows, track_predictor, write_chunks
 from logpipe.prediction.mcap_logs import PredictionMcaps, check_log_ids
 from logpipe.prediction.model_inputs import SampleCutter, log_windows, raster_problems
-from logpipe.prediction.options import PredictOptions, PredictSummary
+from logpipe.prediction.options import PredictOptions, PredictSummary, default_modes
 from logpipe.prediction.originals import find_original
 from logpipe.prediction.output import LogOutput, SamplePrediction, ShardWriter, fast_gil_switching, shard_writer
 from logpipe.prediction.runs import PredictionMeta, PredictionRunWriter, RunSettings, RunShardEntry
@@ -55,12 +58,6 @@ from logpipe.storage.io import read_table, sha256_file
 from logpipe.types import SceneSample
 
 
-def default_modes(protocol_name: str) -> int:
-    """K when ``--modes`` is not given: 20 for pedestrian protocols (ETH/UCY, Social-GAN best-of-20), 6 for the
-    vehicle ones (Argoverse K=6, ROS logs at the Argoverse horizon)."""
-    return 20 if protocol_name.startswith(("ethucy", "apolloscape")) else 6
-
-
 @dataclass
 class _Run:
     """Everything fixed for one invocation (shared by the per-shard work): what every forecast needs (``job``, the
@@ -68,7 +65,7 @@ class _Run:
 
     job: ForecastJob
     logs: dict[str, dict[str, Any]]
-    samples_by_log: dict[str, list[dict[str, Any]]]
+    samples: SelectedSamples
     meta: PredictionMeta
     mcaps: PredictionMcaps | None
     """The per-log MCAP writer (None: ``--no-mcap``)."""
@@ -101,13 +98,13 @@ def predict_dataset(dataset_dir: Path, out_dir: Path, options: PredictOptions | 
                 load_net(run.job.chosen, run.job.dataset, run.job.batch_size, torch_device or "cpu")
             done = {s["shard"] for s in shards}
             done_names = {Path(d).name for d in done}  # progress counts the samples of the shards left to do
-            report_total(progress, sum(len(rows) for log_id, rows in run.samples_by_log.items()
-                                       if Path(str(run.logs[log_id]["shard"])).name not in done_names))
+            report_total(progress, sum(run.samples.count(log_id) for log_id, row in run.logs.items()
+                                       if Path(str(row["shard"])).name not in done_names))
             torch.set_num_threads(opts.threads or default_workers())
             if opts.backend == "ray":
                 root = run.job.dataset.root
                 pending = [p for p in run.job.dataset.shard_paths if p.relative_to(root).as_posix() not in done]
-                run.forecast = ray_forecasts(run.job, list(run.logs), run.samples_by_log, pending, opts.workers,
+                run.forecast = ray_forecasts(run.job, list(run.logs), run.samples, pending, opts.workers,
                                              opts.threads, opts.device)
                 summary.device = None  # chosen on each actor
             uncommitted = writer.manifest is None
@@ -153,13 +150,13 @@ def _prepare(dataset_dir: Path, out_dir: Path, opts: PredictOptions) -> tuple[_R
     logs_table = _selected_logs(dataset, sample_filter)
     problems = check_fit(dataset, chosen, logs_table)
     warnings = seen_in_training(chosen, logs_table)
-    samples_by_log = selected_samples(dataset, logs_table, sample_filter)
+    samples = selected_samples(dataset, logs_table, sample_filter)
     # Looked up when used or named, so several runs are an error only where the choice matters and a named run
     # that does not exist is always reported.
     rasters = (find_raster_run(dataset_dir, opts.raster_run, chosen.raster_channels if chosen.needs_raster else None)
                if chosen.needs_raster or opts.raster_images or opts.raster_run is not None else None)
     if chosen.needs_raster:
-        problems += raster_problems(dataset_dir, rasters, samples_by_log)
+        problems += raster_problems(dataset_dir, rasters, samples)
     if problems:
         raise LogpipeError(f"{chosen.checkpoint or 'predictor'} does not fit {dataset_dir}: " + "; ".join(problems))
     logs = {str(r["log_id"]): r for r in logs_table.to_pylist()}
@@ -189,14 +186,14 @@ def _prepare(dataset_dir: Path, out_dir: Path, opts: PredictOptions) -> tuple[_R
         num_modes=modes, seed=opts.seed, checkpoint=str(chosen.checkpoint) if chosen.checkpoint is not None else None,
         raster_run=rasters.run_dir.name if rasters is not None else None,
         inference=inference.summary() if chosen.checkpoint is not None else None, warnings=warnings,
-        protocol=protocol.to_dict(), logs_selected=len(logs), samples_selected=sum(map(len, samples_by_log.values())),
+        protocol=protocol.to_dict(), logs_selected=len(logs), samples_selected=len(samples),
         device=None if torch_device is None else str(torch_device), backend=opts.backend,
     )
     mcaps = PredictionMcaps(protocol, chosen.name, chosen.checkpoint_id, modes, opts.seed,
                             rasters.spec.channels if raster_images and rasters is not None else None, logs, originals)
     raster_ids = frozenset(rasters.index.column("sample_id").to_pylist()) if rasters is not None else frozenset()
     cutter = SampleCutter(protocol.obs_len, sample_filter.object_types, rasters, raster_ids)
-    run = _Run(ForecastJob(dataset, chosen, modes, opts.seed, opts.batch_size, cutter), logs, samples_by_log, meta,
+    run = _Run(ForecastJob(dataset, chosen, modes, opts.seed, opts.batch_size, cutter), logs, samples, meta,
                mcaps if opts.write_mcap else None)
     return run, settings, summary, torch_device
 
@@ -223,7 +220,15 @@ def _predict_shard(run: _Run, index: int, key: str, path: Path, out_dir: Path, s
     sink: ShardWriter | None = None
     try:
         with shard_writer(run.meta, run.job.batch_size, out_dir, index, entry, write_mcap) as sink:
-            _predict_logs(run, tracks, shard_logs, summary, progress, sink)
+            columnar = track_predictor(run.job.chosen.model) if run.forecast is None and run.mcaps is None else None
+            if columnar is not None:  # constant velocity to Parquet only: whole arrays, the same bytes
+                dt_ns = np.repeat(np.array([int(run.logs[i]["median_dt_ns"]) for i in shard_logs], np.int64),
+                                  [run.samples.count(i) for i in shard_logs])
+                rows = chunk_rows(ShardTracks(tracks), run.samples.table(shard_logs), dt_ns, columnar, run.meta,
+                                  run.job.cutter.object_types)
+                write_chunks(rows, sink, summary, progress)
+            else:
+                _predict_logs(run, tracks, shard_logs, summary, progress, sink)
     finally:
         if sink is not None:
             summary.count_writer(sink)
@@ -243,7 +248,7 @@ def _predict_logs(run: _Run, tracks: pa.Table, shard_logs: list[str], summary: P
     for log_id, windows in log_windows(tracks, shard_logs):
         out = LogOutput(log_id)
         pending.append(out)
-        for row in run.samples_by_log.get(log_id, []):
+        for row in run.samples.rows(log_id):
             sample = run.job.cutter.cut(windows, row)
             if sample is None:
                 summary.samples_without_targets += 1
@@ -255,19 +260,13 @@ def _predict_logs(run: _Run, tracks: pa.Table, shard_logs: list[str], summary: P
             if len(batch) >= run.job.batch_size:
                 run_batch(run, batch, summary, progress, sink)
                 batch = []
-                _end_finished(pending, out, sink)
+                sink.end_finished(pending, out)
                 sink.throttle()
-        _end_finished(pending, out, sink)
+        sink.end_finished(pending, out)
     if batch:
         run_batch(run, batch, summary, progress, sink)
     for out in pending:
         sink.end(out)
-
-
-def _end_finished(pending: list[LogOutput], current: LogOutput, sink: ShardWriter) -> None:
-    """End the oldest logs whose samples are all predicted (not ``current``: more of its samples may come)."""
-    while pending and pending[0].finished == pending[0].expected and pending[0] is not current:
-        sink.end(pending.pop(0))
 
 
 def run_batch(run: _Run, batch: list[tuple[LogOutput, dict[str, Any], SceneSample]],

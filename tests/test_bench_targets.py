@@ -11,7 +11,8 @@ def _result(env_ratio: float, plain: float, floor: float, cv_parquet: float, cv_
     return {
         "env_net_argoverse1": {"ratio_to_backbone": env_ratio},
         "no_env_net_ethucy": {"samples_per_s": plain, "floor": {"bound_samples_per_s": floor}},
-        "cv_ethucy_no_mcap": {"samples_per_s": cv_parquet},
+        "cv_ethucy_no_mcap": {"samples_per_s": cv_parquet, "parquet_write_alone_samples_per_s": 2 * cv_parquet},
+        "cv_ethucy_all_no_mcap": {"samples_per_s": cv_parquet / 4},
         "cv_ethucy": {"samples_per_s": cv_mcap},
         "cv_argoverse1": {"samples_per_s": cv_av1},
     }
@@ -27,6 +28,9 @@ def test_every_target_is_reported_with_its_reference_ratio() -> None:
     assert by_name["constant velocity, ETH/UCY, Parquet only: samples/s"]["met"]
     assert not by_name["constant velocity, ETH/UCY, Parquet + MCAP: samples/s"]["met"]
     assert by_name["constant velocity, AV1 with rasters in the MCAP: samples/s"]["met"]  # the bound itself counts
+    parquet = by_name["constant velocity, ETH/UCY, Parquet only: samples/s"]
+    assert parquet["floor"] == 50_000.0 and parquet["share_of_floor"] == 0.5
+    assert "floor" not in by_name["constant velocity, all of ETH/UCY, Parquet only: samples/s"]  # not measured
 
 
 def test_paths_not_measured_are_left_out() -> None:

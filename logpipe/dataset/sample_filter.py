@@ -11,11 +11,14 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
+import numpy as np
 import pyarrow as pa
 import pyarrow.compute as pc
 
 from logpipe.dataset.reader import Dataset
+from logpipe.dataset.shards import log_runs
 from logpipe.errors import DatasetError, LogpipeError
+from logpipe.storage.io import as_numpy
 from logpipe.types import OBJECT_TYPES
 
 
@@ -97,15 +100,50 @@ def selected_logs(dataset: Dataset, f: SampleFilter) -> pa.Table:
     return logs.filter(pc.is_in(logs.column("log_id"), value_set=pa.array(sorted(keep), pa.string())))
 
 
-def selected_samples(dataset: Dataset, logs: pa.Table, f: SampleFilter) -> dict[str, list[dict[str, Any]]]:
-    """The sample-index rows of the ``logs`` rows within ``f``'s time range, by log id (index order)."""
+def selected_samples(dataset: Dataset, logs: pa.Table, f: SampleFilter) -> SelectedSamples:
+    """The sample-index rows of the ``logs`` rows within ``f``'s time range."""
     samples = dataset.samples()
     mask = pc.is_in(samples.column("log_id"), value_set=logs.column("log_id"))
     if f.start_ns is not None:
         mask = pc.and_(mask, pc.greater_equal(samples.column("current_ns"), f.start_ns))
     if f.end_ns is not None:
         mask = pc.and_(mask, pc.less_equal(samples.column("current_ns"), f.end_ns))
-    by_log: dict[str, list[dict[str, Any]]] = {}
-    for row in samples.filter(mask).to_pylist():
-        by_log.setdefault(row["log_id"], []).append(row)
-    return by_log
+    return SelectedSamples(samples.filter(mask))
+
+
+class SelectedSamples:
+    """Selected sample-index rows by log, kept as one Arrow table: ~100 bytes a sample where a dict per row costs
+    ~1.5 kB, so a run's memory hardly grows with the corpus; rows become dicts one log at a time, when asked.
+
+    Args:
+        table: sample-index rows (ids as strings), in index order.
+    """
+
+    def __init__(self, table: pa.Table) -> None:
+        # Stable: a log's samples keep their index order.
+        self._table = table.take(pc.sort_indices(table, [("log_id", "ascending")])) if table.num_rows else table
+        ids = as_numpy(self._table.column("log_id")) if table.num_rows else np.zeros(0, object)
+        starts, ends = log_runs(ids)
+        self._slices = {str(ids[lo]): (lo, hi) for lo, hi in zip(starts.tolist(), ends.tolist(), strict=True)}
+
+    def __len__(self) -> int:
+        return int(self._table.num_rows)
+
+    def count(self, log_id: str) -> int:
+        """How many samples of ``log_id`` are selected."""
+        lo, hi = self._slices.get(log_id, (0, 0))
+        return int(hi - lo)
+
+    def rows(self, log_id: str) -> list[dict[str, Any]]:
+        """The selected rows of ``log_id`` as dicts, in index order (empty for a log without any)."""
+        rows: list[dict[str, Any]] = self.table([log_id]).to_pylist()
+        return rows
+
+    def table(self, log_ids: Sequence[str]) -> pa.Table:
+        """The selected rows of ``log_ids``, log after log in that order, each log's in index order."""
+        parts = [self._table.slice(lo, hi - lo) for lo, hi in (self._slices[i] for i in log_ids if i in self._slices)]
+        return pa.concat_tables(parts) if parts else self._table.slice(0, 0)
+
+    def sample_ids(self) -> pa.ChunkedArray:
+        """Every selected sample's id."""
+        return self._table.column("sample_id")

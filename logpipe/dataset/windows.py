@@ -2,7 +2,8 @@
 
 ``LogWindows`` converts a log's columns to NumPy once; each window is then two binary searches over the step
 column and a scatter, instead of an Arrow filter per window. ``SceneSample``s (``dataset.reader.scene_sample``, the
-predict stage) and the rasteriser's per-track lookups all cut their windows here.
+predict stage) and the rasteriser's per-track lookups all cut their windows here. The one column-wise counterpart,
+``dataset.target_tracks`` (only the targets' own tracks, for constant velocity), is tested against it.
 
 Frames and units: x/y are metres in the log's world frame; ``timestamp_ns`` is ns on the log's clock; steps are
 the log's integer time steps.

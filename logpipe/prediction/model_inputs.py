@@ -14,7 +14,9 @@ from typing import Any
 
 import numpy as np
 import pyarrow as pa
+import pyarrow.compute as pc
 
+from logpipe.dataset.sample_filter import SelectedSamples
 from logpipe.dataset.shards import log_slices
 from logpipe.dataset.windows import LogWindows
 from logpipe.errors import LogpipeError
@@ -56,12 +58,12 @@ class SampleCutter:
             sample.raster, sample.world_to_raster = self.rasters.get(sample.sample_id)
         return sample
 
-    def plan_batches(self, tracks: pa.Table, log_ids: Sequence[str],
-                     samples_by_log: dict[str, list[dict[str, Any]]], batch_size: int) -> BatchPlan:
+    def plan_batches(self, tracks: pa.Table, log_ids: Sequence[str], samples: SelectedSamples,
+                     batch_size: int) -> BatchPlan:
         """The batches of one shard's ``tracks``: the samples of ``log_ids`` (in that order) left with targets,
         ``batch_size`` at a time."""
         kept = [(log_id, row) for log_id, windows in log_windows(tracks, log_ids)
-                for row in samples_by_log.get(log_id, []) if self.cut(windows, row, raster=False) is not None]
+                for row in samples.rows(log_id) if self.cut(windows, row, raster=False) is not None]
         return [kept[i : i + batch_size] for i in range(0, len(kept), batch_size)]
 
     def cut_planned(self, shard: ShardWindows, path: str, batches: BatchPlan) -> Iterator[list[SceneSample]]:
@@ -87,15 +89,15 @@ def work_items(planned: Sequence[tuple[Path, BatchPlan]], parts: int) -> list[Wo
             for i in range(0, len(batches), per_item)]
 
 
-def raster_problems(dataset_dir: Path, rasters: RasterShards | None,
-                    samples_by_log: dict[str, list[dict[str, Any]]]) -> list[str]:
-    """Why the raster run ``rasters`` cannot feed a network that needs a raster for each selected sample (the
-    rows of ``samples_by_log``); empty when it can."""
+def raster_problems(dataset_dir: Path, rasters: RasterShards | None, samples: SelectedSamples) -> list[str]:
+    """Why the raster run ``rasters`` cannot feed a network that needs a raster for each of the selected
+    ``samples``; empty when it can."""
     if rasters is None:
         return [f"the checkpoint uses the environment net but {dataset_dir} has no raster run with the channels "
                 "it expects; run `logpipe rasterise`"]
-    have = set(rasters.index.column("sample_id").to_pylist())
-    missing = [s["sample_id"] for rows in samples_by_log.values() for s in rows if s["sample_id"] not in have]
+    ids = samples.sample_ids()
+    lacking = pc.invert(pc.is_in(ids, value_set=rasters.index.column("sample_id").combine_chunks()))
+    missing = ids.filter(lacking).to_pylist()
     if missing:
         return [f"raster run {rasters.run_dir.name} lacks {len(missing)} selected samples (e.g. {missing[0]}); "
                 "re-run `logpipe rasterise`"]

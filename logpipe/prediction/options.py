@@ -14,6 +14,12 @@ if TYPE_CHECKING:
     from logpipe.prediction.output import ShardWriter
 
 
+def default_modes(protocol_name: str) -> int:
+    """K when ``--modes`` is not given: 20 for pedestrian protocols (ETH/UCY, Social-GAN best-of-20), 6 for the
+    vehicle ones (Argoverse K=6, ROS logs at the Argoverse horizon)."""
+    return 20 if protocol_name.startswith(("ethucy", "apolloscape")) else 6
+
+
 @dataclass(frozen=True)
 class PredictOptions:
     """The options of one predict run (the arguments of ``predict_dataset`` after the folders).

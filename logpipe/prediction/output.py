@@ -24,7 +24,7 @@ import pyarrow.parquet as pq
 
 from logpipe.errors import DatasetError
 from logpipe.prediction.runs import MCAP_DIR, PREDICTIONS_DIR, PredictionMeta, RunShardEntry
-from logpipe.prediction.table import SampleForecast, build_table
+from logpipe.prediction.table import RowGroupWriter, SampleForecast, build_table
 from logpipe.storage.artifact import FileEntry, file_entry
 from logpipe.storage.io import atomic_path, parquet_options
 from logpipe.types import OBJECT_TYPES, NDArrayFloat, NDArrayInt, SampleProtocol, SceneSample
@@ -174,8 +174,7 @@ class ShardWriter:
         self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="logpipe-predict-write")
         self._jobs: list[Future[None]] = []
         self._feeds: dict[str, queue.Queue[list[SamplePrediction] | None]] = {}
-        self._buffered: list[pa.Table] = []
-        self._buffered_rows = 0
+        self._groups = RowGroupWriter(parquet, ROW_GROUP_ROWS)
         self._queued = 0  # samples handed over and not yet taken by the writer
         self._limit = QUEUED_BATCHES * batch_size
         self._taken = threading.Condition()
@@ -198,6 +197,23 @@ class ShardWriter:
             self._queued += max(len(predictions), 1)
         self._feeds[out.log_id].put(predictions)
 
+    def add_rows(self, table: pa.Table, samples: int) -> None:
+        """Queue predictions rows built elsewhere, of ``samples`` samples, for the Parquet file (the columnar path,
+        ``logpipe.prediction.columnar``: Parquet only, no log MCAPs), waiting while ``QUEUED_BATCHES`` tables
+        are queued (bounded memory)."""
+        self._raise_failed()
+        t0 = time.perf_counter()
+        while len(self._jobs) >= QUEUED_BATCHES:
+            self._jobs.pop(0).result()
+        self.wait_seconds += time.perf_counter() - t0
+        self._jobs.append(self._pool.submit(self._write_rows, table, samples))
+
+    def _write_rows(self, table: pa.Table, samples: int) -> None:
+        started = time.perf_counter()
+        self._add_rows(table)
+        self._entry["samples"] += samples
+        self.busy_seconds += time.perf_counter() - started
+
     def throttle(self) -> None:
         """Wait while more than ``QUEUED_BATCHES`` batches' worth of samples are queued (bounded memory).
 
@@ -217,14 +233,18 @@ class ShardWriter:
             self.add(out, [])
         self._feeds.pop(out.log_id).put(None)
 
+    def end_finished(self, pending: list[LogOutput], current: LogOutput) -> None:
+        """End the oldest of the ``pending`` logs whose samples are all predicted (not ``current``: more of its
+        samples may come), removing them from ``pending``."""
+        while pending and pending[0].finished == pending[0].expected and pending[0] is not current:
+            self.end(pending.pop(0))
+
     def close(self) -> None:
         """Wait for every log, write the last row group; re-raises a writer error."""
         t0 = time.perf_counter()
         for job in self._jobs:
             job.result()
-        if self._buffered:
-            self._parquet.write_table(pa.concat_tables(self._buffered), row_group_size=ROW_GROUP_ROWS)
-            self._buffered = []
+        self._groups.flush()
         self._pool.shutdown()
         self.wait_seconds += time.perf_counter() - t0
 
@@ -273,15 +293,5 @@ class ShardWriter:
             self.busy_seconds += time.perf_counter() - started - waited
 
     def _add_rows(self, table: pa.Table) -> None:
-        if not table.num_rows:
-            return
         self._entry["rows"] += table.num_rows
-        self._buffered.append(table)
-        self._buffered_rows += table.num_rows
-        if self._buffered_rows >= ROW_GROUP_ROWS:
-            whole = pa.concat_tables(self._buffered)
-            cut = whole.num_rows // ROW_GROUP_ROWS * ROW_GROUP_ROWS
-            self._parquet.write_table(whole.slice(0, cut), row_group_size=ROW_GROUP_ROWS)
-            rest = whole.slice(cut)
-            self._buffered = [rest] if rest.num_rows else []
-            self._buffered_rows = rest.num_rows
+        self._groups.add(table)

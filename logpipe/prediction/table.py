@@ -10,12 +10,13 @@ from dataclasses import dataclass
 
 import numpy as np
 import pyarrow as pa
+import pyarrow.compute as pc
+import pyarrow.parquet as pq
 
 from logpipe.prediction.runs import PredictionMeta, PredictionsError
 from logpipe.types import OBJECT_TYPES, NDArrayFloat, NDArrayInt, SceneSample
 
 _IDS = ("log_id", "sample_id", "track_id")
-_DICT = pa.dictionary(pa.int32(), pa.string())
 
 
 @dataclass(frozen=True)
@@ -44,8 +45,8 @@ class SampleForecast:
 def build_table(meta: PredictionMeta, forecasts: Sequence[SampleForecast]) -> pa.Table:
     """The predictions rows of ``forecasts`` in the table's order, built column-wise (no per-row Python).
 
-    The id columns get one dictionary per sample (the sample's own targets): a writer that cuts row groups at
-    fixed row counts then writes the same file however the forecasts were batched into tables.
+    Id columns are dictionary-encoded per table; ``write_row_groups`` re-encodes them per row group, so a file
+    does not depend on how its forecasts were batched into tables.
 
     Raises:
         PredictionsError: a forecast whose shape is not (N, K, T, 2) with the metadata's K and T, step times
@@ -62,50 +63,65 @@ def build_table(meta: PredictionMeta, forecasts: Sequence[SampleForecast]) -> pa
             raise PredictionsError(f"{f.sample_id}: {np.shape(f.step_ns)} step times, expected ({t},)")
     if not done:
         return schema.empty_table()
-    n_targets = [len(f.track_ids) for f in done]
-    futures = np.concatenate([np.asarray(f.futures, np.float64) for f in done])  # (agents, K, T, 2)
-    step_ns = np.concatenate([np.broadcast_to(np.asarray(f.step_ns, np.int64), (n * k, t))
-                              for f, n in zip(done, n_targets, strict=True)])
+    n_targets = np.array([len(f.track_ids) for f in done], np.int64)
     uniform = np.full(k, 1.0 / k)
-    scores = np.concatenate([(np.broadcast_to(uniform, (n, k)) if f.scores is None else np.asarray(f.scores))
-                             .reshape(-1) for f, n in zip(done, n_targets, strict=True)])
     type_code = {name: i for i, name in enumerate(OBJECT_TYPES)}
     try:
-        type_codes = np.repeat(np.array([type_code[str(c)] for f in done for c in f.object_types], np.int32), k)
+        type_codes = np.array([type_code[str(c)] for f in done for c in f.object_types], np.int64)
     except KeyError as exc:
         raise PredictionsError(f"object type {exc.args[0]!r} is not one of {list(OBJECT_TYPES)}") from None
-    ids = _sample_dictionaries(done, n_targets, k)
+    targets = Targets(pa.array([f.log_id for f in done], pa.string()),
+                      pa.array([f.sample_id for f in done], pa.string()), np.repeat(np.arange(len(done)), n_targets),
+                      pa.array([str(n) for f in done for n in f.track_ids], pa.string()), type_codes)
+    return targets_table(
+        meta, targets, np.concatenate([np.asarray(f.futures, np.float64) for f in done]),
+        np.concatenate([np.broadcast_to(uniform, (n, k)) if f.scores is None else np.asarray(f.scores)
+                        for f, n in zip(done, n_targets, strict=True)]),
+        np.concatenate([np.broadcast_to(np.asarray(f.step_ns, np.int64), (n, t))
+                        for f, n in zip(done, n_targets, strict=True)]))
+
+
+@dataclass(frozen=True)
+class Targets:
+    """Who N forecasts of S samples are for.
+
+    Attributes:
+        log_ids, sample_ids: (S,) strings, per sample; ``sample_of``: (N,) each target's sample.
+        track_ids: (N,) strings; ``type_codes``: (N,) codes into ``OBJECT_TYPES``.
+    """
+
+    log_ids: pa.Array
+    sample_ids: pa.Array
+    sample_of: NDArrayInt
+    track_ids: pa.Array
+    type_codes: NDArrayInt
+
+
+def targets_table(meta: PredictionMeta, targets: Targets, futures: NDArrayFloat, scores: NDArrayFloat,
+                  step_ns: NDArrayInt) -> pa.Table:
+    """The predictions rows of N ``targets``, K rows per target (no per-row or per-sample Python).
+
+    Args:
+        futures: (N, K, T, 2) world metres; ``scores``: (N, K); ``step_ns``: (N, T) ns.
+    """
+    schema = meta.schema()
+    k, t = meta.num_modes, meta.pred_len
+    per_row = np.repeat(np.asarray(targets.sample_of, np.int32), k)
+    n = len(targets.type_codes)
     columns = {
-        **ids,
-        "object_type": pa.DictionaryArray.from_arrays(pa.array(type_codes), pa.array(OBJECT_TYPES, pa.string())),
-        "mode": pa.array(np.tile(np.arange(k, dtype=np.int16), len(type_codes) // k)),
-        "score": pa.array(scores.astype(np.float32)),
-        "timestamp_ns": pa.FixedSizeListArray.from_arrays(pa.array(step_ns.reshape(-1)), t),
+        "log_id": pa.DictionaryArray.from_arrays(per_row, targets.log_ids),
+        "sample_id": pa.DictionaryArray.from_arrays(per_row, targets.sample_ids),
+        "track_id": pa.DictionaryArray.from_arrays(np.repeat(np.arange(n, dtype=np.int32), k), targets.track_ids),
+        "object_type": pa.DictionaryArray.from_arrays(np.repeat(np.asarray(targets.type_codes, np.int32), k),
+                                                      pa.array(OBJECT_TYPES, pa.string())),
+        "mode": pa.array(np.tile(np.arange(k, dtype=np.int16), n)),
+        "score": pa.array(np.asarray(scores, np.float32).reshape(-1)),
+        "timestamp_ns": pa.FixedSizeListArray.from_arrays(
+            pa.array(np.repeat(np.asarray(step_ns, np.int64), k, axis=0).reshape(-1)), t),
         "x": pa.FixedSizeListArray.from_arrays(pa.array(np.ascontiguousarray(futures[..., 0]).reshape(-1)), t),
         "y": pa.FixedSizeListArray.from_arrays(pa.array(np.ascontiguousarray(futures[..., 1]).reshape(-1)), t),
     }
     return pa.Table.from_arrays([columns[f.name] for f in schema], schema=schema)
-
-
-def _sample_dictionaries(done: Sequence[SampleForecast], n_targets: Sequence[int],
-                         k: int) -> dict[str, pa.ChunkedArray]:
-    """``log_id``, ``sample_id``, ``track_id`` as one dictionary-encoded chunk per sample: the sample's log, its
-    id, its targets in order. Chunks cut anywhere keep these dictionaries, so what a Parquet writer stores does
-    not depend on which forecasts shared a table (it writes a chunk's dictionary as given)."""
-    logs = pa.array([f.log_id for f in done], pa.string())
-    samples = pa.array([f.sample_id for f in done], pa.string())
-    tracks = pa.array([str(n) for f in done for n in f.track_ids], pa.string())
-    starts = np.concatenate([[0], np.cumsum(n_targets)]).tolist()
-    longest = max(n_targets)
-    zeros = pa.array(np.zeros(longest * k, np.int32))
-    local = pa.array(np.repeat(np.arange(longest, dtype=np.int32), k))
-    out: dict[str, list[pa.Array]] = {name: [] for name in _IDS}
-    for i, n in enumerate(n_targets):
-        same = zeros.slice(0, n * k)
-        out["log_id"].append(pa.DictionaryArray.from_arrays(same, logs.slice(i, 1)))
-        out["sample_id"].append(pa.DictionaryArray.from_arrays(same, samples.slice(i, 1)))
-        out["track_id"].append(pa.DictionaryArray.from_arrays(local.slice(0, n * k), tracks.slice(starts[i], n)))
-    return {name: pa.chunked_array(chunks, _DICT) for name, chunks in out.items()}
 
 
 def samples_table(meta: PredictionMeta, samples: Sequence[SceneSample], forecasts: Sequence[NDArrayFloat], *,
@@ -130,3 +146,66 @@ def samples_table(meta: PredictionMeta, samples: Sequence[SceneSample], forecast
             object_types=[OBJECT_TYPES[int(s.object_types[a])] for a in idx], futures=futures, scores=None,
             step_ns=np.asarray(s.timestamps_ns[s.obs_len : s.obs_len + meta.pred_len], np.int64)))
     return build_table(meta, out)
+
+
+def row_group_table(table: pa.Table) -> pa.Table:
+    """``table`` (one row group's rows) with its id columns dictionary-encoded over exactly these rows (distinct
+    values numbered in order of first appearance, as ``pyarrow.compute.dictionary_encode`` numbers them): what a
+    Parquet writer stores then depends on the rows alone, not on the tables they arrived in."""
+    # One chunk per column too: the writer cuts pages at chunk boundaries.
+    columns = [_by_first_appearance(table.column(f.name)).cast(f.type) if f.name in _IDS
+               else table.column(f.name).combine_chunks() for f in table.schema]
+    return pa.Table.from_arrays(columns, schema=table.schema)
+
+
+def _by_first_appearance(column: pa.ChunkedArray) -> pa.DictionaryArray:
+    """``column``'s strings as one dictionary array numbered by first appearance; works on the chunks'
+    dictionaries and integer codes (no string per row is made)."""
+    chunks = [c if pa.types.is_dictionary(c.type) else pc.dictionary_encode(c) for c in column.chunks]
+    if not chunks:
+        return pc.dictionary_encode(pa.array([], pa.string()))
+    offsets = np.cumsum([0] + [len(c.dictionary) for c in chunks])
+    distinct = pc.dictionary_encode(pa.concat_arrays([c.dictionary.cast(pa.string()) for c in chunks]))
+    merged = distinct.indices.to_numpy()
+    codes = np.concatenate([merged[c.indices.to_numpy().astype(np.int64) + off]
+                            for c, off in zip(chunks, offsets, strict=False)])
+    order = pc.unique(pa.array(codes)).to_numpy()  # distinct codes in order of first appearance
+    renumber = np.zeros(len(distinct.dictionary), np.int32)
+    renumber[order] = np.arange(len(order), dtype=np.int32)
+    return pa.DictionaryArray.from_arrays(renumber[codes], distinct.dictionary.take(pa.array(order)))
+
+
+class RowGroupWriter:
+    """Writes tables of predictions rows into ``parquet`` as row groups of exactly ``rows_per_group`` rows (the
+    last one shorter), each normalised by ``row_group_table``: the file depends on the rows alone, however they
+    were cut into tables."""
+
+    def __init__(self, parquet: pq.ParquetWriter, rows_per_group: int) -> None:
+        self._parquet, self._rows_per_group = parquet, rows_per_group
+        self._buffered: list[pa.Table] = []
+        self._buffered_rows = 0
+
+    def add(self, table: pa.Table) -> None:
+        """Buffer ``table``'s rows; write every row group they complete."""
+        if not table.num_rows:
+            return
+        self._buffered.append(table)
+        self._buffered_rows += table.num_rows
+        if self._buffered_rows >= self._rows_per_group:
+            whole = pa.concat_tables(self._buffered)
+            cut = whole.num_rows // self._rows_per_group * self._rows_per_group
+            self._write(whole.slice(0, cut))
+            rest = whole.slice(cut)
+            self._buffered = [rest] if rest.num_rows else []
+            self._buffered_rows = rest.num_rows
+
+    def flush(self) -> None:
+        """Write the buffered rows as the last (shorter) row group."""
+        if self._buffered:
+            self._write(pa.concat_tables(self._buffered))
+            self._buffered, self._buffered_rows = [], 0
+
+    def _write(self, table: pa.Table) -> None:
+        for start in range(0, table.num_rows, self._rows_per_group):
+            group = row_group_table(table.slice(start, self._rows_per_group))
+            self._parquet.write_table(group, row_group_size=self._rows_per_group)
