@@ -72,9 +72,8 @@ def split_samples(datasets: Sequence[Dataset], split: str) -> list[SceneSample]:
     return out
 
 
-def train_runs(datasets: Sequence[Dataset], runs: Path, seeds: Sequence[int]) -> dict[str, float]:
-    """Train (or resume) every variant and seed that has no summary yet; returns minutes per finished run."""
-    minutes: dict[str, float] = {}
+def train_runs(datasets: Sequence[Dataset], runs: Path, seeds: Sequence[int]) -> None:
+    """Train (or resume) every variant and seed that has no summary yet."""
     for seed in seeds:
         for variant in VARIANTS:
             run = runs / variant / f"seed{seed}"
@@ -85,7 +84,17 @@ def train_runs(datasets: Sequence[Dataset], runs: Path, seeds: Sequence[int]) ->
                 tmp = summary.with_suffix(".json.tmp")
                 tmp.write_text(json.dumps(result, indent=1, sort_keys=True))
                 tmp.replace(summary)
-            minutes[f"{variant}/seed{seed}"] = json.loads(summary.read_text()).get("seconds", math.nan) / 60
+
+
+def run_minutes(runs: Path, seeds: Sequence[int]) -> dict[str, float]:
+    """Training minutes of each finished run (all its sessions, when it was resumed)."""
+    minutes: dict[str, float] = {}
+    for seed in seeds:
+        for variant in VARIANTS:
+            summary = runs / variant / f"seed{seed}.json"
+            if summary.exists():
+                done = json.loads(summary.read_text())
+                minutes[f"{variant}/seed{seed}"] = done.get("seconds_total", done.get("seconds", math.nan)) / 60
     return minutes
 
 
@@ -143,7 +152,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = ap.parse_args(argv)
     t0 = time.perf_counter()
     datasets = build_datasets(args.av1, args.av2, args.av1_maps, args.work)
-    minutes = train_runs(datasets, args.runs, args.seeds) if args.train else {}
+    if args.train:
+        train_runs(datasets, args.runs, args.seeds)
+    minutes = run_minutes(args.runs, args.seeds)
     test, tune = split_samples(datasets, "hash/test"), split_samples(datasets, "hash/train")
     pred_len = datasets[0].protocol.pred_len
     truth_all = truth_of(test, pred_len)
@@ -161,11 +172,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         s.pop("agent_ade")
         methods[name] = {"seeds": [], "k1": s["k1"], f"k{K}": s[f"k{K}"], "fde6_window_interval": [lo, hi]}
     for variant in VARIANTS:
-        per_seed, fde_agents = [], []
+        per_seed, fde_agents, used = [], [], []
         for seed in args.seeds:
             best = args.runs / variant / f"seed{seed}" / "best"
-            if not (best / "meta.json").exists():
+            if not (args.runs / variant / f"seed{seed}.json").exists():  # finished runs only
                 continue
+            used.append(seed)
             net = NetPredictor.from_checkpoint(best, expect_kind=datasets[0].kind)
             s = scores(forecast(net, test, K, args.seed, ok), truth, window)
             fde_agents.append(s.pop("agent_fde"))
@@ -173,7 +185,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             per_seed.append(s)
         if not per_seed:
             continue
-        entry: dict[str, Any] = {"seeds": args.seeds[: len(per_seed)]}
+        entry: dict[str, Any] = {"seeds": used}
         for k in ("k1", f"k{K}"):
             entry[k] = {m: interval([s[k][m] for s in per_seed]) for m in per_seed[0][k]}
         entry["fde6_window_interval"] = list(window_interval(np.mean(fde_agents, axis=0), window))
@@ -209,17 +221,19 @@ def table_lines(result: dict[str, Any]) -> list[str]:
     rows = [(LABELS[v], v) for v in VARIANTS] + [
         ("Baseline: constant velocity (K=1)", "cv"), ("Baseline: Kalman CV (K=1)", "kalman"),
         ("Baseline (ours): CV sampler (6 draws, noise chosen on hash/train)", "cv_sampler")]
-    lines = ["| method | K=1 ADE/FDE | K=6 per agent minADE/minFDE | 95 % over test windows (minFDE@6) | "
+    lines = ["| method | seeds | K=1 ADE/FDE | K=6 per agent minADE/minFDE | 95 % over test windows (minFDE@6) | "
              "K=6 joint minADE/minFDE | K=6 Argoverse minADE/minFDE | MR@6 | paper Table 4 |",
-             "|---|---|---|---|---|---|---|---|"]
+             "|---|---|---|---|---|---|---|---|---|"]
     for label, name in rows:
         m = result["methods"].get(name)
         if m is None:
-            lines.append(f"| {label} | not run | | | | | | {PAPER_TABLE4.get(name, '')} |")
+            lines.append(f"| {label} | | not run | | | | | | {PAPER_TABLE4.get(name, '')} |")
             continue
         k1, k6 = m["k1"], m[f"k{K}"]
         lo, hi = m["fde6_window_interval"]
-        lines.append(f"| {label} | {_cell(k1, 'ade', 'fde')} | {_cell(k6, 'ade', 'fde')} | [{lo:.2f}, {hi:.2f}] | "
+        seeds = ", ".join(map(str, m["seeds"])) or "—"
+        lines.append(f"| {label} | {seeds} | {_cell(k1, 'ade', 'fde')} | {_cell(k6, 'ade', 'fde')} | "
+                     f"[{lo:.2f}, {hi:.2f}] | "
                      f"{_cell(k6, 'ade_joint', 'fde_joint')} | {_cell(k6, 'argo_ade', 'argo_fde')} | {_rate(k6)} | "
                      f"{PAPER_TABLE4.get(name, '')} |")
     return lines
@@ -230,7 +244,6 @@ def render(result: dict[str, Any], seconds: float) -> str:
     c = result["counts"]
     split_counts = "; ".join(f"{kind}: " + ", ".join(f"{n} {sp}" for sp, n in w.items())
                              for kind, w in c["windows"].items())
-    seeds = result["seeds"]
     lines = [
         "# The driving model on the real logs (pipeline check, not a reproduction of Table 3/4)", "",
         "Produced by `python -m scripts.reproduce_driving` (trains what is missing, resumably; config "
@@ -245,10 +258,10 @@ def render(result: dict[str, Any], seconds: float) -> str:
         "best mode (the paper's Table 1 comparisons after Social-STGCNN); joint: one mode per window, the one with the "
         "lowest summed error over its targets (Social-GAN's evaluation, the rule of the Social-GAN rows the paper "
         "compares with); Argoverse: the lowest-FDE mode's ADE and FDE, miss when that FDE > 2 m. Learned rows: mean "
-        f"over {len(seeds)} training seeds ({', '.join(map(str, seeds))}) ± the half-width of the 95 % Student t "
-        "interval over seeds; the bracket is a 95 % bootstrap over whole test windows of the seed-averaged per-agent "
-        "minFDE@6 (test sampling only). The paper's Table 4 column is its printed Argoverse validation result "
-        "(39,472 sequences, K unstated): a reference, not comparable with a few hundred windows.", "",
+        "over the training seeds in the row's seeds column ± the half-width of the 95 % Student t interval over "
+        "them (none shown for one seed); the bracket is a 95 % bootstrap over whole test windows of the "
+        "seed-averaged per-agent minFDE@6 (test sampling only). The paper's Table 4 column is its printed Argoverse "
+        "validation result (39,472 sequences, K unstated): a reference, not comparable with a few hundred windows.", "",
         *table_lines(result), "",
         "The learned rows are the paper's method as the paper specifies it (per-scene best-of-20 loss, eq. 23; plain "
         "displacement output; the ego-perspective frame of its Table 3), with a schedule cut to this data (800 steps "

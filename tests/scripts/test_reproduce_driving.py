@@ -4,11 +4,13 @@ from __future__ import annotations
 
 import json
 import math
+import shutil
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+from scripts.locations import REPO
 from scripts.reproduce_driving import interval, main, scores
 
 
@@ -56,3 +58,21 @@ def test_scoring_run_over_the_real_logs_counts_windows_by_log_split(shared: Path
     sampler = result["methods"]["cv_sampler"]["k6"]
     assert sampler["ade"] <= sampler["ade_joint"] and sampler["argo_fde"] >= sampler["fde"]
     assert "not run" in (tmp_path / "results" / "argoverse_logs.md").read_text()
+
+
+@pytest.mark.shared
+def test_learned_rows_name_the_seeds_that_finished(shared: Path, tmp_path: Path) -> None:
+    # A finished run for seed 1 only (the shipped full model stands in for it); seed 0 never ran.
+    run = tmp_path / "runs" / "full"
+    shutil.copytree(REPO / "model" / "checkpoints" / "argoverse" / "zhu2020", run / "seed1" / "best")
+    (run / "seed1.json").write_text(json.dumps({"seconds": 30.0, "seconds_total": 90.0}))
+    code = main(["--av1", str(shared / "argoverse1" / "data"), "--av1-maps", str(shared / "argoverse1" / "maps"),
+                 "--av2", str(shared / "av2"), "--work", str(tmp_path / "work"), "--runs", str(tmp_path / "runs"),
+                 "--results", str(tmp_path / "results"), "--no-train", "--seeds", "0", "1"])
+    assert code == 0
+    result = json.loads((tmp_path / "results" / "argoverse_logs.json").read_text())
+    assert result["methods"]["full"]["seeds"] == [1]
+    assert result["train_minutes"] == {"full/seed1": 1.5}  # all sessions of a resumed run
+    row = next(line for line in (tmp_path / "results" / "argoverse_logs.md").read_text().splitlines()
+               if line.startswith("| The paper's method, full"))
+    assert row.split(" | ")[1] == "1"
