@@ -8,6 +8,7 @@ selected samples (``logpipe.dataset.sample_filter``, ``logpipe.prediction.model_
 ``torch.inference_mode``, write the shard's Parquet and its logs' MCAPs on a writer thread
 (``logpipe.prediction.output``, ``logpipe.prediction.mcap_logs``) → commit the shard by replacing the run manifest.
 With ``--backend ray`` the same batches are forecast on Ray actors (``logpipe.model.ray_predict``) and written here.
+Constant velocity to Parquet only takes ``logpipe.prediction.columnar``: a job per shard, ``--workers`` at a time.
 
 Output folder (a committed artifact, ``logpipe.prediction.runs``): ``manifest.json``, ``predictions/part-NNNNN.parquet``
 (one per dataset shard, NNNNN = its index) and ``mcap/part-NNNNN/<log_id>.mcap``. Positions are metres in the
@@ -20,21 +21,19 @@ from __future__ import annotations
 
 import dataclasses
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
-import numpy as np
 import pyarrow as pa
 import pyarrow.compute as pc
 
 from logpipe.dataset.reader import Dataset
 from logpipe.dataset.sample_filter import SampleFilter, SelectedSamples, selected_samples
 from logpipe.dataset.sample_filter import selected_logs as _selected_logs
-from logpipe.dataset.target_tracks import ShardTracks
 from logpipe.errors import LogpipeError
-from logpipe.executor import default_workers
+from logpipe.executor import Backend, default_workers, run_ordered
 from logpipe.model.device import check_device_name, resolve_device
 from logpipe.model.ray_predict import ForecastJob, ray_forecasts
 from logpipe.model.registry import (
@@ -44,7 +43,7 @@ from logpipe.model.registry import (
     resolve_inference,
     seen_in_training,
 )
-from logpipe.prediction.columnar import chunk_rows, track_predictor, write_chunks
+from logpipe.prediction.columnar import ColumnarRun, TrackPredictor, predict_shard, shard_jobs, track_predictor
 from logpipe.prediction.mcap_logs import PredictionMcaps, check_log_ids
 from logpipe.prediction.model_inputs import SampleCutter, log_windows, raster_problems
 from logpipe.prediction.options import PredictOptions, PredictSummary, default_modes
@@ -96,24 +95,24 @@ def predict_dataset(dataset_dir: Path, out_dir: Path, options: PredictOptions | 
             shards, files = writer.committed(settings)
             if opts.backend == "local":  # with ray the actors load it
                 load_net(run.job.chosen, run.job.dataset, run.job.batch_size, torch_device or "cpu")
-            done = {s["shard"] for s in shards}
-            done_names = {Path(d).name for d in done}  # progress counts the samples of the shards left to do
-            report_total(progress, sum(run.samples.count(log_id) for log_id, row in run.logs.items()
-                                       if Path(str(row["shard"])).name not in done_names))
+            done, root = {s["shard"] for s in shards}, run.job.dataset.root
+            pending = [(i, p) for i, p in enumerate(run.job.dataset.shard_paths) if p.relative_to(root).as_posix()
+                       not in done]
+            summary.shards_skipped_done = len(run.job.dataset.shard_paths) - len(pending)
+            names = {p.name for _, p in pending}  # progress counts the samples of the shards left to do
+            report_total(progress, sum(run.samples.count(i) for i, row in run.logs.items()
+                                       if str(row["shard"]).rsplit("/", 1)[-1] in names))
             torch.set_num_threads(opts.threads or default_workers())
-            if opts.backend == "ray":
-                root = run.job.dataset.root
-                pending = [p for p in run.job.dataset.shard_paths if p.relative_to(root).as_posix() not in done]
-                run.forecast = ray_forecasts(run.job, list(run.logs), run.samples, pending, opts.workers,
-                                             opts.threads, opts.device)
+            # Constant velocity to Parquet only: whole arrays, a job per shard (parallel), the same bytes.
+            columnar = track_predictor(run.job.chosen.model) if run.mcaps is None else None
+            if opts.backend == "ray" and columnar is None:
+                run.forecast = ray_forecasts(run.job, list(run.logs), run.samples, [p for _, p in pending],
+                                             opts.workers, opts.threads, opts.device)
                 summary.device = None  # chosen on each actor
             uncommitted = writer.manifest is None
-            for index, path in enumerate(run.job.dataset.shard_paths):
-                key = path.relative_to(run.job.dataset.root).as_posix()
-                if key in done:
-                    summary.shards_skipped_done += 1
-                    continue
-                entry, new_files = _predict_shard(run, index, key, path, out_dir, summary, progress)
+            outputs = (_columnar_shards(run, columnar, pending, out_dir, summary, opts, progress) if columnar
+                       else (_predict_shard(run, i, p, out_dir, summary, progress) for i, p in pending))
+            for entry, new_files in outputs:
                 shards.append(entry)
                 files.update(new_files)
                 uncommitted = True
@@ -140,10 +139,7 @@ def _prepare(dataset_dir: Path, out_dir: Path, opts: PredictOptions) -> tuple[_R
     torch_device = resolve_device(opts.device) if chosen.checkpoint is not None else None
     stored = None if opts.as_trained else chosen.stored_settings
     modes = opts.modes or (stored.num_modes if stored is not None else default_modes(dataset.protocol.name))
-    if modes < 1 or opts.batch_size < 1:
-        raise LogpipeError(f"--modes and --batch-size must be >= 1, got {modes} and {opts.batch_size}")
-    if opts.backend not in ("local", "ray"):
-        raise LogpipeError(f"--backend must be local or ray, got {opts.backend!r}")
+    opts.check(modes)
     inference = resolve_inference(chosen, num_modes=modes, noise_scale=opts.noise_scale,
                                   constant_velocity_modes=opts.constant_velocity_modes,
                                   context_max_neighbours=opts.context_max_neighbours, as_trained=opts.as_trained)
@@ -202,10 +198,10 @@ def _prepare(dataset_dir: Path, out_dir: Path, opts: PredictOptions) -> tuple[_R
 # One shard: samples → model → Parquet + MCAPs.
 
 
-def _predict_shard(run: _Run, index: int, key: str, path: Path, out_dir: Path, summary: PredictSummary,
+def _predict_shard(run: _Run, index: int, path: Path, out_dir: Path, summary: PredictSummary,
                    progress: Callable[[int], None] | None) -> tuple[RunShardEntry, dict[str, FileEntry]]:
-    """Predict one dataset shard (``path``, named ``key`` in the run manifest) into new files; returns its
-    manifest entry and the files to commit with it."""
+    """Predict one dataset shard into new files; returns its manifest entry and the files to commit with it."""
+    key = path.relative_to(run.job.dataset.root).as_posix()
     entry: RunShardEntry = {"shard": key, "logs": 0, "samples": 0, "rows": 0, "file": None}
     t0 = time.perf_counter()
     in_shard = set(pc.unique(read_table(path, columns=["log_id"]).column("log_id")).to_pylist())
@@ -220,20 +216,26 @@ def _predict_shard(run: _Run, index: int, key: str, path: Path, out_dir: Path, s
     sink: ShardWriter | None = None
     try:
         with shard_writer(run.meta, run.job.batch_size, out_dir, index, entry, write_mcap) as sink:
-            columnar = track_predictor(run.job.chosen.model) if run.forecast is None and run.mcaps is None else None
-            if columnar is not None:  # constant velocity to Parquet only: whole arrays, the same bytes
-                dt_ns = np.repeat(np.array([int(run.logs[i]["median_dt_ns"]) for i in shard_logs], np.int64),
-                                  [run.samples.count(i) for i in shard_logs])
-                rows = chunk_rows(ShardTracks(tracks), run.samples.table(shard_logs), dt_ns, columnar, run.meta,
-                                  run.job.cutter.object_types)
-                write_chunks(rows, sink, summary, progress)
-            else:
-                _predict_logs(run, tracks, shard_logs, summary, progress, sink)
+            _predict_logs(run, tracks, shard_logs, summary, progress, sink)
     finally:
         if sink is not None:
             summary.count_writer(sink)
     summary.rows += entry["rows"]
     return entry, sink.files
+
+
+def _columnar_shards(run: _Run, predictor: TrackPredictor, pending: list[tuple[int, Path]], out_dir: Path,
+                     summary: PredictSummary, opts: PredictOptions,
+                     progress: Callable[[int], None] | None) -> Iterator[tuple[RunShardEntry, dict[str, FileEntry]]]:
+    """Predict the ``pending`` shards on the columnar path, ``--workers`` at a time (processes; Ray tasks with
+    ``--backend ray``), each into its own uncommitted files; yields entries and files in shard order."""
+    shared = ColumnarRun(predictor, out_dir, run.meta, run.job.cutter.object_types)
+    jobs = shard_jobs(shared, run.job.dataset.root, pending, run.logs, run.samples, summary)
+    for done in run_ordered(predict_shard, jobs, workers=opts.workers, backend=cast(Backend, opts.backend)):
+        summary.add(done.summary)
+        if progress:
+            progress(done.summary.samples + done.summary.samples_without_targets)
+        yield done.entry, done.files
 
 
 def _predict_logs(run: _Run, tracks: pa.Table, shard_logs: list[str], summary: PredictSummary,

@@ -119,7 +119,8 @@ def predict(  # noqa: PLR0913  typer command: one parameter per CLI option
         "--backend", help="local | ray: forecast on Ray actors (DATASET on a file system every node shares); "
         "outputs are written here, the same bytes as a local run with the same --threads.")] = "local",
     workers: Annotated[int, typer.Option(
-        "--workers", "-j", help="Ray actors (0 = one per GPU of the cluster, else one per CPU); ray only.")] = 0,
+        "--workers", "-j", help="Ray actors (0 = one per GPU of the cluster, else one per CPU); locally, parallel "
+        "shard jobs of constant velocity with --no-mcap (0 = one per core).")] = 0,
     as_json: JsonOpt = False,
 ) -> None:
     """Run a checkpoint (or a baseline) on every sample and write predictions as Parquet and, per log, an MCAP

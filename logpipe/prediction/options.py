@@ -9,6 +9,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from logpipe.dataset.sample_filter import SampleFilter
+from logpipe.errors import LogpipeError
 
 if TYPE_CHECKING:
     from logpipe.prediction.output import ShardWriter
@@ -52,7 +53,8 @@ class PredictOptions:
             or ``cuda`` (autocast there; see ``logpipe.model.device``). Baselines run on the CPU whatever it says.
         backend: ``local`` (this process) or ``ray``: forecasts on Ray actors (``logpipe.model.ray_predict``;
             the dataset must be on a file system every node shares), outputs written here, the same bytes.
-        workers: Ray actors (0: one per GPU of the cluster, else one per CPU); ``local`` ignores it.
+        workers: Ray actors (0: one per GPU of the cluster, else one per CPU); locally, the constant-velocity
+            columnar path's parallel shard jobs (0: one per core); otherwise ``local`` ignores it.
     """
 
     checkpoint: Path | None = None
@@ -73,6 +75,17 @@ class PredictOptions:
     device: str = "auto"
     backend: str = "local"
     workers: int = 0
+
+    def check(self, modes: int) -> None:
+        """Refuse settings no run can use, ``modes`` being the K resolved for the run.
+
+        Raises:
+            LogpipeError: K or the batch size below 1, or an unknown backend.
+        """
+        if modes < 1 or self.batch_size < 1:
+            raise LogpipeError(f"--modes and --batch-size must be >= 1, got {modes} and {self.batch_size}")
+        if self.backend not in ("local", "ray"):
+            raise LogpipeError(f"--backend must be local or ray, got {self.backend!r}")
 
 
 @dataclass
@@ -114,6 +127,18 @@ class PredictSummary:
     rows_total: int = 0
     seconds: float = 0.0
 
+    def zeroed(self) -> PredictSummary:
+        """A copy with every per-invocation counter at zero (what one shard's work fills, to ``add`` later)."""
+        copy = dataclasses.replace(self)
+        for name in _COUNTERS:
+            setattr(copy, name, 0)
+        return copy
+
+    def add(self, other: PredictSummary) -> None:
+        """Add ``other``'s per-invocation counters (one shard's, done elsewhere) to this summary's."""
+        for name in _COUNTERS:
+            setattr(self, name, getattr(self, name) + getattr(other, name))
+
     def count_writer(self, sink: ShardWriter) -> None:
         """Add a shard writer's counts and times (its busy time overlapped with the model, on its thread)."""
         self.io_seconds += sink.busy_seconds + sink.files_seconds
@@ -129,3 +154,8 @@ class PredictSummary:
             out[key] = round(out[key], 3)
         out["samples_per_s"] = round(self.samples / out["seconds"], 1) if out["seconds"] else None
         return out
+
+
+_COUNTERS = ("samples", "targets", "rows", "targets_unobserved", "samples_without_targets", "mcap_files",
+             "original_messages", "model_seconds", "io_seconds", "io_wait_seconds", "io_busy_seconds")
+"""``PredictSummary`` fields that count the work of this invocation, shard by shard."""

@@ -19,8 +19,9 @@ COUNTS = ("samples", "rows", "targets", "targets_unobserved", "samples_without_t
 
 
 def _files(out: Path) -> dict[str, str]:
+    """sha256 of every file of a run folder (the manifest included, the lock file not)."""
     return {p.relative_to(out).as_posix(): hashlib.sha256(p.read_bytes()).hexdigest()
-            for p in sorted((out / "predictions").glob("*.parquet"))}
+            for p in sorted(out.rglob("*")) if p.is_file() and p.name != ".lock"}
 
 
 @pytest.mark.parametrize(("name", "filters"), [("ethucy", []), ("argoverse1", []), ("ethucy", ["type=pedestrian"]),
@@ -31,7 +32,7 @@ def test_columnar_cv_writes_the_per_sample_bytes(bundled: Path, tmp_path: Path, 
     monkeypatch.setattr(output, "ROW_GROUP_ROWS", 1000)  # several row groups, cut inside samples
     monkeypatch.setattr(columnar, "CHUNK_SAMPLES", 7)
     chunks = 0
-    real_chunk_rows = stage.chunk_rows
+    real_chunk_rows = columnar.chunk_rows
 
     def counted(*args: Any, **kwargs: Any) -> Any:
         nonlocal chunks
@@ -39,7 +40,7 @@ def test_columnar_cv_writes_the_per_sample_bytes(bundled: Path, tmp_path: Path, 
             chunks += 1
             yield chunk
 
-    monkeypatch.setattr(stage, "chunk_rows", counted)
+    monkeypatch.setattr(columnar, "chunk_rows", counted)
     settings: dict[str, Any] = {"predictor": "cv", "write_mcap": False, "sample_filter": parse_filter(filters),
                                 "batch_size": 5}
     fast = stage.predict_dataset(tmp_path / "d", tmp_path / "columnar", **settings)
@@ -50,3 +51,17 @@ def test_columnar_cv_writes_the_per_sample_bytes(bundled: Path, tmp_path: Path, 
     assert _files(tmp_path / "columnar") == _files(tmp_path / "per_sample")
     if not filters or name == "ethucy":
         assert fast["rows"] > 0
+
+
+def test_parallel_shard_jobs_write_the_sequential_bytes(bundled: Path, tmp_path: Path,
+                                                        monkeypatch: pytest.MonkeyPatch) -> None:
+    # One input file per shard: several shards, predicted by a process pool of two, then inline, then per sample.
+    ingest([bundled / "ethucy"], IngestOptions(out=tmp_path / "d", workers=1, write_mcap=False, batch_files=1))
+    settings: dict[str, Any] = {"predictor": "cv", "write_mcap": False}
+    pooled = stage.predict_dataset(tmp_path / "d", tmp_path / "pooled", workers=2, **settings)
+    assert pooled["shards"] >= 2 and pooled["rows"] > 0
+    inline = stage.predict_dataset(tmp_path / "d", tmp_path / "inline", workers=1, **settings)
+    monkeypatch.setattr(stage, "track_predictor", lambda model: None)
+    slow = stage.predict_dataset(tmp_path / "d", tmp_path / "per_sample", **settings)
+    assert {k: pooled[k] for k in COUNTS} == {k: inline[k] for k in COUNTS} == {k: slow[k] for k in COUNTS}
+    assert _files(tmp_path / "pooled") == _files(tmp_path / "inline") == _files(tmp_path / "per_sample")

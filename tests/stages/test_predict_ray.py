@@ -71,6 +71,14 @@ def test_baseline_on_ray_writes_the_local_bytes(eth: Path, tmp_path: Path) -> No
     assert _files(tmp_path / "ray") == _files(tmp_path / "local")
 
 
+def test_constant_velocity_shard_tasks_on_ray_write_the_local_bytes(tmp_path: Path) -> None:
+    # Parquet only: the columnar path, where each Ray task writes its shard's file and the driver commits.
+    ingest([REPO / "tests" / "data" / "ethucy"], IngestOptions(out=tmp_path / "ds", write_mcap=False, batch_files=1))
+    local, remote = _both(tmp_path / "ds", tmp_path, predictor="cv", write_mcap=False)
+    assert remote["shards"] == local["shards"] >= 2 and remote["rows"] == local["rows"] > 0
+    assert _files(tmp_path / "ray") == _files(tmp_path / "local")
+
+
 def test_a_killed_actor_is_retried_without_duplicate_or_partial_output(eth: Path, tmp_path: Path,
                                                                        monkeypatch: pytest.MonkeyPatch) -> None:
     from logpipe.dataset.sample_filter import parse_filter
