@@ -43,12 +43,19 @@ from logpipe.model.registry import (
     resolve_inference,
     seen_in_training,
 )
-from logpipe.prediction.columnar import ColumnarRun, TrackPredictor, predict_shard, shard_jobs, track_predictor
+from logpipe.prediction.columnar import (
+    ColumnarRun,
+    TrackPredictor,
+    logs_by_shard,
+    predict_shard,
+    shard_jobs,
+    track_predictor,
+)
 from logpipe.prediction.mcap_logs import PredictionMcaps, check_log_ids
 from logpipe.prediction.model_inputs import SampleCutter, log_windows, raster_problems
 from logpipe.prediction.options import PredictOptions, PredictSummary, default_modes
 from logpipe.prediction.originals import find_original
-from logpipe.prediction.output import LogOutput, SamplePrediction, ShardWriter, fast_gil_switching, shard_writer
+from logpipe.prediction.output import LogOutput, SamplePrediction, ShardWriter, counted_shard_writer, fast_gil_switching
 from logpipe.prediction.runs import PredictionMeta, PredictionRunWriter, RunSettings, RunShardEntry
 from logpipe.progress import report_total
 from logpipe.raster.runs import find_raster_run
@@ -99,9 +106,8 @@ def predict_dataset(dataset_dir: Path, out_dir: Path, options: PredictOptions | 
             pending = [(i, p) for i, p in enumerate(run.job.dataset.shard_paths) if p.relative_to(root).as_posix()
                        not in done]
             summary.shards_skipped_done = len(run.job.dataset.shard_paths) - len(pending)
-            names = {p.name for _, p in pending}  # progress counts the samples of the shards left to do
-            report_total(progress, sum(run.samples.count(i) for i, row in run.logs.items()
-                                       if str(row["shard"]).rsplit("/", 1)[-1] in names))
+            by_shard = logs_by_shard(run.logs)  # progress counts the samples of the shards left to do
+            report_total(progress, sum(run.samples.count(i) for _, p in pending for i in by_shard.get(p.name, [])))
             torch.set_num_threads(opts.threads or default_workers())
             # Constant velocity to Parquet only: whole arrays, a job per shard (parallel), the same bytes.
             columnar = track_predictor(run.job.chosen.model) if run.mcaps is None else None
@@ -213,14 +219,8 @@ def _predict_shard(run: _Run, index: int, path: Path, out_dir: Path, summary: Pr
     tracks = read_table(path)  # a damaged shard is a one-line DatasetError
     summary.io_seconds += time.perf_counter() - t0
     write_mcap = run.mcaps.write if run.mcaps is not None else None
-    sink: ShardWriter | None = None
-    try:
-        with shard_writer(run.meta, run.job.batch_size, out_dir, index, entry, write_mcap) as sink:
-            _predict_logs(run, tracks, shard_logs, summary, progress, sink)
-    finally:
-        if sink is not None:
-            summary.count_writer(sink)
-    summary.rows += entry["rows"]
+    with counted_shard_writer(run.meta, run.job.batch_size, out_dir, index, entry, write_mcap, summary) as sink:
+        _predict_logs(run, tracks, shard_logs, summary, progress, sink)
     return entry, sink.files
 
 

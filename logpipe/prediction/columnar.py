@@ -24,7 +24,7 @@ import pyarrow as pa
 from logpipe.dataset.sample_filter import SelectedSamples
 from logpipe.dataset.target_tracks import ShardTracks
 from logpipe.prediction.options import PredictSummary
-from logpipe.prediction.output import ShardWriter, shard_writer
+from logpipe.prediction.output import ShardWriter, counted_shard_writer
 from logpipe.prediction.runs import PredictionMeta, RunShardEntry
 from logpipe.prediction.table import Targets, targets_table
 from logpipe.storage.artifact import FileEntry
@@ -142,9 +142,7 @@ def shard_jobs(run: ColumnarRun, root: Path, pending: Sequence[tuple[int, Path]]
                summary: PredictSummary) -> list[ShardJob]:
     """The jobs of the ``pending`` (index, path) shards of the dataset at ``root``, from the selected ``logs``
     (logs-table rows by id, in table order) and ``samples``."""
-    by_shard: dict[str, list[str]] = {}
-    for log_id, row in logs.items():
-        by_shard.setdefault(str(row["shard"]).rsplit("/", 1)[-1], []).append(log_id)  # a POSIX path; no Path per log
+    by_shard = logs_by_shard(logs)
     jobs = []
     for index, path in pending:
         mine = by_shard.get(path.name, [])
@@ -154,6 +152,14 @@ def shard_jobs(run: ColumnarRun, root: Path, pending: Sequence[tuple[int, Path]]
         jobs.append(ShardJob(run, path, path.relative_to(root).as_posix(), index, len(mine),
                              samples.table(mine).combine_chunks(), dt_ns, summary.zeroed()))
     return jobs
+
+
+def logs_by_shard(logs: Mapping[str, Mapping[str, Any]]) -> dict[str, list[str]]:
+    """The ids of ``logs`` (logs-table rows by id) by the file name of their shard, in the rows' order."""
+    by_shard: dict[str, list[str]] = {}
+    for log_id, row in logs.items():
+        by_shard.setdefault(str(row["shard"]).rsplit("/", 1)[-1], []).append(log_id)  # a POSIX path; no Path per log
+    return by_shard
 
 
 @dataclass(frozen=True)
@@ -174,14 +180,8 @@ def predict_shard(job: ShardJob) -> ShardDone:
     t0 = time.perf_counter()
     tracks = read_table(job.path)  # a damaged shard is a one-line DatasetError
     summary.io_seconds += time.perf_counter() - t0
-    sink: ShardWriter | None = None
-    try:
-        with shard_writer(job.run.meta, CHUNK_SAMPLES, job.run.out_dir, job.index, entry, None) as sink:
-            chunks = chunk_rows(ShardTracks(tracks), job.samples, job.dt_ns, job.run.predictor, job.run.meta,
-                                job.run.object_types)
-            write_chunks(chunks, sink, summary, None)
-    finally:
-        if sink is not None:
-            summary.count_writer(sink)
-    summary.rows += entry["rows"]
+    with counted_shard_writer(job.run.meta, CHUNK_SAMPLES, job.run.out_dir, job.index, entry, None, summary) as sink:
+        chunks = chunk_rows(ShardTracks(tracks), job.samples, job.dt_ns, job.run.predictor, job.run.meta,
+                            job.run.object_types)
+        write_chunks(chunks, sink, summary, None)
     return ShardDone(entry, sink.files, summary)

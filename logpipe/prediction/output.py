@@ -16,7 +16,7 @@ from concurrent.futures import Future, ThreadPoolExecutor
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import pyarrow as pa
@@ -28,6 +28,9 @@ from logpipe.prediction.table import RowGroupWriter, SampleForecast, build_table
 from logpipe.storage.artifact import FileEntry, file_entry
 from logpipe.storage.io import atomic_path, parquet_options
 from logpipe.types import OBJECT_TYPES, NDArrayFloat, NDArrayInt, SampleProtocol, SceneSample
+
+if TYPE_CHECKING:
+    from logpipe.prediction.options import PredictSummary
 
 ROW_GROUP_ROWS = 256 * 1024
 """Rows per Parquet row group of a predictions file (the last one shorter), whatever the batching."""
@@ -150,6 +153,21 @@ def shard_writer(meta: PredictionMeta, batch_size: int, out_dir: Path, index: in
     for name in sink.mcap_written:
         sink.files[f"{mcap_rel}/{name}"] = file_entry(out_dir / mcap_rel / name)
     sink.files_seconds = time.perf_counter() - t0
+
+
+@contextmanager
+def counted_shard_writer(meta: PredictionMeta, batch_size: int, out_dir: Path, index: int, entry: RunShardEntry,
+                         write_mcap: LogMcapWriter | None, summary: PredictSummary) -> Iterator[ShardWriter]:
+    """``shard_writer`` whose writer's counts and times go into ``summary`` however the block ends, and the
+    shard's rows when it ends well (the one place both predict paths count a shard's output)."""
+    sink: ShardWriter | None = None
+    try:
+        with shard_writer(meta, batch_size, out_dir, index, entry, write_mcap) as sink:
+            yield sink
+    finally:
+        if sink is not None:
+            summary.count_writer(sink)
+    summary.rows += entry["rows"]
 
 
 class ShardWriter:

@@ -45,7 +45,7 @@ class SampleForecast:
 def build_table(meta: PredictionMeta, forecasts: Sequence[SampleForecast]) -> pa.Table:
     """The predictions rows of ``forecasts`` in the table's order, built column-wise (no per-row Python).
 
-    Id columns are dictionary-encoded per table; ``write_row_groups`` re-encodes them per row group, so a file
+    Id columns are dictionary-encoded per table; ``RowGroupWriter`` re-encodes them per row group, so a file
     does not depend on how its forecasts were batched into tables.
 
     Raises:
