@@ -109,8 +109,8 @@ def predict_dataset(dataset_dir: Path, out_dir: Path, options: PredictOptions | 
             by_shard = logs_by_shard(run.logs)  # progress counts the samples of the shards left to do
             report_total(progress, sum(run.samples.count(i) for _, p in pending for i in by_shard.get(p.name, [])))
             torch.set_num_threads(opts.threads or default_workers())
-            # Constant velocity to Parquet only: whole arrays, a job per shard (parallel), the same bytes.
-            columnar = track_predictor(run.job.chosen.model) if run.mcaps is None else None
+            # Constant velocity without raster images: whole arrays, a job per shard (parallel), the same bytes.
+            columnar = track_predictor(run.job.chosen.model) if not (run.mcaps and run.mcaps.raster_channels) else None
             if opts.backend == "ray" and columnar is None:
                 run.forecast = ray_forecasts(run.job, list(run.logs), run.samples, [p for _, p in pending],
                                              opts.workers, opts.threads, opts.device)
@@ -230,7 +230,7 @@ def _columnar_shards(run: _Run, predictor: TrackPredictor, pending: list[tuple[i
     """Predict the ``pending`` shards on the columnar path, ``--workers`` at a time (processes; Ray tasks with
     ``--backend ray``), each into its own uncommitted files; yields entries and files in shard order."""
     shared = ColumnarRun(predictor, out_dir, run.meta, run.job.cutter.object_types)
-    jobs = shard_jobs(shared, run.job.dataset.root, pending, run.logs, run.samples, summary)
+    jobs = shard_jobs(shared, run.job.dataset.root, pending, run.logs, run.samples, summary, run.mcaps)
     for done in run_ordered(predict_shard, jobs, workers=opts.workers, backend=cast(Backend, opts.backend)):
         summary.add(done.summary)
         if progress:

@@ -3,7 +3,14 @@ run where the target is a ratio, absolute rates otherwise."""
 
 from __future__ import annotations
 
-from benchmarks.bench_predict import TARGETS, targets
+from pathlib import Path
+from typing import Any
+
+from mcap.reader import make_reader
+from mcap.writer import CompressionType, Writer
+
+from benchmarks.bench_predict import TARGETS, _mcap_records, _rewrite_mcap, targets
+from logpipe.mcap.merge import NewChannel, NewMessage, write_merged
 
 
 def _result(env_ratio: float, plain: float, floor: float, cv_parquet: float, cv_mcap: float,
@@ -13,7 +20,7 @@ def _result(env_ratio: float, plain: float, floor: float, cv_parquet: float, cv_
         "no_env_net_ethucy": {"samples_per_s": plain, "floor": {"bound_samples_per_s": floor}},
         "cv_ethucy_no_mcap": {"samples_per_s": cv_parquet, "parquet_write_alone_samples_per_s": 2 * cv_parquet},
         "cv_ethucy_all_no_mcap": {"samples_per_s": cv_parquet / 4},
-        "cv_ethucy": {"samples_per_s": cv_mcap},
+        "cv_ethucy": {"samples_per_s": cv_mcap, "outputs_write_alone_samples_per_s": 4 * cv_mcap},
         "cv_argoverse1": {"samples_per_s": cv_av1},
     }
 
@@ -31,6 +38,33 @@ def test_every_target_is_reported_with_its_reference_ratio() -> None:
     parquet = by_name["constant velocity, ETH/UCY, Parquet only: samples/s"]
     assert parquet["floor"] == 50_000.0 and parquet["share_of_floor"] == 0.5
     assert "floor" not in by_name["constant velocity, all of ETH/UCY, Parquet only: samples/s"]  # not measured
+    assert by_name["constant velocity, ETH/UCY, Parquet + MCAP: samples/s"]["share_of_floor"] == 0.25
+
+
+def test_the_output_floor_rewrites_the_same_mcap_content(tmp_path: Path) -> None:
+    """The MCAP floor writes what the stage wrote: the same channels, messages (bytes, times, sequence numbers)
+    and metadata, read back in file order and written again."""
+    channels = [NewChannel("/a", "A", "jsonschema", b"{}", metadata={"frame_id": "world"}),
+                NewChannel("/b", "B", "jsonschema", b'{"type":"object"}')]
+    messages = [NewMessage(i % 2, 1_000 + i, 1_000 + i, f'{{"i":{i}}}'.encode()) for i in range(50)]
+    original = tmp_path / "original.mcap"
+    write_merged(original, [], channels, messages, metadata={"run": {"k": "v"}})
+    records = _mcap_records(original)
+    assert len(records) == 1 + 2 + 2 + 50 + 1  # header, schemas, channels, messages, metadata
+    again = tmp_path / "again.mcap"
+    with again.open("wb") as fh:
+        _rewrite_mcap(Writer(fh, compression=CompressionType.ZSTD), records)
+
+    def content(path: Path) -> tuple[list[tuple[Any, ...]], list[tuple[str, dict[str, str]]]]:
+        with path.open("rb") as fh:
+            reader = make_reader(fh)
+            messages = [(c.topic, c.metadata, s.name if s else None, m.log_time, m.sequence, m.data)
+                        for s, c, m in reader.iter_messages(log_time_order=False)]
+            metadata = [(m.name, m.metadata) for m in reader.iter_metadata()]
+        return messages, metadata
+
+    assert content(again) == content(original)
+    assert len(content(again)[0]) == 50
 
 
 def test_paths_not_measured_are_left_out() -> None:

@@ -38,6 +38,8 @@ class TargetTracks:
         observed: (N, T_obs, 2) world metres at the observed steps, NaN where unobserved.
         step_ns: (S, T_pred) times of each sample's future steps: the window's own where it has them, else the
             current time + k x the log's median step.
+        truth: (N, T_fut, 2) world metres at the window's steps after the observed ones, NaN where unobserved
+            (T_fut: the longest such part among the samples); None unless asked for.
     """
 
     per_sample: NDArrayInt
@@ -46,6 +48,7 @@ class TargetTracks:
     object_types: NDArrayInt
     observed: NDArrayFloat
     step_ns: NDArrayInt
+    truth: NDArrayFloat | None = None
 
 
 class ShardTracks:
@@ -85,13 +88,14 @@ class ShardTracks:
         self._types = lookup[types.indices.to_numpy()] if len(lookup) else np.zeros(0, np.int64)
 
     def targets(self, samples: pa.Table, obs_len: int, pred_len: int, dt_ns: NDArrayInt,
-                object_types: tuple[str, ...] = ()) -> TargetTracks:
+                object_types: tuple[str, ...] = (), with_truth: bool = False) -> TargetTracks:
         """The targets of ``samples`` (sample-index rows of this shard's logs, ``SAMPLE_COLUMNS``).
 
         Args:
             obs_len, pred_len: the protocol's observed and predicted steps.
             dt_ns: (S,) each sample's log median step, for future steps past the window.
             object_types: keep only targets of these classes (empty: all).
+            with_truth: also cut each target's positions after the observed steps (``TargetTracks.truth``).
         """
         samples = decode_dictionaries(samples.select(list(SAMPLE_COLUMNS)))
         n_samples = samples.num_rows
@@ -120,8 +124,15 @@ class ShardTracks:
         types = self._types[self._order[last]]
         if object_types:
             keep = np.isin(np.asarray(OBJECT_TYPES)[types], object_types)
-            sample_of, key, first, types = sample_of[keep], key[keep], first[keep], types[keep]
-        observed = self._observed(sample_of, key, first, start, obs_len)
+            sample_of, key, types = sample_of[keep], key[keep], types[keep]
+        window_start = start[sample_of]
+        # Observed steps clipped into the shard's steps: a key plus a step past them would be another track's.
+        observed = self._positions(key, window_start, np.minimum(window_start + obs_len - 1, self._span - 1), obs_len)
+        truth = None
+        if with_truth:
+            future_start = np.minimum(window_start + obs_len, self._span - 1)
+            length = max(int((end - start + 1 - obs_len).max(initial=0)), 0)
+            truth = self._positions(key, future_start, end[sample_of], length)
         names = self._track_names.to_numpy(zero_copy_only=False)
         return TargetTracks(
             per_sample=np.bincount(sample_of, minlength=n_samples).astype(np.int64),
@@ -130,23 +141,24 @@ class ShardTracks:
             object_types=types,
             observed=observed,
             step_ns=self._future_times(log_code, start, end, obs_len, pred_len, np.asarray(dt_ns, np.int64)),
+            truth=truth,
         )
 
-    def _observed(self, sample_of: NDArrayInt, key: NDArrayInt, first: NDArrayInt, start: NDArrayInt,
-                  obs_len: int) -> NDArrayFloat:
-        """(N, obs_len, 2) positions of each target at the observed steps of its sample's window."""
+    def _positions(self, key: NDArrayInt, lo: NDArrayInt, hi: NDArrayInt, length: int) -> NDArrayFloat:
+        """(N, length, 2) positions of each target (its ``key``) at its relative steps ``lo`` .. ``hi`` (both in the
+        shard's steps), step ``lo`` first; NaN where it has no row."""
         n = len(key)
-        observed = np.full((n, obs_len, 2), np.nan)
-        last_observed = np.minimum(start[sample_of] + obs_len - 1, self._span - 1)
-        stop = np.searchsorted(self._sorted, key + last_observed, side="right")
+        positions = np.full((n, length, 2), np.nan)
+        first = np.searchsorted(self._sorted, key + lo)
+        stop = np.searchsorted(self._sorted, key + hi, side="right")
         counts = np.maximum(stop - first, 0)
         target = np.repeat(np.arange(n), counts)
         at = np.arange(int(counts.sum())) - np.repeat(np.cumsum(counts) - counts, counts) + np.repeat(first, counts)
         rows = self._order[at]
-        offset = self._sorted[at] % self._span - start[sample_of][target]
-        observed[target, offset, 0] = self._x[rows]  # in row order, so the last of duplicate rows wins
-        observed[target, offset, 1] = self._y[rows]
-        return observed
+        offset = self._sorted[at] % self._span - lo[target]
+        positions[target, offset, 0] = self._x[rows]  # in row order, so the last of duplicate rows wins
+        positions[target, offset, 1] = self._y[rows]
+        return positions
 
     def _future_times(self, log_code: NDArrayInt, start: NDArrayInt, end: NDArrayInt, obs_len: int,
                       pred_len: int, dt_ns: NDArrayInt) -> NDArrayInt:

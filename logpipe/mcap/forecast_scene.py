@@ -6,7 +6,9 @@ log's world frame, snapped to ``foxglove.POSITION_QUANTUM``; times are ns on the
 
 from __future__ import annotations
 
-from functools import cache
+from collections.abc import Sequence
+from dataclasses import dataclass
+from functools import cache, lru_cache
 
 import numpy as np
 from foxglove_schemas_protobuf.Color_pb2 import Color
@@ -32,6 +34,10 @@ TRUTH_RGBA = (0.1, 0.85, 0.25, 1.0)
 MODE_RGB = (0.2, 0.45, 1.0)
 """Colour of its modes; opacity 0.25..1 by score relative to its best mode."""
 _LINE_Z = 0.05  # metres above the ground, so lines are not hidden in a raster drawn at z = 0
+_LINES_KEY = field_key(SceneEntity.LINES_FIELD_NUMBER)
+_METADATA_KEY = field_key(SceneEntity.METADATA_FIELD_NUMBER)
+_ENTITIES_KEY = field_key(SceneUpdate.ENTITIES_FIELD_NUMBER)
+_varint = lru_cache(maxsize=1 << 12)(varint)  # record lengths recur
 
 
 @cache
@@ -51,74 +57,151 @@ def _line_colour(rgba: tuple[float, float, float, float]) -> bytes:
     return serialize(LinePrimitive(color=Color(r=rgba[0], g=rgba[1], b=rgba[2], a=rgba[3])))
 
 
-def forecast_scene_update(frame: str, now_ns: int, lifetime_ns: int, sample: SceneSample, targets: NDArrayInt,
-                          futures: NDArrayFloat, scores: NDArrayFloat) -> bytes:
+@dataclass(frozen=True)
+class TargetForecasts:
+    """One sample's predicted targets, what a prediction MCAP draws and records of them (metres in the log's world
+    frame).
+
+    Attributes:
+        sample_id: the sample's id; ``track_ids``, ``object_types``: (N,) the targets' ids and class names.
+        history: (N, T_obs, 2) observed positions (the last is the current one); ``truth``: (N, T_fut, 2) the
+            window's positions after them; both NaN where unobserved.
+        futures: (N, K, T_pred, 2) forecasts; ``scores``: (N, K) mode scores.
+    """
+
+    sample_id: str
+    track_ids: Sequence[str]
+    object_types: Sequence[str]
+    history: NDArrayFloat
+    truth: NDArrayFloat
+    futures: NDArrayFloat
+    scores: NDArrayFloat
+
+    @classmethod
+    def of_sample(cls, sample: SceneSample, targets: NDArrayInt, futures: NDArrayFloat,
+                  scores: NDArrayFloat) -> TargetForecasts:
+        """The ``targets`` rows of ``sample.positions`` and their forecasts."""
+        obs = sample.obs_len
+        return cls(sample.sample_id, [sample.track_ids[i] for i in targets],
+                   [OBJECT_TYPES[int(sample.object_types[i])] for i in targets], sample.positions[targets, :obs],
+                   sample.positions[targets, obs:], futures, scores)
+
+
+def forecast_scene_update(frame: str, now_ns: int, lifetime_ns: int, forecasts: TargetForecasts) -> bytes:
     """A serialized ``foxglove.SceneUpdate`` of one sample's forecasts: an entity per target (id = track id, so
     the next sample's replaces it; living ``lifetime_ns``) in ``frame`` with its observed history, its true
-    future where ``sample`` has one (finite positions after ``obs_len``), a sphere at its current position and
+    future where it has one (finite positions), a sphere at its current position (the last observed step) and
     one line per mode, more opaque the higher its score (relative to the target's best); metres.
 
-    Args:
-        targets: (N,) rows of ``sample.positions``; futures: (N, K, T, 2) metres; scores: (N, K).
+    Built from parts (``logpipe.mcap.protobuf_splice``): what the sample's entities share serialized once, the
+    K mode lines of every target as one numpy block.
     """
-    obs = sample.obs_len
+    f = forecasts
+    n = len(f.futures)
+    current = f.history[:, -1]  # (N, 2)
+    life = Duration(seconds=max(lifetime_ns, 0) // 1_000_000_000, nanos=max(lifetime_ns, 0) % 1_000_000_000)
+    # Fields 1-2, 4 and the first metadata pair of field 6 are the same for every entity of the sample.
+    stamp_frame = serialize(SceneEntity(timestamp=timestamp(now_ns), frame_id=frame))
+    lifetime = serialize(SceneEntity(lifetime=life))
+    sample_pair = serialize(SceneEntity(metadata=[KeyValuePair(key="sample_id", value=f.sample_id)]))
+    spheres = _spheres(f.object_types, snap(current, POSITION_QUANTUM))
+    observed = _observed_lines(f.history, f.truth, current)
+    modes = _mode_lines(current, f.futures, f.scores)
+    width = len(modes) // n if n else 0
+    entities = []
+    for j in range(n):
+        name = f.track_ids[j]
+        entity = b"".join((stamp_frame, _string_field(SceneEntity.ID_FIELD_NUMBER, name), lifetime, sample_pair,
+                           _pair("track_id", name), _pair("object_type", f.object_types[j]), spheres[j],
+                           observed[j], modes[j * width : (j + 1) * width]))
+        entities.append(_ENTITIES_KEY + _varint(len(entity)) + entity)
+    return b"".join(entities)
+
+
+def _string_field(number: int, text: str) -> bytes:
+    """A proto3 string field (left out when empty, as the classes do)."""
+    data = text.encode()
+    return field_key(number) + _varint(len(data)) + data if data else b""
+
+
+@lru_cache(maxsize=1 << 16)  # track ids recur in the samples of a log's sliding windows
+def _pair(key: str, value: str) -> bytes:
+    """A ``SceneEntity.metadata`` record of one ``KeyValuePair``."""
+    pair = _string_field(KeyValuePair.KEY_FIELD_NUMBER, key) + _string_field(KeyValuePair.VALUE_FIELD_NUMBER, value)
+    return _METADATA_KEY + _varint(len(pair)) + pair
+
+
+@cache
+def _sphere_template(object_type: str) -> Template:
+    # A target's marker: its type's size and colour; the position's x and y vary.
+    diameter = max(0.6 * AGENT_SHAPES.get(object_type, AGENT_SHAPES["unknown"])[1], 0.5)
+    colour = rgba(TYPE_COLOURS.get(object_type, TYPE_COLOURS["unknown"]), 1.0)
+    return Template(lambda v: SceneEntity(spheres=[SpherePrimitive(
+        pose=Pose(position=Vector3(x=v[0], y=v[1], z=_LINE_Z), orientation=Quaternion(w=1)),
+        size=Vector3(x=diameter, y=diameter, z=diameter), color=colour)]), 2)
+
+
+def _spheres(object_types: Sequence[str], at: NDArrayFloat) -> list[bytes]:
+    """Each target's sphere record at ``at`` (N, 2) metres."""
+    out = [b""] * len(object_types)
+    for object_type in set(object_types):
+        rows = [j for j, t in enumerate(object_types) if t == object_type]
+        for j, record in zip(rows, _sphere_template(object_type).rows([at[rows, 0], at[rows, 1]]), strict=True):
+            out[j] = record
+    return out
+
+
+def _observed_lines(history: NDArrayFloat, truth: NDArrayFloat, current: NDArrayFloat) -> list[bytes]:
+    """Each target's history line (its finite observed points, when there are 2) and true-future line (the
+    current point and the finite future ones, when there are any), as ``SceneEntity.lines`` records."""
+    seen = np.asarray(np.isfinite(history).all(axis=2), bool)
+    seen &= (seen.sum(axis=1) >= 2)[:, None]
+    ahead = np.asarray(np.isfinite(truth).all(axis=2), bool)
+    future = np.concatenate([np.asarray(ahead.any(axis=1), bool)[:, None], ahead], axis=1)
+    drawn = np.concatenate([current[:, None], truth], axis=1)
+    past = _line_records(history[seen], seen.sum(axis=1), 0.05, HISTORY_RGBA)
+    coming = _line_records(drawn[future], future.sum(axis=1), 0.1, TRUTH_RGBA)
+    return [a + b for a, b in zip(past, coming, strict=True)]
+
+
+def _line_records(points: NDArrayFloat, counts: NDArrayInt, thickness: float,
+                  colour: tuple[float, float, float, float]) -> list[bytes]:
+    """A ``SceneEntity.lines`` record per target of its ``counts`` points (consecutive in ``points``; b"" where
+    it has none)."""
+    snapped = snap(points, POSITION_QUANTUM)
+    blob, size = _point_template().fill([snapped[:, 0], snapped[:, 1]]).tobytes(), _point_template().size
+    head, tail = _line_head(thickness), _line_colour(colour)
+    out, at = [], 0
+    for count in counts.tolist():
+        if count:
+            body = head + blob[at * size : (at + count) * size] + tail
+            out.append(_LINES_KEY + _varint(len(body)) + body)
+            at += count
+        else:
+            out.append(b"")
+    return out
+
+
+def _mode_lines(current: NDArrayFloat, futures: NDArrayFloat, scores: NDArrayFloat) -> bytes:
+    """The ``SceneEntity.lines`` records of every target's K modes (each from the current point), target by
+    target: records of equal length (one head, T + 1 points, a colour of fixed size), so numpy lays them out."""
     n, k, t = futures.shape[:3]
-    current = sample.positions[targets, obs - 1]  # (N, 2)
+    if n * k == 0:
+        return b""
     modes = np.empty((n, k, t + 1, 2))
     modes[:, :, 0] = current[:, None]
     modes[:, :, 1:] = futures
-    segments: list[NDArrayFloat] = []
-    lines: list[tuple[int, bytes, bytes]] = []  # (points, head, colour) per line, in entity order
-    history_style = (_line_head(0.05), _line_colour(HISTORY_RGBA))
-    truth_style = (_line_head(0.1), _line_colour(TRUTH_RGBA))
-    top = np.maximum(scores.max(axis=1, keepdims=True), 1e-12) if k else np.ones((n, 1))
+    points = snap(modes.reshape(-1, 2), POSITION_QUANTUM)
+    filled = _point_template().fill([points[:, 0], points[:, 1]]).reshape(n * k, -1)
+    top = np.maximum(scores.max(axis=1, keepdims=True), 1e-12)
     alpha = np.rint(100 * (0.25 + 0.75 * np.clip(scores / top, 0.0, 1.0))).astype(np.int64)  # 1% steps
-    per_target: list[int] = []
-    for j, row in enumerate(targets.tolist()):
-        count = 0
-        history = sample.positions[row, :obs]
-        history = history[np.isfinite(history).all(axis=1)]
-        if len(history) >= 2:
-            segments.append(history)
-            lines.append((len(history), *history_style))
-            count += 1
-        future = sample.positions[row, obs:]
-        future = future[np.isfinite(future).all(axis=1)]
-        if len(future):
-            truth = np.concatenate([current[j : j + 1], future])
-            segments.append(truth)
-            lines.append((len(truth), *truth_style))
-            count += 1
-        segments.append(modes[j].reshape(k * (t + 1), 2))
-        for m in range(k):
-            lines.append((t + 1, _line_head(0.08), _line_colour((*MODE_RGB, alpha[j, m] / 100))))
-        per_target.append(count + k)
-    points = snap(np.concatenate(segments), POSITION_QUANTUM) if segments else np.zeros((0, 2))
-    blob = _point_template().fill([points[:, 0], points[:, 1]]).tobytes()
-    size = _point_template().size
-    key_lines, key_entities = field_key(SceneEntity.LINES_FIELD_NUMBER), field_key(SceneUpdate.ENTITIES_FIELD_NUMBER)
-    life = Duration(seconds=max(lifetime_ns, 0) // 1_000_000_000, nanos=max(lifetime_ns, 0) % 1_000_000_000)
-    stamp = timestamp(now_ns)
-    entities = []
-    at, line = 0, 0
-    for j, row in enumerate(targets.tolist()):
-        object_type = OBJECT_TYPES[int(sample.object_types[row])]
-        name = sample.track_ids[row]
-        cx, cy = (float(v) for v in snap(current[j], POSITION_QUANTUM))
-        diameter = max(0.6 * AGENT_SHAPES.get(object_type, AGENT_SHAPES["unknown"])[1], 0.5)
-        parts = [serialize(SceneEntity(
-            timestamp=stamp, frame_id=frame, id=name, lifetime=life,
-            metadata=[KeyValuePair(key="sample_id", value=sample.sample_id), KeyValuePair(key="track_id", value=name),
-                      KeyValuePair(key="object_type", value=object_type)],
-            spheres=[SpherePrimitive(pose=Pose(position=Vector3(x=cx, y=cy, z=_LINE_Z), orientation=Quaternion(w=1)),
-                                     size=Vector3(x=diameter, y=diameter, z=diameter),
-                                     color=rgba(TYPE_COLOURS.get(object_type, TYPE_COLOURS["unknown"]), 1.0))]))]
-        for _ in range(per_target[j]):
-            count, head, colour = lines[line]
-            body = head + blob[at * size : (at + count) * size] + colour
-            parts += (key_lines, varint(len(body)), body)
-            at += count
-            line += 1
-        entity = b"".join(parts)
-        entities.append(key_entities + varint(len(entity)) + entity)
-    return b"".join(entities)
+    levels, which = np.unique(alpha, return_inverse=True)
+    colours = [_line_colour((*MODE_RGB, a / 100)) for a in levels.tolist()]
+    if len({len(c) for c in colours}) != 1:  # every channel is nonzero, so every colour has the same fields
+        raise RuntimeError("mode colours differ in size")
+    colour_rows = np.frombuffer(b"".join(colours), np.uint8).reshape(len(colours), -1)[which.ravel()]
+    head = _line_head(0.08)
+    body = len(head) + filled.shape[1] + colour_rows.shape[1]
+    prefix = np.frombuffer(_LINES_KEY + varint(body) + head, np.uint8)
+    records = np.concatenate([np.broadcast_to(prefix, (n * k, len(prefix))), filled, colour_rows], axis=1)
+    return records.tobytes()

@@ -1,11 +1,12 @@
 """The columnar predict path, for predictors that forecast each target from its own observed track alone
 (``TrackPredictor``: constant velocity): a shard's samples are cut (``logpipe.dataset.target_tracks``), forecast
 and turned into predictions rows as whole arrays, a few thousand samples at a time, with no per-sample Python.
-A shard is one picklable job (``ShardJob`` → ``predict_shard``) that writes its own uncommitted files, so shards run
-in parallel processes or as Ray tasks and the stage commits them in order.
+With MCAPs (no raster images: those stay on the per-sample path), each log's MCAP takes its samples' messages from
+the same chunks, encoded per sample. A shard is one picklable job (``ShardJob`` → ``predict_shard``) that writes its
+own uncommitted files, so shards run in parallel processes or as Ray tasks and the stage commits them in order.
 
-It writes the rows the per-sample path writes, in the same order (tested byte for byte): samples in the order
-given, targets in window order, targets unobserved at the current step left out and counted.
+It writes the files the per-sample path writes (tested byte for byte): samples in the order given, targets in window
+order, targets unobserved at the current step left out and counted, an MCAP for every selected log.
 
 Positions are metres in the log's world frame; times are ns on the log's clock.
 """
@@ -13,8 +14,9 @@ Positions are metres in the log's world frame; times are ns on the log's clock.
 from __future__ import annotations
 
 import time
-from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
+from collections.abc import Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 from typing import Any, Protocol, cast
 
@@ -22,14 +24,18 @@ import numpy as np
 import pyarrow as pa
 
 from logpipe.dataset.sample_filter import SelectedSamples
-from logpipe.dataset.target_tracks import ShardTracks
+from logpipe.dataset.target_tracks import ShardTracks, TargetTracks
+from logpipe.errors import DatasetError
+from logpipe.mcap.forecast_scene import TargetForecasts
+from logpipe.mcap.merge import NewMessage
+from logpipe.prediction.mcap_logs import PredictionMcaps
 from logpipe.prediction.options import PredictSummary
 from logpipe.prediction.output import ShardWriter, counted_shard_writer
 from logpipe.prediction.runs import PredictionMeta, RunShardEntry
 from logpipe.prediction.table import Targets, targets_table
 from logpipe.storage.artifact import FileEntry
 from logpipe.storage.io import read_table
-from logpipe.types import NDArrayFloat, NDArrayInt
+from logpipe.types import OBJECT_TYPES, NDArrayBool, NDArrayFloat, NDArrayInt
 
 CHUNK_SAMPLES = 4096
 """Samples cut and tabulated at a time (bounds memory: ETH/UCY scenes have ~10 targets a sample)."""
@@ -60,29 +66,68 @@ class ChunkRows:
     targets: int
     unobserved: int
     model_seconds: float
+    drawn: ChunkForecasts | None = None
+
+
+@dataclass(frozen=True)
+class ChunkForecasts:
+    """A chunk's samples and their kept targets' tracks and forecasts, for the MCAP messages of each sample.
+
+    Attributes:
+        samples: the chunk's sample-index rows; ``cut``: their targets (with ``truth``); ``kept``: the targets
+            forecast (observed at the current step); ``futures``: (N_kept, K, T_pred, 2) their forecasts.
+    """
+
+    samples: pa.Table
+    cut: TargetTracks
+    kept: NDArrayBool | slice
+    futures: NDArrayFloat
+
+    def of_samples(self) -> Iterator[tuple[str, int, NDArrayInt, TargetForecasts]]:
+        """(log id, prediction time ns, future step times, targets and forecasts) of each sample with a target in
+        its window, in order (what the per-sample path hands its MCAP writer)."""
+        cut, kept = self.cut, self.kept
+        log_ids = self.samples.column("log_id").to_pylist()
+        sample_ids = self.samples.column("sample_id").to_pylist()
+        now_ns = self.samples.column("current_ns").to_pylist()
+        sample_of = cut.sample_of[kept]
+        bounds = np.searchsorted(sample_of, np.arange(self.samples.num_rows + 1)).tolist()
+        track_ids = cut.track_ids[kept].tolist()
+        type_names = [OBJECT_TYPES[c] for c in cut.object_types[kept].tolist()]
+        history, truth = cut.observed[kept], cast(NDArrayFloat, cut.truth)[kept]
+        k = self.futures.shape[1]
+        scores = np.full((len(sample_of), k), 1.0 / k)
+        for s in np.flatnonzero(cut.per_sample > 0).tolist():
+            a, b = bounds[s], bounds[s + 1]
+            yield log_ids[s], int(now_ns[s]), cut.step_ns[s], TargetForecasts(
+                str(sample_ids[s]), track_ids[a:b], type_names[a:b], history[a:b], truth[a:b], self.futures[a:b],
+                scores[a:b])
 
 
 def chunk_rows(shard: ShardTracks, samples: pa.Table, dt_ns: NDArrayInt, predictor: TrackPredictor,
-               meta: PredictionMeta, object_types: tuple[str, ...] = ()) -> Iterator[ChunkRows]:
+               meta: PredictionMeta, object_types: tuple[str, ...] = (), drawn: bool = False) -> Iterator[ChunkRows]:
     """The rows of ``samples`` (sample-index rows of the shard's logs, in output order), ``CHUNK_SAMPLES`` at a
-    time; ``dt_ns``: (S,) each sample's log median step (ns)."""
+    time; ``dt_ns``: (S,) each sample's log median step (ns); ``drawn``: also give each chunk's
+    ``ChunkForecasts`` (for MCAPs)."""
     k, obs_len, pred_len = meta.num_modes, meta.obs_len, meta.pred_len
     for lo in range(0, samples.num_rows, CHUNK_SAMPLES):
         part = samples.slice(lo, CHUNK_SAMPLES)
-        cut = shard.targets(part, obs_len, pred_len, dt_ns[lo : lo + CHUNK_SAMPLES], object_types)
+        cut = shard.targets(part, obs_len, pred_len, dt_ns[lo : lo + CHUNK_SAMPLES], object_types, drawn)
         t0 = time.perf_counter()
         futures = np.asarray(predictor.predict_tracks(cut.observed, k), np.float64)[:, :k, :pred_len]
         model_seconds = time.perf_counter() - t0
-        ok = np.isfinite(futures).all(axis=(1, 2, 3))
-        kept = slice(None) if ok.all() else ok  # a slice keeps views (a predictor's broadcast modes) uncopied
+        ok = np.asarray(np.isfinite(futures).all(axis=(1, 2, 3)), bool)
+        # A slice keeps views (a predictor's broadcast modes) uncopied.
+        kept: NDArrayBool | slice = slice(None) if ok.all() else ok
         sample_of = cut.sample_of[kept]
         targets = Targets(part.column("log_id").combine_chunks().cast(pa.string()),
                           part.column("sample_id").combine_chunks().cast(pa.string()), sample_of,
                           pa.array(cut.track_ids[kept], pa.string()), cut.object_types[kept])
         table = targets_table(meta, targets, futures[kept], np.full((len(sample_of), k), 1.0 / k),
                               cut.step_ns[sample_of])
+        forecasts = ChunkForecasts(part, cut, kept, futures[kept]) if drawn else None
         yield ChunkRows(table, part.num_rows, int((cut.per_sample > 0).sum()), len(sample_of),
-                        int((~ok).sum()), model_seconds)
+                        int((~ok).sum()), model_seconds, forecasts)
 
 
 def track_predictor(model: object) -> TrackPredictor | None:
@@ -90,9 +135,9 @@ def track_predictor(model: object) -> TrackPredictor | None:
     return cast(TrackPredictor, model) if hasattr(model, "predict_tracks") else None
 
 
-def write_chunks(chunks: Iterable[ChunkRows], sink: ShardWriter, summary: PredictSummary,
-                 progress: Callable[[int], None] | None) -> None:
-    """Hand each chunk's rows to ``sink`` and count them in ``summary`` as the per-sample path counts."""
+def handed_chunks(chunks: Iterable[ChunkRows], sink: ShardWriter, summary: PredictSummary) -> Iterator[ChunkRows]:
+    """Hand each chunk's rows to ``sink`` and count them in ``summary`` as the per-sample path counts; yields
+    each chunk once handed over."""
     for chunk in chunks:
         sink.add_rows(chunk.table, chunk.with_targets)
         summary.model_seconds += chunk.model_seconds
@@ -100,8 +145,37 @@ def write_chunks(chunks: Iterable[ChunkRows], sink: ShardWriter, summary: Predic
         summary.samples_without_targets += chunk.samples - chunk.with_targets
         summary.targets += chunk.targets
         summary.targets_unobserved += chunk.unobserved
-        if progress:
-            progress(chunk.samples)
+        yield chunk
+
+
+def write_mcaps(chunks: Iterator[ChunkRows], sink: ShardWriter, mcaps: PredictionMcaps,
+                log_ids: Sequence[str]) -> None:
+    """Write the MCAP of each of ``log_ids`` (the shard's logs, in the order of the chunks' samples; a log
+    without samples still gets its original copied), its samples' messages drawn from ``chunks`` as the MCAP
+    writer takes them, so a chunk's rows and messages are made once and the logs stream."""
+    pending = (sample for chunk in chunks for sample in cast(ChunkForecasts, chunk.drawn).of_samples())
+    producing = 0.0  # time in ``pending`` (cutting, forecasting, rows): not the MCAP writing's
+
+    def advance() -> tuple[str, int, NDArrayInt, TargetForecasts] | None:
+        nonlocal producing
+        t0 = time.perf_counter()
+        sample = next(pending, None)
+        producing += time.perf_counter() - t0
+        return sample
+
+    head = advance()
+    for log_id in log_ids:
+
+        def messages(log_id: str = log_id) -> Iterator[NewMessage]:
+            nonlocal head
+            while head is not None and head[0] == log_id:
+                yield from mcaps.sample_messages(*head)
+                head = advance()
+
+        sink.write_log_now(log_id, partial(mcaps.write_messages, log_id, messages()))
+    sink.inline_seconds -= producing
+    if head is not None:
+        raise DatasetError(f"a sample of log {head[0]!r} follows the logs of its shard (sample-index out of order)")
 
 
 @dataclass(frozen=True)
@@ -122,35 +196,38 @@ class ShardJob:
     Attributes:
         run: what the run's jobs share; ``path``: the shard file; ``key``: its name in the run manifest;
             ``index``: its number (``part-NNNNN``).
-        logs: how many selected logs it holds; ``samples``: their selected sample-index rows, in output order;
+        log_ids: the selected logs it holds; ``samples``: their selected sample-index rows, in output order;
             ``dt_ns``: (S,) each sample's log median step (ns).
         summary: a zeroed run summary, filled with this shard's counts.
+        mcaps: how to write its logs' MCAPs (None: Parquet only).
     """
 
     run: ColumnarRun
     path: Path
     key: str
     index: int
-    logs: int
+    log_ids: tuple[str, ...]
     samples: pa.Table
     dt_ns: NDArrayInt
     summary: PredictSummary
+    mcaps: PredictionMcaps | None = None
 
 
 def shard_jobs(run: ColumnarRun, root: Path, pending: Sequence[tuple[int, Path]],
                logs: Mapping[str, Mapping[str, Any]], samples: SelectedSamples,
-               summary: PredictSummary) -> list[ShardJob]:
+               summary: PredictSummary, mcaps: PredictionMcaps | None = None) -> list[ShardJob]:
     """The jobs of the ``pending`` (index, path) shards of the dataset at ``root``, from the selected ``logs``
-    (logs-table rows by id, in table order) and ``samples``."""
+    (logs-table rows by id, in table order) and ``samples``; ``mcaps``: the run's MCAP writer, if it writes them."""
     by_shard = logs_by_shard(logs)
     jobs = []
     for index, path in pending:
         mine = by_shard.get(path.name, [])
         dt_ns = np.repeat(np.array([int(logs[i]["median_dt_ns"]) for i in mine], np.int64),
                           [samples.count(i) for i in mine])
-        # combine_chunks: a job pickles its own rows, not the buffers of the whole selection.
-        jobs.append(ShardJob(run, path, path.relative_to(root).as_posix(), index, len(mine),
-                             samples.table(mine).combine_chunks(), dt_ns, summary.zeroed()))
+        # combine_chunks, and the MCAP writer cut to the shard's logs: a job pickles its own part, not the run's.
+        jobs.append(ShardJob(run, path, path.relative_to(root).as_posix(), index, tuple(mine),
+                             samples.table(mine).combine_chunks(), dt_ns, summary.zeroed(),
+                             mcaps.of_logs(mine) if mcaps is not None else None))
     return jobs
 
 
@@ -172,16 +249,21 @@ class ShardDone:
 
 
 def predict_shard(job: ShardJob) -> ShardDone:
-    """Predict one shard into its own uncommitted files (``prediction.output.shard_writer``; Parquet only)."""
+    """Predict one shard into its own uncommitted files (``prediction.output.shard_writer``): the Parquet rows
+    and, with ``job.mcaps``, each log's MCAP."""
     summary = job.summary
-    entry: RunShardEntry = {"shard": job.key, "logs": job.logs, "samples": 0, "rows": 0, "file": None}
-    if not job.logs:
+    entry: RunShardEntry = {"shard": job.key, "logs": len(job.log_ids), "samples": 0, "rows": 0, "file": None}
+    if not job.log_ids:
         return ShardDone(entry, {}, summary)
     t0 = time.perf_counter()
     tracks = read_table(job.path)  # a damaged shard is a one-line DatasetError
     summary.io_seconds += time.perf_counter() - t0
     with counted_shard_writer(job.run.meta, CHUNK_SAMPLES, job.run.out_dir, job.index, entry, None, summary) as sink:
-        chunks = chunk_rows(ShardTracks(tracks), job.samples, job.dt_ns, job.run.predictor, job.run.meta,
-                            job.run.object_types)
-        write_chunks(chunks, sink, summary, None)
+        chunks = handed_chunks(chunk_rows(ShardTracks(tracks), job.samples, job.dt_ns, job.run.predictor,
+                                          job.run.meta, job.run.object_types, drawn=job.mcaps is not None),
+                               sink, summary)
+        if job.mcaps is not None:
+            write_mcaps(chunks, sink, job.mcaps, job.log_ids)
+        for _ in chunks:  # the rest (all of them without MCAPs)
+            pass
     return ShardDone(entry, sink.files, summary)

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import json
 from collections.abc import Iterable, Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -26,13 +26,13 @@ from logpipe import __version__
 from logpipe.errors import DatasetError
 from logpipe.mcap import foxglove as fx
 from logpipe.mcap import raster_image as fr
-from logpipe.mcap.forecast_scene import forecast_scene_update
+from logpipe.mcap.forecast_scene import TargetForecasts, forecast_scene_update
 from logpipe.mcap.merge import NewChannel, NewMessage, Source, write_merged
 from logpipe.mcap.tracks import json_schema_bytes
 from logpipe.prediction.originals import world_frame
 from logpipe.prediction.output import SamplePrediction
 from logpipe.storage.artifact import unsafe_file_name
-from logpipe.types import OBJECT_TYPES, SampleProtocol
+from logpipe.types import NDArrayInt, SampleProtocol
 
 try:  # orjson encodes numpy arrays ~30x faster than json; the output is the same compact JSON
     import orjson
@@ -104,55 +104,77 @@ class PredictionMcaps:
     logs: dict[str, dict[str, Any]]
     originals: dict[str, Source]
 
+    def of_logs(self, log_ids: Iterable[str]) -> PredictionMcaps:
+        """This writer for ``log_ids`` only (what a shard job carries)."""
+        chosen = list(log_ids)
+        return replace(self, logs={i: self.logs[i] for i in chosen}, originals={i: self.originals[i] for i in chosen})
+
     def write(self, log_id: str, predictions: Iterator[SamplePrediction], target: Path) -> int:
         """Original log + the prediction channels, one message per sample at its prediction time; returns the
         number of original messages copied."""
-        row = self.logs[log_id]
-        frame = world_frame(row)
         layers = self.raster_channels
-        horizon_ns = int(row["median_dt_ns"]) * self.protocol.pred_len
 
         def messages() -> Iterator[NewMessage]:
             for p in predictions:
                 now = int(p.row["current_ns"])
-                yield NewMessage(0, now, now, self._predictions_json(log_id, frame, p))
-                yield NewMessage(1, now, now, forecast_scene_update(frame, now, horizon_ns, p.sample, p.targets,
-                                                                    p.futures, p.scores))
+                forecasts = TargetForecasts.of_sample(p.sample, p.targets, p.futures, p.scores)
+                yield from self.sample_messages(log_id, now, p.step_ns, forecasts)
                 affine = p.sample.world_to_raster
                 if layers is not None and p.sample.raster is not None and affine is not None:
                     rgb = fr.raster_rgb(np.asarray(p.sample.raster), layers)
-                    yield NewMessage(2, now, now, fr.raster_transform(frame, RASTER_FRAME, now, affine))
+                    yield NewMessage(2, now, now, fr.raster_transform(self.frame(log_id), RASTER_FRAME, now, affine))
                     yield NewMessage(3, now, now, fr.compressed_raster(RASTER_FRAME, now, rgb))
                     yield NewMessage(4, now, now, fr.raster_grid(RASTER_FRAME, now, rgb,
                                                                  fr.raster_resolution(affine)))
 
+        return self.write_messages(log_id, messages(), target)
+
+    def write_messages(self, log_id: str, messages: Iterable[NewMessage], target: Path) -> int:
+        """Original log + ``messages`` on the prediction channels (``new_channels``); returns the number of
+        original messages copied."""
         stats = write_merged(
-            target, [self.originals[log_id]], new_channels(layers is not None, frame), messages(),
-            metadata={"logpipe.predictions": {"log_id": log_id, "frame_id": frame, "predictor": self.predictor,
-                                              "checkpoint_id": self.checkpoint_id, "num_modes": str(self.modes),
-                                              "seed": str(self.seed), "logpipe_version": __version__}},
+            target, [self.originals[log_id]], new_channels(self.raster_channels is not None, self.frame(log_id)),
+            messages,
+            metadata={"logpipe.predictions": {"log_id": log_id, "frame_id": self.frame(log_id),
+                                              "predictor": self.predictor, "checkpoint_id": self.checkpoint_id,
+                                              "num_modes": str(self.modes), "seed": str(self.seed),
+                                              "logpipe_version": __version__}},
         )
         return stats.messages
 
-    def _predictions_json(self, log_id: str, frame: str, p: SamplePrediction) -> bytes:
-        current = p.sample.positions[p.targets, self.protocol.obs_len - 1]
+    def frame(self, log_id: str) -> str:
+        """The world frame of a log's positions."""
+        return world_frame(self.logs[log_id])
+
+    def sample_messages(self, log_id: str, now_ns: int, step_ns: NDArrayInt,
+                        forecasts: TargetForecasts) -> tuple[NewMessage, NewMessage]:
+        """A sample's predictions and scene messages at its prediction time ``now_ns``; ``step_ns``: (T_pred,)
+        the times of the future steps."""
+        frame = self.frame(log_id)
+        horizon_ns = int(self.logs[log_id]["median_dt_ns"]) * self.protocol.pred_len
+        return (NewMessage(0, now_ns, now_ns, self._predictions_json(log_id, frame, now_ns, step_ns, forecasts)),
+                NewMessage(1, now_ns, now_ns, forecast_scene_update(frame, now_ns, horizon_ns, forecasts)))
+
+    def _predictions_json(self, log_id: str, frame: str, now_ns: int, step_ns: NDArrayInt,
+                          f: TargetForecasts) -> bytes:
+        current = f.history[:, -1]
         message = {
             "log_id": log_id,
-            "sample_id": p.sample.sample_id,
-            "timestamp_ns": int(p.row["current_ns"]),
+            "sample_id": f.sample_id,
+            "timestamp_ns": now_ns,
             "frame_id": frame,
             "predictor": self.predictor,
             "checkpoint_id": self.checkpoint_id,
             "obs_len": self.protocol.obs_len,
             "pred_len": self.protocol.pred_len,
             "num_modes": self.modes,
-            "step_timestamps_ns": p.step_ns.tolist(),
-            "track_id": [p.sample.track_ids[i] for i in p.targets],
-            "object_type": [OBJECT_TYPES[int(p.sample.object_types[i])] for i in p.targets],
+            "step_timestamps_ns": step_ns.tolist(),
+            "track_id": list(f.track_ids),
+            "object_type": list(f.object_types),
             "current_x": np.ascontiguousarray(current[:, 0]),
             "current_y": np.ascontiguousarray(current[:, 1]),
-            "score": np.ascontiguousarray(p.scores),
-            "x": np.ascontiguousarray(p.futures[..., 0]),
-            "y": np.ascontiguousarray(p.futures[..., 1]),
+            "score": np.ascontiguousarray(f.scores),
+            "x": np.ascontiguousarray(f.futures[..., 0]),
+            "y": np.ascontiguousarray(f.futures[..., 1]),
         }
         return dumps(message)

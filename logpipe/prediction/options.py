@@ -141,7 +141,7 @@ class PredictSummary:
 
     def count_writer(self, sink: ShardWriter) -> None:
         """Add a shard writer's counts and times (its busy time overlapped with the model, on its thread)."""
-        self.io_seconds += sink.busy_seconds + sink.files_seconds
+        self.io_seconds += sink.busy_seconds + sink.inline_seconds + sink.files_seconds
         self.io_busy_seconds += sink.busy_seconds
         self.io_wait_seconds += sink.wait_seconds
         self.mcap_files += sink.mcap_files

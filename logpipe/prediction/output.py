@@ -198,6 +198,7 @@ class ShardWriter:
         self._taken = threading.Condition()
         self.busy_seconds = 0.0  # writer-thread time spent writing (not waiting for input)
         self.wait_seconds = 0.0  # main-thread time spent waiting for the writer
+        self.inline_seconds = 0.0  # main-thread time spent writing (``write_log_now``)
         self.mcap_files = 0
         self.original_messages = 0
         self.mcap_written: list[str] = []  # file names in mcap_dir, in log order
@@ -298,17 +299,28 @@ class ShardWriter:
 
         try:
             if self._write_mcap is not None:
-                target = self._mcap_dir / f"{log_id}.mcap"
-                if target.parent != self._mcap_dir:  # predict refused such ids; never write elsewhere
-                    raise DatasetError(f"log id {log_id!r} is not a single file name")
-                self.original_messages += self._write_mcap(log_id, predictions(), target)
-                self.mcap_files += 1
-                self.mcap_written.append(target.name)
+                write_mcap = self._write_mcap
+                self._write_log_mcap(log_id, lambda target: write_mcap(log_id, predictions(), target))
             else:
                 for _ in predictions():
                     pass
         finally:
             self.busy_seconds += time.perf_counter() - started - waited
+
+    def write_log_now(self, log_id: str, write: Callable[[Path], int]) -> None:
+        """Write one log's MCAP on the calling thread: ``write(target file)`` returns the original messages it
+        copied (the columnar path, which encodes its messages itself; its time counts as blocking IO)."""
+        started = time.perf_counter()
+        self._write_log_mcap(log_id, write)
+        self.inline_seconds += time.perf_counter() - started
+
+    def _write_log_mcap(self, log_id: str, write: Callable[[Path], int]) -> None:
+        target = self._mcap_dir / f"{log_id}.mcap"
+        if target.parent != self._mcap_dir:  # predict refused such ids; never write elsewhere
+            raise DatasetError(f"log id {log_id!r} is not a single file name")
+        self.original_messages += write(target)
+        self.mcap_files += 1
+        self.mcap_written.append(target.name)
 
     def _add_rows(self, table: pa.Table) -> None:
         self._entry["rows"] += table.num_rows

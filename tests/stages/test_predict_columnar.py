@@ -24,11 +24,13 @@ def _files(out: Path) -> dict[str, str]:
             for p in sorted(out.rglob("*")) if p.is_file() and p.name != ".lock"}
 
 
-@pytest.mark.parametrize(("name", "filters"), [("ethucy", []), ("argoverse1", []), ("ethucy", ["type=pedestrian"]),
-                                               ("argoverse1", ["type=cyclist"])])
+@pytest.mark.parametrize(("name", "filters", "mcap"), [
+    ("ethucy", [], False), ("argoverse1", [], False), ("ethucy", ["type=pedestrian"], False),
+    ("argoverse1", ["type=cyclist"], False), ("ethucy", [], True), ("argoverse1", [], True),
+])
 def test_columnar_cv_writes_the_per_sample_bytes(bundled: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
-                                                  name: str, filters: list[str]) -> None:
-    ingest([bundled / name], IngestOptions(out=tmp_path / "d", workers=1, write_mcap=False))
+                                                  name: str, filters: list[str], mcap: bool) -> None:
+    ingest([bundled / name], IngestOptions(out=tmp_path / "d", workers=1, write_mcap=mcap))
     monkeypatch.setattr(output, "ROW_GROUP_ROWS", 1000)  # several row groups, cut inside samples
     monkeypatch.setattr(columnar, "CHUNK_SAMPLES", 7)
     chunks = 0
@@ -41,7 +43,7 @@ def test_columnar_cv_writes_the_per_sample_bytes(bundled: Path, tmp_path: Path, 
             yield chunk
 
     monkeypatch.setattr(columnar, "chunk_rows", counted)
-    settings: dict[str, Any] = {"predictor": "cv", "write_mcap": False, "sample_filter": parse_filter(filters),
+    settings: dict[str, Any] = {"predictor": "cv", "write_mcap": mcap, "sample_filter": parse_filter(filters),
                                 "batch_size": 5}
     fast = stage.predict_dataset(tmp_path / "d", tmp_path / "columnar", **settings)
     assert chunks > 0
@@ -51,13 +53,16 @@ def test_columnar_cv_writes_the_per_sample_bytes(bundled: Path, tmp_path: Path, 
     assert _files(tmp_path / "columnar") == _files(tmp_path / "per_sample")
     if not filters or name == "ethucy":
         assert fast["rows"] > 0
+    if mcap:  # every selected log has its MCAP, with the original copied
+        assert fast["mcap_files"] == fast["logs_selected"] > 0 and fast["original_messages"] > 0
 
 
+@pytest.mark.parametrize("mcap", [False, True])
 def test_parallel_shard_jobs_write_the_sequential_bytes(bundled: Path, tmp_path: Path,
-                                                        monkeypatch: pytest.MonkeyPatch) -> None:
+                                                        monkeypatch: pytest.MonkeyPatch, mcap: bool) -> None:
     # One input file per shard: several shards, predicted by a process pool of two, then inline, then per sample.
-    ingest([bundled / "ethucy"], IngestOptions(out=tmp_path / "d", workers=1, write_mcap=False, batch_files=1))
-    settings: dict[str, Any] = {"predictor": "cv", "write_mcap": False}
+    ingest([bundled / "ethucy"], IngestOptions(out=tmp_path / "d", workers=1, write_mcap=mcap, batch_files=1))
+    settings: dict[str, Any] = {"predictor": "cv", "write_mcap": mcap}
     pooled = stage.predict_dataset(tmp_path / "d", tmp_path / "pooled", workers=2, **settings)
     assert pooled["shards"] >= 2 and pooled["rows"] > 0
     inline = stage.predict_dataset(tmp_path / "d", tmp_path / "inline", workers=1, **settings)
