@@ -21,6 +21,7 @@ def _result(env_ratio: float, plain: float, floor: float, cv_parquet: float, cv_
         "cv_ethucy_no_mcap": {"samples_per_s": cv_parquet, "parquet_write_alone_samples_per_s": 2 * cv_parquet},
         "cv_ethucy_all_no_mcap": {"samples_per_s": cv_parquet / 4},
         "cv_ethucy": {"samples_per_s": cv_mcap, "outputs_write_alone_samples_per_s": 4 * cv_mcap},
+        "cv_ethucy_all": {"samples_per_s": cv_mcap / 2},
         "cv_argoverse1": {"samples_per_s": cv_av1},
     }
 

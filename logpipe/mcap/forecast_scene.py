@@ -59,17 +59,20 @@ def _line_colour(rgba: tuple[float, float, float, float]) -> bytes:
 
 @dataclass(frozen=True)
 class TargetForecasts:
-    """One sample's predicted targets, what a prediction MCAP draws and records of them (metres in the log's world
-    frame).
+    """Consecutive samples' predicted targets, what a prediction MCAP draws and records of them, concatenated
+    sample by sample (metres in the log's world frame).
 
     Attributes:
-        sample_id: the sample's id; ``track_ids``, ``object_types``: (N,) the targets' ids and class names.
+        sample_ids: (S,) the samples' ids; ``bounds``: (S + 1,) sample s's targets are rows
+            ``bounds[s]:bounds[s + 1]`` of the arrays below.
+        track_ids, object_types: (N,) the targets' ids and class names.
         history: (N, T_obs, 2) observed positions (the last is the current one); ``truth``: (N, T_fut, 2) the
             window's positions after them; both NaN where unobserved.
         futures: (N, K, T_pred, 2) forecasts; ``scores``: (N, K) mode scores.
     """
 
-    sample_id: str
+    sample_ids: Sequence[str]
+    bounds: Sequence[int]
     track_ids: Sequence[str]
     object_types: Sequence[str]
     history: NDArrayFloat
@@ -80,42 +83,54 @@ class TargetForecasts:
     @classmethod
     def of_sample(cls, sample: SceneSample, targets: NDArrayInt, futures: NDArrayFloat,
                   scores: NDArrayFloat) -> TargetForecasts:
-        """The ``targets`` rows of ``sample.positions`` and their forecasts."""
+        """One sample's: the ``targets`` rows of ``sample.positions`` and their forecasts."""
         obs = sample.obs_len
-        return cls(sample.sample_id, [sample.track_ids[i] for i in targets],
+        return cls([sample.sample_id], [0, len(targets)], [sample.track_ids[i] for i in targets],
                    [OBJECT_TYPES[int(sample.object_types[i])] for i in targets], sample.positions[targets, :obs],
                    sample.positions[targets, obs:], futures, scores)
 
+    def part(self, first: int, stop: int) -> TargetForecasts:
+        """Samples ``first`` .. ``stop - 1`` (views of the arrays)."""
+        a, b = self.bounds[first], self.bounds[stop]
+        return TargetForecasts(self.sample_ids[first:stop], [i - a for i in self.bounds[first : stop + 1]],
+                               self.track_ids[a:b], self.object_types[a:b], self.history[a:b], self.truth[a:b],
+                               self.futures[a:b], self.scores[a:b])
 
-def forecast_scene_update(frame: str, now_ns: int, lifetime_ns: int, forecasts: TargetForecasts) -> bytes:
-    """A serialized ``foxglove.SceneUpdate`` of one sample's forecasts: an entity per target (id = track id, so
-    the next sample's replaces it; living ``lifetime_ns``) in ``frame`` with its observed history, its true
-    future where it has one (finite positions), a sphere at its current position (the last observed step) and
-    one line per mode, more opaque the higher its score (relative to the target's best); metres.
 
-    Built from parts (``logpipe.mcap.protobuf_splice``): what the sample's entities share serialized once, the
-    K mode lines of every target as one numpy block.
+def forecast_scene_updates(forecasts: TargetForecasts, frames: Sequence[str], now_ns: Sequence[int],
+                           lifetimes_ns: Sequence[int]) -> list[bytes]:
+    """A serialized ``foxglove.SceneUpdate`` per sample of ``forecasts`` (in ``frames``, at ``now_ns``, living
+    ``lifetimes_ns``: one each per sample): an entity per target (id = track id, so the next sample's replaces it)
+    with its observed history, its true future where it has one (finite positions), a sphere at its current
+    position (the last observed step) and one line per mode, more opaque the higher its score (relative to the
+    target's best); metres.
+
+    Built from parts (``logpipe.mcap.protobuf_splice``): what a sample's entities share serialized once, every
+    target's sphere, observed lines and K mode lines by numpy for all the samples at once.
     """
     f = forecasts
     n = len(f.futures)
     current = f.history[:, -1]  # (N, 2)
-    life = Duration(seconds=max(lifetime_ns, 0) // 1_000_000_000, nanos=max(lifetime_ns, 0) % 1_000_000_000)
-    # Fields 1-2, 4 and the first metadata pair of field 6 are the same for every entity of the sample.
-    stamp_frame = serialize(SceneEntity(timestamp=timestamp(now_ns), frame_id=frame))
-    lifetime = serialize(SceneEntity(lifetime=life))
-    sample_pair = serialize(SceneEntity(metadata=[KeyValuePair(key="sample_id", value=f.sample_id)]))
     spheres = _spheres(f.object_types, snap(current, POSITION_QUANTUM))
     observed = _observed_lines(f.history, f.truth, current)
     modes = _mode_lines(current, f.futures, f.scores)
     width = len(modes) // n if n else 0
-    entities = []
-    for j in range(n):
-        name = f.track_ids[j]
-        entity = b"".join((stamp_frame, _string_field(SceneEntity.ID_FIELD_NUMBER, name), lifetime, sample_pair,
-                           _pair("track_id", name), _pair("object_type", f.object_types[j]), spheres[j],
-                           observed[j], modes[j * width : (j + 1) * width]))
-        entities.append(_ENTITIES_KEY + _varint(len(entity)) + entity)
-    return b"".join(entities)
+    updates = []
+    for s, sample_id in enumerate(f.sample_ids):
+        life = max(lifetimes_ns[s], 0)
+        # Fields 1-2, 4 and the first metadata pair of field 6 are the same for every entity of the sample.
+        stamp_frame = serialize(SceneEntity(timestamp=timestamp(now_ns[s]), frame_id=frames[s]))
+        lifetime = serialize(SceneEntity(lifetime=Duration(seconds=life // 1_000_000_000, nanos=life % 1_000_000_000)))
+        sample_pair = serialize(SceneEntity(metadata=[KeyValuePair(key="sample_id", value=sample_id)]))
+        entities = []
+        for j in range(f.bounds[s], f.bounds[s + 1]):
+            name = f.track_ids[j]
+            entity = b"".join((stamp_frame, _string_field(SceneEntity.ID_FIELD_NUMBER, name), lifetime, sample_pair,
+                               _pair("track_id", name), _pair("object_type", f.object_types[j]), spheres[j],
+                               observed[j], modes[j * width : (j + 1) * width]))
+            entities.append(_ENTITIES_KEY + _varint(len(entity)) + entity)
+        updates.append(b"".join(entities))
+    return updates
 
 
 def _string_field(number: int, text: str) -> bytes:

@@ -34,11 +34,13 @@ from logpipe.prediction.output import ShardWriter, counted_shard_writer
 from logpipe.prediction.runs import PredictionMeta, RunShardEntry
 from logpipe.prediction.table import Targets, targets_table
 from logpipe.storage.artifact import FileEntry
-from logpipe.storage.io import read_table
+from logpipe.storage.io import as_numpy, read_table
 from logpipe.types import OBJECT_TYPES, NDArrayBool, NDArrayFloat, NDArrayInt
 
 CHUNK_SAMPLES = 4096
 """Samples cut and tabulated at a time (bounds memory: ETH/UCY scenes have ~10 targets a sample)."""
+SCENE_SAMPLES = 64
+"""Samples whose scene messages are built at a time (~50 kB each with K = 20)."""
 
 
 class TrackPredictor(Protocol):
@@ -70,6 +72,22 @@ class ChunkRows:
 
 
 @dataclass(frozen=True)
+class SampleDrawn:
+    """What a sample's MCAP messages are made of (``PredictionMcaps.sample_messages``' arguments).
+
+    Attributes:
+        log_id: its log; ``now_ns``: its prediction time; ``step_ns``: (T_pred,) its future steps' times;
+        forecasts: its targets and forecasts; ``scene``: its serialized scene update.
+    """
+
+    log_id: str
+    now_ns: int
+    step_ns: NDArrayInt
+    forecasts: TargetForecasts
+    scene: bytes
+
+
+@dataclass(frozen=True)
 class ChunkForecasts:
     """A chunk's samples and their kept targets' tracks and forecasts, for the MCAP messages of each sample.
 
@@ -83,25 +101,28 @@ class ChunkForecasts:
     kept: NDArrayBool | slice
     futures: NDArrayFloat
 
-    def of_samples(self) -> Iterator[tuple[str, int, NDArrayInt, TargetForecasts]]:
-        """(log id, prediction time ns, future step times, targets and forecasts) of each sample with a target in
-        its window, in order (what the per-sample path hands its MCAP writer)."""
+    def of_samples(self, mcaps: PredictionMcaps) -> Iterator[SampleDrawn]:
+        """Each sample with a target in its window, in order, as the per-sample path hands it to its MCAP writer;
+        scene messages are built ``SCENE_SAMPLES`` samples at a time."""
         cut, kept = self.cut, self.kept
-        log_ids = self.samples.column("log_id").to_pylist()
-        sample_ids = self.samples.column("sample_id").to_pylist()
-        now_ns = self.samples.column("current_ns").to_pylist()
+        drawn = np.flatnonzero(cut.per_sample > 0)
+        log_ids = np.asarray(self.samples.column("log_id").to_pylist(), object)[drawn].tolist()
+        sample_ids = np.asarray(self.samples.column("sample_id").to_pylist(), object)[drawn].tolist()
+        now_ns = as_numpy(self.samples.column("current_ns")).astype(np.int64)[drawn].tolist()
         sample_of = cut.sample_of[kept]
-        bounds = np.searchsorted(sample_of, np.arange(self.samples.num_rows + 1)).tolist()
-        track_ids = cut.track_ids[kept].tolist()
-        type_names = [OBJECT_TYPES[c] for c in cut.object_types[kept].tolist()]
-        history, truth = cut.observed[kept], cast(NDArrayFloat, cut.truth)[kept]
+        bounds = np.searchsorted(sample_of, np.append(drawn, self.samples.num_rows)).tolist()
         k = self.futures.shape[1]
-        scores = np.full((len(sample_of), k), 1.0 / k)
-        for s in np.flatnonzero(cut.per_sample > 0).tolist():
-            a, b = bounds[s], bounds[s + 1]
-            yield log_ids[s], int(now_ns[s]), cut.step_ns[s], TargetForecasts(
-                str(sample_ids[s]), track_ids[a:b], type_names[a:b], history[a:b], truth[a:b], self.futures[a:b],
-                scores[a:b])
+        forecasts = TargetForecasts(
+            [str(i) for i in sample_ids], bounds, cut.track_ids[kept].tolist(),
+            [OBJECT_TYPES[c] for c in cut.object_types[kept].tolist()], cut.observed[kept],
+            cast(NDArrayFloat, cut.truth)[kept], self.futures, np.full((len(sample_of), k), 1.0 / k))
+        for first in range(0, len(drawn), SCENE_SAMPLES):
+            stop = min(first + SCENE_SAMPLES, len(drawn))
+            part = forecasts.part(first, stop)
+            scenes = mcaps.scene_updates(log_ids[first:stop], now_ns[first:stop], part)
+            for i, scene in enumerate(scenes):
+                s = first + i
+                yield SampleDrawn(log_ids[s], now_ns[s], cut.step_ns[drawn[s]], part.part(i, i + 1), scene)
 
 
 def chunk_rows(shard: ShardTracks, samples: pa.Table, dt_ns: NDArrayInt, predictor: TrackPredictor,
@@ -153,10 +174,10 @@ def write_mcaps(chunks: Iterator[ChunkRows], sink: ShardWriter, mcaps: Predictio
     """Write the MCAP of each of ``log_ids`` (the shard's logs, in the order of the chunks' samples; a log
     without samples still gets its original copied), its samples' messages drawn from ``chunks`` as the MCAP
     writer takes them, so a chunk's rows and messages are made once and the logs stream."""
-    pending = (sample for chunk in chunks for sample in cast(ChunkForecasts, chunk.drawn).of_samples())
-    producing = 0.0  # time in ``pending`` (cutting, forecasting, rows): not the MCAP writing's
+    pending = (sample for chunk in chunks for sample in cast(ChunkForecasts, chunk.drawn).of_samples(mcaps))
+    producing = 0.0  # time in ``pending`` (cutting, forecasting, rows, scene messages): not the MCAP writer's
 
-    def advance() -> tuple[str, int, NDArrayInt, TargetForecasts] | None:
+    def advance() -> SampleDrawn | None:
         nonlocal producing
         t0 = time.perf_counter()
         sample = next(pending, None)
@@ -168,14 +189,14 @@ def write_mcaps(chunks: Iterator[ChunkRows], sink: ShardWriter, mcaps: Predictio
 
         def messages(log_id: str = log_id) -> Iterator[NewMessage]:
             nonlocal head
-            while head is not None and head[0] == log_id:
-                yield from mcaps.sample_messages(*head)
+            while head is not None and head.log_id == log_id:
+                yield from mcaps.sample_messages(head.log_id, head.now_ns, head.step_ns, head.forecasts, head.scene)
                 head = advance()
 
         sink.write_log_now(log_id, partial(mcaps.write_messages, log_id, messages()))
     sink.inline_seconds -= producing
     if head is not None:
-        raise DatasetError(f"a sample of log {head[0]!r} follows the logs of its shard (sample-index out of order)")
+        raise DatasetError(f"a sample of log {head.log_id!r} follows the logs of its shard (sample-index out of order)")
 
 
 @dataclass(frozen=True)

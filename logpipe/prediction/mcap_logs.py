@@ -15,7 +15,7 @@ Positions are metres in the log's world frame (``prediction.originals.world_fram
 from __future__ import annotations
 
 import json
-from collections.abc import Iterable, Iterator
+from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -26,7 +26,7 @@ from logpipe import __version__
 from logpipe.errors import DatasetError
 from logpipe.mcap import foxglove as fx
 from logpipe.mcap import raster_image as fr
-from logpipe.mcap.forecast_scene import TargetForecasts, forecast_scene_update
+from logpipe.mcap.forecast_scene import TargetForecasts, forecast_scene_updates
 from logpipe.mcap.merge import NewChannel, NewMessage, Source, write_merged
 from logpipe.mcap.tracks import json_schema_bytes
 from logpipe.prediction.originals import world_frame
@@ -118,7 +118,8 @@ class PredictionMcaps:
             for p in predictions:
                 now = int(p.row["current_ns"])
                 forecasts = TargetForecasts.of_sample(p.sample, p.targets, p.futures, p.scores)
-                yield from self.sample_messages(log_id, now, p.step_ns, forecasts)
+                yield from self.sample_messages(log_id, now, p.step_ns, forecasts,
+                                                self.scene_updates([log_id], [now], forecasts)[0])
                 affine = p.sample.world_to_raster
                 if layers is not None and p.sample.raster is not None and affine is not None:
                     rgb = fr.raster_rgb(np.asarray(p.sample.raster), layers)
@@ -146,21 +147,25 @@ class PredictionMcaps:
         """The world frame of a log's positions."""
         return world_frame(self.logs[log_id])
 
-    def sample_messages(self, log_id: str, now_ns: int, step_ns: NDArrayInt,
-                        forecasts: TargetForecasts) -> tuple[NewMessage, NewMessage]:
-        """A sample's predictions and scene messages at its prediction time ``now_ns``; ``step_ns``: (T_pred,)
-        the times of the future steps."""
-        frame = self.frame(log_id)
-        horizon_ns = int(self.logs[log_id]["median_dt_ns"]) * self.protocol.pred_len
-        return (NewMessage(0, now_ns, now_ns, self._predictions_json(log_id, frame, now_ns, step_ns, forecasts)),
-                NewMessage(1, now_ns, now_ns, forecast_scene_update(frame, now_ns, horizon_ns, forecasts)))
+    def scene_updates(self, log_ids: Sequence[str], now_ns: Sequence[int], forecasts: TargetForecasts) -> list[bytes]:
+        """The scene message of each sample of ``forecasts`` (of ``log_ids`` at ``now_ns``, one each per sample)."""
+        pred_len = self.protocol.pred_len
+        return forecast_scene_updates(forecasts, [self.frame(i) for i in log_ids], now_ns,
+                                      [int(self.logs[i]["median_dt_ns"]) * pred_len for i in log_ids])
+
+    def sample_messages(self, log_id: str, now_ns: int, step_ns: NDArrayInt, forecasts: TargetForecasts,
+                        scene: bytes) -> tuple[NewMessage, NewMessage]:
+        """A sample's predictions and scene messages at its prediction time ``now_ns``: ``forecasts`` of the one
+        sample, ``step_ns``: (T_pred,) the times of its future steps, ``scene``: its ``scene_updates`` message."""
+        record = self._predictions_json(log_id, self.frame(log_id), now_ns, step_ns, forecasts)
+        return NewMessage(0, now_ns, now_ns, record), NewMessage(1, now_ns, now_ns, scene)
 
     def _predictions_json(self, log_id: str, frame: str, now_ns: int, step_ns: NDArrayInt,
                           f: TargetForecasts) -> bytes:
         current = f.history[:, -1]
         message = {
             "log_id": log_id,
-            "sample_id": f.sample_id,
+            "sample_id": f.sample_ids[0],
             "timestamp_ns": now_ns,
             "frame_id": frame,
             "predictor": self.predictor,

@@ -426,8 +426,8 @@ def test_forecast_update_draws_history_truth_marker_and_modes() -> None:
     futures = np.cumsum(np.ones((3, 5, 12, 2)), axis=2)
     scores = np.array([[0.5, 0.2, 0.1, 0.1, 0.1]] * 3)
     forecasts = ff.TargetForecasts.of_sample(sample, targets, futures, scores)
-    update = SceneUpdate.FromString(ff.forecast_scene_update("map", 1_700_000_000_123_456_789, 4_800_000_000,
-                                                             forecasts))
+    update = SceneUpdate.FromString(ff.forecast_scene_updates(forecasts, ["map"], [1_700_000_000_123_456_789],
+                                                              [4_800_000_000])[0])
     assert [e.id for e in update.entities] == [sample.track_ids[i] for i in targets]
     for j, e in enumerate(update.entities):
         assert (e.frame_id, e.timestamp.seconds, e.timestamp.nanos) == ("map", 1_700_000_000, 123_456_789)

@@ -15,7 +15,7 @@ from mcap.reader import make_reader
 from mcap.writer import Writer
 
 from logpipe.mcap import foxglove as fx
-from logpipe.mcap.forecast_scene import TargetForecasts, forecast_scene_update
+from logpipe.mcap.forecast_scene import TargetForecasts, forecast_scene_updates
 from logpipe.mcap.merge import NewChannel, NewMessage, Source, write_merged
 from logpipe.model.synthetic import make_scene
 from logpipe.stages.ingest import IngestOptions, ingest
@@ -45,8 +45,8 @@ def test_forecast_points_are_the_samples_and_forecasts_numbers_to_a_millimetre()
     targets = np.flatnonzero(sample.target_mask)
     futures = rng.normal(size=(len(targets), 5, 12, 2)) * 1e3
     forecasts = TargetForecasts.of_sample(sample, targets, futures, np.full((len(targets), 5), 0.2))
-    update = fx.MESSAGE_CLASSES["foxglove.SceneUpdate"].FromString(forecast_scene_update(
-        "map", 1_700_000_000_123_456_789, 4_800_000_000, forecasts))
+    update = fx.MESSAGE_CLASSES["foxglove.SceneUpdate"].FromString(forecast_scene_updates(
+        forecasts, ["map"], [1_700_000_000_123_456_789], [4_800_000_000])[0])
     assert len(update.entities) == len(targets)
     drawn = fx.snap(sample.positions, fx.POSITION_QUANTUM)
     assert np.abs(drawn - sample.positions).max() <= fx.POSITION_QUANTUM / 2
