@@ -209,35 +209,23 @@ def run(quick: bool = False) -> dict[str, Any]:
 
 
 def _parquet_write_rate(run: Path, samples: int, repeats: int) -> float:
-    """Samples/s of writing the run's predictions table alone (pyarrow, the stage's Parquet settings read back
-    from its files): the floor of any predict path that writes it."""
-    import pyarrow.parquet as pq
-
-    files = sorted((run / "predictions").glob("*.parquet"))
-    tables = [pq.read_table(f) for f in files]
-    codec = pq.ParquetFile(files[0]).metadata.row_group(0).column(0).compression.lower()
-    rates = []
-    with tempfile.TemporaryDirectory() as tmp:
-        for _ in range(max(repeats, 3)):
-            t0 = time.perf_counter()
-            for i, table in enumerate(tables):
-                pq.write_table(table, Path(tmp) / f"{i}.parquet", compression=codec)
-            rates.append(samples / (time.perf_counter() - t0))
-    return round(statistics.median(rates), 1)
+    """Samples/s of writing the run's predictions tables alone (pyarrow, the stage's Parquet codec read back from
+    its files): the floor of any predict path that writes them."""
+    return _outputs_write_rate(run, samples, repeats, mcap=False)
 
 
-def _outputs_write_rate(run: Path, samples: int, repeats: int) -> float:
+def _outputs_write_rate(run: Path, samples: int, repeats: int, mcap: bool = True) -> float:
     """Samples/s of writing the run's outputs alone, nothing encoded: its predictions tables (pyarrow, the stage's
-    codec) and every log MCAP's records, already serialized, through the ``mcap`` writer with the stage's
-    settings (zstd chunks; read back from its files). The floor of a predict path that writes them with these
-    libraries; the forecasting, the message encoding and the durability work (fsync, hashes) are not in it."""
+    codec) and, with ``mcap``, every log MCAP's records, already serialized, through the ``mcap`` writer with the
+    stage's settings (zstd chunks; read back from its files). The floor of a predict path that writes them with
+    these libraries; the forecasting, the message encoding and the durability work (fsync, hashes) are not in it."""
     import pyarrow.parquet as pq
     from mcap.writer import CompressionType, Writer
 
     files = sorted((run / "predictions").glob("*.parquet"))
     tables = [pq.read_table(f) for f in files]
     codec = pq.ParquetFile(files[0]).metadata.row_group(0).column(0).compression.lower()
-    logs = [_mcap_records(path) for path in sorted((run / "mcap").rglob("*.mcap"))]
+    logs = [_mcap_records(path) for path in sorted((run / "mcap").rglob("*.mcap"))] if mcap else []
     rates = []
     with tempfile.TemporaryDirectory() as tmp:
         for _ in range(max(repeats, 3)):
