@@ -155,6 +155,31 @@ def floor_cpu(folder: Path, n_files: int = 1000) -> dict[str, float]:
     return result
 
 
+def mcap_floor_cpu(folder: Path, n_files: int = 1000) -> float:
+    """CPU seconds per 1,000 files of writing the MCAPs ingest writes for ``n_files`` of them, their records
+    already serialized (read back from a real ingest), through the ``mcap`` writer with ingest's settings: what
+    the MCAP output costs on top of ``floor_cpu`` with this library, before any encoding."""
+    from mcap.writer import CompressionType, Writer
+
+    from benchmarks.mcap_floor import mcap_records, rewrite_mcap
+    from logpipe.stages.ingest import IngestOptions, ingest
+
+    with tempfile.TemporaryDirectory(prefix="logpipe-mcap-floor-") as tmp:
+        part = Path(tmp) / "csv"
+        part.mkdir()
+        files = sorted(folder.glob("*.csv"))[:n_files]
+        for f in files:
+            (part / f.name).symlink_to(f)
+        ingest([part], IngestOptions(out=Path(tmp) / "ds", write_mcap=True, workers=1))
+        logs = [mcap_records(path) for path in sorted((Path(tmp) / "ds").rglob("*.mcap"))]
+        start = time.process_time()
+        for i, records in enumerate(logs):
+            with (Path(tmp) / f"{i}.mcap").open("wb") as fh:
+                rewrite_mcap(Writer(fh, compression=CompressionType.ZSTD), records)
+        spent = time.process_time() - start
+    return round(spent * 1000 / max(len(files), 1), 3)
+
+
 def run(quick: bool = False) -> dict[str, Any]:
     """Measure and return the figures (JSON-able)."""
     n_large, n_small, repeats = (1_000, 250, 1) if quick else (10_000, 2_500, 5)
@@ -168,8 +193,11 @@ def run(quick: bool = False) -> dict[str, Any]:
         ours_mcap = _median_run("logpipe+mcap", work / "large", work, 1)
         ours_small = _median_run("logpipe", work / "small", work, 1)
         floor = floor_cpu(work / "large")
+        floor["mcap_write"] = mcap_floor_cpu(work / "large", 250 if quick else 1000)
     if baseline["rows"] != ours["rows"]:
         raise RuntimeError(f"row counts differ: pandas {baseline['rows']} vs logpipe {ours['rows']}")
+    mcap_speedup = round(ours_mcap["files_per_s"] / baseline["files_per_s"], 2)
+    mcap_bound = round(2 * baseline["cpu_s_per_1000_files"] / (floor["total"] + floor["mcap_write"]), 2)
     return {
         "benchmark": "ingest_argoverse1_csv",
         "corpus": {"files": n_large, "bytes": nbytes, "replicated_from": "69 real AV1 CSVs"},
@@ -185,17 +213,19 @@ def run(quick: bool = False) -> dict[str, Any]:
         # twice this (ours uses both, the baseline one).
         "cpu_ratio_baseline_vs_ours": round(baseline["cpu_s_per_1000_files"] / ours["cpu_s_per_1000_files"], 2),
         "load_average_1min_before_after": [round(load_before[0], 2), round(os.getloadavg()[0], 2)],
-        "speedup_with_mcap_vs_baseline": round(ours_mcap["files_per_s"] / baseline["files_per_s"], 2),
+        "speedup_with_mcap_vs_baseline": mcap_speedup,
         "peak_rss_ratio_large_vs_small_corpus": round(ours["peak_rss_mb"] / ours_small["peak_rss_mb"], 2),
         "floor_cpu_s_per_1000_files": floor,
         # Both cores doing only the floor's steps, against the baseline's whole run (its CPU per file: import,
         # read_csv, concat). An earlier version divided by read_csv alone in this process, which left out the
         # baseline's concat and import and so understated the bound (ours has measured above it).
         "best_possible_2_core_speedup_at_floor": round(2 * baseline["cpu_s_per_1000_files"] / floor["total"], 2),
+        # The same with MCAP: the floor's steps plus writing ingest's MCAP records, already serialized.
+        "best_possible_2_core_speedup_with_mcap_at_floor": mcap_bound,
         "target": ">= 4x baseline files/s (aim 10x); peak memory independent of file count",
         "targets": [  # issue 35: ingest with MCAP on against the same pandas baseline
-            {"target": "ingest with MCAP: files/s over the pandas baseline",
-             "measured": round(ours_mcap["files_per_s"] / baseline["files_per_s"], 2), "required": 2.0,
-             "met": ours_mcap["files_per_s"] / baseline["files_per_s"] >= 2.0},
+            {"target": "ingest with MCAP: files/s over the pandas baseline", "measured": mcap_speedup,
+             "required": 2.0, "met": mcap_speedup >= 2.0, "floor": mcap_bound,
+             "share_of_floor": round(mcap_speedup / mcap_bound, 3)},
         ],
     }

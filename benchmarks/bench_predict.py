@@ -12,7 +12,7 @@ Measures, in one run (the machine is shared: compare figures of the same run onl
 * for the constant-velocity rows, the floor of their output: writing the same Parquet tables (and MCAP records,
   already serialized) alone with the stage's libraries and settings.
 
-Run: ``.venv/bin/python benchmarks/bench_predict.py [--quick]`` (prints JSON).
+Run: ``.venv/bin/python -m benchmarks.bench_predict [--quick]`` (prints JSON).
 """
 
 from __future__ import annotations
@@ -27,6 +27,8 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from benchmarks.mcap_floor import mcap_records, rewrite_mcap
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED = REPO.parent / "shared" / "data"
@@ -225,7 +227,7 @@ def _outputs_write_rate(run: Path, samples: int, repeats: int, mcap: bool = True
     files = sorted((run / "predictions").glob("*.parquet"))
     tables = [pq.read_table(f) for f in files]
     codec = pq.ParquetFile(files[0]).metadata.row_group(0).column(0).compression.lower()
-    logs = [_mcap_records(path) for path in sorted((run / "mcap").rglob("*.mcap"))] if mcap else []
+    logs = [mcap_records(path) for path in sorted((run / "mcap").rglob("*.mcap"))] if mcap else []
     rates = []
     with tempfile.TemporaryDirectory() as tmp:
         for _ in range(max(repeats, 3)):
@@ -234,50 +236,9 @@ def _outputs_write_rate(run: Path, samples: int, repeats: int, mcap: bool = True
                 pq.write_table(table, Path(tmp) / f"{i}.parquet", compression=codec)
             for i, records in enumerate(logs):
                 with (Path(tmp) / f"{i}.mcap").open("wb") as fh:
-                    _rewrite_mcap(Writer(fh, compression=CompressionType.ZSTD), records)
+                    rewrite_mcap(Writer(fh, compression=CompressionType.ZSTD), records)
             rates.append(samples / (time.perf_counter() - t0))
     return round(statistics.median(rates), 1)
-
-
-def _mcap_records(path: Path) -> list[Any]:
-    """An MCAP's records in file order that a writer writes again (the summary's repeated schemas and channels
-    left out)."""
-    from mcap.records import Attachment, Channel, Header, Message, Metadata, Schema
-    from mcap.stream_reader import StreamReader
-
-    records, seen = [], set()
-    with path.open("rb") as fh:
-        for r in StreamReader(fh, skip_magic=False).records:
-            if isinstance(r, Schema | Channel):
-                if (type(r), r.id) in seen:
-                    continue
-                seen.add((type(r), r.id))
-            if isinstance(r, Header | Schema | Channel | Message | Metadata | Attachment):
-                records.append(r)
-    return records
-
-
-def _rewrite_mcap(writer: Any, records: list[Any]) -> None:
-    """Write already-read MCAP records again (ids kept: the writer numbers schemas and channels as the file did)."""
-    from mcap.records import Attachment, Channel, Header, Message, Metadata, Schema
-
-    for r in records:
-        if isinstance(r, Header):
-            writer.start(profile=r.profile, library=r.library)
-        elif isinstance(r, Schema):
-            writer.register_schema(name=r.name, encoding=r.encoding, data=r.data)
-        elif isinstance(r, Channel):
-            writer.register_channel(topic=r.topic, message_encoding=r.message_encoding, schema_id=r.schema_id,
-                                    metadata=dict(r.metadata))
-        elif isinstance(r, Message):
-            writer.add_message(r.channel_id, log_time=r.log_time, publish_time=r.publish_time, data=r.data,
-                               sequence=r.sequence)
-        elif isinstance(r, Metadata):
-            writer.add_metadata(r.name, dict(r.metadata))
-        elif isinstance(r, Attachment):
-            writer.add_attachment(create_time=r.create_time, log_time=r.log_time, name=r.name,
-                                  media_type=r.media_type, data=r.data)
-    writer.finish()
 
 
 TARGETS = (  # issue 35: (name, result path, measured key, reference, target, floor of this machine or None)

@@ -9,7 +9,8 @@ from typing import Any
 from mcap.reader import make_reader
 from mcap.writer import CompressionType, Writer
 
-from benchmarks.bench_predict import TARGETS, _mcap_records, _rewrite_mcap, targets
+from benchmarks.bench_predict import TARGETS, targets
+from benchmarks.mcap_floor import mcap_records, rewrite_mcap
 from logpipe.mcap.merge import NewChannel, NewMessage, write_merged
 
 
@@ -50,11 +51,11 @@ def test_the_output_floor_rewrites_the_same_mcap_content(tmp_path: Path) -> None
     messages = [NewMessage(i % 2, 1_000 + i, 1_000 + i, f'{{"i":{i}}}'.encode()) for i in range(50)]
     original = tmp_path / "original.mcap"
     write_merged(original, [], channels, messages, metadata={"run": {"k": "v"}})
-    records = _mcap_records(original)
+    records = mcap_records(original)
     assert len(records) == 1 + 2 + 2 + 50 + 1  # header, schemas, channels, messages, metadata
     again = tmp_path / "again.mcap"
     with again.open("wb") as fh:
-        _rewrite_mcap(Writer(fh, compression=CompressionType.ZSTD), records)
+        rewrite_mcap(Writer(fh, compression=CompressionType.ZSTD), records)
 
     def content(path: Path) -> tuple[list[tuple[Any, ...]], list[tuple[str, dict[str, str]]]]:
         with path.open("rb") as fh:
