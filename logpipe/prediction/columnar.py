@@ -34,7 +34,7 @@ from logpipe.prediction.output import ShardWriter, counted_shard_writer
 from logpipe.prediction.runs import PredictionMeta, RunShardEntry
 from logpipe.prediction.table import Targets, targets_table
 from logpipe.storage.artifact import FileEntry
-from logpipe.storage.io import as_numpy, read_table
+from logpipe.storage.io import read_table
 from logpipe.types import OBJECT_TYPES, NDArrayBool, NDArrayFloat, NDArrayInt
 
 CHUNK_SAMPLES = 4096
@@ -93,29 +93,31 @@ class ChunkForecasts:
 
     Attributes:
         samples: the chunk's sample-index rows; ``cut``: their targets (with ``truth``); ``kept``: the targets
-            forecast (observed at the current step); ``futures``: (N_kept, K, T_pred, 2) their forecasts.
+            forecast (observed at the current step); ``futures``: (N_kept, K, T_pred, 2) their forecasts;
+            ``scores``: (N_kept, K) their mode scores (the rows' own).
     """
 
     samples: pa.Table
     cut: TargetTracks
     kept: NDArrayBool | slice
     futures: NDArrayFloat
+    scores: NDArrayFloat
 
     def of_samples(self, mcaps: PredictionMcaps) -> Iterator[SampleDrawn]:
         """Each sample with a target in its window, in order, as the per-sample path hands it to its MCAP writer;
         scene messages are built ``SCENE_SAMPLES`` samples at a time."""
         cut, kept = self.cut, self.kept
         drawn = np.flatnonzero(cut.per_sample > 0)
-        log_ids = np.asarray(self.samples.column("log_id").to_pylist(), object)[drawn].tolist()
-        sample_ids = np.asarray(self.samples.column("sample_id").to_pylist(), object)[drawn].tolist()
-        now_ns = as_numpy(self.samples.column("current_ns")).astype(np.int64)[drawn].tolist()
+        rows = self.samples.take(drawn)
+        log_ids = rows.column("log_id").to_pylist()
+        sample_ids = rows.column("sample_id").to_pylist()
+        now_ns = rows.column("current_ns").to_pylist()
         sample_of = cut.sample_of[kept]
         bounds = np.searchsorted(sample_of, np.append(drawn, self.samples.num_rows)).tolist()
-        k = self.futures.shape[1]
         forecasts = TargetForecasts(
             [str(i) for i in sample_ids], bounds, cut.track_ids[kept].tolist(),
             [OBJECT_TYPES[c] for c in cut.object_types[kept].tolist()], cut.observed[kept],
-            cast(NDArrayFloat, cut.truth)[kept], self.futures, np.full((len(sample_of), k), 1.0 / k))
+            cast(NDArrayFloat, cut.truth)[kept], self.futures, self.scores)
         for first in range(0, len(drawn), SCENE_SAMPLES):
             stop = min(first + SCENE_SAMPLES, len(drawn))
             part = forecasts.part(first, stop)
@@ -144,9 +146,9 @@ def chunk_rows(shard: ShardTracks, samples: pa.Table, dt_ns: NDArrayInt, predict
         targets = Targets(part.column("log_id").combine_chunks().cast(pa.string()),
                           part.column("sample_id").combine_chunks().cast(pa.string()), sample_of,
                           pa.array(cut.track_ids[kept], pa.string()), cut.object_types[kept])
-        table = targets_table(meta, targets, futures[kept], np.full((len(sample_of), k), 1.0 / k),
-                              cut.step_ns[sample_of])
-        forecasts = ChunkForecasts(part, cut, kept, futures[kept]) if drawn else None
+        forecast, scores = futures[kept], np.full((len(sample_of), k), 1.0 / k)
+        table = targets_table(meta, targets, forecast, scores, cut.step_ns[sample_of])
+        forecasts = ChunkForecasts(part, cut, kept, forecast, scores) if drawn else None
         yield ChunkRows(table, part.num_rows, int((cut.per_sample > 0).sum()), len(sample_of),
                         int((~ok).sum()), model_seconds, forecasts)
 
