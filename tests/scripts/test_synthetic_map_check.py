@@ -1,0 +1,29 @@
+"""``scripts/synthetic_map_check.py``: the EN gain, its interval and how much of it the turning targets can carry."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from scripts.synthetic_map_check import TURN_DEG, _dilution, gain_interval
+
+
+def test_gain_is_one_minus_the_ratio_of_summed_fde_and_its_interval_covers_it() -> None:
+    rng = np.random.default_rng(0)
+    base = rng.uniform(1.0, 3.0, 400)
+    cluster = np.repeat(np.arange(100), 4)
+    same = gain_interval(base.copy(), base, cluster)
+    assert same["gain"] == 0.0 and same["low"] == 0.0 == same["high"]
+    half = gain_interval(base * 0.5, base, cluster)
+    assert abs(half["gain"] - 0.5) < 1e-12 and half["low"] <= 0.5 <= half["high"]
+    noisy = gain_interval(base * rng.uniform(0.6, 1.0, 400), base, cluster)
+    assert noisy["low"] < noisy["gain"] < noisy["high"] and noisy["windows"] == 100
+
+
+def test_dilution_weighs_the_turning_gain_by_the_turning_share_of_the_error() -> None:
+    def row(fde: float, agents: int) -> dict[str, float]:
+        return {"minFDE": fde, "agents": agents}
+
+    rows = {"all targets": {"no EN (v4)": row(2.5, 10)},
+            f"turning > {TURN_DEG:g} deg": {"no EN (v4)": row(5.0, 2), "gain": {"gain": 0.2}}}
+    text = _dilution(rows)  # turning: 10 of 25 summed metres; 20 % of that is 8 % of all
+    assert "carry 40 %" in text and "would give 8.0 %" in text
