@@ -9,7 +9,11 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
+import pytest
+
+from scripts import scaling
 from scripts.locations import REPO
 from scripts.scaling import _descendants_rss, render, run_stage
 
@@ -43,3 +47,32 @@ def test_the_shipped_report_is_its_measurements_rendered() -> None:
     measured = json.loads((REPO / "docs" / "scaling.json").read_text())
     assert (REPO / "docs" / "scaling.md").read_text() == render(measured)
     assert measured["logs"] == 50_000 and len(measured["runs"]) == 4
+
+
+def test_the_independent_pair_splits_the_corpus_and_runs_each_stage_twice_at_once(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    corpus = tmp_path / "csv"
+    corpus.mkdir()
+    for name in ("a", "b", "c", "d", "e"):
+        (corpus / f"{name}.csv").write_text(name)
+    seen: list[tuple[list[str], float]] = []
+
+    def fake_run(args: list[str]) -> dict[str, Any]:
+        started = time.perf_counter()
+        if args[0] == "ingest":
+            seen.append((sorted(p.name for p in Path(args[1]).glob("*.csv")), started))
+        if args[0] == "predict" and "--filter" in args:
+            seen.append((args[args.index("--filter") + 1].removeprefix("log=").split(","), started))
+        time.sleep(0.3)
+        return {"seconds": 0.3, "peak_mb": 1.0, "summary": {}}
+
+    monkeypatch.setattr(scaling, "run_stage", fake_run)
+    m = scaling.independent_pair(corpus, tmp_path / "maps", tmp_path / "work", ["a", "b", "c"])
+    assert set(m) == {"backend", "workers", *scaling.STAGES}
+    ingested = [files for files, _ in seen if files[0].endswith(".csv")]
+    assert sorted(ingested) == [["a.csv", "c.csv", "e.csv"], ["b.csv", "d.csv"]]  # every other file, all of them
+    assert sorted(logs for logs, _ in seen if not logs[0].endswith(".csv")) == [["a", "c"], ["b"]]
+    starts = [t for files, t in seen if files[0].endswith(".csv")]
+    assert abs(starts[0] - starts[1]) < 0.2  # at once, not one after the other
+    assert 0.3 <= m["ingest"]["seconds"] < 0.55
+    assert not (tmp_path / "work").exists()
