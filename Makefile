@@ -49,7 +49,7 @@ test: setup
 	$(PY) -m pytest -q -p no:cacheprovider
 
 bench: setup
-	$(PY) -m benchmarks.run --out $(OUT)/bench.json
+	$(PY) -m benchmarks.run --out $(OUT)/bench.json --markdown $(OUT)/bench.md
 
 lint: setup
 	$(VENV)/bin/ruff check logpipe stages model tests benchmarks scripts

@@ -9,12 +9,46 @@ from __future__ import annotations
 import argparse
 import importlib
 import json
+import os
 import platform
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 BENCHMARKS = ["bench_ingest", "bench_rosbag", "bench_raster", "bench_model", "bench_predict"]
+
+
+def render_targets(results: dict[str, Any], command: str) -> str:
+    """The targets of a run as Markdown: each figure beside the figure required and, where the run measured one,
+    this machine's floor for it and the share of that floor reached."""
+    lines = [
+        "# make bench: the issue-35 targets on this machine", "",
+        f"Produced by `python -m benchmarks.run {command}` (started {results['started']}, Python "
+        f"{results['python']}, {results['machine']}; {machine_line()}). Each figure and its reference come from the "
+        "same run; the machine is shared, so compare figures of one run only. Floor: the same outputs written alone "
+        "(nothing encoded), or for the full model the backbone plus every matmul at the measured fp32 rate; "
+        "share: measured / floor.", "",
+        "| target | measured | required | met | this machine's floor | share of the floor |",
+        "|---|---|---|---|---|---|"]
+    for t in results["targets"]:
+        floor = (f"{t['floor']:,}", f"{t['share_of_floor']:.2f}") if "floor" in t else ("—", "—")
+        lines.append(f"| {t['target']} | {t['measured']:,} | {t['required']:,} | {'yes' if t['met'] else 'no'} | "
+                     f"{floor[0]} | {floor[1]} |")
+    return "\n".join([*lines, ""])
+
+
+def machine_line() -> str:
+    """Cores, load average and the CPU's vector features, read now."""
+    flags = ""
+    try:
+        with open("/proc/cpuinfo") as fh:
+            words = set(next(line for line in fh if line.startswith("flags")).split())
+        flags = ", ".join(f for f in ("avx2", "avx512f", "avx512_bf16", "amx_tile") if f in words)
+    except (OSError, StopIteration):
+        pass
+    return (f"{os.cpu_count()} cores, 1-min load average {os.getloadavg()[0]:.1f} at the end, CPU features: "
+            f"{flags or '?'}")
 
 
 def main() -> int:
@@ -22,6 +56,7 @@ def main() -> int:
     parser.add_argument("--out", type=Path, default=Path("out/bench.json"))
     parser.add_argument("--quick", action="store_true", help="small corpora, one repeat (smoke run)")
     parser.add_argument("--only", nargs="*", help="benchmark module names to run")
+    parser.add_argument("--markdown", type=Path, help="also write the targets as a Markdown table here")
     args = parser.parse_args()
     results: dict[str, object] = {"python": sys.version.split()[0], "machine": platform.machine(),
                                   "started": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
@@ -46,6 +81,8 @@ def main() -> int:
               f"{t['required']}{floor})", file=sys.stderr)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(results, indent=2) + "\n")
+    if args.markdown is not None:
+        args.markdown.write_text(render_targets(results, " ".join(sys.argv[1:])))
     print(json.dumps(results, indent=2))
     return 0
 

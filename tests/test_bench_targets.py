@@ -74,3 +74,16 @@ def test_paths_not_measured_are_left_out() -> None:
     partial = _result(0.5, 1.0, 1.0, 1.0, 1.0, 1.0)
     del partial["env_net_argoverse1"]
     assert [r["target"] for r in targets(partial)] == [t[0] for t in TARGETS[1:]]
+
+
+def test_the_markdown_report_lists_every_target_with_its_floor() -> None:
+    from benchmarks.run import render_targets
+
+    rows = targets(_result(0.34, 300.0, 1000.0, 25_000.0, 3_000.0, 81.0))
+    text = render_targets({"started": "2026-12-05T23:00:00Z", "python": "3.11.7", "machine": "x86_64",
+                           "targets": rows}, "--out out/bench.json")
+    table = [line for line in text.splitlines() if line.startswith("| ") and "---" not in line][1:]
+    assert len(table) == len(rows)
+    full = next(line for line in table if line.startswith("| full model"))
+    assert full == "| full model with EN, AV1: share of backbone-alone rate | 0.34 | 0.6 | no | 0.8 | 0.42 |"
+    assert "| constant velocity, all of ETH/UCY, Parquet only: samples/s | 6,250.0 | 20,000 | no | — | — |" in table
