@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+import json
+from pathlib import Path
+from typing import Any
+
 import numpy as np
 
 from scripts.synthetic_map_check import TURN_DEG, _dilution, gain_interval
@@ -27,3 +31,24 @@ def test_dilution_weighs_the_turning_gain_by_the_turning_share_of_the_error() ->
             f"turning > {TURN_DEG:g} deg": {"no EN (v4)": row(5.0, 2), "gain": {"gain": 0.2}}}
     text = _dilution(rows)  # turning: 10 of 25 summed metres; 20 % of that is 8 % of all
     assert "carry 40 %" in text and "would give 8.0 %" in text
+
+
+def test_argoverse_md_shows_the_gain_rows_and_the_verdict(tmp_path: Path) -> None:
+    from scripts.reproduce_argoverse import synthetic_section
+
+    assert "Not run yet" in synthetic_section(tmp_path)[-1]
+
+    def row(full: float, base: float, gain: float, low: float) -> dict[str, Any]:
+        return {"full": {"minFDE": full, "agents": 10}, "no EN (v4)": {"minFDE": base, "agents": 10},
+                "gain": {"gain": gain, "low": low, "high": gain + 0.01}}
+
+    result = {"windows": 4000, "targets": 29702, "k": 6,
+              "checkpoints": {"full": {"step": 3000}, "no EN (v4)": {"step": 2500}},
+              "rows": {"all targets": row(2.0, 2.5, 0.2, 0.16), "turning > 20 deg": row(4.0, 5.0, 0.2, 0.1)}}
+    (tmp_path / "argoverse_synthetic.json").write_text(json.dumps(result))
+    lines = synthetic_section(tmp_path)
+    assert "| all targets | 2.00 | 2.50 | 20.0 % | [16.0, 21.0] % | 10 |" in lines
+    assert any("**met**" in line for line in lines)  # the interval's low end clears 15 %
+    result["rows"]["all targets"] = row(2.0, 2.5, 0.2, 0.14)
+    (tmp_path / "argoverse_synthetic.json").write_text(json.dumps(result))
+    assert any("**NOT met**" in line for line in synthetic_section(tmp_path))
