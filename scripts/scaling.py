@@ -202,7 +202,7 @@ def render(r: dict[str, Any]) -> str:
         "",
         "Scaling: time with 1 worker / time with 2 (the target is >= 1.7x). Ray fixed cost: the stage on the 69 "
         "real sequences with `--backend ray` minus without it, 1 worker (cluster start, task or actor set-up).",
-        "", *_ceiling(r, runs),
+        *_ceiling(r, runs),
         "",
         "### Peak memory (MB) against corpus size",
         "",
@@ -226,7 +226,7 @@ def _ceiling(r: dict[str, Any], runs: dict[tuple[str, int], dict[str, Any]]) -> 
     if pair is None:
         return []
     lines = [
-        "### This machine's ceiling for 2 workers", "",
+        "", "### This machine's ceiling for 2 workers", "",
         "| stage | local 1 | two independent 1-worker processes, half each | ceiling | local 2 | local scaling | "
         "share of the ceiling |", "|---|---|---|---|---|---|---|"]
     for stage in STAGES:
