@@ -237,7 +237,7 @@ def synthetic_section(results: Path) -> list[str]:
              "Argoverse convention. Gain: 1 - minFDE@6(full) / minFDE@6(no EN), 95 % bootstrap over windows.", "",
              "| targets | full minFDE@6 | no EN minFDE@6 | gain of EN | 95 % interval | agents |",
              "|---|---|---|---|---|---|"]
-    for group, row in result["rows"].items():
+    for group, row in sorted(result["rows"].items(), key=lambda item: item[0] != "all targets"):  # all first
         g = row["gain"]
         lines.append(f"| {group} | {row['full']['minFDE']:.2f} | {row['no EN (v4)']['minFDE']:.2f} | "
                      f"{100 * g['gain']:.1f} % | [{100 * g['low']:.1f}, {100 * g['high']:.1f}] % | "
