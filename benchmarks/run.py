@@ -39,16 +39,13 @@ def render_targets(results: dict[str, Any], command: str) -> str:
 
 
 def machine_line() -> str:
-    """Cores, load average and the CPU's vector features, read now."""
-    flags = ""
-    try:
-        with open("/proc/cpuinfo") as fh:
-            words = set(next(line for line in fh if line.startswith("flags")).split())
-        flags = ", ".join(f for f in ("avx2", "avx512f", "avx512_bf16", "amx_tile") if f in words)
-    except (OSError, StopIteration):
-        pass
-    return (f"{os.cpu_count()} cores, 1-min load average {os.getloadavg()[0]:.1f} at the end, CPU features: "
-            f"{flags or '?'}")
+    """Cores, load average and the vector features the kernels use (torch's own detection), read now."""
+    import torch
+
+    from logpipe.model.backbone import native_bf16
+
+    return (f"{os.cpu_count()} cores, 1-min load average {os.getloadavg()[0]:.1f} at the end, torch CPU capability "
+            f"{torch.backends.cpu.get_cpu_capability()}, native bf16: {'yes' if native_bf16() else 'no'}")
 
 
 def main() -> int:

@@ -11,12 +11,16 @@ drawing convention). With "same" padding, feature cell ``i`` of the stride-8 out
 from __future__ import annotations
 
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import torch
 from torch import Tensor, nn
 from torch.nn import functional as F  # noqa: N812
 
 from logpipe.errors import LogpipeError
+
+if TYPE_CHECKING:
+    from .config import ModelConfig
 
 BACKBONE_STRIDE = 8
 BACKBONE_CHANNELS = 128
@@ -31,6 +35,12 @@ def native_bf16() -> bool:
     backbone ran 4-5x slower in bf16 than in fp32 (AVX2 AMD EPYC: 5 against 23 images/s on 2 threads)."""
     checks = ("_is_avx512_bf16_supported", "_is_amx_tile_supported")
     return any(bool(getattr(torch.cpu, name, lambda: False)()) for name in checks)
+
+
+def backbone_runs_bf16(config: ModelConfig) -> bool:
+    """Whether a model of ``config`` runs its backbone in bf16 on this CPU: it has the environment net, asks for
+    ``backbone_bf16`` and the CPU computes bf16 natively."""
+    return config.features.environment and config.backbone_bf16 and native_bf16()
 
 
 class BasicBlock(nn.Module):

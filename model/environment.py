@@ -12,7 +12,7 @@ import torch
 from torch import Tensor, nn
 from torch.nn import functional as F  # noqa: N812
 
-from .backbone import BACKBONE_CHANNELS, BACKBONE_STRIDE, ResNet18Stages12, roi_align
+from .backbone import BACKBONE_CHANNELS, BACKBONE_STRIDE, ResNet18Stages12, backbone_runs_bf16, roi_align
 from .batching import Batch
 from .config import ModelConfig
 from .row_blocks import RowLinear
@@ -40,7 +40,7 @@ class EnvironmentNet(nn.Module):
 
     def __init__(self, config: ModelConfig) -> None:
         super().__init__()
-        self.backbone = ResNet18Stages12(config.raster_channels, use_bf16=config.backbone_bf16)
+        self.backbone = ResNet18Stages12(config.raster_channels, use_bf16=backbone_runs_bf16(config))
         self.pool_size = config.roi_pool
         self.sampling = config.roi_sampling
         self.half_size_m = config.roi_half_size_m

@@ -26,7 +26,7 @@ import pytest
 from typer.testing import CliRunner
 
 from logpipe.cli import app
-from logpipe.model.backbone import native_bf16
+from logpipe.model.backbone import backbone_runs_bf16
 from logpipe.model.checkpoint_meta import read_meta
 from logpipe.prediction.runs import PredictionRun
 
@@ -94,9 +94,8 @@ def test_shipped_checkpoints_predict_the_pinned_forecasts(datasets: dict[str, tu
 
 
 def _arithmetic(checkpoint: Path) -> str:
-    """``@bf16`` where the checkpoint's backbone runs in bf16 on this CPU (``ResNet18Stages12.use_bf16``), else ''."""
-    model = read_meta(SHIPPED / checkpoint).config.model
-    return "@bf16" if model.features.environment and model.backbone_bf16 and native_bf16() else ""
+    """``@bf16`` where the checkpoint's backbone runs in bf16 on this CPU, else ''."""
+    return "@bf16" if backbone_runs_bf16(read_meta(SHIPPED / checkpoint).config.model) else ""
 
 
 def _pins(forecasts: np.ndarray) -> dict[str, np.ndarray]:
