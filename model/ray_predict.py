@@ -19,6 +19,7 @@ import dataclasses
 import functools
 import os
 import pickle
+import uuid
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -29,6 +30,7 @@ import numpy as np
 from logpipe.dataset.reader import Dataset
 from logpipe.dataset.sample_filter import SelectedSamples
 from logpipe.errors import LogpipeError
+from logpipe.executor import run_ordered
 from logpipe.model.device import resolve_device
 from logpipe.model.registry import ChosenPredictor, load_net
 from logpipe.prediction.model_inputs import SampleCutter, ShardWindows, WorkItem, work_items
@@ -175,22 +177,60 @@ def ray_forecasts(job: ForecastJob, log_ids: list[str], samples: SelectedSamples
     # reductions round by thread count, so outputs match a local run's bytes at the same --threads (tested).
     threads = threads or 1
     size, gpu = start(workers, threads)
+    items, setup = _planned_items(job, log_ids, samples, pending, size, threads, device)
+    return _checked(batch for item in forecast_on_ray(setup, items, size=size, gpu=gpu, cpus=threads)
+                    for batch in item)
+
+
+def process_forecasts(job: ForecastJob, log_ids: list[str], samples: SelectedSamples,
+                      pending: list[Path], workers: int, threads: int,
+                      device: str) -> Callable[[list[SceneSample]], Sequence[Any]]:
+    """``ray_forecasts`` on ``workers`` local processes instead of Ray actors (``logpipe.executor.run_ordered``):
+    each loads the model once and forecasts runs of planned batches on ``threads`` torch threads (0: 1), while
+    the stage cuts its own copy of the samples and writes the outputs. The same work items and the same bytes."""
+    threads = threads or 1
+    items, setup = _planned_items(job, log_ids, samples, pending, workers, threads, device)
+    token = uuid.uuid4().hex  # names this run's model in a worker that outlives one item
+    done = run_ordered(_forecast_in_process, [(token, setup, item) for item in items], workers=workers)
+    return _checked(batch for item in done for batch in item)
+
+
+_PROCESS_FORECAST: dict[str, Forecast] = {}
+"""The model a local worker process loaded, by run token: loaded at its first item, reused for the rest."""
+
+
+def _forecast_in_process(work: tuple[str, Callable[[], Forecast], WorkItem]) -> Any:
+    """One work item of ``process_forecasts``, in a worker process."""
+    token, setup, item = work
+    if token not in _PROCESS_FORECAST:
+        _PROCESS_FORECAST.clear()  # another run's model
+        _PROCESS_FORECAST[token] = setup()
+    return _PROCESS_FORECAST[token](item)
+
+
+def _planned_items(job: ForecastJob, log_ids: list[str], samples: SelectedSamples, pending: list[Path],
+                   size: int, threads: int, device: str) -> tuple[list[WorkItem], Callable[[], Forecast]]:
+    """The work items of the ``pending`` shards (batches planned as the stage will cut them, ~``_ITEMS_PER_ACTOR``
+    per worker of ``size``) and each worker's set-up (picklable)."""
     planned = [(path, job.cutter.plan_batches(read_table(path), log_ids, samples, job.batch_size))
                for path in pending]
     items = work_items(planned, _ITEMS_PER_ACTOR * size)
     # A fresh RasterShards has no memory maps to pickle.
     rasters = job.cutter.rasters and RasterShards(job.cutter.rasters.run_dir, job.cutter.rasters.spec,
                                                   job.cutter.rasters.index)
-    actor_job = dataclasses.replace(job, cutter=dataclasses.replace(job.cutter, rasters=rasters))
-    setup = functools.partial(_actor, actor_job, threads, device)
-    results = (batch for item in forecast_on_ray(setup, items, size=size, gpu=gpu, cpus=threads) for batch in item)
+    worker_job = dataclasses.replace(job, cutter=dataclasses.replace(job.cutter, rasters=rasters))
+    return items, functools.partial(_actor, worker_job, threads, device)
+
+
+def _checked(results: Iterator[tuple[list[str], list[Any]]]) -> Callable[[list[SceneSample]], Sequence[Any]]:
+    """The stage's forecast function over ``results`` (sample ids and forecasts per batch, in the stage's order)."""
 
     def forecast(samples: list[SceneSample]) -> Sequence[Any]:
         ids, futures = next(results)
         if ids != [s.sample_id for s in samples]:
-            raise LogpipeError(f"Ray returned forecasts of samples {ids[:3]}... for a batch of "
-                               f"{[s.sample_id for s in samples][:3]}... (the actors cut other batches)")
-        return futures  # type: ignore[no-any-return]
+            raise LogpipeError(f"the workers returned forecasts of samples {ids[:3]}... for a batch of "
+                               f"{[s.sample_id for s in samples][:3]}... (they cut other batches)")
+        return futures
 
     return forecast
 

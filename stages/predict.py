@@ -7,7 +7,8 @@ are safe file names) before any work → take the output folder's lock → per d
 selected samples (``logpipe.dataset.sample_filter``, ``logpipe.prediction.model_inputs``), predict in batches under
 ``torch.inference_mode``, write the shard's Parquet and its logs' MCAPs on a writer thread
 (``logpipe.prediction.output``, ``logpipe.prediction.mcap_logs``) → commit the shard by replacing the run manifest.
-With ``--backend ray`` the same batches are forecast on Ray actors (``logpipe.model.ray_predict``) and written here.
+With ``--backend ray`` or local worker processes (``--workers``), the same batches are forecast by workers that
+each load the model (``logpipe.model.ray_predict``) and written here.
 Constant velocity to Parquet only takes ``logpipe.prediction.columnar``: a job per shard, ``--workers`` at a time.
 
 Output folder (a committed artifact, ``logpipe.prediction.runs``): ``manifest.json``, ``predictions/part-NNNNN.parquet``
@@ -35,7 +36,7 @@ from logpipe.dataset.sample_filter import selected_logs as _selected_logs
 from logpipe.errors import LogpipeError
 from logpipe.executor import Backend, default_workers, run_ordered
 from logpipe.model.device import check_device_name, resolve_device
-from logpipe.model.ray_predict import ForecastJob, ray_forecasts
+from logpipe.model.ray_predict import ForecastJob, process_forecasts, ray_forecasts
 from logpipe.model.registry import (
     check_fit,
     choose_predictor,
@@ -73,8 +74,7 @@ class _Run:
     logs: dict[str, dict[str, Any]]
     samples: SelectedSamples
     meta: PredictionMeta
-    mcaps: PredictionMcaps | None
-    """The per-log MCAP writer (None: ``--no-mcap``)."""
+    mcaps: PredictionMcaps | None  # the per-log MCAP writer (None: --no-mcap)
     forecast: Callable[[list[SceneSample]], Sequence[Any]] | None = None
     """Where forecasts come from instead of ``chosen.model`` (``--backend ray``: results of the actors)."""
 
@@ -100,31 +100,31 @@ def predict_dataset(dataset_dir: Path, out_dir: Path, options: PredictOptions | 
     try:
         with output_errors(), PredictionRunWriter(out_dir) as writer, fast_gil_switching():
             shards, files = writer.committed(settings)
-            if opts.backend == "local":  # with ray the actors load it
-                load_net(run.job.chosen, run.job.dataset, run.job.batch_size, torch_device or "cpu")
-            done, root = {s["shard"] for s in shards}, run.job.dataset.root
-            pending = [(i, p) for i, p in enumerate(run.job.dataset.shard_paths) if p.relative_to(root).as_posix()
-                       not in done]
-            summary.shards_skipped_done = len(run.job.dataset.shard_paths) - len(pending)
+            done, root, paths = {s["shard"] for s in shards}, run.job.dataset.root, run.job.dataset.shard_paths
+            pending = [(i, p) for i, p in enumerate(paths) if p.relative_to(root).as_posix() not in done]
+            summary.shards_skipped_done = len(paths) - len(pending)
             by_shard = logs_by_shard(run.logs)  # progress counts the samples of the shards left to do
             report_total(progress, sum(run.samples.count(i) for _, p in pending for i in by_shard.get(p.name, [])))
             torch.set_num_threads(opts.threads or default_workers())
             # Constant velocity without raster images: whole arrays, a job per shard (parallel), the same bytes.
             columnar = track_predictor(run.job.chosen.model) if not (run.mcaps and run.mcaps.raster_channels) else None
-            if opts.backend == "ray" and columnar is None:
-                run.forecast = ray_forecasts(run.job, list(run.logs), run.samples, [p for _, p in pending],
-                                             opts.workers, opts.threads, opts.device)
-                summary.device = None  # chosen on each actor
+            processes = opts.forecast_processes(len(run.samples), on_cpu=str(torch_device) == "cpu")
+            if (opts.backend == "ray" and columnar is None) or processes:  # each actor / process loads the model
+                run.forecast = (process_forecasts if processes else ray_forecasts)(
+                    run.job, list(run.logs), run.samples, [p for _, p in pending], processes or opts.workers,
+                    opts.threads, opts.device)
+                summary.device = None  # chosen on each actor / process
+            elif opts.backend == "local":
+                load_net(run.job.chosen, run.job.dataset, run.job.batch_size, torch_device or "cpu")
             uncommitted = writer.manifest is None
             outputs = (_columnar_shards(run, columnar, pending, out_dir, summary, opts, progress) if columnar
                        else (_predict_shard(run, i, p, out_dir, summary, progress) for i, p in pending))
             for entry, new_files in outputs:
                 shards.append(entry)
                 files.update(new_files)
-                uncommitted = True
-                if new_files:  # one commit per shard with outputs; empty shards ride along with the next one
+                uncommitted = not new_files  # one commit per shard with outputs; empty ones ride with the next
+                if new_files:
                     writer.commit(settings, run.meta, shards, files)
-                    uncommitted = False
             if uncommitted:
                 writer.commit(settings, run.meta, shards, files)
     finally:

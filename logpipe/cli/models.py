@@ -17,6 +17,7 @@ from logpipe.cli.app import (
     stage_progress,
     user_errors,
 )
+from logpipe.prediction.options import PROCESS_MIN_SAMPLES
 
 DeviceOpt = Annotated[str, typer.Option(
     "--device", help="Where the network runs: auto (CUDA when torch sees a GPU, else the CPU) | cpu | cuda "
@@ -119,8 +120,10 @@ def predict(  # noqa: PLR0913  typer command: one parameter per CLI option
         "--backend", help="local | ray: forecast on Ray actors (DATASET on a file system every node shares); "
         "outputs are written here, the same bytes as a local run with the same --threads.")] = "local",
     workers: Annotated[int, typer.Option(
-        "--workers", "-j", help="Ray actors (0 = one per GPU of the cluster, else one per CPU); locally, parallel "
-        "shard jobs of constant velocity with --no-mcap (0 = one per core).")] = 0,
+        "--workers", "-j", help="Ray actors (0 = one per GPU of the cluster, else one per CPU). Locally: parallel "
+        "shard jobs of constant velocity with --no-mcap (0 = one per core); a network on the CPU forecasts in N "
+        f"processes of --threads threads (default 1) each, the same bytes (0 = one per core when the run has "
+        f"{PROCESS_MIN_SAMPLES}+ samples per core and --threads is 0).")] = 0,
     as_json: JsonOpt = False,
 ) -> None:
     """Run a checkpoint (or a baseline) on every sample and write predictions as Parquet and, per log, an MCAP

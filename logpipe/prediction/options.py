@@ -10,6 +10,7 @@ from typing import TYPE_CHECKING, Any
 
 from logpipe.dataset.sample_filter import SampleFilter
 from logpipe.errors import LogpipeError
+from logpipe.executor import default_workers
 
 if TYPE_CHECKING:
     from logpipe.prediction.output import ShardWriter
@@ -19,6 +20,11 @@ def default_modes(protocol_name: str) -> int:
     """K when ``--modes`` is not given: 20 for pedestrian protocols (ETH/UCY, Social-GAN best-of-20), 6 for the
     vehicle ones (Argoverse K=6, ROS logs at the Argoverse horizon)."""
     return 20 if protocol_name.startswith(("ethucy", "apolloscape")) else 6
+
+
+PROCESS_MIN_SAMPLES = 250
+"""Samples per core from which a default run forecasts in a process per core: the full AV1 model forecasts ~20 a
+second on one core, so a worker's ~2 s start-up is below a tenth of its share."""
 
 
 @dataclass(frozen=True)
@@ -54,7 +60,8 @@ class PredictOptions:
         backend: ``local`` (this process) or ``ray``: forecasts on Ray actors (``logpipe.model.ray_predict``;
             the dataset must be on a file system every node shares), outputs written here, the same bytes.
         workers: Ray actors (0: one per GPU of the cluster, else one per CPU); locally, the constant-velocity
-            columnar path's parallel shard jobs (0: one per core); otherwise ``local`` ignores it.
+            columnar path's parallel shard jobs (0: one per core), and the worker processes a network on the
+            CPU forecasts in (``forecast_processes``).
     """
 
     checkpoint: Path | None = None
@@ -86,6 +93,21 @@ class PredictOptions:
             raise LogpipeError(f"--modes and --batch-size must be >= 1, got {modes} and {self.batch_size}")
         if self.backend not in ("local", "ray"):
             raise LogpipeError(f"--backend must be local or ray, got {self.backend!r}")
+
+    def forecast_processes(self, samples: int, *, on_cpu: bool) -> int:
+        """Local worker processes a network forecasts ``samples`` in (0: this process, on ``threads`` threads);
+        none unless it runs ``on_cpu`` (one GPU is not shared between processes).
+
+        ``--workers`` above 1 asks for them. By default (``--workers 0 --threads 0``) one per core once the run
+        has ``PROCESS_MIN_SAMPLES`` per core: one process on every core leaves the network's small per-step
+        kernels (~1,000 calls a batch) idle on the second thread, while two processes each start in ~2 s.
+        """
+        if self.backend != "local" or not on_cpu:
+            return 0
+        if self.workers:
+            return self.workers if self.workers > 1 else 0
+        cores = default_workers()
+        return cores if cores > 1 and not self.threads and samples >= PROCESS_MIN_SAMPLES * cores else 0
 
 
 @dataclass

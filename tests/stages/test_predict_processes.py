@@ -1,0 +1,76 @@
+"""``logpipe predict --workers N`` with a network: the batches are forecast in N local worker processes, each
+loading the model once, and the run writes the same bytes as one process (Parquet, MCAPs and manifest)."""
+
+from __future__ import annotations
+
+import hashlib
+from pathlib import Path
+
+import pytest
+
+from logpipe.dataset.sample_filter import parse_filter
+from logpipe.prediction.options import PROCESS_MIN_SAMPLES, PredictOptions
+from logpipe.stages.ingest import IngestOptions, ingest
+from logpipe.stages.predict import predict_dataset
+
+DATA = Path(__file__).resolve().parents[1] / "data"
+ETH_CHECKPOINT = Path(__file__).resolve().parents[2] / "model" / "checkpoints" / "ethucy" / "eth"
+
+
+def _files(out: Path) -> dict[str, str]:
+    """sha256 of every file of a run folder, by relative path (the manifest included, the lock file not)."""
+    return {p.relative_to(out).as_posix(): hashlib.sha256(p.read_bytes()).hexdigest()
+            for p in sorted(out.rglob("*")) if p.is_file() and p.name != ".lock"}
+
+
+def test_eth_network_in_two_processes_writes_the_bytes_of_one(tmp_path: Path) -> None:
+    ingest([DATA / "ethucy"], IngestOptions(out=tmp_path / "eth"))
+    # Small batches: the work is cut into several items, so both processes forecast and the driver interleaves them.
+    settings = {"checkpoint": ETH_CHECKPOINT, "batch_size": 3, "threads": 1,
+                "sample_filter": parse_filter(["split=eth/test", "time=:200000000000"])}
+    one = predict_dataset(tmp_path / "eth", tmp_path / "one", workers=1, **settings)
+    two = predict_dataset(tmp_path / "eth", tmp_path / "two", workers=2, **settings)
+    assert one["device"] == "cpu" and two["device"] is None  # None: each worker process chose its own
+    assert two["samples"] == one["samples"] >= 10 and two["rows"] == one["rows"] > 0 and two["mcap_files"] > 0
+    files = _files(tmp_path / "one")
+    assert any(name.endswith(".mcap") for name in files) and "manifest.json" in files
+    assert _files(tmp_path / "two") == files
+
+
+def test_driving_model_over_rasters_in_two_processes_writes_the_bytes_of_one(tmp_path: Path) -> None:
+    from logpipe.maps import MapSource
+    from logpipe.stages.rasterise import rasterise_dataset
+
+    data = tmp_path / "av1"
+    ingest([DATA / "driving" / "20.csv", DATA / "driving" / "32.csv"], IngestOptions(out=data))
+    maps = MapSource(files={"MIA": DATA / "driving" / "MIA_lane_centerlines_crop_20.npz",
+                            "PIT": DATA / "driving" / "PIT_lane_centerlines_crop_32.npz"})
+    rasterise_dataset(data, maps, rotate=True)
+    # The shipped Argoverse checkpoint (environment net on the rasters); its MCAPs carry the raster images.
+    one = predict_dataset(data, tmp_path / "one", workers=1, batch_size=1, threads=1)
+    two = predict_dataset(data, tmp_path / "two", workers=2, batch_size=1, threads=1)
+    assert one["predictor"] == "zhu2020" and one["raster_run"] is not None
+    assert two["samples"] == one["samples"] == 2 and two["mcap_files"] == one["mcap_files"] == 2
+    assert _files(tmp_path / "two") == _files(tmp_path / "one")
+
+
+@pytest.mark.parametrize(("options", "samples", "on_cpu", "expected"), [
+    (PredictOptions(workers=3), 1, True, 3),  # asked for: always, however small the run
+    (PredictOptions(workers=1), 10**6, True, 0),  # one worker: this process
+    (PredictOptions(workers=3), 10**6, False, 0),  # a GPU is not shared between processes
+    (PredictOptions(workers=3, backend="ray"), 10**6, True, 0),  # Ray's actors instead
+    (PredictOptions(threads=2), 10**6, True, 0),  # threads asked for, workers not: this process on them
+])
+def test_when_a_network_forecasts_in_worker_processes(options: PredictOptions, samples: int, on_cpu: bool,
+                                                       expected: int) -> None:
+    assert options.forecast_processes(samples, on_cpu=on_cpu) == expected
+
+
+def test_by_default_processes_start_only_when_the_run_amortises_them(monkeypatch: pytest.MonkeyPatch) -> None:
+    from logpipe.prediction import options
+
+    monkeypatch.setattr(options, "default_workers", lambda: 2)
+    assert PredictOptions().forecast_processes(2 * PROCESS_MIN_SAMPLES, on_cpu=True) == 2
+    assert PredictOptions().forecast_processes(2 * PROCESS_MIN_SAMPLES - 1, on_cpu=True) == 0  # e.g. make demo
+    monkeypatch.setattr(options, "default_workers", lambda: 1)
+    assert PredictOptions().forecast_processes(10**6, on_cpu=True) == 0
