@@ -101,11 +101,10 @@ def stage_commands(csv: Path, maps: Path, work: Path, backend: str, workers: int
     ds = work / "dataset"
     ray = ["--backend", "ray"] if backend == "ray" else []
     parallel = ["-j", str(workers), *ray]
-    # Predict: locally a network forecasts in this process on ``workers`` torch threads and constant velocity
-    # runs ``workers`` shard processes (its column-wise path); on Ray, ``workers`` actors of one thread each, or
-    # for constant velocity shard tasks on a cluster of ``workers`` CPUs.
-    forecasters = ([*ray, "-j", str(workers), "--threads", "1"] if ray
-                   else ["-j", str(workers), "--threads", str(workers)])
+    # Predict: locally a network forecasts in ``workers`` processes of one torch thread (one: in the stage's own
+    # process) and constant velocity runs ``workers`` shard processes (its column-wise path); on Ray, ``workers``
+    # actors of one thread each, or for constant velocity shard tasks on a cluster of ``workers`` CPUs.
+    forecasters = [*ray, "-j", str(workers), "--threads", "1"]
     commands = {
         "ingest": ["ingest", str(csv), "--out", str(ds), "--protocol", "argoverse", "--no-mcap",
                    "--targets", "fully_observed_no_ego", *parallel],
@@ -177,8 +176,9 @@ def render(r: dict[str, Any]) -> str:
         "fully observed vehicle but the AV a target. Each stage is its own `logpipe` process, Parquet only "
         f"(`--no-mcap`); the full driving model (K = 6) predicts the first {r['full_part']:,} logs. Peak memory: the "
         "largest sum of resident memory over the stage's process tree (Ray's own processes included), sampled every "
-        "0.1 s. Locally, ingest and rasterise run `-j` worker processes, predict with the full model runs on "
-        "`--threads` and constant velocity runs `-j` shard processes (its column-wise path: each shard job cuts, "
+        "0.1 s. Locally, ingest and rasterise run `-j` worker processes, predict with the full model forecasts in `-j` "
+        "processes of one thread (its driver cuts samples and writes every output) and constant velocity runs `-j` "
+        "shard processes (its column-wise path: each shard job cuts, "
         "forecasts and writes its own file; the driver commits them in order); on Ray, ingest, rasterise and "
         "constant velocity run Ray tasks on a local cluster of `-j` CPUs and the full model runs `-j` actors of "
         "one thread (its driver cuts samples and writes every output itself).",
