@@ -108,7 +108,8 @@ def predict_dataset(dataset_dir: Path, out_dir: Path, options: PredictOptions | 
             torch.set_num_threads(opts.threads or default_workers())
             # Constant velocity without raster images: whole arrays, a job per shard (parallel), the same bytes.
             columnar = track_predictor(run.job.chosen.model) if not (run.mcaps and run.mcaps.raster_channels) else None
-            processes = opts.forecast_processes(len(run.samples), on_cpu=str(torch_device) == "cpu")
+            processes = opts.forecast_processes(len(run.samples), on_cpu=str(torch_device) == "cpu",
+                                                environment_net=run.job.chosen.needs_raster)
             if (opts.backend == "ray" and columnar is None) or processes:  # each actor / process loads the model
                 run.forecast = (process_forecasts if processes else ray_forecasts)(
                     run.job, list(run.logs), run.samples, [p for _, p in pending], processes or opts.workers,
@@ -153,8 +154,7 @@ def _prepare(dataset_dir: Path, out_dir: Path, opts: PredictOptions) -> tuple[_R
     problems = check_fit(dataset, chosen, logs_table)
     warnings = seen_in_training(chosen, logs_table)
     samples = selected_samples(dataset, logs_table, sample_filter)
-    # Looked up when used or named, so several runs are an error only where the choice matters and a named run
-    # that does not exist is always reported.
+    # Looked up when used or named: several runs are an error only where the choice matters; a missing named one always.
     rasters = (find_raster_run(dataset_dir, opts.raster_run, chosen.raster_channels if chosen.needs_raster else None)
                if chosen.needs_raster or opts.raster_images or opts.raster_run is not None else None)
     if chosen.needs_raster:

@@ -123,7 +123,8 @@ def predict(  # noqa: PLR0913  typer command: one parameter per CLI option
         "--workers", "-j", help="Ray actors (0 = one per GPU of the cluster, else one per CPU). Locally: parallel "
         "shard jobs of constant velocity with --no-mcap (0 = one per core); a network on the CPU forecasts in N "
         f"processes of --threads threads (default 1) each, the same bytes (0 = one per core when the run has "
-        f"{PROCESS_MIN_SAMPLES}+ samples per core and --threads is 0).")] = 0,
+        f"{PROCESS_MIN_SAMPLES[True]}+ samples per core with the environment net, {PROCESS_MIN_SAMPLES[False]}+ "
+        "without, and --threads is 0).")] = 0,
     as_json: JsonOpt = False,
 ) -> None:
     """Run a checkpoint (or a baseline) on every sample and write predictions as Parquet and, per log, an MCAP

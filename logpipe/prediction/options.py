@@ -22,9 +22,12 @@ def default_modes(protocol_name: str) -> int:
     return 20 if protocol_name.startswith(("ethucy", "apolloscape")) else 6
 
 
-PROCESS_MIN_SAMPLES = 250
-"""Samples per core from which a default run forecasts in a process per core: the full AV1 model forecasts ~20 a
-second on one core, so a worker's ~2 s start-up is below a tenth of its share."""
+PROCESS_MIN_SAMPLES = {True: 250, False: 1500}
+"""Samples per core from which a default run forecasts in a process per core, by whether the network has the
+environment net: start-up costs ~1.5 s, and one process on two threads runs the network ~1.35x faster than one thread
+(docs/scaling.md) where two processes run it ~1.8x, so processes win from ~8 s of one core's forecasting: ~150
+samples of the full AV1 model (~20 a second on a core), ~1,200 of the ETH network (~160).
+"""
 
 
 @dataclass(frozen=True)
@@ -94,20 +97,20 @@ class PredictOptions:
         if self.backend not in ("local", "ray"):
             raise LogpipeError(f"--backend must be local or ray, got {self.backend!r}")
 
-    def forecast_processes(self, samples: int, *, on_cpu: bool) -> int:
+    def forecast_processes(self, samples: int, *, on_cpu: bool, environment_net: bool) -> int:
         """Local worker processes a network forecasts ``samples`` in (0: this process, on ``threads`` threads);
         none unless it runs ``on_cpu`` (one GPU is not shared between processes).
 
         ``--workers`` above 1 asks for them. By default (``--workers 0 --threads 0``) one per core once the run
-        has ``PROCESS_MIN_SAMPLES`` per core: one process on every core leaves the network's small per-step
-        kernels (~1,000 calls a batch) idle on the second thread, while two processes each start in ~2 s.
+        has ``PROCESS_MIN_SAMPLES`` per core for a network with (or without) the ``environment_net``.
         """
         if self.backend != "local" or not on_cpu:
             return 0
         if self.workers:
             return self.workers if self.workers > 1 else 0
         cores = default_workers()
-        return cores if cores > 1 and not self.threads and samples >= PROCESS_MIN_SAMPLES * cores else 0
+        enough = samples >= PROCESS_MIN_SAMPLES[environment_net] * cores
+        return cores if cores > 1 and not self.threads and enough else 0
 
 
 @dataclass

@@ -63,14 +63,18 @@ def test_driving_model_over_rasters_in_two_processes_writes_the_bytes_of_one(tmp
 ])
 def test_when_a_network_forecasts_in_worker_processes(options: PredictOptions, samples: int, on_cpu: bool,
                                                        expected: int) -> None:
-    assert options.forecast_processes(samples, on_cpu=on_cpu) == expected
+    assert options.forecast_processes(samples, on_cpu=on_cpu, environment_net=True) == expected
 
 
 def test_by_default_processes_start_only_when_the_run_amortises_them(monkeypatch: pytest.MonkeyPatch) -> None:
     from logpipe.prediction import options
 
     monkeypatch.setattr(options, "default_workers", lambda: 2)
-    assert PredictOptions().forecast_processes(2 * PROCESS_MIN_SAMPLES, on_cpu=True) == 2
-    assert PredictOptions().forecast_processes(2 * PROCESS_MIN_SAMPLES - 1, on_cpu=True) == 0  # e.g. make demo
+    for env in (True, False):
+        least = 2 * PROCESS_MIN_SAMPLES[env]
+        assert PredictOptions().forecast_processes(least, on_cpu=True, environment_net=env) == 2
+        assert PredictOptions().forecast_processes(least - 1, on_cpu=True, environment_net=env) == 0  # make demo
+    # A network without the environment net forecasts a sample far faster: more samples pay for the start-up.
+    assert PROCESS_MIN_SAMPLES[False] > PROCESS_MIN_SAMPLES[True]
     monkeypatch.setattr(options, "default_workers", lambda: 1)
-    assert PredictOptions().forecast_processes(10**6, on_cpu=True) == 0
+    assert PredictOptions().forecast_processes(10**6, on_cpu=True, environment_net=True) == 0
