@@ -17,7 +17,6 @@ from logpipe.cli.app import (
     stage_progress,
     user_errors,
 )
-from logpipe.prediction.options import PROCESS_MIN_SAMPLES
 
 DeviceOpt = Annotated[str, typer.Option(
     "--device", help="Where the network runs: auto (CUDA when torch sees a GPU, else the CPU) | cpu | cuda "
@@ -122,9 +121,9 @@ def predict(  # noqa: PLR0913  typer command: one parameter per CLI option
     workers: Annotated[int, typer.Option(
         "--workers", "-j", help="Ray actors (0 = one per GPU of the cluster, else one per CPU). Locally: parallel "
         "shard jobs of constant velocity with --no-mcap (0 = one per core); a network on the CPU forecasts in N "
-        f"processes of --threads threads (default 1) each, the same bytes (0 = one per core when the run has "
-        f"{PROCESS_MIN_SAMPLES[True]}+ samples per core with the environment net, {PROCESS_MIN_SAMPLES[False]}+ "
-        "without, and --threads is 0).")] = 0,
+        "processes of --threads threads (default 1) each, the same bytes (0 = one per core when --threads is 0 and "
+        "the run is large enough to repay their ~1.5 s start-up: 250 samples per core with the environment net, "
+        "1,500 without).")] = 0,
     as_json: JsonOpt = False,
 ) -> None:
     """Run a checkpoint (or a baseline) on every sample and write predictions as Parquet and, per log, an MCAP

@@ -78,3 +78,14 @@ def test_by_default_processes_start_only_when_the_run_amortises_them(monkeypatch
     assert PROCESS_MIN_SAMPLES[False] > PROCESS_MIN_SAMPLES[True]
     monkeypatch.setattr(options, "default_workers", lambda: 1)
     assert PredictOptions().forecast_processes(10**6, on_cpu=True, environment_net=True) == 0
+
+
+def test_the_help_states_the_default_thresholds() -> None:
+    from typer.testing import CliRunner
+
+    from logpipe.cli import app
+
+    result = CliRunner().invoke(app, ["predict", "--help"], terminal_width=400)
+    text = " ".join(result.output.replace("│", " ").split())
+    assert f"{PROCESS_MIN_SAMPLES[True]} samples per core with the environment net" in text
+    assert f"{PROCESS_MIN_SAMPLES[False]:,} without" in text
