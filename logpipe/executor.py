@@ -16,6 +16,7 @@ import threading
 import time
 from collections.abc import Callable, Generator, Iterator, Sequence
 from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
 from typing import Any, Literal, TypeVar
 
 from logpipe.errors import LogpipeError
@@ -179,6 +180,18 @@ def _run_ordered(
             yield fn(item)
         return
     context = _context(fn)
+    try:
+        yield from _pooled(fn, items, workers, context, announce)
+    except BrokenProcessPool:
+        # Killed (the OOM killer, a signal) or crashed in native code: one line instead of the pool's traceback.
+        name = getattr(fn, "__name__", "work")
+        raise LogpipeError(f"a worker process running {name} died (killed, out of memory, or crashed); what was "
+                           "committed before is kept: rerun the same command to finish") from None
+
+
+def _pooled(fn: Callable[[T], R], items: Sequence[T], workers: int, context: multiprocessing.context.BaseContext,
+            announce: Callable[[T], None]) -> Generator[R]:
+    """``_run_ordered`` on a pool of ``workers`` processes."""
     with ProcessPoolExecutor(max_workers=min(workers, len(items)), mp_context=context,
                              initializer=_init_worker, initargs=(os.getpid(),)) as pool:
         # Bounded look-ahead keeps memory at ~2 batches per worker however many items there are.

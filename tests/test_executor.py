@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import pytest
 
+from logpipe.errors import LogpipeError
 from logpipe.executor import run_ordered
 from logpipe.stages.ingest import IngestOptions, ingest
 
@@ -79,3 +81,14 @@ def test_each_item_is_announced_before_its_result(workers: int) -> None:
     assert announced == list(range(6))
     for x in range(6):
         assert events.index(("queued", x)) < events.index(("result", x * x))
+
+
+def _die_on_three(item: int) -> int:
+    if item == 3:
+        os._exit(1)  # as the OOM killer would end it: no exception, no cleanup
+    return item
+
+
+def test_a_worker_that_dies_is_one_clear_error() -> None:
+    with pytest.raises(LogpipeError, match="a worker process running _die_on_three died"):
+        list(run_ordered(_die_on_three, list(range(6)), workers=2))
