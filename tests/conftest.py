@@ -23,3 +23,20 @@ def shared() -> Path:
     if not SHARED.is_dir():
         pytest.skip(f"real data folder {SHARED} is absent (CI and developer machines have it)")
     return SHARED
+
+
+@pytest.fixture(scope="session")
+def driving_rasterised(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The two bundled AV1 sequences (``driving/20.csv``, ``32.csv``) ingested and rasterised (ego-rotated) from
+    their bundled lane crops: a dataset the shipped driving model predicts over rasters. Read-only for tests."""
+    from logpipe.maps import MapSource
+    from logpipe.stages.ingest import IngestOptions, ingest
+    from logpipe.stages.rasterise import rasterise_dataset
+
+    data = tmp_path_factory.mktemp("driving") / "av1"
+    driving = BUNDLED / "driving"
+    ingest([driving / "20.csv", driving / "32.csv"], IngestOptions(out=data))
+    maps = MapSource(files={"MIA": driving / "MIA_lane_centerlines_crop_20.npz",
+                            "PIT": driving / "PIT_lane_centerlines_crop_32.npz"})
+    rasterise_dataset(data, maps, rotate=True)
+    return data

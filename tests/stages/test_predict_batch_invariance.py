@@ -15,7 +15,6 @@ from logpipe.dataset.reader import Dataset
 from logpipe.model.predictor import NetPredictor
 from logpipe.stages.ingest import IngestOptions, ingest
 from logpipe.stages.predict import predict_dataset
-from logpipe.stages.rasterise import rasterise_dataset
 
 DATA = Path(__file__).resolve().parents[1] / "data"
 ETH_CHECKPOINT = Path(__file__).resolve().parents[2] / "model" / "checkpoints" / "ethucy" / "eth"
@@ -43,15 +42,8 @@ def test_eth_forecasts_do_not_depend_on_the_batch(tmp_path: Path) -> None:
     assert rows > 1000
 
 
-def test_driving_forecasts_over_rasters_do_not_depend_on_the_batch(tmp_path: Path) -> None:
-    from logpipe.maps import MapSource
-
-    data = tmp_path / "av1"
-    ingest([DATA / "driving" / "20.csv", DATA / "driving" / "32.csv"], IngestOptions(out=data))
-    maps = MapSource(files={"MIA": DATA / "driving" / "MIA_lane_centerlines_crop_20.npz",
-                                 "PIT": DATA / "driving" / "PIT_lane_centerlines_crop_32.npz"})
-    rasterise_dataset(data, maps, rotate=True)
-    assert _same_at_every_batch_size(data, tmp_path, (1, 2)) > 0
+def test_driving_forecasts_over_rasters_do_not_depend_on_the_batch(driving_rasterised: Path, tmp_path: Path) -> None:
+    assert _same_at_every_batch_size(driving_rasterised, tmp_path, (1, 2)) > 0
 
 
 @pytest.mark.parametrize("alone_index", [0, 5])

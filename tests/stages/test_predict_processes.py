@@ -37,15 +37,9 @@ def test_eth_network_in_two_processes_writes_the_bytes_of_one(tmp_path: Path) ->
     assert _files(tmp_path / "two") == files
 
 
-def test_driving_model_over_rasters_in_two_processes_writes_the_bytes_of_one(tmp_path: Path) -> None:
-    from logpipe.maps import MapSource
-    from logpipe.stages.rasterise import rasterise_dataset
-
-    data = tmp_path / "av1"
-    ingest([DATA / "driving" / "20.csv", DATA / "driving" / "32.csv"], IngestOptions(out=data))
-    maps = MapSource(files={"MIA": DATA / "driving" / "MIA_lane_centerlines_crop_20.npz",
-                            "PIT": DATA / "driving" / "PIT_lane_centerlines_crop_32.npz"})
-    rasterise_dataset(data, maps, rotate=True)
+def test_driving_model_over_rasters_in_two_processes_writes_the_bytes_of_one(driving_rasterised: Path,
+                                                                            tmp_path: Path) -> None:
+    data = driving_rasterised
     # The shipped Argoverse checkpoint (environment net on the rasters); its MCAPs carry the raster images.
     one = predict_dataset(data, tmp_path / "one", workers=1, batch_size=1, threads=1)
     two = predict_dataset(data, tmp_path / "two", workers=2, batch_size=1, threads=1)
