@@ -111,9 +111,9 @@ def predict_dataset(dataset_dir: Path, out_dir: Path, options: PredictOptions | 
             processes = opts.forecast_processes(len(run.samples), on_cpu=str(torch_device) == "cpu",
                                                 environment_net=run.job.chosen.needs_raster)
             if (opts.backend == "ray" and columnar is None) or processes:  # each actor / process loads the model
-                run.forecast = (process_forecasts if processes else ray_forecasts)(
-                    run.job, list(run.logs), run.samples, [p for _, p in pending], processes or opts.workers,
-                    opts.threads, opts.device)
+                run.forecast = (process_forecasts if processes else ray_forecasts)(  # shards with selected logs
+                    run.job, list(run.logs), run.samples, [p for _, p in pending if p.name in by_shard],
+                    processes or opts.workers, opts.threads, opts.device)
                 summary.device = None  # chosen on each actor / process
             elif opts.backend == "local":
                 load_net(run.job.chosen, run.job.dataset, run.job.batch_size, torch_device or "cpu")
