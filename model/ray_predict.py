@@ -191,8 +191,15 @@ def process_forecasts(job: ForecastJob, log_ids: list[str], samples: SelectedSam
     threads = threads or 1
     items, setup = _planned_items(job, log_ids, samples, pending, workers, threads, device)
     token = uuid.uuid4().hex  # names this run's model in a worker that outlives one item
-    done = run_ordered(_forecast_in_process, [(token, setup, item) for item in items], workers=workers)
-    return _checked(batch for item in done for batch in item)
+
+    def batches() -> Iterator[tuple[list[str], list[Any]]]:
+        try:
+            for item in run_ordered(_forecast_in_process, [(token, setup, item) for item in items], workers=workers):
+                yield from item
+        finally:
+            _PROCESS_FORECAST.clear()  # a single item runs in this process: do not keep its model
+
+    return _checked(batches())
 
 
 _PROCESS_FORECAST: dict[str, Forecast] = {}
@@ -236,9 +243,9 @@ def _checked(results: Iterator[tuple[list[str], list[Any]]]) -> Callable[[list[S
 
 
 def _actor(job: ForecastJob, threads: int, device: str) -> Callable[[WorkItem], list[tuple[list[str], list[Any]]]]:
-    """Runs once in each Ray actor: loads the model, sets ``threads`` torch threads; returns the forecast of a
-    work item (sample ids and forecasts per batch), reading its shard from the shared file system (the last one
-    read is kept)."""
+    """Runs once in each Ray actor or forecast process: loads the model, sets ``threads`` torch threads; returns
+    the forecast of a work item (sample ids and forecasts per batch), reading its shard from the shared file system
+    (the last one read is kept)."""
     import torch
 
     load_net(job.chosen, job.dataset, job.batch_size,
