@@ -24,9 +24,9 @@ def default_modes(protocol_name: str) -> int:
 
 PROCESS_MIN_SAMPLES = {True: 250, False: 1500}
 """Samples per core from which a default run forecasts in a process per core, by whether the network has the
-environment net: start-up costs ~1.5 s, and one process on two threads runs the network ~1.35x faster than one thread
-(docs/scaling.md) where two processes run it ~1.8x, so processes win from ~8 s of one core's forecasting: ~150
-samples of the full AV1 model (~20 a second on a core), ~1,200 of the ETH network (~160).
+environment net: start-up costs ~1.5 s, and on 2,000 samples of the full AV1 model one process on two threads ran
+1.33x faster than on one, two processes 1.66x (docs/scaling.md), so processes win from ~8 s of one core's
+forecasting: ~150 samples of the full AV1 model (~20 a second on a core), ~1,200 of the ETH network (~160).
 """
 
 
