@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import hashlib
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
@@ -40,3 +42,15 @@ def driving_rasterised(tmp_path_factory: pytest.TempPathFactory) -> Path:
                             "PIT": driving / "PIT_lane_centerlines_crop_32.npz"})
     rasterise_dataset(data, maps, rotate=True)
     return data
+
+
+def _folder_digests(out: Path) -> dict[str, str]:
+    return {p.relative_to(out).as_posix(): hashlib.sha256(p.read_bytes()).hexdigest()
+            for p in sorted(out.rglob("*")) if p.is_file() and p.name != ".lock"}
+
+
+@pytest.fixture(scope="session")
+def folder_digests() -> Callable[[Path], dict[str, str]]:
+    """sha256 of every file of an output folder, by relative POSIX path (the manifest included, the lock file
+    not): two runs wrote the same bytes when these are equal."""
+    return _folder_digests

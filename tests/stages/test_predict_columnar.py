@@ -4,7 +4,7 @@ and chunks cut mid-log so that every boundary is exercised."""
 
 from __future__ import annotations
 
-import hashlib
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -18,18 +18,13 @@ from logpipe.stages.ingest import IngestOptions, ingest
 COUNTS = ("samples", "rows", "targets", "targets_unobserved", "samples_without_targets", "shards", "logs_selected")
 
 
-def _files(out: Path) -> dict[str, str]:
-    """sha256 of every file of a run folder (the manifest included, the lock file not)."""
-    return {p.relative_to(out).as_posix(): hashlib.sha256(p.read_bytes()).hexdigest()
-            for p in sorted(out.rglob("*")) if p.is_file() and p.name != ".lock"}
-
-
 @pytest.mark.parametrize(("name", "filters", "mcap"), [
     ("ethucy", [], False), ("argoverse1", [], False), ("ethucy", ["type=pedestrian"], False),
     ("argoverse1", ["type=cyclist"], False), ("ethucy", [], True), ("argoverse1", [], True),
 ])
-def test_columnar_cv_writes_the_per_sample_bytes(bundled: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
-                                                  name: str, filters: list[str], mcap: bool) -> None:
+def test_columnar_cv_writes_the_per_sample_bytes(folder_digests: Callable[[Path], dict[str, str]], bundled: Path,
+                                                 tmp_path: Path, monkeypatch: pytest.MonkeyPatch, name: str,
+                                                 filters: list[str], mcap: bool) -> None:
     ingest([bundled / name], IngestOptions(out=tmp_path / "d", workers=1, write_mcap=mcap))
     monkeypatch.setattr(output, "ROW_GROUP_ROWS", 1000)  # several row groups, cut inside samples
     monkeypatch.setattr(columnar, "CHUNK_SAMPLES", 7)
@@ -50,7 +45,7 @@ def test_columnar_cv_writes_the_per_sample_bytes(bundled: Path, tmp_path: Path, 
     monkeypatch.setattr(stage, "track_predictor", lambda model: None)
     slow = stage.predict_dataset(tmp_path / "d", tmp_path / "per_sample", **settings)
     assert {k: fast[k] for k in COUNTS} == {k: slow[k] for k in COUNTS}
-    assert _files(tmp_path / "columnar") == _files(tmp_path / "per_sample")
+    assert folder_digests(tmp_path / "columnar") == folder_digests(tmp_path / "per_sample")
     if not filters or name == "ethucy":
         assert fast["rows"] > 0
     if mcap:  # every selected log has its MCAP, with the original copied
@@ -58,8 +53,9 @@ def test_columnar_cv_writes_the_per_sample_bytes(bundled: Path, tmp_path: Path, 
 
 
 @pytest.mark.parametrize("mcap", [False, True])
-def test_parallel_shard_jobs_write_the_sequential_bytes(bundled: Path, tmp_path: Path,
-                                                        monkeypatch: pytest.MonkeyPatch, mcap: bool) -> None:
+def test_parallel_shard_jobs_write_the_sequential_bytes(folder_digests: Callable[[Path], dict[str, str]],
+                                                        bundled: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                                        mcap: bool) -> None:
     # One input file per shard: several shards, predicted by a process pool of two, then inline, then per sample.
     ingest([bundled / "ethucy"], IngestOptions(out=tmp_path / "d", workers=1, write_mcap=mcap, batch_files=1))
     settings: dict[str, Any] = {"predictor": "cv", "write_mcap": mcap}
@@ -69,4 +65,5 @@ def test_parallel_shard_jobs_write_the_sequential_bytes(bundled: Path, tmp_path:
     monkeypatch.setattr(stage, "track_predictor", lambda model: None)
     slow = stage.predict_dataset(tmp_path / "d", tmp_path / "per_sample", **settings)
     assert {k: pooled[k] for k in COUNTS} == {k: inline[k] for k in COUNTS} == {k: slow[k] for k in COUNTS}
-    assert _files(tmp_path / "pooled") == _files(tmp_path / "inline") == _files(tmp_path / "per_sample")
+    assert (folder_digests(tmp_path / "pooled") == folder_digests(tmp_path / "inline")
+            == folder_digests(tmp_path / "per_sample"))

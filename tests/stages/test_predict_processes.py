@@ -3,7 +3,7 @@ loading the model once, and the run writes the same bytes as one process (Parque
 
 from __future__ import annotations
 
-import hashlib
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
@@ -17,13 +17,8 @@ DATA = Path(__file__).resolve().parents[1] / "data"
 ETH_CHECKPOINT = Path(__file__).resolve().parents[2] / "model" / "checkpoints" / "ethucy" / "eth"
 
 
-def _files(out: Path) -> dict[str, str]:
-    """sha256 of every file of a run folder, by relative path (the manifest included, the lock file not)."""
-    return {p.relative_to(out).as_posix(): hashlib.sha256(p.read_bytes()).hexdigest()
-            for p in sorted(out.rglob("*")) if p.is_file() and p.name != ".lock"}
-
-
-def test_eth_network_in_two_processes_writes_the_bytes_of_one(tmp_path: Path) -> None:
+def test_eth_network_in_two_processes_writes_the_bytes_of_one(folder_digests: Callable[[Path], dict[str, str]],
+                                                              tmp_path: Path) -> None:
     # A shard per input file: the selected eth/test logs lie in one of three, so the planning skips shards too.
     ingest([DATA / "ethucy"], IngestOptions(out=tmp_path / "eth", batch_files=1))
     assert len(list((tmp_path / "eth" / "tracks").glob("*.parquet"))) == 3
@@ -34,20 +29,20 @@ def test_eth_network_in_two_processes_writes_the_bytes_of_one(tmp_path: Path) ->
     two = predict_dataset(tmp_path / "eth", tmp_path / "two", workers=2, **settings)
     assert one["device"] == "cpu" and two["device"] is None  # None: each worker process chose its own
     assert two["samples"] == one["samples"] >= 10 and two["rows"] == one["rows"] > 0 and two["mcap_files"] > 0
-    files = _files(tmp_path / "one")
+    files = folder_digests(tmp_path / "one")
     assert any(name.endswith(".mcap") for name in files) and "manifest.json" in files
-    assert _files(tmp_path / "two") == files
+    assert folder_digests(tmp_path / "two") == files
 
 
-def test_driving_model_over_rasters_in_two_processes_writes_the_bytes_of_one(driving_rasterised: Path,
-                                                                            tmp_path: Path) -> None:
+def test_driving_model_over_rasters_in_two_processes_writes_the_bytes_of_one(
+        folder_digests: Callable[[Path], dict[str, str]], driving_rasterised: Path, tmp_path: Path) -> None:
     data = driving_rasterised
     # The shipped Argoverse checkpoint (environment net on the rasters); its MCAPs carry the raster images.
     one = predict_dataset(data, tmp_path / "one", workers=1, batch_size=1, threads=1)
     two = predict_dataset(data, tmp_path / "two", workers=2, batch_size=1, threads=1)
     assert one["predictor"] == "zhu2020" and one["raster_run"] is not None
     assert two["samples"] == one["samples"] == 2 and two["mcap_files"] == one["mcap_files"] == 2
-    assert _files(tmp_path / "two") == _files(tmp_path / "one")
+    assert folder_digests(tmp_path / "two") == folder_digests(tmp_path / "one")
 
 
 @pytest.mark.parametrize(("options", "samples", "on_cpu", "expected"), [

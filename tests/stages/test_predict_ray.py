@@ -2,9 +2,8 @@
 
 from __future__ import annotations
 
-import hashlib
 import json
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -34,12 +33,6 @@ def eth(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return root / "ds"
 
 
-def _files(out: Path) -> dict[str, str]:
-    """sha256 of every file of a run folder, by relative path (the manifest included, the lock file not)."""
-    return {p.relative_to(out).as_posix(): hashlib.sha256(p.read_bytes()).hexdigest()
-            for p in sorted(out.rglob("*")) if p.is_file() and p.name != ".lock"}
-
-
 def _both(dataset: Path, tmp_path: Path, **settings: Any) -> tuple[dict[str, Any], dict[str, Any]]:
     from logpipe.stages.predict import predict_dataset
 
@@ -48,7 +41,8 @@ def _both(dataset: Path, tmp_path: Path, **settings: Any) -> tuple[dict[str, Any
     return local, remote
 
 
-def test_network_forecasts_on_ray_write_the_local_bytes(eth: Path, tmp_path: Path) -> None:
+def test_network_forecasts_on_ray_write_the_local_bytes(folder_digests: Callable[[Path], dict[str, str]], eth: Path,
+                                                        tmp_path: Path) -> None:
     from logpipe.dataset.sample_filter import parse_filter
 
     # Small batches so the work is cut into several items over both actors; one torch thread on both sides (the
@@ -57,29 +51,32 @@ def test_network_forecasts_on_ray_write_the_local_bytes(eth: Path, tmp_path: Pat
                           sample_filter=parse_filter(["split=eth/test", "time=:60000000000"]))
     assert (local["backend"], remote["backend"]) == ("local", "ray")
     assert remote["samples"] == local["samples"] >= 5 and remote["rows"] == local["rows"] > 0
-    files = _files(tmp_path / "local")
+    files = folder_digests(tmp_path / "local")
     assert {"predictions/part-00000.parquet", "mcap/part-00000/biwi_eth.mcap", "manifest.json"} <= set(files)
-    assert _files(tmp_path / "ray") == files
+    assert folder_digests(tmp_path / "ray") == files
 
 
-def test_baseline_on_ray_writes_the_local_bytes(eth: Path, tmp_path: Path) -> None:
+def test_baseline_on_ray_writes_the_local_bytes(folder_digests: Callable[[Path], dict[str, str]], eth: Path,
+                                                tmp_path: Path) -> None:
     from logpipe.dataset.sample_filter import parse_filter
 
     local, remote = _both(eth, tmp_path, predictor="cv", batch_size=16,
                           sample_filter=parse_filter(["time=:60000000000"]))
     assert remote["samples"] == local["samples"] > 100 and remote["mcap_files"] == 3
-    assert _files(tmp_path / "ray") == _files(tmp_path / "local")
+    assert folder_digests(tmp_path / "ray") == folder_digests(tmp_path / "local")
 
 
-def test_constant_velocity_shard_tasks_on_ray_write_the_local_bytes(tmp_path: Path) -> None:
+def test_constant_velocity_shard_tasks_on_ray_write_the_local_bytes(folder_digests: Callable[[Path], dict[str, str]],
+                                                                    tmp_path: Path) -> None:
     # Parquet only: the columnar path, where each Ray task writes its shard's file and the driver commits.
     ingest([REPO / "tests" / "data" / "ethucy"], IngestOptions(out=tmp_path / "ds", write_mcap=False, batch_files=1))
     local, remote = _both(tmp_path / "ds", tmp_path, predictor="cv", write_mcap=False)
     assert remote["shards"] == local["shards"] >= 2 and remote["rows"] == local["rows"] > 0
-    assert _files(tmp_path / "ray") == _files(tmp_path / "local")
+    assert folder_digests(tmp_path / "ray") == folder_digests(tmp_path / "local")
 
 
-def test_a_killed_actor_is_retried_without_duplicate_or_partial_output(eth: Path, tmp_path: Path,
+def test_a_killed_actor_is_retried_without_duplicate_or_partial_output(folder_digests: Callable[[Path],
+                                                                       dict[str, str]], eth: Path, tmp_path: Path,
                                                                        monkeypatch: pytest.MonkeyPatch) -> None:
     from logpipe.dataset.sample_filter import parse_filter
     from logpipe.model.ray_predict import KILL_ONCE_ENV
@@ -94,6 +91,6 @@ def test_a_killed_actor_is_retried_without_duplicate_or_partial_output(eth: Path
     table = pq.read_table(tmp_path / "ray" / "predictions" / "part-00000.parquet", columns=keys)
     rows = list(zip(*(table.column(k).to_pylist() for k in keys), strict=True))
     assert len(rows) == len(set(rows)) == remote["rows"]  # each sample's targets and modes once
-    assert _files(tmp_path / "ray") == _files(tmp_path / "local")
+    assert folder_digests(tmp_path / "ray") == folder_digests(tmp_path / "local")
     manifest = json.loads((tmp_path / "ray" / "manifest.json").read_text())
-    assert sorted(manifest["files"]) == sorted(k for k in _files(tmp_path / "ray") if k != "manifest.json")
+    assert sorted(manifest["files"]) == sorted(k for k in folder_digests(tmp_path / "ray") if k != "manifest.json")
