@@ -26,6 +26,8 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import pyarrow as pa
+import pyarrow.compute as pc
 
 from logpipe.dataset.reader import Dataset
 from logpipe.dataset.sample_filter import SelectedSamples
@@ -222,10 +224,16 @@ def _planned_items(job: ForecastJob, log_ids: list[str], samples: SelectedSample
     planned = [(path, job.cutter.plan_batches(read_table(path), log_ids, samples, job.batch_size))
                for path in pending]
     items = work_items(planned, _ITEMS_PER_ACTOR * size)
-    # A fresh RasterShards has no memory maps to pickle.
-    rasters = job.cutter.rasters and RasterShards(job.cutter.rasters.run_dir, job.cutter.rasters.spec,
-                                                  job.cutter.rasters.index)
-    worker_job = dataclasses.replace(job, cutter=dataclasses.replace(job.cutter, rasters=rasters))
+    cutter = job.cutter
+    if cutter.rasters is not None:
+        # Only the planned samples' rasters (the set-up is pickled for each item: the whole index of a 50k-log
+        # corpus is ~20 MB), in a fresh RasterShards, which has no memory maps to pickle.
+        ids = pa.array([row["sample_id"] for _, batches in planned for batch in batches for _, row in batch],
+                       pa.string())
+        index = cutter.rasters.index.filter(pc.is_in(cutter.rasters.index.column("sample_id"), value_set=ids))
+        cutter = dataclasses.replace(cutter, rasters=RasterShards(cutter.rasters.run_dir, cutter.rasters.spec, index),
+                                     raster_ids=cutter.raster_ids & frozenset(ids.to_pylist()))
+    worker_job = dataclasses.replace(job, dataset=job.dataset.without_inputs(), cutter=cutter)
     return items, functools.partial(_actor, worker_job, threads, device)
 
 

@@ -241,17 +241,17 @@ def _columnar_shards(run: _Run, predictor: TrackPredictor, pending: list[tuple[i
 def _predict_logs(run: _Run, tracks: pa.Table, shard_logs: list[str], summary: PredictSummary,
                   progress: Callable[[int], None] | None, sink: ShardWriter) -> None:
     """Predict every selected sample of the shard's logs, handing results to ``sink`` batch by batch and ending
-    each log once all its samples are predicted.
-
-    Batches span logs (Argoverse has one sample per log), so a log is finished when a batch has gone past it.
-    """
+    each log once all its samples are predicted. Batches span logs (Argoverse has one sample per log), so a log is
+    finished when a batch has gone past it."""
     pending: list[LogOutput] = []
     batch: list[tuple[LogOutput, dict[str, Any], SceneSample]] = []
+    rows = run.samples.rows_by_log(shard_logs)
+    raster = run.forecast is None or bool(run.mcaps and run.mcaps.raster_channels)  # else unused here
     for log_id, windows in log_windows(tracks, shard_logs):
         out = LogOutput(log_id)
         pending.append(out)
-        for row in run.samples.rows(log_id):
-            sample = run.job.cutter.cut(windows, row)
+        for row in rows[log_id]:
+            sample = run.job.cutter.cut(windows, row, raster)
             if sample is None:
                 summary.samples_without_targets += 1
                 if progress:

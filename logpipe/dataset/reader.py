@@ -135,6 +135,11 @@ class Dataset:
             raise DatasetError(f"{self.root / MANIFEST}: names no {table} table")
         return self.root / str(entry["file"])
 
+    def without_inputs(self) -> Dataset:
+        """This dataset with its manifest's list of input files left out (most of a large corpus's manifest, ~140
+        bytes a log): what workers that only read shards need shipped to them."""
+        return Dataset(self.root, {k: v for k, v in self.manifest.items() if k != "inputs"})
+
     @property
     def protocol(self) -> SampleProtocol:
         """The sample protocol the index was built with."""

@@ -139,6 +139,14 @@ class SelectedSamples:
         rows: list[dict[str, Any]] = self.table([log_id]).to_pylist()
         return rows
 
+    def rows_by_log(self, log_ids: Sequence[str]) -> dict[str, list[dict[str, Any]]]:
+        """``rows`` of each of ``log_ids`` from one conversion (per log, its fixed cost dominated one-sample
+        logs such as Argoverse's)."""
+        grouped: dict[str, list[dict[str, Any]]] = {log_id: [] for log_id in log_ids}
+        for row in self.table(log_ids).to_pylist():
+            grouped[row["log_id"]].append(row)
+        return grouped
+
     def table(self, log_ids: Sequence[str]) -> pa.Table:
         """The selected rows of ``log_ids``, log after log in that order, each log's in index order."""
         parts = [self._table.slice(lo, hi - lo) for lo, hi in (self._slices[i] for i in log_ids if i in self._slices)]

@@ -11,8 +11,8 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 import pyarrow as pa
+import pyarrow.compute as pc
 
-from logpipe.storage.io import as_numpy
 from logpipe.types import NDArrayInt
 
 
@@ -35,6 +35,12 @@ def log_runs(log_keys: npt.NDArray[Any]) -> tuple[NDArrayInt, NDArrayInt]:
 
 def log_slices(tracks: pa.Table) -> dict[str, tuple[int, int]]:
     """``{log_id: (start, end)}``: each log's [start, end) rows in ``tracks`` (rows grouped by log), in row order."""
-    ids = as_numpy(tracks.column("log_id"))
-    starts, ends = log_runs(ids)
-    return {str(ids[lo]): (lo, hi) for lo, hi in zip(starts.tolist(), ends.tolist(), strict=True)}
+    # Runs of dictionary codes: no Python string per row.
+    ids = tracks.column("log_id")
+    if pa.types.is_dictionary(ids.type):  # a file's dictionary may repeat a value
+        ids = ids.cast(ids.type.value_type)
+    encoded = pc.dictionary_encode(ids).combine_chunks()
+    names = encoded.dictionary.to_pylist()
+    codes = encoded.indices.to_numpy()
+    starts, ends = log_runs(codes)
+    return {str(names[codes[lo]]): (lo, hi) for lo, hi in zip(starts.tolist(), ends.tolist(), strict=True)}

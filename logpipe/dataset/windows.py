@@ -18,6 +18,7 @@ import pyarrow as pa
 import pyarrow.compute as pc
 
 from logpipe.contracts import decode_dictionaries
+from logpipe.dataset.shards import log_slices
 from logpipe.storage.io import as_numpy
 from logpipe.types import OBJECT_TYPES, NDArrayInt, Role, SceneSample
 
@@ -39,24 +40,28 @@ class LogWindows:
     """
 
     def __init__(self, tracks: pa.Table) -> None:
-        # Plain strings: a column read with its file's dictionary would number every track of the row group.
-        tracks = decode_dictionaries(tracks.select(["step", "track_id", "x", "y", "timestamp_ns", "object_type",
-                                                    "role"]))
-        self.steps = as_numpy(tracks.column("step")).astype(np.int64)
+        self._view(_Columns(tracks), 0, tracks.num_rows)
+
+    @classmethod
+    def of_logs(cls, tracks: pa.Table) -> dict[str, LogWindows]:
+        """``{log_id: LogWindows}`` of every log in ``tracks`` (several logs' rows grouped by log, each sorted by
+        step, as shards store them), in row order: the columns are converted once for all of them (per log, the
+        fixed cost of the conversion was most of an Argoverse sample's cut)."""
+        columns = _Columns(tracks)
+        windows = {}
+        for log_id, (lo, hi) in log_slices(tracks).items():
+            windows[log_id] = cls.__new__(cls)
+            windows[log_id]._view(columns, lo, hi)
+        return windows
+
+    def _view(self, columns: _Columns, lo: int, hi: int) -> None:
+        """Take rows [lo, hi) of ``columns`` (views, no copies); track names stay those of all ``columns``."""
+        self.steps = columns.steps[lo:hi]
         if len(self.steps) > 1 and bool((np.diff(self.steps) < 0).any()):
             raise ValueError("LogWindows needs a log's rows sorted by step (as dataset shards store them)")
-        encoded = pc.dictionary_encode(tracks.column("track_id")).combine_chunks()
-        self.names: list[str] = [str(n) for n in encoded.dictionary.to_pylist()]
-        self.codes = encoded.indices.to_numpy().astype(np.int64)
-        self.x = as_numpy(tracks.column("x")).astype(np.float64)
-        self.y = as_numpy(tracks.column("y")).astype(np.float64)
-        self.ts = as_numpy(tracks.column("timestamp_ns")).astype(np.int64)
-        type_code = {t: i for i, t in enumerate(OBJECT_TYPES)}
-        types = pc.dictionary_encode(tracks.column("object_type")).combine_chunks()
-        lookup = np.array([type_code[t] for t in types.dictionary.to_pylist()], np.int64)
-        self.types = lookup[types.indices.to_numpy()] if len(lookup) else np.zeros(0, np.int64)
-        self.ego = as_numpy(pc.equal(tracks.column("role"), Role.EGO.value)).astype(bool)
-        self._code_of = {n: i for i, n in enumerate(self.names)}
+        self.names, self._code_of = columns.names, columns.code_of
+        self.codes, self.x, self.y = columns.codes[lo:hi], columns.x[lo:hi], columns.y[lo:hi]
+        self.ts, self.types, self.ego = columns.ts[lo:hi], columns.types[lo:hi], columns.ego[lo:hi]
 
     def span(self, first: int, last: int) -> tuple[int, int]:
         """Row range [lo, hi) of the steps ``first..last`` (inclusive)."""
@@ -85,7 +90,7 @@ class LogWindows:
         # Window-local agent numbering in order of first appearance (as dictionary_encode numbers them).
         uniq, first = np.unique(codes, return_index=True)
         order = uniq[np.argsort(first)]
-        local = np.empty(len(self.names), np.int64)
+        local = np.empty(len(self.names), np.int64)  # uninitialised: only the window's codes are set and read
         local[order] = np.arange(len(order))
         agent = local[codes]
         steps = self.steps[lo:hi] - start
@@ -110,3 +115,25 @@ class LogWindows:
             ego_index=int(ego_rows.min()) if len(ego_rows) else -1,
             obs_len=obs_len,
         )
+
+
+class _Columns:
+    """The columns ``LogWindows`` cuts from, as NumPy arrays over all rows of a table (one log or a shard)."""
+
+    def __init__(self, tracks: pa.Table) -> None:
+        # Plain strings: a column read with its file's dictionary would number every track of the row group.
+        tracks = decode_dictionaries(tracks.select(["step", "track_id", "x", "y", "timestamp_ns", "object_type",
+                                                    "role"]))
+        self.steps = as_numpy(tracks.column("step")).astype(np.int64)
+        encoded = pc.dictionary_encode(tracks.column("track_id")).combine_chunks()
+        self.names: list[str] = [str(n) for n in encoded.dictionary.to_pylist()]
+        self.code_of = {n: i for i, n in enumerate(self.names)}
+        self.codes = encoded.indices.to_numpy().astype(np.int64)
+        self.x = as_numpy(tracks.column("x")).astype(np.float64)
+        self.y = as_numpy(tracks.column("y")).astype(np.float64)
+        self.ts = as_numpy(tracks.column("timestamp_ns")).astype(np.int64)
+        type_code = {t: i for i, t in enumerate(OBJECT_TYPES)}
+        types = pc.dictionary_encode(tracks.column("object_type")).combine_chunks()
+        lookup = np.array([type_code[t] for t in types.dictionary.to_pylist()], np.int64)
+        self.types = lookup[types.indices.to_numpy()] if len(lookup) else np.zeros(0, np.int64)
+        self.ego = as_numpy(pc.equal(tracks.column("role"), Role.EGO.value)).astype(bool)

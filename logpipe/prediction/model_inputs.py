@@ -62,8 +62,10 @@ class SampleCutter:
                      batch_size: int) -> BatchPlan:
         """The batches of one shard's ``tracks``: the samples of ``log_ids`` (in that order) left with targets,
         ``batch_size`` at a time."""
-        kept = [(log_id, row) for log_id, windows in log_windows(tracks, log_ids)
-                for row in samples.rows(log_id) if self.cut(windows, row, raster=False) is not None]
+        windows = dict(log_windows(tracks, log_ids))
+        rows = samples.rows_by_log(list(windows))
+        kept = [(log_id, row) for log_id, log in windows.items()
+                for row in rows[log_id] if self.cut(log, row, raster=False) is not None]
         return [kept[i : i + batch_size] for i in range(0, len(kept), batch_size)]
 
     def cut_planned(self, shard: ShardWindows, path: str, batches: BatchPlan) -> Iterator[list[SceneSample]]:
@@ -107,9 +109,12 @@ def raster_problems(dataset_dir: Path, rasters: RasterShards | None, samples: Se
 def log_windows(tracks: pa.Table, log_ids: Sequence[str]) -> Iterator[tuple[str, LogWindows]]:
     """The windows of each of ``log_ids`` that ``tracks`` (a shard) holds, in the order of ``log_ids``."""
     slices = log_slices(tracks)
-    for log_id in (i for i in log_ids if i in slices):
-        lo, hi = slices[log_id]
-        yield log_id, LogWindows(tracks.slice(lo, hi - lo))
+    chosen = [i for i in log_ids if i in slices]
+    if len(chosen) < len(slices):  # convert only the chosen logs' rows (a filter may pick a few per shard)
+        tracks = pa.concat_tables([tracks.slice(slices[i][0], slices[i][1] - slices[i][0]) for i in chosen])
+    windows = LogWindows.of_logs(tracks) if chosen else {}
+    for log_id in chosen:
+        yield log_id, windows[log_id]
 
 
 class ShardWindows:
@@ -117,17 +122,10 @@ class ShardWindows:
 
     def __init__(self) -> None:
         self._path: str | None = None
-        self._tracks: pa.Table | None = None
-        self._slices: dict[str, tuple[int, int]] = {}
         self._windows: dict[str, LogWindows] = {}
 
     def get(self, path: str, log_id: str) -> LogWindows:
         """The windows of ``log_id`` in the shard at ``path``."""
         if self._path != path:
-            self._tracks = read_table(Path(path))
-            self._path, self._slices, self._windows = path, log_slices(self._tracks), {}
-        if log_id not in self._windows:
-            assert self._tracks is not None
-            lo, hi = self._slices[log_id]
-            self._windows[log_id] = LogWindows(self._tracks.slice(lo, hi - lo))
+            self._path, self._windows = path, LogWindows.of_logs(read_table(Path(path)))
         return self._windows[log_id]

@@ -80,3 +80,28 @@ def test_the_help_states_the_default_thresholds() -> None:
     text = " ".join(result.output.replace("│", " ").split())
     assert f"{PROCESS_MIN_SAMPLES[True]} samples per core with the environment net" in text
     assert f"{PROCESS_MIN_SAMPLES[False]:,} without" in text
+
+
+def test_workers_get_only_the_selected_samples_rasters_and_no_input_list(
+        folder_digests: Callable[[Path], dict[str, str]], driving_rasterised: Path, tmp_path: Path) -> None:
+    from logpipe.dataset.reader import Dataset
+    from logpipe.model.ray_predict import _planned_items
+    from logpipe.stages.predict import _prepare
+
+    data = driving_rasterised
+    first = sorted(Dataset.open(data).logs().column("log_id").to_pylist())[0]
+    chosen = PredictOptions(sample_filter=parse_filter([f"log={first}"]), batch_size=1, threads=1)
+    run, *_ = _prepare(data, tmp_path / "unused", chosen)
+    assert run.job.cutter.rasters is not None and run.job.cutter.rasters.index.num_rows == 2
+    items, setup = _planned_items(run.job, list(run.logs), run.samples, run.job.dataset.shard_paths, 2, 1, "cpu")
+    shipped = setup.args[0]  # the ForecastJob each worker gets
+    assert shipped.cutter.rasters.index.column("sample_id").to_pylist() == run.samples.sample_ids().to_pylist()
+    assert shipped.cutter.raster_ids == frozenset(run.samples.sample_ids().to_pylist())
+    assert "inputs" not in shipped.dataset.manifest and len(run.job.dataset.manifest["inputs"]) == 2
+    assert [row["sample_id"] for _, batches in items for batch in batches for _, row in batch] == \
+        run.samples.sample_ids().to_pylist()
+    # And the run over that selection writes the bytes of one process.
+    one = predict_dataset(data, tmp_path / "one", chosen, workers=1)
+    two = predict_dataset(data, tmp_path / "two", chosen, workers=2)
+    assert one["samples"] == two["samples"] == 1
+    assert folder_digests(tmp_path / "two") == folder_digests(tmp_path / "one")
