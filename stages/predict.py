@@ -31,7 +31,7 @@ import pyarrow as pa
 import pyarrow.compute as pc
 
 from logpipe.dataset.reader import Dataset
-from logpipe.dataset.sample_filter import SampleFilter, SelectedSamples, selected_samples
+from logpipe.dataset.sample_filter import SampleFilter, SelectedLogs, SelectedSamples, selected_samples
 from logpipe.dataset.sample_filter import selected_logs as _selected_logs
 from logpipe.errors import LogpipeError
 from logpipe.executor import Backend, default_workers, run_ordered
@@ -55,7 +55,6 @@ from logpipe.prediction.columnar import (
 from logpipe.prediction.mcap_logs import PredictionMcaps, check_log_ids
 from logpipe.prediction.model_inputs import SampleCutter, log_windows, raster_problems
 from logpipe.prediction.options import PredictOptions, PredictSummary, default_modes
-from logpipe.prediction.originals import find_original
 from logpipe.prediction.output import LogOutput, SamplePrediction, ShardWriter, counted_shard_writer, fast_gil_switching
 from logpipe.prediction.runs import PredictionMeta, PredictionRunWriter, RunSettings, RunShardEntry
 from logpipe.progress import report_total
@@ -71,7 +70,7 @@ class _Run:
     same record the Ray actors get) and what the local writer adds."""
 
     job: ForecastJob
-    logs: dict[str, dict[str, Any]]
+    logs: SelectedLogs
     samples: SelectedSamples
     meta: PredictionMeta
     mcaps: PredictionMcaps | None  # the per-log MCAP writer (None: --no-mcap)
@@ -161,13 +160,15 @@ def _prepare(dataset_dir: Path, out_dir: Path, opts: PredictOptions) -> tuple[_R
         problems += raster_problems(dataset_dir, rasters, samples)
     if problems:
         raise LogpipeError(f"{chosen.checkpoint or 'predictor'} does not fit {dataset_dir}: " + "; ".join(problems))
-    logs = {str(r["log_id"]): r for r in logs_table.to_pylist()}
+    logs = SelectedLogs(logs_table)
     check_log_ids(dataset.root, logs)
     # Where bags/MCAP inputs are: --inputs, else the roots ingest recorded (manifest "input_roots", if it does).
     roots = list(opts.inputs) or [Path(p) for p in dataset.manifest.get("input_roots", [])]
-    originals = {log_id: find_original(row, roots, dataset) for log_id, row in logs.items()} if opts.write_mcap else {}
     manifest_sha = sha256_file(dataset.root / MANIFEST)
     raster_images = rasters is not None and opts.raster_images
+    mcaps = PredictionMcaps.of_run(dataset, logs, roots, chosen.name, chosen.checkpoint_id, modes, opts.seed,
+                                   rasters.spec.channels if raster_images and rasters is not None else None
+                                   ) if opts.write_mcap else None
     settings: RunSettings = {
         "dataset_manifest_sha256": manifest_sha, "predictor": chosen.name, "checkpoint_id": chosen.checkpoint_id,
         "num_modes": modes, "seed": opts.seed, "batch_size": opts.batch_size, "filter": sample_filter.to_dict(),
@@ -191,12 +192,11 @@ def _prepare(dataset_dir: Path, out_dir: Path, opts: PredictOptions) -> tuple[_R
         protocol=protocol.to_dict(), logs_selected=len(logs), samples_selected=len(samples),
         device=None if torch_device is None else str(torch_device), backend=opts.backend,
     )
-    mcaps = PredictionMcaps(protocol, chosen.name, chosen.checkpoint_id, modes, opts.seed,
-                            rasters.spec.channels if raster_images and rasters is not None else None, logs, originals)
     raster_ids = frozenset(rasters.index.column("sample_id").to_pylist()) if rasters is not None else frozenset()
     cutter = SampleCutter(protocol.obs_len, sample_filter.object_types, rasters, raster_ids)
-    run = _Run(ForecastJob(dataset, chosen, modes, opts.seed, opts.batch_size, cutter), logs, samples, meta,
-               mcaps if opts.write_mcap else None)
+    # The job's dataset without the input list (most of a large corpus's manifest): found originals were its use.
+    run = _Run(ForecastJob(dataset.without_inputs(), chosen, modes, opts.seed, opts.batch_size, cutter), logs,
+               samples, meta, mcaps)
     return run, settings, summary, torch_device
 
 
@@ -288,7 +288,7 @@ def run_batch(run: _Run, batch: list[tuple[LogOutput, dict[str, Any], SceneSampl
     by_log: dict[str, tuple[LogOutput, list[SamplePrediction]]] = {}
     for (out, row, sample), forecast in zip(batch, futures, strict=True):
         prediction, unobserved = SamplePrediction.of(row, sample, forecast, run.job.dataset.protocol, run.job.modes,
-                                                     int(run.logs[out.log_id]["median_dt_ns"]))
+                                                     int(run.logs.column("median_dt_ns")[out.log_id]))
         by_log.setdefault(out.log_id, (out, []))[1].append(prediction)
         out.finished += 1
         summary.targets_unobserved += unobserved

@@ -14,16 +14,16 @@ Positions are metres in the log's world frame; times are ns on the log's clock.
 from __future__ import annotations
 
 import time
-from collections.abc import Iterable, Iterator, Mapping, Sequence
+from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
-from typing import Any, Protocol, cast
+from typing import Protocol, cast
 
 import numpy as np
 import pyarrow as pa
 
-from logpipe.dataset.sample_filter import SelectedSamples
+from logpipe.dataset.sample_filter import SelectedLogs, SelectedSamples
 from logpipe.dataset.target_tracks import ShardTracks, TargetTracks
 from logpipe.errors import DatasetError
 from logpipe.mcap.forecast_scene import TargetForecasts
@@ -237,15 +237,16 @@ class ShardJob:
 
 
 def shard_jobs(run: ColumnarRun, root: Path, pending: Sequence[tuple[int, Path]],
-               logs: Mapping[str, Mapping[str, Any]], samples: SelectedSamples,
+               logs: SelectedLogs, samples: SelectedSamples,
                summary: PredictSummary, mcaps: PredictionMcaps | None = None) -> list[ShardJob]:
-    """The jobs of the ``pending`` (index, path) shards of the dataset at ``root``, from the selected ``logs``
-    (logs-table rows by id, in table order) and ``samples``; ``mcaps``: the run's MCAP writer, if it writes them."""
+    """The jobs of the ``pending`` (index, path) shards of the dataset at ``root``, from the selected ``logs`` and
+    ``samples``; ``mcaps``: the run's MCAP writer, if it writes them."""
     by_shard = logs_by_shard(logs)
+    log_dt_ns = logs.column("median_dt_ns")
     jobs = []
     for index, path in pending:
         mine = by_shard.get(path.name, [])
-        dt_ns = np.repeat(np.array([int(logs[i]["median_dt_ns"]) for i in mine], np.int64),
+        dt_ns = np.repeat(np.array([int(log_dt_ns[i]) for i in mine], np.int64),
                           [samples.count(i) for i in mine])
         # combine_chunks, and the MCAP writer cut to the shard's logs: a job pickles its own part, not the run's.
         jobs.append(ShardJob(run, path, path.relative_to(root).as_posix(), index, tuple(mine),
@@ -254,11 +255,11 @@ def shard_jobs(run: ColumnarRun, root: Path, pending: Sequence[tuple[int, Path]]
     return jobs
 
 
-def logs_by_shard(logs: Mapping[str, Mapping[str, Any]]) -> dict[str, list[str]]:
-    """The ids of ``logs`` (logs-table rows by id) by the file name of their shard, in the rows' order."""
+def logs_by_shard(logs: SelectedLogs) -> dict[str, list[str]]:
+    """The ids of ``logs`` by the file name of their shard, in the logs' order."""
     by_shard: dict[str, list[str]] = {}
-    for log_id, row in logs.items():
-        by_shard.setdefault(str(row["shard"]).rsplit("/", 1)[-1], []).append(log_id)  # a POSIX path; no Path per log
+    for log_id, shard in logs.column("shard").items():
+        by_shard.setdefault(str(shard).rsplit("/", 1)[-1], []).append(log_id)  # a POSIX path; no Path per log
     return by_shard
 
 

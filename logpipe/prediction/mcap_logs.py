@@ -23,13 +23,15 @@ from typing import Any
 import numpy as np
 
 from logpipe import __version__
+from logpipe.dataset.reader import Dataset
+from logpipe.dataset.sample_filter import SelectedLogs
 from logpipe.errors import DatasetError
 from logpipe.mcap import foxglove as fx
 from logpipe.mcap import raster_image as fr
 from logpipe.mcap.forecast_scene import TargetForecasts, forecast_scene_updates
 from logpipe.mcap.merge import NewChannel, NewMessage, Source, write_merged
 from logpipe.mcap.tracks import json_schema_bytes
-from logpipe.prediction.originals import world_frame
+from logpipe.prediction.originals import find_original, world_frame
 from logpipe.prediction.output import SamplePrediction
 from logpipe.storage.artifact import unsafe_file_name
 from logpipe.types import NDArrayInt, SampleProtocol
@@ -92,7 +94,8 @@ class PredictionMcaps:
     Attributes:
         protocol: the dataset's sample protocol; ``predictor``, ``checkpoint_id``, ``modes``, ``seed``: the run's.
         raster_channels: the raster layers, when raster images are added (None: no raster channels).
-        logs: logs-table row of each log; ``originals``: its original recording.
+        frames: the world frame of each log's positions (``originals.world_frame``); ``dt_ns``: its median step
+            (ns); ``originals``: its original recording.
     """
 
     protocol: SampleProtocol
@@ -101,13 +104,31 @@ class PredictionMcaps:
     modes: int
     seed: int
     raster_channels: tuple[str, ...] | None
-    logs: dict[str, dict[str, Any]]
+    frames: dict[str, str]
+    dt_ns: dict[str, int]
     originals: dict[str, Source]
+
+    @classmethod
+    def of_run(cls, dataset: Dataset, logs: SelectedLogs, inputs: Sequence[Path], predictor: str,
+               checkpoint_id: str, modes: int, seed: int, raster_channels: tuple[str, ...] | None) -> PredictionMcaps:
+        """The writer of a run over ``logs`` of ``dataset``, their originals found under ``inputs``
+        (``originals.find_original``).
+
+        Raises:
+            DatasetError: an original is missing or has other contents.
+        """
+        frames, dt_ns, originals = {}, {}, {}
+        for row in logs.rows():
+            log_id = str(row["log_id"])
+            frames[log_id], dt_ns[log_id] = world_frame(row), int(row["median_dt_ns"])
+            originals[log_id] = find_original(row, inputs, dataset)
+        return cls(dataset.protocol, predictor, checkpoint_id, modes, seed, raster_channels, frames, dt_ns, originals)
 
     def of_logs(self, log_ids: Iterable[str]) -> PredictionMcaps:
         """This writer for ``log_ids`` only (what a shard job carries)."""
         chosen = list(log_ids)
-        return replace(self, logs={i: self.logs[i] for i in chosen}, originals={i: self.originals[i] for i in chosen})
+        return replace(self, frames={i: self.frames[i] for i in chosen}, dt_ns={i: self.dt_ns[i] for i in chosen},
+                       originals={i: self.originals[i] for i in chosen})
 
     def write(self, log_id: str, predictions: Iterator[SamplePrediction], target: Path) -> int:
         """Original log + the prediction channels, one message per sample at its prediction time; returns the
@@ -145,13 +166,13 @@ class PredictionMcaps:
 
     def frame(self, log_id: str) -> str:
         """The world frame of a log's positions."""
-        return world_frame(self.logs[log_id])
+        return self.frames[log_id]
 
     def scene_updates(self, log_ids: Sequence[str], now_ns: Sequence[int], forecasts: TargetForecasts) -> list[bytes]:
         """The scene message of each sample of ``forecasts`` (of ``log_ids`` at ``now_ns``, one each per sample)."""
         pred_len = self.protocol.pred_len
         return forecast_scene_updates(forecasts, [self.frame(i) for i in log_ids], now_ns,
-                                      [int(self.logs[i]["median_dt_ns"]) * pred_len for i in log_ids])
+                                      [self.dt_ns[i] * pred_len for i in log_ids])
 
     def sample_messages(self, log_id: str, now_ns: int, step_ns: NDArrayInt, forecasts: TargetForecasts,
                         scene: bytes) -> tuple[NewMessage, NewMessage]:

@@ -97,7 +97,7 @@ def test_workers_get_only_the_selected_samples_rasters_and_no_input_list(
     shipped = setup.args[0]  # the ForecastJob each worker gets
     assert shipped.cutter.rasters.index.column("sample_id").to_pylist() == run.samples.sample_ids().to_pylist()
     assert shipped.cutter.raster_ids == frozenset(run.samples.sample_ids().to_pylist())
-    assert "inputs" not in shipped.dataset.manifest and len(run.job.dataset.manifest["inputs"]) == 2
+    assert "inputs" not in shipped.dataset.manifest and len(Dataset.open(data).manifest["inputs"]) == 2
     assert [row["sample_id"] for _, batches in items for batch in batches for _, row in batch] == \
         run.samples.sample_ids().to_pylist()
     # And the run over that selection writes the bytes of one process.
