@@ -110,7 +110,7 @@ def log_windows(tracks: pa.Table, log_ids: Sequence[str]) -> Iterator[tuple[str,
     """The windows of each of ``log_ids`` that ``tracks`` (a shard) holds, in the order of ``log_ids``."""
     slices = log_slices(tracks)
     chosen = [i for i in log_ids if i in slices]
-    if len(chosen) < len(slices):  # convert only the chosen logs' rows (a filter may pick a few per shard)
+    if 0 < len(chosen) < len(slices):  # convert only the chosen logs' rows (a filter may pick a few per shard)
         tracks = pa.concat_tables([tracks.slice(slices[i][0], slices[i][1] - slices[i][0]) for i in chosen])
     windows = LogWindows.of_logs(tracks) if chosen else {}
     for log_id in chosen:

@@ -13,6 +13,7 @@ import pytest
 from logpipe.dataset.reader import Dataset
 from logpipe.dataset.shards import log_slices
 from logpipe.dataset.windows import LogWindows
+from logpipe.prediction.model_inputs import log_windows
 from logpipe.stages.ingest import IngestOptions, ingest
 from logpipe.storage.io import read_table
 
@@ -60,3 +61,19 @@ def test_a_log_id_dictionary_repeating_a_value_gives_one_run_per_log(dataset: Da
     repeated = pa.DictionaryArray.from_arrays(pa.array(np.arange(len(names), dtype=np.int32)), pa.array(names))
     as_dictionary = table.set_column(table.schema.get_field_index("log_id"), "log_id", repeated)
     assert log_slices(as_dictionary) == log_slices(table)
+
+
+def test_log_windows_gives_the_asked_logs_of_a_shard_in_the_asked_order(dataset: Dataset) -> None:
+    table = read_table(dataset.shard_paths[0])
+    ids = list(log_slices(table))
+    assert len(ids) >= 3
+    assert [log_id for log_id, _ in log_windows(table, ids[::-1])] == ids[::-1]
+    # A few logs of the shard: only their rows are converted, and they cut what the log's own rows cut.
+    picked = dict(log_windows(table, [ids[-1], "absent", ids[0]]))
+    assert list(picked) == [ids[-1], ids[0]]
+    row = next(r for r in dataset.samples().to_pylist() if r["log_id"] == ids[-1])
+    a = picked[ids[-1]].sample(row, dataset.protocol.obs_len)
+    b = LogWindows(dataset.log_tracks(ids[-1])).sample(row, dataset.protocol.obs_len)
+    assert a.track_ids == b.track_ids
+    np.testing.assert_array_equal(a.positions, b.positions)
+    assert list(log_windows(table, ["absent"])) == []
