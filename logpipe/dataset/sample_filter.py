@@ -11,14 +11,12 @@ from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
-import numpy as np
 import pyarrow as pa
 import pyarrow.compute as pc
 
 from logpipe.dataset.reader import Dataset
-from logpipe.dataset.shards import log_runs
+from logpipe.dataset.shards import log_slices
 from logpipe.errors import DatasetError, LogpipeError
-from logpipe.storage.io import as_numpy
 from logpipe.types import OBJECT_TYPES
 
 
@@ -122,9 +120,7 @@ class SelectedSamples:
     def __init__(self, table: pa.Table) -> None:
         # Stable: a log's samples keep their index order.
         self._table = table.take(pc.sort_indices(table, [("log_id", "ascending")])) if table.num_rows else table
-        ids = as_numpy(self._table.column("log_id")) if table.num_rows else np.zeros(0, object)
-        starts, ends = log_runs(ids)
-        self._slices = {str(ids[lo]): (lo, hi) for lo, hi in zip(starts.tolist(), ends.tolist(), strict=True)}
+        self._slices = log_slices(self._table) if table.num_rows else {}
 
     def __len__(self) -> int:
         return int(self._table.num_rows)
