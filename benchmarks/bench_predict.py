@@ -58,11 +58,12 @@ def _macs_per_sample(dataset: Path, checkpoint: Path, modes: int, **kwargs: Any)
     """Multiply-accumulates per sample of the network's matmuls (encoder + decoder, not the backbone) and the
     environment-lookup gathers, counted from the dataset's real agent counts and the checkpoint's config."""
     from logpipe.model.checkpoint_meta import read_meta
-    from logpipe.stages import predict as stage
+    from logpipe.prediction import sample_shards
+    from logpipe.stages.predict import predict_dataset
 
     cfg = read_meta(checkpoint).config.model
     counts: list[tuple[int, int]] = []  # (agents, decoded agents) per sample
-    original = stage.run_batch
+    original = sample_shards.run_batch
 
     def spy(run: Any, batch: Any, *args: Any) -> None:
         for _, _, s in batch:
@@ -70,11 +71,12 @@ def _macs_per_sample(dataset: Path, checkpoint: Path, modes: int, **kwargs: Any)
         original(run, batch, *args)
 
     with tempfile.TemporaryDirectory() as tmp:
-        stage.run_batch = spy
+        sample_shards.run_batch = spy
         try:
-            stage.predict_dataset(dataset, Path(tmp) / "out", checkpoint=checkpoint, write_mcap=False, **kwargs)
+            # One process: the spy sees the batches only where they are forecast here.
+            predict_dataset(dataset, Path(tmp) / "out", checkpoint=checkpoint, write_mcap=False, workers=1, **kwargs)
         finally:
-            stage.run_batch = original
+            sample_shards.run_batch = original
     f, d, hid, g = cfg.features, cfg.embed_dim, cfg.lstm_dim, cfg.gru_dim
     d_fst = d * (int(f.ego_trajectory) + int(f.uses_gru))
     env = d if f.environment else 0

@@ -27,7 +27,6 @@ from typing import Any
 
 import numpy as np
 import pyarrow as pa
-import pyarrow.compute as pc
 
 from logpipe.dataset.reader import Dataset
 from logpipe.dataset.sample_filter import SelectedSamples
@@ -35,8 +34,9 @@ from logpipe.errors import LogpipeError
 from logpipe.executor import run_ordered
 from logpipe.model.device import resolve_device
 from logpipe.model.registry import ChosenPredictor, load_net
+from logpipe.prediction.columnar import ShardDone
 from logpipe.prediction.model_inputs import SampleCutter, ShardWindows, WorkItem, work_items
-from logpipe.raster.runs import RasterShards
+from logpipe.prediction.sample_shards import SampleShardJob, predict_sample_shard
 from logpipe.storage.io import read_table
 from logpipe.types import SceneSample
 
@@ -194,14 +194,64 @@ def process_forecasts(job: ForecastJob, log_ids: list[str], samples: SelectedSam
     items, setup = _planned_items(job, log_ids, samples, pending, workers, threads, device)
     token = uuid.uuid4().hex  # names this run's model in a worker that outlives one item
 
-    def batches() -> Iterator[tuple[list[str], list[Any]]]:
-        try:
-            for item in run_ordered(_forecast_in_process, [(token, setup, item) for item in items], workers=workers):
-                yield from item
-        finally:
-            _PROCESS_FORECAST.clear()  # a single item runs in this process: do not keep its model
+    return _checked(batch for item in _in_processes([(token, setup, item) for item in items], workers)
+                    for batch in item)
 
-    return _checked(batches())
+
+SHARDS_PER_WORKER = 2
+"""Shards with selected logs per worker from which each worker predicts whole shards (cuts, forecasts and writes
+their files, ``shard_predictions``) rather than forecasting batches the stage cuts and writes."""
+
+
+def shard_predictions(job: ForecastJob, jobs: list[SampleShardJob], workers: int, threads: int, device: str,
+                      ray: bool) -> Iterator[ShardDone] | None:
+    """Each of ``jobs`` predicted by a worker that loaded the model once (``ray``: Ray actors, else ``workers``
+    local processes of ``threads`` torch threads, 0: 1), in job order; None when the jobs with logs are fewer than
+    ``SHARDS_PER_WORKER`` per worker (too few to keep every worker busy: forecast batches instead).
+
+    Each job carries only its own samples' rasters. The workers write uncommitted files in the run folder, so on a
+    cluster it must lie on a file system every node shares, as the dataset must.
+    """
+    threads = threads or 1
+    size, gpu = start(workers, threads) if ray else (workers, False)
+    if sum(1 for j in jobs if j.log_ids) < SHARDS_PER_WORKER * size:
+        return None
+    # Each worker forecasts what it cuts, so it cuts with the rasters, of its own samples only.
+    shipped = [dataclasses.replace(j, run=dataclasses.replace(
+        j.run, cutter=j.run.cutter.for_samples(j.samples.column("sample_id").combine_chunks()), cut_rasters=True))
+        for j in jobs]
+    setup = functools.partial(_shard_actor, dataclasses.replace(job, dataset=job.dataset.without_inputs(),
+                                                                cutter=SampleCutter(job.cutter.obs_len)),
+                              threads, device)
+    if ray:
+        return forecast_on_ray(setup, shipped, size=size, gpu=gpu, cpus=threads)
+    token = uuid.uuid4().hex
+    return _in_processes([(token, setup, j) for j in shipped], workers)
+
+
+def _in_processes(work: list[tuple[str, Callable[[], Forecast], Any]], workers: int) -> Iterator[Any]:
+    """``_forecast_in_process`` over ``work`` in ``workers`` processes, dropping this process's model after."""
+    try:
+        yield from run_ordered(_forecast_in_process, work, workers=workers)
+    finally:
+        _PROCESS_FORECAST.clear()  # a single item runs in this process: do not keep its model
+
+
+def _shard_actor(job: ForecastJob, threads: int, device: str) -> Callable[[SampleShardJob], ShardDone]:
+    """Runs once in each worker: loads the model on ``threads`` torch threads; returns the prediction of a shard
+    job (``logpipe.prediction.sample_shards``)."""
+    import torch
+
+    load_net(job.chosen, job.dataset, job.batch_size,
+             resolve_device(device) if job.chosen.checkpoint is not None else "cpu")
+    torch.set_num_threads(threads)
+    model = job.chosen.model
+    assert model is not None
+    return functools.partial(_predict_with, functools.partial(model.predict, num_modes=job.modes, seed=job.seed))
+
+
+def _predict_with(forecast: Callable[[list[SceneSample]], Sequence[Any]], shard: SampleShardJob) -> ShardDone:
+    return predict_sample_shard(shard, forecast)
 
 
 _PROCESS_FORECAST: dict[str, Forecast] = {}
@@ -224,16 +274,8 @@ def _planned_items(job: ForecastJob, log_ids: list[str], samples: SelectedSample
     planned = [(path, job.cutter.plan_batches(read_table(path), log_ids, samples, job.batch_size))
                for path in pending]
     items = work_items(planned, _ITEMS_PER_ACTOR * size)
-    cutter = job.cutter
-    if cutter.rasters is not None:
-        # Only the planned samples' rasters (the set-up is pickled for each item: the whole index of a 50k-log
-        # corpus is ~20 MB), in a fresh RasterShards, which has no memory maps to pickle.
-        ids = pa.array([row["sample_id"] for _, batches in planned for batch in batches for _, row in batch],
-                       pa.string())
-        index = cutter.rasters.index.filter(pc.is_in(cutter.rasters.index.column("sample_id"), value_set=ids))
-        cutter = dataclasses.replace(cutter, rasters=RasterShards(cutter.rasters.run_dir, cutter.rasters.spec, index),
-                                     raster_ids=cutter.raster_ids & frozenset(ids.to_pylist()))
-    worker_job = dataclasses.replace(job, dataset=job.dataset.without_inputs(), cutter=cutter)
+    ids = pa.array([row["sample_id"] for _, batches in planned for batch in batches for _, row in batch], pa.string())
+    worker_job = dataclasses.replace(job, dataset=job.dataset.without_inputs(), cutter=job.cutter.for_samples(ids))
     return items, functools.partial(_actor, worker_job, threads, device)
 
 

@@ -7,8 +7,9 @@ are safe file names) before any work → take the output folder's lock → per d
 selected samples (``logpipe.dataset.sample_filter``, ``logpipe.prediction.model_inputs``), predict in batches under
 ``torch.inference_mode``, write the shard's Parquet and its logs' MCAPs on a writer thread
 (``logpipe.prediction.output``, ``logpipe.prediction.mcap_logs``) → commit the shard by replacing the run manifest.
-With ``--backend ray`` or local worker processes (``--workers``), the same batches are forecast by workers that
-each load the model (``logpipe.model.ray_predict``) and written here.
+Each shard is one job of ``logpipe.prediction.sample_shards``. With ``--backend ray`` or local worker processes
+(``--workers``), workers that each load the model (``logpipe.model.ray_predict``) run whole shard jobs, writing
+their own files, when there are enough shards to share out; else they forecast the batches cut and written here.
 Constant velocity to Parquet only takes ``logpipe.prediction.columnar``: a job per shard, ``--workers`` at a time.
 
 Output folder (a committed artifact, ``logpipe.prediction.runs``): ``manifest.json``, ``predictions/part-NNNNN.parquet``
@@ -21,14 +22,12 @@ midway is redone from scratch, so the rerun of an interrupted run gives the same
 from __future__ import annotations
 
 import dataclasses
+import functools
 import time
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, cast
-
-import pyarrow as pa
-import pyarrow.compute as pc
 
 from logpipe.dataset.reader import Dataset
 from logpipe.dataset.sample_filter import SampleFilter, SelectedLogs, SelectedSamples, selected_samples
@@ -36,7 +35,7 @@ from logpipe.dataset.sample_filter import selected_logs as _selected_logs
 from logpipe.errors import LogpipeError
 from logpipe.executor import Backend, default_workers, run_ordered
 from logpipe.model.device import check_device_name, resolve_device
-from logpipe.model.ray_predict import ForecastJob, process_forecasts, ray_forecasts
+from logpipe.model.ray_predict import ForecastJob, process_forecasts, ray_forecasts, shard_predictions
 from logpipe.model.registry import (
     check_fit,
     choose_predictor,
@@ -53,15 +52,15 @@ from logpipe.prediction.columnar import (
     track_predictor,
 )
 from logpipe.prediction.mcap_logs import PredictionMcaps, check_log_ids
-from logpipe.prediction.model_inputs import SampleCutter, log_windows, raster_problems
+from logpipe.prediction.model_inputs import SampleCutter, raster_problems
 from logpipe.prediction.options import PredictOptions, PredictSummary, default_modes
-from logpipe.prediction.output import LogOutput, SamplePrediction, ShardWriter, counted_shard_writer, fast_gil_switching
+from logpipe.prediction.output import fast_gil_switching
 from logpipe.prediction.runs import PredictionMeta, PredictionRunWriter, RunSettings, RunShardEntry
+from logpipe.prediction.sample_shards import SampleShardRun, predict_sample_shard, sample_shard_jobs
 from logpipe.progress import report_total
 from logpipe.raster.runs import find_raster_run
 from logpipe.storage.artifact import MANIFEST, FileEntry, output_errors
-from logpipe.storage.io import read_table, sha256_file
-from logpipe.types import SceneSample
+from logpipe.storage.io import sha256_file
 
 
 @dataclass
@@ -74,8 +73,6 @@ class _Run:
     samples: SelectedSamples
     meta: PredictionMeta
     mcaps: PredictionMcaps | None  # the per-log MCAP writer (None: --no-mcap)
-    forecast: Callable[[list[SceneSample]], Sequence[Any]] | None = None
-    """Where forecasts come from instead of ``chosen.model`` (``--backend ray``: results of the actors)."""
 
 
 def predict_dataset(dataset_dir: Path, out_dir: Path, options: PredictOptions | None = None, *,
@@ -109,16 +106,10 @@ def predict_dataset(dataset_dir: Path, out_dir: Path, options: PredictOptions | 
             columnar = track_predictor(run.job.chosen.model) if not (run.mcaps and run.mcaps.raster_channels) else None
             processes = opts.forecast_processes(len(run.samples), on_cpu=str(torch_device) == "cpu",
                                                 environment_net=run.job.chosen.needs_raster)
-            if (opts.backend == "ray" and columnar is None) or processes:  # each actor / process loads the model
-                run.forecast = (process_forecasts if processes else ray_forecasts)(  # shards with selected logs
-                    run.job, list(run.logs), run.samples, [p for _, p in pending if p.name in by_shard],
-                    processes or opts.workers, opts.threads, opts.device)
-                summary.device = None  # chosen on each actor / process
-            elif opts.backend == "local":
-                load_net(run.job.chosen, run.job.dataset, run.job.batch_size, torch_device or "cpu")
-            uncommitted = writer.manifest is None
             outputs = (_columnar_shards(run, columnar, pending, out_dir, summary, opts, progress) if columnar
-                       else (_predict_shard(run, i, p, out_dir, summary, progress) for i, p in pending))
+                       else _sample_shards(run, pending, out_dir, summary, opts, progress, processes,
+                                           torch_device or "cpu"))
+            uncommitted = writer.manifest is None
             for entry, new_files in outputs:
                 shards.append(entry)
                 files.update(new_files)
@@ -204,26 +195,6 @@ def _prepare(dataset_dir: Path, out_dir: Path, opts: PredictOptions) -> tuple[_R
 # One shard: samples → model → Parquet + MCAPs.
 
 
-def _predict_shard(run: _Run, index: int, path: Path, out_dir: Path, summary: PredictSummary,
-                   progress: Callable[[int], None] | None) -> tuple[RunShardEntry, dict[str, FileEntry]]:
-    """Predict one dataset shard into new files; returns its manifest entry and the files to commit with it."""
-    key = path.relative_to(run.job.dataset.root).as_posix()
-    entry: RunShardEntry = {"shard": key, "logs": 0, "samples": 0, "rows": 0, "file": None}
-    t0 = time.perf_counter()
-    in_shard = set(pc.unique(read_table(path, columns=["log_id"]).column("log_id")).to_pylist())
-    shard_logs = [log_id for log_id in run.logs if log_id in in_shard]  # logs-table order, as batches were cut
-    entry["logs"] = len(shard_logs)
-    if not shard_logs:
-        summary.io_seconds += time.perf_counter() - t0
-        return entry, {}
-    tracks = read_table(path)  # a damaged shard is a one-line DatasetError
-    summary.io_seconds += time.perf_counter() - t0
-    write_mcap = run.mcaps.write if run.mcaps is not None else None
-    with counted_shard_writer(run.meta, run.job.batch_size, out_dir, index, entry, write_mcap, summary) as sink:
-        _predict_logs(run, tracks, shard_logs, summary, progress, sink)
-    return entry, sink.files
-
-
 def _columnar_shards(run: _Run, predictor: TrackPredictor, pending: list[tuple[int, Path]], out_dir: Path,
                      summary: PredictSummary, opts: PredictOptions,
                      progress: Callable[[int], None] | None) -> Iterator[tuple[RunShardEntry, dict[str, FileEntry]]]:
@@ -238,63 +209,37 @@ def _columnar_shards(run: _Run, predictor: TrackPredictor, pending: list[tuple[i
         yield done.entry, done.files
 
 
-def _predict_logs(run: _Run, tracks: pa.Table, shard_logs: list[str], summary: PredictSummary,
-                  progress: Callable[[int], None] | None, sink: ShardWriter) -> None:
-    """Predict every selected sample of the shard's logs, handing results to ``sink`` batch by batch and ending
-    each log once all its samples are predicted. Batches span logs (Argoverse has one sample per log), so a log is
-    finished when a batch has gone past it."""
-    pending: list[LogOutput] = []
-    batch: list[tuple[LogOutput, dict[str, Any], SceneSample]] = []
-    rows = run.samples.rows_by_log(shard_logs)
-    raster = run.forecast is None or bool(run.mcaps and run.mcaps.raster_channels)  # else unused here
-    for log_id, windows in log_windows(tracks, shard_logs):
-        out = LogOutput(log_id)
-        pending.append(out)
-        for row in rows[log_id]:
-            sample = run.job.cutter.cut(windows, row, raster)
-            if sample is None:
-                summary.samples_without_targets += 1
+def _sample_shards(run: _Run, pending: list[tuple[int, Path]], out_dir: Path, summary: PredictSummary,
+                   opts: PredictOptions, progress: Callable[[int], None] | None, processes: int,
+                   device: Any) -> Iterator[tuple[RunShardEntry, dict[str, FileEntry]]]:
+    """Predict the ``pending`` shards on the per-sample path: here (on ``device``), or by workers (``processes``
+    local ones, else with ``--backend ray`` actors) that predict whole shards when there are enough of them, else
+    forecast the batches cut here; yields entries and files in shard order."""
+    job = run.job
+    remote_forecast = processes > 0 or opts.backend == "ray"
+    shard_run = SampleShardRun(job.cutter, job.dataset.protocol, job.modes, job.batch_size, run.meta, out_dir,
+                               cut_rasters=not remote_forecast or bool(run.mcaps and run.mcaps.raster_channels))
+    jobs = sample_shard_jobs(shard_run, job.dataset.root, pending, run.logs, run.samples, summary, run.mcaps)
+    if remote_forecast:
+        done_remotely = shard_predictions(job, jobs, processes or opts.workers, opts.threads, opts.device,
+                                          ray=opts.backend == "ray")
+        if done_remotely is not None:
+            summary.device = None  # chosen on each actor / process
+            for done in done_remotely:
+                summary.add(done.summary)
                 if progress:
-                    progress(1)
-                continue
-            out.expected += 1
-            batch.append((out, row, sample))
-            if len(batch) >= run.job.batch_size:
-                run_batch(run, batch, summary, progress, sink)
-                batch = []
-                sink.end_finished(pending, out)
-                sink.throttle()
-        sink.end_finished(pending, out)
-    if batch:
-        run_batch(run, batch, summary, progress, sink)
-    for out in pending:
-        sink.end(out)
-
-
-def run_batch(run: _Run, batch: list[tuple[LogOutput, dict[str, Any], SceneSample]],
-               summary: PredictSummary, progress: Callable[[int], None] | None, sink: ShardWriter) -> None:
-    """Forecast one batch and hand each sample's result to its log (public: the seam ``benchmarks/bench_predict``
-    wraps to see every batch the stage forecasts)."""
-    import torch
-
-    samples = [s for _, _, s in batch]
-    t0 = time.perf_counter()
-    with torch.inference_mode():
-        # Each sample's noise comes from (--seed, sample id) and a network's arithmetic from batch-shape invariant
-        # kernels (logpipe.model.row_blocks): batching and resuming change no bit of a forecast.
-        futures = (run.forecast(samples) if run.forecast is not None
-                   else run.job.chosen.model.predict(samples, run.job.modes, run.job.seed))
-    summary.model_seconds += time.perf_counter() - t0
-    by_log: dict[str, tuple[LogOutput, list[SamplePrediction]]] = {}
-    for (out, row, sample), forecast in zip(batch, futures, strict=True):
-        prediction, unobserved = SamplePrediction.of(row, sample, forecast, run.job.dataset.protocol, run.job.modes,
-                                                     int(run.logs.column("median_dt_ns")[out.log_id]))
-        by_log.setdefault(out.log_id, (out, []))[1].append(prediction)
-        out.finished += 1
-        summary.targets_unobserved += unobserved
-        summary.targets += len(prediction.targets)
-    for out, predictions in by_log.values():  # batch order is log order
-        sink.add(out, predictions)
-    summary.samples += len(batch)
-    if progress:
-        progress(len(batch))
+                    progress(done.summary.samples + done.summary.samples_without_targets)
+                yield done.entry, done.files
+            return
+        # Too few shards to share out: the workers forecast the batches cut here (each loads the model).
+        forecast = (process_forecasts if processes else ray_forecasts)(
+            job, list(run.logs), run.samples, [j.path for j in jobs if j.log_ids], processes or opts.workers,
+            opts.threads, opts.device)
+        summary.device = None
+    else:
+        load_net(job.chosen, job.dataset, job.batch_size, device)
+        forecast = functools.partial(cast(Any, job.chosen.model).predict, num_modes=job.modes, seed=job.seed)
+    for shard in jobs:
+        done = predict_sample_shard(shard, forecast, progress)
+        summary.add(done.summary)
+        yield done.entry, done.files

@@ -8,7 +8,7 @@ Positions are metres in the log's world frame; times are ns on the log's clock.
 from __future__ import annotations
 
 from collections.abc import Iterator, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -57,6 +57,16 @@ class SampleCutter:
         if raster and self.rasters is not None and sample.sample_id in self.raster_ids:
             sample.raster, sample.world_to_raster = self.rasters.get(sample.sample_id)
         return sample
+
+    def for_samples(self, sample_ids: pa.Array) -> SampleCutter:
+        """This cutter with only ``sample_ids``' rasters (what a worker's job carries: the whole raster index of a
+        50k-log corpus is ~20 MB to pickle), in a fresh ``RasterShards``, which has no memory maps to pickle."""
+        if self.rasters is None:
+            return self
+        index = self.rasters.index
+        index = index.filter(pc.is_in(index.column("sample_id"), value_set=sample_ids))
+        return replace(self, rasters=RasterShards(self.rasters.run_dir, self.rasters.spec, index),
+                       raster_ids=self.raster_ids & frozenset(sample_ids.to_pylist()))
 
     def plan_batches(self, tracks: pa.Table, log_ids: Sequence[str], samples: SelectedSamples,
                      batch_size: int) -> BatchPlan:

@@ -45,6 +45,66 @@ def test_driving_model_over_rasters_in_two_processes_writes_the_bytes_of_one(
     assert folder_digests(tmp_path / "two") == folder_digests(tmp_path / "one")
 
 
+def _shard_jobs_only(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Workers predict whole shards from one shard with logs per worker on (the bundled data has few shards), and
+    the batch-forecast path fails the test if taken."""
+    from logpipe.model import ray_predict
+    from logpipe.stages import predict
+
+    monkeypatch.setattr(ray_predict, "SHARDS_PER_WORKER", 1)
+
+    def refused(*args: object, **kwargs: object) -> None:
+        raise AssertionError("the workers forecast batches cut by the stage instead of predicting whole shards")
+
+    monkeypatch.setattr(predict, "process_forecasts", refused)
+    monkeypatch.setattr(predict, "ray_forecasts", refused)
+
+
+def test_eth_shard_jobs_in_two_processes_write_the_bytes_of_one(folder_digests: Callable[[Path], dict[str, str]],
+                                                                tmp_path: Path,
+                                                                monkeypatch: pytest.MonkeyPatch) -> None:
+    # Three shards with selected logs: each worker cuts, forecasts and writes whole shards (Parquet and MCAPs).
+    ingest([DATA / "ethucy"], IngestOptions(out=tmp_path / "eth", batch_files=1))
+    settings = {"checkpoint": ETH_CHECKPOINT, "batch_size": 5, "threads": 1,
+                "sample_filter": parse_filter(["time=:30000000000"])}
+    one = predict_dataset(tmp_path / "eth", tmp_path / "one", workers=1, **settings)
+    _shard_jobs_only(monkeypatch)
+    two = predict_dataset(tmp_path / "eth", tmp_path / "two", workers=2, **settings)
+    assert one["shards"] == two["shards"] == 3 and two["device"] is None
+    assert two["samples"] == one["samples"] >= 30 and two["rows"] == one["rows"] > 0 and two["mcap_files"] == 3
+    assert two["targets"] == one["targets"] and two["model_seconds"] > 0  # the workers' counts reach the summary
+    assert folder_digests(tmp_path / "two") == folder_digests(tmp_path / "one")
+
+
+def test_driving_shard_jobs_carry_their_own_rasters(folder_digests: Callable[[Path], dict[str, str]],
+                                                   tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    from logpipe.maps import MapSource
+    from logpipe.stages.rasterise import rasterise_dataset
+
+    # A shard per sequence, so each worker gets one shard and only that shard's raster (environment net on it).
+    driving = DATA / "driving"
+    ingest([driving / "20.csv", driving / "32.csv"], IngestOptions(out=tmp_path / "av1", batch_files=1))
+    rasterise_dataset(tmp_path / "av1", MapSource(files={"MIA": driving / "MIA_lane_centerlines_crop_20.npz",
+                                                         "PIT": driving / "PIT_lane_centerlines_crop_32.npz"}),
+                      rotate=True)
+    one = predict_dataset(tmp_path / "av1", tmp_path / "one", workers=1, batch_size=1, threads=1)
+    _shard_jobs_only(monkeypatch)
+    from logpipe.model import ray_predict
+
+    shipped: list[int] = []
+    original = ray_predict._in_processes
+
+    def counting(work: list[tuple[str, Callable[[], object], object]], workers: int) -> object:
+        shipped.extend(len(job.run.cutter.raster_ids) for _, _, job in work)  # type: ignore[attr-defined]
+        return original(work, workers)
+
+    monkeypatch.setattr(ray_predict, "_in_processes", counting)
+    two = predict_dataset(tmp_path / "av1", tmp_path / "two", workers=2, batch_size=1, threads=1)
+    assert one["predictor"] == "zhu2020" and one["shards"] == 2 and shipped == [1, 1]
+    assert two["samples"] == one["samples"] == 2 and two["mcap_files"] == 2
+    assert folder_digests(tmp_path / "two") == folder_digests(tmp_path / "one")
+
+
 @pytest.mark.parametrize(("options", "samples", "on_cpu", "expected"), [
     (PredictOptions(workers=3), 1, True, 3),  # asked for: always, however small the run
     (PredictOptions(workers=1), 10**6, True, 0),  # one worker: this process

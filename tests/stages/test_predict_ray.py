@@ -56,6 +56,26 @@ def test_network_forecasts_on_ray_write_the_local_bytes(folder_digests: Callable
     assert folder_digests(tmp_path / "ray") == files
 
 
+def test_actors_predicting_whole_shards_write_the_local_bytes(folder_digests: Callable[[Path], dict[str, str]],
+                                                             tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    from logpipe.dataset.sample_filter import parse_filter
+    from logpipe.model import ray_predict
+    from logpipe.stages import predict
+
+    # A shard per input file, and shard jobs from one shard per actor: each actor cuts, forecasts and writes whole
+    # shards, and a killed actor's shard is retried (no partial or duplicate file).
+    ingest([REPO / "tests" / "data" / "ethucy"], IngestOptions(out=tmp_path / "ds", batch_files=1))
+    monkeypatch.setattr(ray_predict, "SHARDS_PER_WORKER", 1)
+    monkeypatch.setattr(predict, "ray_forecasts", None)  # the batch-forecast path would fail
+    monkeypatch.setenv(ray_predict.KILL_ONCE_ENV, str(tmp_path / "killed"))
+    local, remote = _both(tmp_path / "ds", tmp_path, checkpoint=ETH_CHECKPOINT, batch_size=4, threads=1,
+                          sample_filter=parse_filter(["time=:30000000000"]))
+    assert (tmp_path / "killed").exists()
+    assert remote["shards"] == local["shards"] == 3 and remote["samples"] == local["samples"] >= 30
+    assert remote["mcap_files"] == 3 and remote["rows"] == local["rows"] > 0
+    assert folder_digests(tmp_path / "ray") == folder_digests(tmp_path / "local")
+
+
 def test_baseline_on_ray_writes_the_local_bytes(folder_digests: Callable[[Path], dict[str, str]], eth: Path,
                                                 tmp_path: Path) -> None:
     from logpipe.dataset.sample_filter import parse_filter
