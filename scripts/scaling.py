@@ -176,12 +176,11 @@ def render(r: dict[str, Any]) -> str:
         "fully observed vehicle but the AV a target. Each stage is its own `logpipe` process, Parquet only "
         f"(`--no-mcap`); the full driving model (K = 6) predicts the first {r['full_part']:,} logs. Peak memory: the "
         "largest sum of resident memory over the stage's process tree (Ray's own processes included), sampled every "
-        "0.1 s. Locally, ingest and rasterise run `-j` worker processes, predict with the full model forecasts in `-j` "
-        "processes of one thread (its driver cuts samples and writes every output) and constant velocity runs `-j` "
-        "shard processes (its column-wise path: each shard job cuts, "
-        "forecasts and writes its own file; the driver commits them in order); on Ray, ingest, rasterise and "
-        "constant velocity run Ray tasks on a local cluster of `-j` CPUs and the full model runs `-j` actors of "
-        "one thread (its driver cuts samples and writes every output itself).",
+        "0.1 s. Locally, ingest and rasterise run `-j` worker processes; predict runs `-j` shard processes, each "
+        "shard job cutting, forecasting and writing its own files while the driver commits them in order (the full "
+        "model: processes of one thread that load it once; constant velocity: its column-wise path). On Ray, "
+        "ingest, rasterise and constant velocity run Ray tasks on a local cluster of `-j` CPUs and the full model "
+        "runs the same shard jobs on `-j` Ray Data actors of one thread.",
         "",
         "## Measured",
         "",
@@ -272,8 +271,8 @@ def _against_targets(r: dict[str, Any], runs: dict[tuple[str, int], dict[str, An
         "constant velocity's shard jobs spend ~27 % of their samples in the zstd Parquet writer and most of the rest "
         "in reading, cutting and tabulating their shard, work that two independent processes here speed up no "
         "more than the stage does; its driver's per-shard commits (200 here) were ~3 % of the run's samples. The "
-        "full model's driver cuts every sample and writes every output itself, so it scales only as far as its "
-        "network share. Predict's memory grows with the logs selected through its Arrow sample index and logs "
+        "full model's workers each load the model, then cut, forecast and write whole 250-log shards. "
+        "Predict's memory grows with the logs selected through its Arrow sample index and logs "
         "table (~0.7 kB a log) and the dataset manifest read at start. On Ray, each run also starts the cluster "
         "and its workers' imports (the fixed cost above) and shares the two cores with Ray's own processes. Where "
         "a stage's local scaling is at this machine's ceiling (above), the 1.7x target is above what two cores here "
@@ -284,12 +283,6 @@ def _projection(r: dict[str, Any], runs: dict[tuple[str, int], dict[str, Any]]) 
     """The projection table: this machine (the best 2-worker rate), a 16-node CPU Ray cluster (the Ray 1-worker
     rate per core, plus the fixed cost), per GPU (network FLOPs at an assumed rate; network stages only)."""
     full = AV1_FULL_SEQUENCES
-    # The full model's driver cuts every sample and writes every output however many actors forecast: its time
-    # outside the network in the local 1-worker run bounds a full-model run on any cluster. Constant velocity's
-    # shard jobs write their own outputs (only the per-shard commits stay serial), so it has no such bound here.
-    local_full = runs["local", 1].get("predict_full", {}).get("summary", {})
-    driver = ((local_full["seconds"] - local_full["model_seconds"]) / local_full["samples"]
-              if local_full.get("samples") else 0.0)
     rows = ["| stage | this machine | CPU Ray cluster (16 x 32 cores) | per GPU |", "|---|---|---|---|"]
     for stage in STAGES:
         if stage not in runs[("local", 1)]:
@@ -302,18 +295,14 @@ def _projection(r: dict[str, Any], runs: dict[tuple[str, int], dict[str, Any]]) 
         if stage == "predict_full":
             gpu = _duration(full * r["flops"]["predict"] / (GPU_SUSTAINED_TFLOPS * 1e12))
         cluster = full * per_core / CLUSTER_CORES
-        if stage == "predict_full":
-            cluster = max(cluster, full * driver)
         rows.append(f"| {stage.replace('_', ' ')} | {_duration(full * best2)} | "
                     f"{_duration(cluster + overhead)} | {gpu} |")
     return "\n".join(rows) + (
         f"\n\n{full:,} sequences, one sample each. This machine: the faster of local and Ray at 2 workers. CPU "
         f"cluster: {CLUSTER_CORES} cores at the measured Ray 1-worker rate per core plus Ray's fixed cost, i.e. "
         "perfect scaling across nodes (a lower bound: the measured 1 → 2 scaling above says how far from it one "
-        "machine already is); for the full model, never faster than its single driver, which cuts every sample and "
-        f"writes every output ({1e6 * driver:.0f} µs per sample: the local 1-worker run's time outside the network), "
-        "so it does not scale out until its actors write their own outputs, as constant velocity's shard jobs do "
-        "(its projection leaves out the driver's serial per-shard commits). "
+        "machine already is; both predict rows leave out the driver's serial commit per shard, and the full "
+        "model's shard jobs need two shards with selected logs per actor, which 250-sequence shards give). "
         "Per GPU: not measurable here (no GPU); the "
         f"network's FLOPs per sample ({r['flops']['predict'] / 1e9:.2f} GFLOP at K = 6, counted by torch) at an "
         f"assumed {GPU_SUSTAINED_TFLOPS:.0f} TFLOP/s, a lower bound that leaves out the CPU work around it. "
