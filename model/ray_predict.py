@@ -34,9 +34,9 @@ from logpipe.errors import LogpipeError
 from logpipe.executor import run_ordered
 from logpipe.model.device import resolve_device
 from logpipe.model.registry import ChosenPredictor, load_net
-from logpipe.prediction.columnar import ShardDone
 from logpipe.prediction.model_inputs import SampleCutter, ShardWindows, WorkItem, work_items
-from logpipe.prediction.sample_shards import SampleShardJob, predict_sample_shard
+from logpipe.prediction.sample_shards import SampleShardRun, predict_sample_shard
+from logpipe.prediction.shard_jobs import ShardDone, ShardJob
 from logpipe.storage.io import read_table
 from logpipe.types import SceneSample
 
@@ -203,7 +203,7 @@ SHARDS_PER_WORKER = 2
 their files, ``shard_predictions``) rather than forecasting batches the stage cuts and writes."""
 
 
-def shard_predictions(job: ForecastJob, jobs: list[SampleShardJob], workers: int, threads: int, device: str,
+def shard_predictions(job: ForecastJob, jobs: list[ShardJob[SampleShardRun]], workers: int, threads: int, device: str,
                       ray: bool) -> Iterator[ShardDone] | None:
     """Each of ``jobs`` predicted by a worker that loaded the model once (``ray``: Ray actors, else ``workers``
     local processes of ``threads`` torch threads, 0: 1), in job order; None when the jobs with logs are fewer than
@@ -237,7 +237,7 @@ def _in_processes(work: list[tuple[str, Callable[[], Forecast], Any]], workers: 
         _PROCESS_FORECAST.clear()  # a single item runs in this process: do not keep its model
 
 
-def _shard_actor(job: ForecastJob, threads: int, device: str) -> Callable[[SampleShardJob], ShardDone]:
+def _shard_actor(job: ForecastJob, threads: int, device: str) -> Callable[[ShardJob[SampleShardRun]], ShardDone]:
     """Runs once in each worker: loads the model on ``threads`` torch threads; returns the prediction of a shard
     job (``logpipe.prediction.sample_shards``)."""
     import torch
@@ -250,7 +250,7 @@ def _shard_actor(job: ForecastJob, threads: int, device: str) -> Callable[[Sampl
     return functools.partial(_predict_with, functools.partial(model.predict, num_modes=job.modes, seed=job.seed))
 
 
-def _predict_with(forecast: Callable[[list[SceneSample]], Sequence[Any]], shard: SampleShardJob) -> ShardDone:
+def _predict_with(forecast: Callable[[list[SceneSample]], Sequence[Any]], shard: ShardJob[SampleShardRun]) -> ShardDone:
     return predict_sample_shard(shard, forecast)
 
 

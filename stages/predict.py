@@ -46,9 +46,7 @@ from logpipe.model.registry import (
 from logpipe.prediction.columnar import (
     ColumnarRun,
     TrackPredictor,
-    logs_by_shard,
     predict_shard,
-    shard_jobs,
     track_predictor,
 )
 from logpipe.prediction.mcap_logs import PredictionMcaps, check_log_ids
@@ -56,7 +54,8 @@ from logpipe.prediction.model_inputs import SampleCutter, raster_problems
 from logpipe.prediction.options import PredictOptions, PredictSummary, default_modes
 from logpipe.prediction.output import fast_gil_switching
 from logpipe.prediction.runs import PredictionMeta, PredictionRunWriter, RunSettings, RunShardEntry
-from logpipe.prediction.sample_shards import SampleShardRun, predict_sample_shard, sample_shard_jobs
+from logpipe.prediction.sample_shards import SampleShardRun, predict_sample_shard
+from logpipe.prediction.shard_jobs import logs_by_shard, shard_jobs
 from logpipe.progress import report_total
 from logpipe.raster.runs import find_raster_run
 from logpipe.storage.artifact import MANIFEST, FileEntry, output_errors
@@ -219,7 +218,7 @@ def _sample_shards(run: _Run, pending: list[tuple[int, Path]], out_dir: Path, su
     remote_forecast = processes > 0 or opts.backend == "ray"
     shard_run = SampleShardRun(job.cutter, job.dataset.protocol, job.modes, job.batch_size, run.meta, out_dir,
                                cut_rasters=not remote_forecast or bool(run.mcaps and run.mcaps.raster_channels))
-    jobs = sample_shard_jobs(shard_run, job.dataset.root, pending, run.logs, run.samples, summary, run.mcaps)
+    jobs = shard_jobs(shard_run, job.dataset.root, pending, run.logs, run.samples, summary, run.mcaps)
     if remote_forecast:
         done_remotely = shard_predictions(job, jobs, processes or opts.workers, opts.threads, opts.device,
                                           ray=opts.backend == "ray")

@@ -23,7 +23,7 @@ from typing import Protocol, cast
 import numpy as np
 import pyarrow as pa
 
-from logpipe.dataset.sample_filter import SelectedLogs, SelectedSamples
+from logpipe.dataset.sample_filter import SelectedSamples
 from logpipe.dataset.target_tracks import ShardTracks, TargetTracks
 from logpipe.errors import DatasetError
 from logpipe.mcap.forecast_scene import TargetForecasts
@@ -31,10 +31,9 @@ from logpipe.mcap.merge import NewMessage
 from logpipe.prediction.mcap_logs import PredictionMcaps
 from logpipe.prediction.options import PredictSummary
 from logpipe.prediction.output import ShardWriter, counted_shard_writer
-from logpipe.prediction.runs import PredictionMeta, RunShardEntry
+from logpipe.prediction.runs import PredictionMeta
+from logpipe.prediction.shard_jobs import ShardDone, ShardJob
 from logpipe.prediction.table import Targets, targets_table
-from logpipe.storage.artifact import FileEntry
-from logpipe.storage.io import read_table
 from logpipe.types import OBJECT_TYPES, NDArrayBool, NDArrayFloat, NDArrayInt
 
 CHUNK_SAMPLES = 4096
@@ -212,78 +211,15 @@ class ColumnarRun:
     object_types: tuple[str, ...]
 
 
-@dataclass(frozen=True)
-class ShardJob:
-    """One dataset shard's work on the columnar path (picklable: a process-pool or Ray task).
-
-    Attributes:
-        run: what the run's jobs share; ``path``: the shard file; ``key``: its name in the run manifest;
-            ``index``: its number (``part-NNNNN``).
-        log_ids: the selected logs it holds; ``samples``: their selected sample-index rows, in output order;
-            ``dt_ns``: (S,) each sample's log median step (ns).
-        summary: a zeroed run summary, filled with this shard's counts.
-        mcaps: how to write its logs' MCAPs (None: Parquet only).
-    """
-
-    run: ColumnarRun
-    path: Path
-    key: str
-    index: int
-    log_ids: tuple[str, ...]
-    samples: pa.Table
-    dt_ns: NDArrayInt
-    summary: PredictSummary
-    mcaps: PredictionMcaps | None = None
-
-
-def shard_jobs(run: ColumnarRun, root: Path, pending: Sequence[tuple[int, Path]],
-               logs: SelectedLogs, samples: SelectedSamples,
-               summary: PredictSummary, mcaps: PredictionMcaps | None = None) -> list[ShardJob]:
-    """The jobs of the ``pending`` (index, path) shards of the dataset at ``root``, from the selected ``logs`` and
-    ``samples``; ``mcaps``: the run's MCAP writer, if it writes them."""
-    by_shard = logs_by_shard(logs)
-    log_dt_ns = logs.column("median_dt_ns")
-    jobs = []
-    for index, path in pending:
-        mine = by_shard.get(path.name, [])
-        dt_ns = np.repeat(np.array([int(log_dt_ns[i]) for i in mine], np.int64),
-                          [samples.count(i) for i in mine])
-        # combine_chunks, and the MCAP writer cut to the shard's logs: a job pickles its own part, not the run's.
-        jobs.append(ShardJob(run, path, path.relative_to(root).as_posix(), index, tuple(mine),
-                             samples.table(mine).combine_chunks(), dt_ns, summary.zeroed(),
-                             mcaps.of_logs(mine) if mcaps is not None else None))
-    return jobs
-
-
-def logs_by_shard(logs: SelectedLogs) -> dict[str, list[str]]:
-    """The ids of ``logs`` by the file name of their shard, in the logs' order."""
-    by_shard: dict[str, list[str]] = {}
-    for log_id, shard in logs.column("shard").items():
-        by_shard.setdefault(str(shard).rsplit("/", 1)[-1], []).append(log_id)  # a POSIX path; no Path per log
-    return by_shard
-
-
-@dataclass(frozen=True)
-class ShardDone:
-    """A predicted shard: its manifest entry, the files to commit with it and its counts."""
-
-    entry: RunShardEntry
-    files: dict[str, FileEntry]
-    summary: PredictSummary
-
-
-def predict_shard(job: ShardJob) -> ShardDone:
+def predict_shard(job: ShardJob[ColumnarRun]) -> ShardDone:
     """Predict one shard into its own uncommitted files (``prediction.output.shard_writer``): the Parquet rows
     and, with ``job.mcaps``, each log's MCAP."""
     summary = job.summary
-    entry: RunShardEntry = {"shard": job.key, "logs": len(job.log_ids), "samples": 0, "rows": 0, "file": None}
-    if not job.log_ids:
+    entry, tracks = job.start()
+    if tracks is None:
         return ShardDone(entry, {}, summary)
-    t0 = time.perf_counter()
-    tracks = read_table(job.path)  # a damaged shard is a one-line DatasetError
-    summary.io_seconds += time.perf_counter() - t0
     with counted_shard_writer(job.run.meta, CHUNK_SAMPLES, job.run.out_dir, job.index, entry, None, summary) as sink:
-        chunks = handed_chunks(chunk_rows(ShardTracks(tracks), job.samples, job.dt_ns, job.run.predictor,
+        chunks = handed_chunks(chunk_rows(ShardTracks(tracks), job.samples, _sample_dt_ns(job), job.run.predictor,
                                           job.run.meta, job.run.object_types, drawn=job.mcaps is not None),
                                sink, summary)
         if job.mcaps is not None:
@@ -291,3 +227,9 @@ def predict_shard(job: ShardJob) -> ShardDone:
         for _ in chunks:  # the rest (all of them without MCAPs)
             pass
     return ShardDone(entry, sink.files, summary)
+
+
+def _sample_dt_ns(job: ShardJob[ColumnarRun]) -> NDArrayInt:
+    """(S,) each of the job's samples' log median step (ns); its samples come log after log."""
+    counts = SelectedSamples(job.samples)
+    return np.repeat(np.array([job.dt_ns[i] for i in job.log_ids], np.int64), [counts.count(i) for i in job.log_ids])
