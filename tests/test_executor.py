@@ -34,6 +34,27 @@ def test_ray_backend_writes_the_same_shards_as_local(bundled: Path, tmp_path: Pa
         assert (tmp_path / "ray" / shard).read_bytes() == (tmp_path / "local" / shard).read_bytes()
 
 
+def test_on_ray_each_task_runs_queued_on_its_own_item_first(tmp_path: Path) -> None:
+    # Read-ahead belongs on the node that reads the files: the task itself, not the driver.
+    ray = pytest.importorskip("ray", reason="Ray is a dev dependency; install logpipe[dev]")
+
+    # Local functions: Ray's workers cannot import this test module, so these travel by value.
+    def _mark(item: tuple[Path, int]) -> None:
+        (item[0] / f"queued-{item[1]}-{os.getpid()}").touch()
+
+    def _marked_here(item: tuple[Path, int]) -> bool:
+        return (item[0] / f"queued-{item[1]}-{os.getpid()}").exists()
+
+    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
+    try:
+        items = [(tmp_path, i) for i in range(5)]
+        done = list(run_ordered(_marked_here, items, workers=2, backend="ray", queued=_mark))
+    finally:
+        ray.shutdown()
+    assert done == [True] * 5  # each item's mark was made in the process that ran it, before it ran
+    assert not any(p.name.endswith(f"-{os.getpid()}") for p in tmp_path.iterdir())  # none by the driver
+
+
 @pytest.mark.parametrize("fork", [True, False])
 def test_forked_and_served_workers_give_the_same_results(fork: bool, monkeypatch: pytest.MonkeyPatch) -> None:
     from logpipe import executor
