@@ -144,8 +144,7 @@ def run_ordered(
     ``queued(item)``, when given, runs in this process as each item is queued, a batch or two before a
     worker starts it (e.g. to have the OS read the item's input files ahead); on Ray, in the task itself just
     before ``fn(item)``, on the node that reads the files (a few files in, the rest are already on their way).
-    At INFO level
-    (``logpipe -v``) each result is logged with the seconds since the previous one.
+    At INFO level (``logpipe -v``) each result is logged with the seconds since the previous one.
     """
     results = _run_ordered(fn, items, workers=workers, backend=backend, queued=queued)
     if not logger.isEnabledFor(logging.INFO):

@@ -240,18 +240,20 @@ def _in_processes(work: list[tuple[str, Callable[[], Forecast], Any]], workers: 
 def _shard_actor(job: ForecastJob, threads: int, device: str) -> Callable[[ShardJob[SampleShardRun]], ShardDone]:
     """Runs once in each worker: loads the model on ``threads`` torch threads; returns the prediction of a shard
     job (``logpipe.prediction.sample_shards``)."""
+    model = _loaded_model(job, threads, device)
+    return functools.partial(predict_sample_shard,
+                             forecast=functools.partial(model.predict, num_modes=job.modes, seed=job.seed))
+
+
+def _loaded_model(job: ForecastJob, threads: int, device: str) -> Any:
+    """The job's model, loaded in this worker (on ``device`` when a checkpoint), torch on ``threads`` threads."""
     import torch
 
     load_net(job.chosen, job.dataset, job.batch_size,
              resolve_device(device) if job.chosen.checkpoint is not None else "cpu")
     torch.set_num_threads(threads)
-    model = job.chosen.model
-    assert model is not None
-    return functools.partial(_predict_with, functools.partial(model.predict, num_modes=job.modes, seed=job.seed))
-
-
-def _predict_with(forecast: Callable[[list[SceneSample]], Sequence[Any]], shard: ShardJob[SampleShardRun]) -> ShardDone:
-    return predict_sample_shard(shard, forecast)
+    assert job.chosen.model is not None
+    return job.chosen.model
 
 
 _PROCESS_FORECAST: dict[str, Forecast] = {}
@@ -298,11 +300,7 @@ def _actor(job: ForecastJob, threads: int, device: str) -> Callable[[WorkItem], 
     (the last one read is kept)."""
     import torch
 
-    load_net(job.chosen, job.dataset, job.batch_size,
-             resolve_device(device) if job.chosen.checkpoint is not None else "cpu")
-    torch.set_num_threads(threads)
-    model = job.chosen.model
-    assert model is not None
+    model = _loaded_model(job, threads, device)
     shard = ShardWindows()
 
     def forecast(item: WorkItem) -> list[tuple[list[str], list[Any]]]:

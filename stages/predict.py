@@ -24,7 +24,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, cast
@@ -55,7 +55,7 @@ from logpipe.prediction.options import PredictOptions, PredictSummary, default_m
 from logpipe.prediction.output import fast_gil_switching
 from logpipe.prediction.runs import PredictionMeta, PredictionRunWriter, RunSettings, RunShardEntry
 from logpipe.prediction.sample_shards import SampleShardRun, predict_sample_shard
-from logpipe.prediction.shard_jobs import logs_by_shard, shard_jobs
+from logpipe.prediction.shard_jobs import ShardDone, logs_by_shard, shard_jobs
 from logpipe.progress import report_total
 from logpipe.raster.runs import find_raster_run
 from logpipe.storage.artifact import MANIFEST, FileEntry, output_errors
@@ -201,11 +201,8 @@ def _columnar_shards(run: _Run, predictor: TrackPredictor, pending: list[tuple[i
     ``--backend ray``), each into its own uncommitted files; yields entries and files in shard order."""
     shared = ColumnarRun(predictor, out_dir, run.meta, run.job.cutter.object_types)
     jobs = shard_jobs(shared, run.job.dataset.root, pending, run.logs, run.samples, summary, run.mcaps)
-    for done in run_ordered(predict_shard, jobs, workers=opts.workers, backend=cast(Backend, opts.backend)):
-        summary.add(done.summary)
-        if progress:
-            progress(done.summary.samples + done.summary.samples_without_targets)
-        yield done.entry, done.files
+    yield from _counted(run_ordered(predict_shard, jobs, workers=opts.workers, backend=cast(Backend, opts.backend)),
+                        summary, progress)
 
 
 def _sample_shards(run: _Run, pending: list[tuple[int, Path]], out_dir: Path, summary: PredictSummary,
@@ -224,11 +221,7 @@ def _sample_shards(run: _Run, pending: list[tuple[int, Path]], out_dir: Path, su
                                           ray=opts.backend == "ray")
         if done_remotely is not None:
             summary.device = None  # chosen on each actor / process
-            for done in done_remotely:
-                summary.add(done.summary)
-                if progress:
-                    progress(done.summary.samples + done.summary.samples_without_targets)
-                yield done.entry, done.files
+            yield from _counted(done_remotely, summary, progress)
             return
         # Too few shards to share out: the workers forecast the batches cut here (each loads the model).
         forecast = (process_forecasts if processes else ray_forecasts)(
@@ -242,3 +235,14 @@ def _sample_shards(run: _Run, pending: list[tuple[int, Path]], out_dir: Path, su
         done = predict_sample_shard(shard, forecast, progress)
         summary.add(done.summary)
         yield done.entry, done.files
+
+
+def _counted(done: Iterable[ShardDone], summary: PredictSummary,
+             progress: Callable[[int], None] | None) -> Iterator[tuple[RunShardEntry, dict[str, FileEntry]]]:
+    """Shards predicted elsewhere (a worker, a Ray task or actor), in order: their counts added to ``summary`` and
+    ``progress``; yields each one's entry and files."""
+    for shard in done:
+        summary.add(shard.summary)
+        if progress:
+            progress(shard.summary.samples + shard.summary.samples_without_targets)
+        yield shard.entry, shard.files

@@ -23,7 +23,7 @@ from typing import Protocol, cast
 import numpy as np
 import pyarrow as pa
 
-from logpipe.dataset.sample_filter import SelectedSamples
+from logpipe.dataset.shards import log_slices
 from logpipe.dataset.target_tracks import ShardTracks, TargetTracks
 from logpipe.errors import DatasetError
 from logpipe.mcap.forecast_scene import TargetForecasts
@@ -231,5 +231,5 @@ def predict_shard(job: ShardJob[ColumnarRun]) -> ShardDone:
 
 def _sample_dt_ns(job: ShardJob[ColumnarRun]) -> NDArrayInt:
     """(S,) each of the job's samples' log median step (ns); its samples come log after log."""
-    counts = SelectedSamples(job.samples)
-    return np.repeat(np.array([job.dt_ns[i] for i in job.log_ids], np.int64), [counts.count(i) for i in job.log_ids])
+    slices = log_slices(job.samples)
+    return np.repeat(np.array([job.dt_ns[i] for i in slices], np.int64), [hi - lo for lo, hi in slices.values()])
