@@ -12,6 +12,7 @@ from pathlib import Path
 from typing import Generic, TypeVar
 
 import pyarrow as pa
+import pyarrow.compute as pc
 
 from logpipe.dataset.sample_filter import SelectedLogs, SelectedSamples
 from logpipe.prediction.mcap_logs import PredictionMcaps
@@ -54,6 +55,11 @@ class ShardJob(Generic[RunT]):
             return entry, None
         t0 = time.perf_counter()
         tracks = read_table(self.path)  # a damaged shard is a one-line DatasetError
+        # Only the selected logs' rows: a filtered run over a large shard then indexes and cuts its own logs, not
+        # the shard's (a log's rows keep their order, so forecasts and outputs are the same).
+        mine = pc.is_in(tracks.column("log_id"), value_set=pa.array(self.log_ids, pa.string()))
+        if not pc.all(mine).as_py():
+            tracks = tracks.filter(mine)
         self.summary.io_seconds += time.perf_counter() - t0
         return entry, tracks
 

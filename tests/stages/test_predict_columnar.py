@@ -67,3 +67,45 @@ def test_parallel_shard_jobs_write_the_sequential_bytes(folder_digests: Callable
     assert {k: pooled[k] for k in COUNTS} == {k: inline[k] for k in COUNTS} == {k: slow[k] for k in COUNTS}
     assert (folder_digests(tmp_path / "pooled") == folder_digests(tmp_path / "inline")
             == folder_digests(tmp_path / "per_sample"))
+
+
+@pytest.mark.parametrize("columnar_path", [True, False])
+def test_a_log_filter_cuts_only_its_logs_rows_and_predicts_the_same(bundled: Path, tmp_path: Path,
+                                                                    monkeypatch: pytest.MonkeyPatch,
+                                                                    columnar_path: bool) -> None:
+    """A run filtered to one log of a multi-log shard indexes only that log's track rows, and predicts that log
+    exactly as the unfiltered run does."""
+    import pyarrow.compute as pc
+    import pyarrow.parquet as pq
+
+    from logpipe.prediction import shard_jobs
+
+    ingest([bundled / "ethucy"], IngestOptions(out=tmp_path / "d", workers=1, write_mcap=False))
+    shard = next((tmp_path / "d" / "tracks").glob("*.parquet"))
+    logs = pq.read_table(shard, columns=["log_id"]).column("log_id")
+    assert len(pc.unique(logs)) >= 2  # the case worth testing: other logs share the shard
+    chosen = pc.unique(logs)[0].as_py()
+    started: list[tuple[tuple[str, ...], set[str], int]] = []  # per job: its logs, the logs of its rows, rows
+    real_start = shard_jobs.ShardJob.start
+
+    def spied(job: Any) -> Any:
+        entry, tracks = real_start(job)
+        started.append((job.log_ids, set(tracks.column("log_id").to_pylist()), tracks.num_rows))
+        return entry, tracks
+
+    monkeypatch.setattr(shard_jobs.ShardJob, "start", spied)
+    if not columnar_path:
+        monkeypatch.setattr(stage, "track_predictor", lambda model: None)
+    settings: dict[str, Any] = {"predictor": "cv", "write_mcap": False}
+    one = stage.predict_dataset(tmp_path / "d", tmp_path / "one", sample_filter=parse_filter([f"log={chosen}"]),
+                                **settings)
+    assert started == [((chosen,), {chosen}, int(pc.sum(pc.equal(logs, chosen)).as_py()))]
+    every = stage.predict_dataset(tmp_path / "d", tmp_path / "every", **settings)
+    assert started[1][2] == len(logs)  # every log selected: the whole shard
+    assert 0 < one["rows"] < every["rows"]
+
+    def rows_of(run: Path) -> Any:
+        table = pq.read_table(sorted((run / "predictions").glob("*.parquet")))
+        return table.filter(pc.equal(table.column("log_id"), chosen)).to_pylist()
+
+    assert rows_of(tmp_path / "one") == rows_of(tmp_path / "every")
