@@ -27,8 +27,9 @@ def render_targets(results: dict[str, Any], command: str) -> str:
         f"Produced by `python -m benchmarks.run {command}` (started {results['started']}, Python "
         f"{results['python']}, {results['machine']}; {machine_line()}). Each figure and its reference come from the "
         "same run; the machine is shared, so compare figures of one run only. Floor: the same outputs written alone "
-        "(nothing encoded), or for the full model the backbone plus every matmul at the measured fp32 rate; "
-        "share: measured / floor.", "",
+        "(nothing encoded); for the networks, torch's own recurrent cells (LSTMCell, GRUCell) stepping exactly the "
+        "rows the network's recurrences step, nothing else (the full model: the backbone alone plus those cells), "
+        "in the target's unit; share: measured / floor.", "",
         "| target | measured | required | met | this machine's floor | share of the floor |",
         "|---|---|---|---|---|---|"]
     for t in results["targets"]:

@@ -17,8 +17,10 @@ from logpipe.mcap.merge import NewChannel, NewMessage, write_merged
 def _result(env_ratio: float, plain: float, floor: float, cv_parquet: float, cv_mcap: float,
             cv_av1: float) -> dict[str, dict[str, object]]:
     return {
-        "env_net_argoverse1": {"ratio_to_backbone": env_ratio, "floor_ratio_to_backbone": 0.8},
-        "no_env_net_ethucy": {"samples_per_s": plain, "floor": {"bound_samples_per_s": floor}},
+        "env_net_argoverse1": {"ratio_to_backbone": env_ratio, "floor_ratio_to_backbone": 0.9,
+                               "cells_floor_ratio_to_backbone": 0.8},
+        "no_env_net_ethucy": {"samples_per_s": plain, "floor": {"bound_samples_per_s": floor},
+                              "cells_share_of_matmul_floor": 0.5},
         "cv_ethucy_no_mcap": {"samples_per_s": cv_parquet, "parquet_write_alone_samples_per_s": 2 * cv_parquet},
         "cv_ethucy_all_no_mcap": {"samples_per_s": cv_parquet / 4},
         "cv_ethucy": {"samples_per_s": cv_mcap, "outputs_write_alone_samples_per_s": 4 * cv_mcap},
@@ -33,6 +35,7 @@ def test_every_target_is_reported_with_its_reference_ratio() -> None:
     by_name = {r["target"]: r for r in rows}
     plain = by_name["network without EN, ETH/UCY K=20: share of matmul floor"]
     assert plain["measured"] == 0.3 and plain["required"] == 0.6 and not plain["met"]
+    assert plain["floor"] == 0.5 and plain["share_of_floor"] == 0.6  # the recurrent cells' share, in one unit
     full = by_name["full model with EN, AV1: share of backbone-alone rate"]
     assert full["met"] and full["floor"] == 0.8 and full["share_of_floor"] == round(0.61 / 0.8, 3)
     assert by_name["constant velocity, ETH/UCY, Parquet only: samples/s"]["met"]
@@ -87,3 +90,25 @@ def test_the_markdown_report_lists_every_target_with_its_floor() -> None:
     full = next(line for line in table if line.startswith("| full model"))
     assert full == "| full model with EN, AV1: share of backbone-alone rate | 0.34 | 0.6 | no | 0.8 | 0.42 |"
     assert "| constant velocity, all of ETH/UCY, Parquet only: samples/s | 6,250.0 | 20,000 | no | — | — |" in table
+
+
+def test_the_recurrent_cells_floor_does_no_more_matmul_work_than_the_network() -> None:
+    """The cells floor is a bound: for the same batches, the GEMM work torch counts in it is at most the network's
+    matmul work as the matmul floor counts it (full AV1 model and the ETH/UCY network without EN)."""
+    import torch
+    from torch.utils.flop_counter import FlopCounterMode
+
+    from benchmarks.bench_predict import _macs_per_sample, _recurrent_cells_rate
+    from logpipe.model.config import ModelConfig
+
+    batches = [[(4, 3), (1, 1), (6, 2)], [(2, 2)]]
+    for cfg, modes in ((ModelConfig(obs_len=20, pred_len=30, raster_channels=3), 6),
+                       (ModelConfig().resolved(has_ego=False, has_map=False), 20)):
+        threads = torch.get_num_threads()
+        with FlopCounterMode(display=False) as counter:
+            rate = _recurrent_cells_rate(cfg, batches, modes, repeats=1)  # a warm-up pass and three timed
+        torch.set_num_threads(threads)
+        cells_macs = counter.get_total_flops() / 2 / 4 / 4  # per pass, per sample
+        network_macs = _macs_per_sample(cfg, batches, modes)["matmul_macs"]
+        assert rate > 0
+        assert 0.5 * network_macs < cells_macs <= network_macs
