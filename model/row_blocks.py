@@ -6,8 +6,9 @@ in one batch (up to 1.6e-5 m at the stage level, batch 1 against 7 and 64). Four
 fixed here or at its one call site:
 
 * GEMMs pick their kernel and summation order by shape (and a GEMV-shaped one, N = 1 or 2, by alignment):
-  ``row_mm`` runs every product as one ``torch.mm`` per ``ROW_BLOCK``-row block of a fresh zero-padded copy, so a
-  row meets the same kernel, shape and alignment wherever it sits (``RowLinear``, LSTM_E/LSTM_D, the AIN GRU);
+  ``row_mm`` runs every product as one ``torch.mm`` per ``ROW_BLOCK``-row block, each 64-byte aligned (in place,
+  or a zero-padded copy), so a row meets the same kernel, shape and alignment wherever it sits (``RowLinear``,
+  LSTM_E/LSTM_D, the AIN GRU; ``tests/model/test_row_blocks.py``);
 * transcendental functions round apart in torch's vectorised body and its scalar tail: ``sigmoid`` pads to whole
   blocks (the mode gate: a single agent's 20 gates sit in the tail);
 * dividing by a Python number is a reciprocal multiply in the vectorised body and a true division in the tail:
@@ -34,18 +35,26 @@ ROW_BLOCK = 256
 Python calls, 256 about 13 %."""
 
 
+_ALIGNMENT = 64
+"""Bytes: the alignment of torch's CPU allocator (c10's ``gAlignment``), where a fresh copy's blocks start."""
+
+
 def row_mm(x: Tensor, w: Tensor, bias: Tensor | None = None) -> Tensor:
     """``x @ w (+ bias)`` for ``x`` (M, K), ``w`` (K, N): row i of the result depends only on row i of ``x``."""
     rows, width = x.shape
-    # A fresh zero-padded copy: every block starts on the allocator's 64-byte alignment (a GEMV-shaped block,
-    # N = 1 or 2, summed in another order at another alignment), and the padding rows are zeros.
-    padded = x.new_zeros(rows + (-rows) % ROW_BLOCK, width)
-    padded[:rows] = x
+    # Every block starts on the allocator's 64-byte alignment (a GEMV-shaped block, N = 1 or 2, is summed in
+    # another order at another alignment) with the row stride ``width``: the whole blocks of a contiguous, aligned
+    # ``x`` are such blocks already (ROW_BLOCK, a multiple of 64, rows span a multiple of 64 bytes); otherwise, and for
+    # the last part-block, a fresh zero-padded copy is.
+    whole = rows - rows % ROW_BLOCK if x.is_contiguous() and x.data_ptr() % _ALIGNMENT == 0 else 0
+    padded = x.new_zeros(rows - whole + (-(rows - whole)) % ROW_BLOCK, width)
+    padded[: rows - whole] = x[whole:]
     # One mm per block: a single GEMM over all blocks (matmul folds them) or a batched one (bmm) picks its kernel
     # by the block count, which moved single-agent samples' bits.
-    out = x.new_empty(padded.shape[0], w.shape[1])
-    for lo in range(0, padded.shape[0], ROW_BLOCK):
-        torch.mm(padded[lo : lo + ROW_BLOCK], w, out=out[lo : lo + ROW_BLOCK])
+    out = x.new_empty(whole + padded.shape[0], w.shape[1])
+    for lo in range(0, out.shape[0], ROW_BLOCK):
+        block = x[lo : lo + ROW_BLOCK] if lo < whole else padded[lo - whole : lo - whole + ROW_BLOCK]
+        torch.mm(block, w, out=out[lo : lo + ROW_BLOCK])
     return out[:rows] if bias is None else out[:rows] + bias
 
 
