@@ -259,7 +259,8 @@ def run(quick: bool = False) -> dict[str, Any]:
         plain = ModelConfig().resolved(has_ego=False, has_map=False)
         plain_ckpt = save_checkpoint(tmp / "plain_ckpt", TrajectoryNet(plain), TrainConfig(model=plain),
                                      dataset_kind="ethucy", manifest_hash="bench", step=0)
-        chosen = parse_filter(["split=eth/test"] if quick else ["split=hotel/test"])
+        split = ["split=eth/test"] if quick else ["split=hotel/test"]
+        chosen = parse_filter(split)
         result["no_env_net_ethucy"] = _predict(eth, tmp / "plain_out", repeats, checkpoint=plain_ckpt,
                                                sample_filter=chosen, batch_size=128)
         plain_batches = _sample_counts(eth, plain_ckpt, sample_filter=chosen, batch_size=128)
@@ -269,22 +270,55 @@ def run(quick: bool = False) -> dict[str, Any]:
         cells = _recurrent_cells_rate(plain_cfg, plain_batches, 20, repeats)
         no_env["recurrent_cells_alone_samples_per_s"] = round(cells, 1)
         no_env["cells_share_of_matmul_floor"] = round(cells / no_env["floor"]["bound_samples_per_s"], 3)
-        result["cv_ethucy"] = _predict(eth, tmp / "cv_eth", repeats, predictor="cv", sample_filter=chosen)
-        result["cv_ethucy"]["outputs_write_alone_samples_per_s"] = _outputs_write_rate(
-            tmp / "cv_eth" / "run0", result["cv_ethucy"]["samples"], repeats)
-        result["cv_ethucy_no_mcap"] = _predict(eth, tmp / "cv_eth_nomcap", repeats, predictor="cv",
-                                               sample_filter=chosen, write_mcap=False)
-        result["cv_ethucy_no_mcap"]["parquet_write_alone_samples_per_s"] = _parquet_write_rate(
-            tmp / "cv_eth_nomcap" / "run0", result["cv_ethucy_no_mcap"]["samples"], repeats)
-        # Every ETH/UCY sample (~7,600, ~10 targets each): a throughput the fixed costs of a run do not hide.
-        result["cv_ethucy_all_no_mcap"] = _predict(eth, tmp / "cv_eth_all", repeats, predictor="cv", write_mcap=False)
-        result["cv_ethucy_all_no_mcap"]["parquet_write_alone_samples_per_s"] = _parquet_write_rate(
-            tmp / "cv_eth_all" / "run0", result["cv_ethucy_all_no_mcap"]["samples"], repeats)
-        result["cv_ethucy_all"] = _predict(eth, tmp / "cv_eth_all_mcap", repeats, predictor="cv")
-        result["cv_ethucy_all"]["outputs_write_alone_samples_per_s"] = _outputs_write_rate(
-            tmp / "cv_eth_all_mcap" / "run0", result["cv_ethucy_all"]["samples"], repeats)
+        result.update(_cv_ethucy_rows(eth, tmp, split, repeats))
     result["targets"] = targets(result)
     return result
+
+
+def _cv_ethucy_rows(eth: Path, tmp: Path, split: list[str], repeats: int) -> dict[str, dict[str, Any]]:
+    """Constant velocity on the ETH/UCY ``split`` and on all of ETH/UCY, with and without MCAP, each beside the
+    floor of writing its outputs alone; on the split, also the run's fixed cost."""
+    from logpipe.dataset.sample_filter import parse_filter
+
+    chosen = parse_filter(split)
+    rows: dict[str, dict[str, Any]] = {}
+    rows["cv_ethucy"] = _predict(eth, tmp / "cv_eth", repeats, predictor="cv", sample_filter=chosen)
+    rows["cv_ethucy"]["outputs_write_alone_samples_per_s"] = _outputs_write_rate(
+        tmp / "cv_eth" / "run0", rows["cv_ethucy"]["samples"], repeats)
+    rows["cv_ethucy_no_mcap"] = _predict(eth, tmp / "cv_eth_nomcap", repeats, predictor="cv",
+                                         sample_filter=chosen, write_mcap=False)
+    small = rows["cv_ethucy_no_mcap"]
+    small["parquet_write_alone_samples_per_s"] = _parquet_write_rate(tmp / "cv_eth_nomcap" / "run0",
+                                                                     small["samples"], repeats)
+    # The stage's fixed cost on this split: the same run with a filter that selects none of its samples.
+    empty = parse_filter([*split, "time=:-1"])
+    small["empty_run_seconds"] = _empty_run_seconds(eth, tmp / "cv_eth_empty", repeats, sample_filter=empty)
+    # A bound for a run of this size: that fixed cost plus writing its outputs alone (the stage's own cost
+    # plus the libraries' floor; not a floor of the machine).
+    small["fixed_cost_plus_write_samples_per_s"] = round(small["samples"] / (
+        small["empty_run_seconds"] + small["samples"] / small["parquet_write_alone_samples_per_s"]), 1)
+    # Every ETH/UCY sample (~7,600, ~10 targets each): a throughput the fixed costs of a run do not hide.
+    rows["cv_ethucy_all_no_mcap"] = _predict(eth, tmp / "cv_eth_all", repeats, predictor="cv", write_mcap=False)
+    rows["cv_ethucy_all_no_mcap"]["parquet_write_alone_samples_per_s"] = _parquet_write_rate(
+        tmp / "cv_eth_all" / "run0", rows["cv_ethucy_all_no_mcap"]["samples"], repeats)
+    rows["cv_ethucy_all"] = _predict(eth, tmp / "cv_eth_all_mcap", repeats, predictor="cv")
+    rows["cv_ethucy_all"]["outputs_write_alone_samples_per_s"] = _outputs_write_rate(
+        tmp / "cv_eth_all_mcap" / "run0", rows["cv_ethucy_all"]["samples"], repeats)
+    return rows
+
+
+def _empty_run_seconds(dataset: Path, out: Path, repeats: int, **kwargs: Any) -> float:
+    """Median seconds of constant velocity to Parquet with ``kwargs`` selecting no sample: the run's fixed cost
+    (opening the dataset, reading its tables and the selected logs' tracks, committing the run)."""
+    from logpipe.stages.predict import predict_dataset
+
+    times = []
+    for i in range(max(repeats, 3)):
+        started = time.perf_counter()
+        summary = predict_dataset(dataset, out / f"run{i}", predictor="cv", write_mcap=False, **kwargs)
+        times.append(time.perf_counter() - started)
+        assert summary["samples"] == 0, "the empty run's filter selected samples"
+    return round(statistics.median(times), 4)
 
 
 def _parquet_write_rate(run: Path, samples: int, repeats: int) -> float:

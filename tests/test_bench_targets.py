@@ -6,6 +6,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
+import pytest
 from mcap.reader import make_reader
 from mcap.writer import CompressionType, Writer
 
@@ -112,3 +113,21 @@ def test_the_recurrent_cells_floor_does_no_more_matmul_work_than_the_network() -
         network_macs = _macs_per_sample(cfg, batches, modes)["matmul_macs"]
         assert rate > 0
         assert 0.5 * network_macs < cells_macs <= network_macs
+
+
+def test_the_empty_run_predicts_nothing_of_a_split_that_has_samples(bundled: Path, tmp_path: Path) -> None:
+    """The fixed cost beside the small-split rows is a run of the same split that predicts nothing."""
+    from benchmarks.bench_predict import _empty_run_seconds
+    from logpipe.dataset.sample_filter import parse_filter
+    from logpipe.stages.ingest import IngestOptions, ingest
+    from logpipe.stages.predict import predict_dataset
+
+    ingest([bundled / "ethucy"], IngestOptions(out=tmp_path / "d", workers=1, write_mcap=False))
+    split = ["split=eth/test"]
+    empty = parse_filter([*split, "time=:-1"])
+    seconds = _empty_run_seconds(tmp_path / "d", tmp_path / "empty", 1, sample_filter=empty)
+    full = predict_dataset(tmp_path / "d", tmp_path / "full", predictor="cv", write_mcap=False,
+                           sample_filter=parse_filter(split))
+    assert full["samples"] > 0 and seconds > 0
+    with pytest.raises(AssertionError, match="selected samples"):
+        _empty_run_seconds(tmp_path / "d", tmp_path / "not_empty", 1, sample_filter=parse_filter(split))
