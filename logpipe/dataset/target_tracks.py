@@ -61,9 +61,11 @@ class ShardTracks:
         ValueError: a log's rows are not contiguous or not sorted by step.
     """
 
+    COLUMNS = ("log_id", "step", "track_id", "x", "y", "timestamp_ns", "object_type")
+    """The tracks columns it reads: a caller reading a shard for it need read no others."""
+
     def __init__(self, tracks: pa.Table) -> None:
-        tracks = decode_dictionaries(tracks.select(["log_id", "step", "track_id", "x", "y", "timestamp_ns",
-                                                    "object_type"]))
+        tracks = decode_dictionaries(tracks.select(list(self.COLUMNS)))
         logs = pc.dictionary_encode(tracks.column("log_id").combine_chunks())
         names = pc.dictionary_encode(tracks.column("track_id").combine_chunks())
         self._log_names, self._track_names = logs.dictionary, names.dictionary

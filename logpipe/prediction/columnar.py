@@ -215,7 +215,7 @@ def predict_shard(job: ShardJob[ColumnarRun]) -> ShardDone:
     """Predict one shard into its own uncommitted files (``prediction.output.shard_writer``): the Parquet rows
     and, with ``job.mcaps``, each log's MCAP."""
     summary = job.summary
-    entry, tracks = job.start()
+    entry, tracks = job.start(ShardTracks.COLUMNS)
     if tracks is None:
         return ShardDone(entry, {}, summary)
     with counted_shard_writer(job.run.meta, CHUNK_SAMPLES, job.run.out_dir, job.index, entry, None, summary) as sink:

@@ -47,14 +47,15 @@ class ShardJob(Generic[RunT]):
     summary: PredictSummary
     mcaps: PredictionMcaps | None = None
 
-    def start(self) -> tuple[RunShardEntry, pa.Table | None]:
-        """The shard's manifest entry to fill and its tracks (None when it holds no selected log: nothing to
-        read or write); the read counts as IO in ``summary``."""
+    def start(self, columns: Sequence[str] | None = None) -> tuple[RunShardEntry, pa.Table | None]:
+        """The shard's manifest entry to fill and its tracks (only ``columns``, if given; None when it holds no
+        selected log: nothing to read or write); the read counts as IO in ``summary``."""
         entry: RunShardEntry = {"shard": self.key, "logs": len(self.log_ids), "samples": 0, "rows": 0, "file": None}
         if not self.log_ids:
             return entry, None
         t0 = time.perf_counter()
-        tracks = read_table(self.path)  # a damaged shard is a one-line DatasetError
+        # a damaged shard is a one-line DatasetError
+        tracks = read_table(self.path, columns=None if columns is None else list(columns))
         # Only the selected logs' rows: a filtered run over a large shard then indexes and cuts its own logs, not
         # the shard's (a log's rows keep their order, so forecasts and outputs are the same).
         mine = pc.is_in(tracks.column("log_id"), value_set=pa.array(self.log_ids, pa.string()))

@@ -73,11 +73,12 @@ def test_parallel_shard_jobs_write_the_sequential_bytes(folder_digests: Callable
 def test_a_log_filter_cuts_only_its_logs_rows_and_predicts_the_same(bundled: Path, tmp_path: Path,
                                                                     monkeypatch: pytest.MonkeyPatch,
                                                                     columnar_path: bool) -> None:
-    """A run filtered to one log of a multi-log shard indexes only that log's track rows, and predicts that log
-    exactly as the unfiltered run does."""
+    """A run filtered to one log of a multi-log shard indexes only that log's track rows (on the columnar path, of
+    only the columns it cuts from), and predicts that log exactly as the unfiltered run does."""
     import pyarrow.compute as pc
     import pyarrow.parquet as pq
 
+    from logpipe.dataset.target_tracks import ShardTracks
     from logpipe.prediction import shard_jobs
 
     ingest([bundled / "ethucy"], IngestOptions(out=tmp_path / "d", workers=1, write_mcap=False))
@@ -86,11 +87,13 @@ def test_a_log_filter_cuts_only_its_logs_rows_and_predicts_the_same(bundled: Pat
     assert len(pc.unique(logs)) >= 2  # the case worth testing: other logs share the shard
     chosen = pc.unique(logs)[0].as_py()
     started: list[tuple[tuple[str, ...], set[str], int]] = []  # per job: its logs, the logs of its rows, rows
+    read_columns: list[list[str]] = []
     real_start = shard_jobs.ShardJob.start
 
-    def spied(job: Any) -> Any:
-        entry, tracks = real_start(job)
+    def spied(job: Any, *args: Any) -> Any:
+        entry, tracks = real_start(job, *args)
         started.append((job.log_ids, set(tracks.column("log_id").to_pylist()), tracks.num_rows))
+        read_columns.append(tracks.column_names)
         return entry, tracks
 
     monkeypatch.setattr(shard_jobs.ShardJob, "start", spied)
@@ -100,6 +103,8 @@ def test_a_log_filter_cuts_only_its_logs_rows_and_predicts_the_same(bundled: Pat
     one = stage.predict_dataset(tmp_path / "d", tmp_path / "one", sample_filter=parse_filter([f"log={chosen}"]),
                                 **settings)
     assert started == [((chosen,), {chosen}, int(pc.sum(pc.equal(logs, chosen)).as_py()))]
+    # the columnar path reads only the columns it cuts from; the per-sample path's windows read them all
+    assert read_columns[0] == (list(ShardTracks.COLUMNS) if columnar_path else pq.read_schema(shard).names)
     every = stage.predict_dataset(tmp_path / "d", tmp_path / "every", **settings)
     assert started[1][2] == len(logs)  # every log selected: the whole shard
     assert 0 < one["rows"] < every["rows"]
