@@ -250,9 +250,7 @@ def run(quick: bool = False) -> dict[str, Any]:
         # The same with the recurrences at the rate torch's own cells reach (backbone + cells, nothing else).
         env["cells_floor_ratio_to_backbone"] = round(1.0 / (1.0 / backbone + 1.0 / cells) / backbone, 3)
         result["env_net_argoverse1"] = env
-        result["cv_argoverse1"] = _predict(av1, tmp / "cv_av1", repeats, predictor="cv")
-        result["cv_argoverse1"]["outputs_write_alone_samples_per_s"] = _outputs_write_rate(
-            tmp / "cv_av1" / "run0", result["cv_argoverse1"]["samples"], repeats)
+        result["cv_argoverse1"] = _cv_row(av1, tmp / "cv_av1", repeats)
         # --- without the environment net: ETH/UCY (PF + TF, the paper's setting there), K = 20.
         eth = tmp / "eth"
         ingest([SHARED / "ethucy"], IngestOptions(out=eth))
@@ -281,15 +279,9 @@ def _cv_ethucy_rows(eth: Path, tmp: Path, split: list[str], repeats: int) -> dic
     from logpipe.dataset.sample_filter import parse_filter
 
     chosen = parse_filter(split)
-    rows: dict[str, dict[str, Any]] = {}
-    rows["cv_ethucy"] = _predict(eth, tmp / "cv_eth", repeats, predictor="cv", sample_filter=chosen)
-    rows["cv_ethucy"]["outputs_write_alone_samples_per_s"] = _outputs_write_rate(
-        tmp / "cv_eth" / "run0", rows["cv_ethucy"]["samples"], repeats)
-    rows["cv_ethucy_no_mcap"] = _predict(eth, tmp / "cv_eth_nomcap", repeats, predictor="cv",
-                                         sample_filter=chosen, write_mcap=False)
+    rows = {"cv_ethucy": _cv_row(eth, tmp / "cv_eth", repeats, sample_filter=chosen),
+            "cv_ethucy_no_mcap": _cv_row(eth, tmp / "cv_eth_nomcap", repeats, sample_filter=chosen, write_mcap=False)}
     small = rows["cv_ethucy_no_mcap"]
-    small["parquet_write_alone_samples_per_s"] = _parquet_write_rate(tmp / "cv_eth_nomcap" / "run0",
-                                                                     small["samples"], repeats)
     # The stage's fixed cost on this split: the same run with a filter that selects none of its samples.
     empty = parse_filter([*split, "time=:-1"])
     small["empty_run_seconds"] = _empty_run_seconds(eth, tmp / "cv_eth_empty", repeats, sample_filter=empty)
@@ -298,13 +290,18 @@ def _cv_ethucy_rows(eth: Path, tmp: Path, split: list[str], repeats: int) -> dic
     small["fixed_cost_plus_write_samples_per_s"] = round(small["samples"] / (
         small["empty_run_seconds"] + small["samples"] / small["parquet_write_alone_samples_per_s"]), 1)
     # Every ETH/UCY sample (~7,600, ~10 targets each): a throughput the fixed costs of a run do not hide.
-    rows["cv_ethucy_all_no_mcap"] = _predict(eth, tmp / "cv_eth_all", repeats, predictor="cv", write_mcap=False)
-    rows["cv_ethucy_all_no_mcap"]["parquet_write_alone_samples_per_s"] = _parquet_write_rate(
-        tmp / "cv_eth_all" / "run0", rows["cv_ethucy_all_no_mcap"]["samples"], repeats)
-    rows["cv_ethucy_all"] = _predict(eth, tmp / "cv_eth_all_mcap", repeats, predictor="cv")
-    rows["cv_ethucy_all"]["outputs_write_alone_samples_per_s"] = _outputs_write_rate(
-        tmp / "cv_eth_all_mcap" / "run0", rows["cv_ethucy_all"]["samples"], repeats)
+    rows["cv_ethucy_all_no_mcap"] = _cv_row(eth, tmp / "cv_eth_all", repeats, write_mcap=False)
+    rows["cv_ethucy_all"] = _cv_row(eth, tmp / "cv_eth_all_mcap", repeats)
     return rows
+
+
+def _cv_row(dataset: Path, out: Path, repeats: int, write_mcap: bool = True, **kwargs: Any) -> dict[str, Any]:
+    """Constant velocity's figures (``_predict``) beside the floor of writing its outputs alone: with MCAP,
+    ``outputs_write_alone_samples_per_s``; Parquet only, ``parquet_write_alone_samples_per_s``."""
+    row = _predict(dataset, out, repeats, predictor="cv", write_mcap=write_mcap, **kwargs)
+    floor = _outputs_write_rate(out / "run0", row["samples"], repeats, mcap=write_mcap)
+    row["outputs_write_alone_samples_per_s" if write_mcap else "parquet_write_alone_samples_per_s"] = floor
+    return row
 
 
 def _empty_run_seconds(dataset: Path, out: Path, repeats: int, **kwargs: Any) -> float:
@@ -319,12 +316,6 @@ def _empty_run_seconds(dataset: Path, out: Path, repeats: int, **kwargs: Any) ->
         times.append(time.perf_counter() - started)
         assert summary["samples"] == 0, "the empty run's filter selected samples"
     return round(statistics.median(times), 4)
-
-
-def _parquet_write_rate(run: Path, samples: int, repeats: int) -> float:
-    """Samples/s of writing the run's predictions tables alone (pyarrow, the stage's Parquet codec read back from
-    its files): the floor of any predict path that writes them."""
-    return _outputs_write_rate(run, samples, repeats, mcap=False)
 
 
 def _outputs_write_rate(run: Path, samples: int, repeats: int, mcap: bool = True) -> float:

@@ -157,6 +157,11 @@ class ForecastJob:
     batch_size: int
     cutter: SampleCutter
 
+    def forecast(self) -> Forecast:
+        """The loaded model's forecast of a batch: K modes, noise from the run's seed and each sample's id."""
+        assert self.chosen.model is not None, "load_net first"
+        return functools.partial(self.chosen.model.predict, num_modes=self.modes, seed=self.seed)
+
 
 def ray_forecasts(job: ForecastJob, log_ids: list[str], samples: SelectedSamples,
                   pending: list[Path], workers: int, threads: int,
@@ -240,20 +245,18 @@ def _in_processes(work: list[tuple[str, Callable[[], Forecast], Any]], workers: 
 def _shard_actor(job: ForecastJob, threads: int, device: str) -> Callable[[ShardJob[SampleShardRun]], ShardDone]:
     """Runs once in each worker: loads the model on ``threads`` torch threads; returns the prediction of a shard
     job (``logpipe.prediction.sample_shards``)."""
-    model = _loaded_model(job, threads, device)
-    return functools.partial(predict_sample_shard,
-                             forecast=functools.partial(model.predict, num_modes=job.modes, seed=job.seed))
+    return functools.partial(predict_sample_shard, forecast=_loaded_forecast(job, threads, device))
 
 
-def _loaded_model(job: ForecastJob, threads: int, device: str) -> Any:
-    """The job's model, loaded in this worker (on ``device`` when a checkpoint), torch on ``threads`` threads."""
+def _loaded_forecast(job: ForecastJob, threads: int, device: str) -> Forecast:
+    """The job's forecast, its model loaded in this worker (on ``device`` when a checkpoint), torch on ``threads``
+    threads."""
     import torch
 
     load_net(job.chosen, job.dataset, job.batch_size,
              resolve_device(device) if job.chosen.checkpoint is not None else "cpu")
     torch.set_num_threads(threads)
-    assert job.chosen.model is not None
-    return job.chosen.model
+    return job.forecast()
 
 
 _PROCESS_FORECAST: dict[str, Forecast] = {}
@@ -300,14 +303,14 @@ def _actor(job: ForecastJob, threads: int, device: str) -> Callable[[WorkItem], 
     (the last one read is kept)."""
     import torch
 
-    model = _loaded_model(job, threads, device)
+    forecast_batch = _loaded_forecast(job, threads, device)
     shard = ShardWindows()
 
     def forecast(item: WorkItem) -> list[tuple[list[str], list[Any]]]:
         out = []
         for samples in job.cutter.cut_planned(shard, *item):
             with torch.inference_mode():
-                futures = model.predict(samples, job.modes, job.seed)
+                futures = forecast_batch(samples)
             out.append(([s.sample_id for s in samples], [np.asarray(f) for f in futures]))
         return out
 

@@ -47,8 +47,9 @@ def row_mm(x: Tensor, w: Tensor, bias: Tensor | None = None) -> Tensor:
     # ``x`` are such blocks already (ROW_BLOCK, a multiple of 64, rows span a multiple of 64 bytes); otherwise, and for
     # the last part-block, a fresh zero-padded copy is.
     whole = rows - rows % ROW_BLOCK if x.is_contiguous() and x.data_ptr() % _ALIGNMENT == 0 else 0
-    padded = x.new_zeros(rows - whole + (-(rows - whole)) % ROW_BLOCK, width)
-    padded[: rows - whole] = x[whole:]
+    tail = rows - whole
+    padded = x.new_zeros(tail + (-tail) % ROW_BLOCK, width)
+    padded[:tail] = x[whole:]
     # One mm per block: a single GEMM over all blocks (matmul folds them) or a batched one (bmm) picks its kernel
     # by the block count, which moved single-agent samples' bits.
     out = x.new_empty(whole + padded.shape[0], w.shape[1])

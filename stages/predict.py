@@ -22,7 +22,6 @@ midway is redone from scratch, so the rerun of an interrupted run gives the same
 from __future__ import annotations
 
 import dataclasses
-import functools
 import time
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
@@ -230,7 +229,7 @@ def _sample_shards(run: _Run, pending: list[tuple[int, Path]], out_dir: Path, su
         summary.device = None
     else:
         load_net(job.chosen, job.dataset, job.batch_size, device)
-        forecast = functools.partial(cast(Any, job.chosen.model).predict, num_modes=job.modes, seed=job.seed)
+        forecast = job.forecast()
     for shard in jobs:
         done = predict_sample_shard(shard, forecast, progress)
         summary.add(done.summary)
