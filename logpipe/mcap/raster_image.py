@@ -98,10 +98,13 @@ def raster_grid(frame: str, now_ns: int, rgb: NDArrayByte, resolution_m: float) 
     """
     h, w, _ = rgb.shape
     rgba = np.empty((h, w, 4), np.uint8)
-    rgba[..., :3] = rgb
-    rgba[..., 3] = np.where(rgb.any(axis=-1), 255, 64)
+    bottom_first = rgba[::-1]
+    bottom_first[..., :3] = rgb
+    # OR of the three channels: numpy's any() over a length-3 axis is ~4x slower here (one Grid per sample).
+    drawn = (rgb[..., 0] | rgb[..., 1] | rgb[..., 2]) != 0
+    bottom_first[..., 3] = np.where(drawn, np.uint8(255), np.uint8(64))
     return serialize(Grid(
         timestamp=timestamp(now_ns), frame_id=frame,
         pose=Pose(position=Vector3(y=h * resolution_m), orientation=Quaternion(x=1.0)),
         column_count=w, cell_size=Vector2(x=resolution_m, y=resolution_m), row_stride=w * 4, cell_stride=4,
-        fields=_GRID_FIELDS, data=np.ascontiguousarray(rgba[::-1]).tobytes()))
+        fields=_GRID_FIELDS, data=rgba.tobytes()))

@@ -505,6 +505,7 @@ def test_raster_image_and_grid_hold_the_same_pixels() -> None:
     rgb = np.zeros((6, 4, 3), np.uint8)
     rgb[0, 0] = (255, 0, 0)
     rgb[5, 3] = (0, 9, 200)
+    rgb[2, 1], rgb[3, 2] = (0, 0, 7), (0, 5, 0)  # one channel drawn is a drawn cell
     image = fx.MESSAGE_CLASSES["foxglove.CompressedImage"].FromString(fr.compressed_raster("r", 3, rgb))
     decoded = _png_rgb(image.data)
     assert image.format == "png" and np.array_equal(decoded, rgb)
@@ -514,6 +515,7 @@ def test_raster_image_and_grid_hold_the_same_pixels() -> None:
     cells = np.frombuffer(grid.data, np.uint8).reshape(6, 4, 4)
     assert np.array_equal(cells[::-1, :, :3], rgb)
     assert cells[5, 0, 3] == 255 and cells[0, 0, 3] == 64  # drawn cells opaque, empty ones dim
+    assert np.array_equal(cells[::-1, :, 3], np.where(rgb.any(axis=-1), 255, 64))
     assert (grid.pose.position.y, grid.pose.orientation.x, grid.cell_size.x) == (3.0, 1.0, 0.5)
     layers = fr.raster_rgb(np.stack([np.full((2, 2), 9, np.uint8)] * 3), ("drivable_area", "lane_up", "crossing"))
     assert layers.shape == (2, 2, 3) and (layers == 9).all()
