@@ -22,9 +22,11 @@ def _result(env_ratio: float, plain: float, floor: float, cv_parquet: float, cv_
                                "cells_floor_ratio_to_backbone": 0.8},
         "no_env_net_ethucy": {"samples_per_s": plain, "floor": {"bound_samples_per_s": floor},
                               "cells_share_of_matmul_floor": 0.5},
-        "cv_ethucy_no_mcap": {"samples_per_s": cv_parquet, "parquet_write_alone_samples_per_s": 2 * cv_parquet},
+        "cv_ethucy_no_mcap": {"samples_per_s": cv_parquet, "parquet_write_alone_samples_per_s": 2 * cv_parquet,
+                              "fixed_cost_plus_write_samples_per_s": 1.25 * cv_parquet},
         "cv_ethucy_all_no_mcap": {"samples_per_s": cv_parquet / 4},
-        "cv_ethucy": {"samples_per_s": cv_mcap, "outputs_write_alone_samples_per_s": 4 * cv_mcap},
+        "cv_ethucy": {"samples_per_s": cv_mcap, "outputs_write_alone_samples_per_s": 4 * cv_mcap,
+                      "fixed_cost_plus_write_samples_per_s": 2 * cv_mcap},
         "cv_ethucy_all": {"samples_per_s": cv_mcap / 2},
         "cv_argoverse1": {"samples_per_s": cv_av1},
     }
@@ -46,6 +48,11 @@ def test_every_target_is_reported_with_its_reference_ratio() -> None:
     assert parquet["floor"] == 50_000.0 and parquet["share_of_floor"] == 0.5
     assert "floor" not in by_name["constant velocity, all of ETH/UCY, Parquet only: samples/s"]  # not measured
     assert by_name["constant velocity, ETH/UCY, Parquet + MCAP: samples/s"]["share_of_floor"] == 0.25
+    # The short split's rows also stand against that floor plus the run's fixed cost; the others have none.
+    assert parquet["bound_with_fixed_cost"] == 31_250.0 and parquet["share_of_bound"] == 0.8
+    assert by_name["constant velocity, ETH/UCY, Parquet + MCAP: samples/s"]["share_of_bound"] == 0.5
+    assert [r["target"] for r in rows if "bound_with_fixed_cost" in r] == [
+        "constant velocity, ETH/UCY, Parquet only: samples/s", "constant velocity, ETH/UCY, Parquet + MCAP: samples/s"]
 
 
 def test_the_output_floor_rewrites_the_same_mcap_content(tmp_path: Path) -> None:
@@ -89,8 +96,11 @@ def test_the_markdown_report_lists_every_target_with_its_floor() -> None:
     table = [line for line in text.splitlines() if line.startswith("| ") and "---" not in line][1:]
     assert len(table) == len(rows)
     full = next(line for line in table if line.startswith("| full model"))
-    assert full == "| full model with EN, AV1: share of backbone-alone rate | 0.34 | 0.6 | no | 0.8 | 0.42 |"
-    assert "| constant velocity, all of ETH/UCY, Parquet only: samples/s | 6,250.0 | 20,000 | no | — | — |" in table
+    assert full == "| full model with EN, AV1: share of backbone-alone rate | 0.34 | 0.6 | no | 0.8 | 0.42 | — | — |"
+    assert ("| constant velocity, all of ETH/UCY, Parquet only: samples/s | 6,250.0 | 20,000 | no | — | — | — | — |"
+            in table)
+    assert ("| constant velocity, ETH/UCY, Parquet + MCAP: samples/s | 3,000.0 | 5,000 | no | 12,000.0 | 0.25 "
+            "| 6,000.0 | 0.50 |") in table
 
 
 def test_the_recurrent_cells_floor_does_no_more_matmul_work_than_the_network() -> None:
