@@ -10,11 +10,15 @@ same numbers on every device; only the arithmetic differs.
 from __future__ import annotations
 
 import contextlib
-from typing import Any
-
-import torch
+from typing import TYPE_CHECKING, Any
 
 from .config import ConfigError
+
+if TYPE_CHECKING:
+    import torch
+
+# torch is imported where a function needs it: ``logpipe predict`` with a baseline checks --device here and never
+# loads torch (~1 s of a small run's start).
 
 DEVICE_CHOICES = ("auto", "cpu", "cuda")
 """``--device`` values: ``auto`` is CUDA when torch can use a GPU, else the CPU."""
@@ -27,6 +31,8 @@ def resolve_device(name: str | torch.device) -> torch.device:
         ConfigError: a value not in ``DEVICE_CHOICES``, or ``cuda`` when torch cannot use a GPU (the message
             says what torch reports: a CPU-only build, or no visible GPU).
     """
+    import torch
+
     if isinstance(name, torch.device):
         return name
     check_device_name(name)
@@ -48,6 +54,8 @@ def check_device_name(name: str) -> None:
 
 def _cuda_report() -> str:
     """Why ``torch.cuda.is_available()`` is False, in torch's terms."""
+    import torch
+
     if torch.version.cuda is None:
         return f"torch {torch.__version__} is a CPU-only build"
     return (f"torch {torch.__version__} is built for CUDA {torch.version.cuda} but sees "
@@ -58,6 +66,8 @@ def autocast_dtype(device: torch.device) -> torch.dtype | None:
     """The autocast precision on ``device``: bf16 on a GPU that supports it, else fp16; None (fp32) on the CPU."""
     if device.type != "cuda":
         return None
+    import torch
+
     return torch.bfloat16 if torch.cuda.is_bf16_supported() else torch.float16
 
 
@@ -66,11 +76,15 @@ def autocast(device: torch.device) -> contextlib.AbstractContextManager[Any]:
     dtype = autocast_dtype(device)
     if dtype is None:
         return contextlib.nullcontext()
+    import torch
+
     return torch.autocast(device.type, dtype=dtype)
 
 
 def grad_scaler(device: torch.device) -> torch.amp.GradScaler | None:
     """A loss scaler for training under fp16 autocast (fp16 gradients underflow without it); None otherwise."""
+    import torch
+
     if autocast_dtype(device) != torch.float16:
         return None
     return torch.amp.GradScaler(device.type)

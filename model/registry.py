@@ -10,17 +10,21 @@ import dataclasses
 import json
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import pyarrow as pa
 import pyarrow.compute as pc
-import torch
 
 from logpipe.dataset.reader import Dataset
 from logpipe.errors import LogpipeError
 from logpipe.storage.io import read_json, read_table
 
 from .checkpoint_meta import InferenceSettings, TrainingData, kind_accepts, read_meta
-from .predictor import NetPredictor, Predictor, inference_id
+
+if TYPE_CHECKING:  # the network's modules load torch: imported where a checkpoint is used, so baselines never do
+    import torch
+
+    from .predictor import Predictor
 
 BASELINES = {"cv": "constant_velocity", "linear": "linear", "kalman": "kalman_cv", "cv_sampler": "cv_sampler"}
 """``--predictor`` names -> ``model.baselines.CLASSICAL`` keys."""
@@ -179,6 +183,8 @@ def resolve_inference(chosen: ChosenPredictor, *, num_modes: int, noise_scale: f
     if cv is not None and not 0 <= cv <= num_modes:
         origin = "--constant-velocity-modes" if constant_velocity_modes is not None else "the checkpoint"
         raise LogpipeError(f"constant-velocity modes must be in 0..{num_modes} (--modes), got {cv} from {origin}")
+    from .predictor import inference_id
+
     chosen.inference = inference
     chosen.checkpoint_id = inference_id(chosen.weights_sha256 or chosen.checkpoint_id, inference.noise_scale,
                                         inference.constant_velocity_modes, inference.context_max_neighbours)
@@ -239,6 +245,8 @@ def load_net(chosen: ChosenPredictor, dataset: Dataset, batch_size: int, device:
     ``check_fit``)."""
     if chosen.model is not None or chosen.checkpoint is None:
         return
+    from .predictor import NetPredictor
+
     settings = chosen.inference
     chosen.model = NetPredictor.from_checkpoint(chosen.checkpoint, expect_kind=dataset.kind, batch_size=batch_size,
                                                 noise_scale=settings.noise_scale,

@@ -21,6 +21,7 @@ midway is redone from scratch, so the rerun of an interrupted run gives the same
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import time
 from collections.abc import Callable, Iterable, Iterator
@@ -85,43 +86,55 @@ def predict_dataset(dataset_dir: Path, out_dir: Path, options: PredictOptions | 
         LogpipeError: a bad option, a checkpoint that does not fit the dataset, missing rasters or originals;
             all raised before any output is written.
     """
-    import torch
-
     opts = dataclasses.replace(options or PredictOptions(), **fields)
     started = time.perf_counter()
     run, settings, summary, torch_device = _prepare(dataset_dir, out_dir, opts)
-    previous_threads = torch.get_num_threads()
-    try:
-        with output_errors(), PredictionRunWriter(out_dir) as writer, fast_gil_switching():
-            shards, files = writer.committed(settings)
-            done, root, paths = {s["shard"] for s in shards}, run.job.dataset.root, run.job.dataset.shard_paths
-            pending = [(i, p) for i, p in enumerate(paths) if p.relative_to(root).as_posix() not in done]
-            summary.shards_skipped_done = len(paths) - len(pending)
-            by_shard = logs_by_shard(run.logs)  # progress counts the samples of the shards left to do
-            report_total(progress, sum(run.samples.count(i) for _, p in pending for i in by_shard.get(p.name, [])))
-            torch.set_num_threads(opts.threads or default_workers())
-            # Constant velocity without raster images: whole arrays, a job per shard (parallel), the same bytes.
-            columnar = track_predictor(run.job.chosen.model) if not (run.mcaps and run.mcaps.raster_channels) else None
-            processes = opts.forecast_processes(len(run.samples), on_cpu=str(torch_device) == "cpu",
-                                                environment_net=run.job.chosen.needs_raster)
-            outputs = (_columnar_shards(run, columnar, pending, out_dir, summary, opts, progress) if columnar
-                       else _sample_shards(run, pending, out_dir, summary, opts, progress, processes,
-                                           torch_device or "cpu"))
-            uncommitted = writer.manifest is None
-            for entry, new_files in outputs:
-                shards.append(entry)
-                files.update(new_files)
-                uncommitted = not new_files  # one commit per shard with outputs; empty ones ride with the next
-                if new_files:
-                    writer.commit(settings, run.meta, shards, files)
-            if uncommitted:
+    threads = opts.threads if torch_device is not None else None  # None: a baseline, torch never loaded
+    with (_torch_threads(threads), output_errors(), PredictionRunWriter(out_dir) as writer,
+          fast_gil_switching()):
+        shards, files = writer.committed(settings)
+        done, root, paths = {s["shard"] for s in shards}, run.job.dataset.root, run.job.dataset.shard_paths
+        pending = [(i, p) for i, p in enumerate(paths) if p.relative_to(root).as_posix() not in done]
+        summary.shards_skipped_done = len(paths) - len(pending)
+        by_shard = logs_by_shard(run.logs)  # progress counts the samples of the shards left to do
+        report_total(progress, sum(run.samples.count(i) for _, p in pending for i in by_shard.get(p.name, [])))
+        # Constant velocity without raster images: whole arrays, a job per shard (parallel), the same bytes.
+        columnar = track_predictor(run.job.chosen.model) if not (run.mcaps and run.mcaps.raster_channels) else None
+        processes = opts.forecast_processes(len(run.samples), on_cpu=str(torch_device) == "cpu",
+                                            environment_net=run.job.chosen.needs_raster)
+        outputs = (_columnar_shards(run, columnar, pending, out_dir, summary, opts, progress) if columnar
+                   else _sample_shards(run, pending, out_dir, summary, opts, progress, processes,
+                                       torch_device or "cpu"))
+        uncommitted = writer.manifest is None
+        for entry, new_files in outputs:
+            shards.append(entry)
+            files.update(new_files)
+            uncommitted = not new_files  # one commit per shard with outputs; empty ones ride with the next
+            if new_files:
                 writer.commit(settings, run.meta, shards, files)
-    finally:
-        torch.set_num_threads(previous_threads)
+        if uncommitted:
+            writer.commit(settings, run.meta, shards, files)
     summary.shards = len(shards)
     summary.rows_total = sum(int(s["rows"]) for s in shards)
     summary.seconds = time.perf_counter() - started
     return summary.to_dict()
+
+
+@contextlib.contextmanager
+def _torch_threads(threads: int | None) -> Iterator[None]:
+    """torch's intra-op threads while a network predicts (``threads``, 0: one per core), restored after; None: a
+    baseline, which runs numpy, so torch is not even imported (~1 s of a small run)."""
+    if threads is None:
+        yield
+        return
+    import torch
+
+    previous = torch.get_num_threads()
+    torch.set_num_threads(threads or default_workers())
+    try:
+        yield
+    finally:
+        torch.set_num_threads(previous)
 
 
 def _prepare(dataset_dir: Path, out_dir: Path, opts: PredictOptions) -> tuple[_Run, RunSettings, PredictSummary, Any]:
