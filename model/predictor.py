@@ -125,10 +125,11 @@ class NetPredictor:
         """The same network and settings, with at most ``count`` neighbours in each target's context."""
         return self._with(context_max_neighbours=count)
 
-    @torch.no_grad()
+    @torch.inference_mode()
     def predict(self, samples: Sequence[SceneSample], num_modes: int, seed: int) -> list[NDArrayFloat]:
-        """Batched inference; each sample's noise z is drawn from its own generator (``sample_seed`` of ``seed`` and
-        its id), so a sample's forecasts do not depend on the batch size or on the other samples."""
+        """Batched inference (in torch's inference mode: no autograd bookkeeping; it returns numpy copies); each
+        sample's noise z is drawn from its own generator (``sample_seed`` of ``seed`` and its id), so a sample's
+        forecasts do not depend on the batch size or on the other samples."""
         out: list[NDArrayFloat] = []
         t_pred = self.config.pred_len
         for lo in range(0, len(samples), self.batch_size):

@@ -301,16 +301,13 @@ def _actor(job: ForecastJob, threads: int, device: str) -> Callable[[WorkItem], 
     """Runs once in each Ray actor or forecast process: loads the model, sets ``threads`` torch threads; returns
     the forecast of a work item (sample ids and forecasts per batch), reading its shard from the shared file system
     (the last one read is kept)."""
-    import torch
-
     forecast_batch = _loaded_forecast(job, threads, device)
     shard = ShardWindows()
 
     def forecast(item: WorkItem) -> list[tuple[list[str], list[Any]]]:
         out = []
         for samples in job.cutter.cut_planned(shard, *item):
-            with torch.inference_mode():
-                futures = forecast_batch(samples)
+            futures = forecast_batch(samples)
             out.append(([s.sample_id for s in samples], [np.asarray(f) for f in futures]))
         return out
 

@@ -4,8 +4,8 @@ log, an MCAP with the original recording plus prediction channels.
 Reads top-down: open the dataset and the predictor (a checkpoint, the shipped one for the dataset kind, or a
 baseline) → check that they fit (kind, obs/pred lengths, frame rate, agent types, rasters, originals, log ids that
 are safe file names) before any work → take the output folder's lock → per dataset shard not yet committed: cut the
-selected samples (``logpipe.dataset.sample_filter``, ``logpipe.prediction.model_inputs``), predict in batches under
-``torch.inference_mode``, write the shard's Parquet and its logs' MCAPs on a writer thread
+selected samples (``logpipe.dataset.sample_filter``, ``logpipe.prediction.model_inputs``), predict in batches (a
+network in torch's inference mode), write the shard's Parquet and its logs' MCAPs on a writer thread
 (``logpipe.prediction.output``, ``logpipe.prediction.mcap_logs``) → commit the shard by replacing the run manifest.
 Each shard is one job of ``logpipe.prediction.sample_shards``. With ``--backend ray`` or local worker processes
 (``--workers``), workers that each load the model (``logpipe.model.ray_predict``) run whole shard jobs, writing

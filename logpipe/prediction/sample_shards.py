@@ -10,8 +10,6 @@ Positions are metres in the log's world frame; times are ns on the log's clock.
 
 from __future__ import annotations
 
-import contextlib
-import sys
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -105,10 +103,9 @@ def run_batch(job: ShardJob[SampleShardRun], batch: list[tuple[LogOutput, dict[s
     wraps to see every batch the stage forecasts)."""
     samples = [s for _, _, s in batch]
     t0 = time.perf_counter()
-    with _inference_mode():
-        # Each sample's noise comes from (--seed, sample id) and a network's arithmetic from batch-shape invariant
-        # kernels (logpipe.model.row_blocks): batching and resuming change no bit of a forecast.
-        futures = forecast(samples)
+    # Each sample's noise comes from (--seed, sample id) and a network's arithmetic from batch-shape invariant
+    # kernels (logpipe.model.row_blocks): batching and resuming change no bit of a forecast.
+    futures = forecast(samples)
     summary.model_seconds += time.perf_counter() - t0
     by_log: dict[str, tuple[LogOutput, list[SamplePrediction]]] = {}
     for (out, row, sample), future in zip(batch, futures, strict=True):
@@ -123,10 +120,3 @@ def run_batch(job: ShardJob[SampleShardRun], batch: list[tuple[LogOutput, dict[s
     summary.samples += len(batch)
     if progress:
         progress(len(batch))
-
-
-def _inference_mode() -> contextlib.AbstractContextManager[object]:
-    """torch's inference mode when torch is loaded (a network forecasts), else nothing: a baseline runs numpy,
-    and importing torch for it would cost ~1 s of a small run."""
-    torch = sys.modules.get("torch")
-    return torch.inference_mode() if torch is not None else contextlib.nullcontext()
