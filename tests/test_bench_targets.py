@@ -19,7 +19,7 @@ def _result(env_ratio: float, plain: float, floor: float, cv_parquet: float, cv_
             cv_av1: float) -> dict[str, dict[str, object]]:
     return {
         "env_net_argoverse1": {"ratio_to_backbone": env_ratio, "floor_ratio_to_backbone": 0.9,
-                               "cells_floor_ratio_to_backbone": 0.8},
+                               "cells_floor_ratio_to_backbone": 0.85, "kernels_floor_ratio_to_backbone": 0.8},
         "no_env_net_ethucy": {"samples_per_s": plain, "floor": {"bound_samples_per_s": floor},
                               "cells_share_of_matmul_floor": 0.5},
         "cv_ethucy_no_mcap": {"samples_per_s": cv_parquet, "parquet_write_alone_samples_per_s": 2 * cv_parquet,
