@@ -15,7 +15,7 @@ import pytest
 
 from scripts import scaling
 from scripts.locations import REPO
-from scripts.scaling import _descendants_rss, render, run_stage
+from scripts.scaling import _descendants_rss, _ray_bound, render, run_stage
 
 DATA = Path(__file__).resolve().parents[1] / "data"
 
@@ -76,3 +76,12 @@ def test_the_independent_pair_splits_the_corpus_and_runs_each_stage_twice_at_onc
     assert abs(starts[0] - starts[1]) < 0.2  # at once, not one after the other
     assert 0.3 <= m["ingest"]["seconds"] < 0.55
     assert not (tmp_path / "work").exists()
+
+
+def test_rays_bound_pays_its_fixed_cost_once_and_speeds_up_only_the_rest() -> None:
+    """With no fixed cost the bound is the speed-up itself; a fixed cost F of a 1-worker time T caps it at
+    T / (F + (T - F) / s), below the 1.7x target here even with the rest at a perfect 2x."""
+    runs = {("ray", 1): {"predict_cv": {"seconds": 20.0}}}
+    assert _ray_bound({"ray_overhead": {"predict_cv": 0.0}}, runs, "predict_cv", 1.8) == pytest.approx(1.8)
+    capped = _ray_bound({"ray_overhead": {"predict_cv": 5.0}}, runs, "predict_cv", 2.0)
+    assert capped == pytest.approx(20.0 / 12.5) and capped < 1.7
