@@ -12,9 +12,11 @@ raylet, GCS and workers included), sampled every 0.1 s from ``/proc`` (Linux). P
   first ``--full-part`` logs.
 
 Ray's fixed cost per stage is the same stage on the 69 real sequences with ``--backend ray`` minus without it (1
-worker). Peak memory is also measured on a quarter of the corpus, to show whether it grows with corpus size.
+worker). Peak memory is also measured on a quarter of the corpus, to show whether it grows with corpus size. All of
+it runs ``--rounds`` times, every configuration in turn within a round; the report gives medians (the largest peak).
 
-    python -m scripts.scaling [--logs 50000] [--full-part 2000] [--work out/scaling] [--out docs/scaling.md]
+    python -m scripts.scaling [--logs 50000] [--rounds 3] [--full-part 2000] [--work out/scaling]
+        [--out docs/scaling.md]
 """
 
 from __future__ import annotations
@@ -23,6 +25,7 @@ import argparse
 import json
 import os
 import shutil
+import statistics
 import subprocess
 import sys
 import threading
@@ -164,14 +167,17 @@ def _units(m: dict[str, Any], stage: str) -> int:
 
 def render(r: dict[str, Any]) -> str:
     """docs/scaling.md from the measurements."""
-    n = r["logs"]
+    n, rounds = r["logs"], r.get("rounds", 1)
     runs = {(m["backend"], m["workers"]): m for m in r["runs"]}
     lines = [
         "# Scaling: ingest → rasterise → predict on one machine and on Ray",
         "",
-        f"Produced by `python -m scripts.scaling --logs {n}` in {r['seconds'] / 60:.0f} min on this machine "
-        f"({r['cpu_count']} cores; load average {r['load_before'][0]:.1f} before, {r['load_after'][0]:.1f} after; "
-        "the machine is shared, so rates are lower bounds of a quiet core's). Corpus: a replica of "
+        f"Produced by `python -m scripts.scaling --logs {n} --rounds {rounds}` in {r['seconds'] / 60:.0f} min on this "
+        f"machine ({r['cpu_count']} cores; load average {r['load_before'][0]:.1f} before, {r['load_after'][0]:.1f} "
+        "after; the machine is shared, so rates are lower bounds of a quiet core's). "
+        + (f"Every time is the median of {rounds} rounds, each round running every configuration below in turn (so "
+           "the machine's drift falls on all of them alike); peak memory is the largest of the rounds. "
+           if rounds > 1 else "") + "Corpus: a replica of "
         f"{n:,} AV1 sequences (the 69 real ones copied with distinct AV track ids), one 2 s + 3 s sample each, every "
         "fully observed vehicle but the AV a target. Each stage is its own `logpipe` process, Parquet only "
         f"(`--no-mcap`); the full driving model (K = 6) predicts the first {r['full_part']:,} logs. Peak memory: the "
@@ -290,7 +296,8 @@ def _against_targets(r: dict[str, Any], runs: dict[tuple[str, int], dict[str, An
         if stage not in runs[("local", 1)]:
             continue
         ratios = {b: runs[b, 1][stage]["seconds"] / runs[b, 2][stage]["seconds"] for b in ("local", "ray")}
-        verdict = ", ".join(f"{b} {v:.2f}x ({'met' if v >= 1.7 else 'NOT met'})" for b, v in ratios.items())
+        verdict = ", ".join(f"{b} {v:.2f}x ({'met' if v >= 1.7 else 'NOT met'}{_round_ratios(runs, b, stage)})"
+                            for b, v in ratios.items())
         if stage in r.get("independent", {}):
             verdict += f"; this machine's ceiling {_ceiling_ratio(r, runs, stage):.2f}x"
             if stage in r["ray_overhead"]:
@@ -313,6 +320,14 @@ def _against_targets(r: dict[str, Any], runs: dict[tuple[str, int], dict[str, An
         "and its workers' imports (the fixed cost above) and shares the two cores with Ray's own processes. Where "
         "a stage's local scaling is at this machine's ceiling (above), the 1.7x target is above what two cores here "
         "give that work.")]
+
+
+def _round_ratios(runs: dict[tuple[str, int], dict[str, Any]], backend: str, stage: str) -> str:
+    """``; rounds 1.62, 1.80, ...``: the 1 -> 2 scaling of each round on ``backend``, when there were several."""
+    one, two = (runs[backend, w][stage].get("seconds_rounds", []) for w in (1, 2))
+    if len(one) < 2:
+        return ""
+    return "; rounds " + ", ".join(f"{a / b:.2f}" for a, b in zip(one, two, strict=True))
 
 
 def _projection(r: dict[str, Any], runs: dict[tuple[str, int], dict[str, Any]]) -> str:
@@ -351,6 +366,47 @@ def _duration(seconds: float) -> str:
     return f"{seconds / 60:.1f} min" if seconds >= 60 else f"{seconds:.0f} s"
 
 
+def _round(r: dict[str, Any], args: argparse.Namespace, csv: Path, small: Path, full_logs: list[str],
+           index: int) -> dict[str, Any]:
+    """One round of every measurement: Ray's fixed cost on the 69 real sequences, then each configuration on the
+    corpus (the independent pair beside local 2) and on the small corpus at 2 workers."""
+    one: dict[str, Any] = {"runs": [], "small_runs": []}
+    # Ray's fixed cost: the 69 real sequences with and without Ray, 1 worker.
+    # (the local one's rasterised dataset is kept for the FLOP count)
+    tiny = [pipeline(args.source, args.maps, args.work / f"tiny_{b}", b, 1, [p.stem for p in args.source.glob("*.csv")],
+                     keep=b == "local") for b in ("local", "ray")]
+    one["ray_overhead"] = {s: round(tiny[1][s]["seconds"] - tiny[0][s]["seconds"], 2) for s in STAGES}
+    for backend, workers in CONFIGS:
+        print(f"[scaling] round {index + 1}/{args.rounds}: {backend} x {workers} on {args.logs} logs",
+              file=sys.stderr, flush=True)
+        m = pipeline(csv, args.maps, args.work / f"{backend}{workers}", backend, workers, full_logs)
+        m["logs"] = args.logs
+        one["runs"].append(m)
+        if (backend, workers) == ("local", 2):  # beside the local runs, so the load is alike
+            print("[scaling] two independent 1-worker processes", file=sys.stderr, flush=True)
+            one["independent"] = independent_pair(csv, args.maps, args.work / "independent", full_logs)
+        if workers == 2:
+            s = pipeline(small, args.maps, args.work / f"{backend}{workers}_small", backend, workers, None)
+            s["logs"] = r["small_logs"]
+            one["small_runs"].append(s)
+    return one
+
+
+def merge_rounds(measured: list[dict[str, Any]]) -> dict[str, Any]:
+    """One configuration's measurements of several rounds as one: per stage the median seconds (each round's in
+    ``seconds_rounds``) and the largest peak memory; the rest (summary, halves) from the first round."""
+    merged = dict(measured[0])
+    for stage in STAGES:
+        if stage not in merged:
+            continue
+        seconds = [m[stage]["seconds"] for m in measured]
+        merged[stage] = {**measured[0][stage], "seconds": round(statistics.median(seconds), 2),
+                         "seconds_rounds": seconds}
+        if "peak_mb" in measured[0][stage]:
+            merged[stage]["peak_mb"] = max(m[stage]["peak_mb"] for m in measured)
+    return merged
+
+
 def main(argv: list[str] | None = None) -> int:
     """Build the replica, run every configuration, write the report; returns the exit code."""
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
@@ -359,6 +415,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--maps", type=Path, default=shared / "maps")
     ap.add_argument("--logs", type=int, default=50_000)
     ap.add_argument("--full-part", type=int, default=2000, help="logs the full model predicts")
+    ap.add_argument("--rounds", type=int, default=3, help="rounds of every measurement (medians are reported)")
     ap.add_argument("--work", type=Path, default=REPO / "out" / "scaling")
     ap.add_argument("--out", type=Path, default=REPO / "docs" / "scaling.md")
     ap.add_argument("--from-json", type=Path, help="re-render the report from a measurements file")
@@ -370,32 +427,22 @@ def main(argv: list[str] | None = None) -> int:
     started = time.perf_counter()
     shutil.rmtree(args.work, ignore_errors=True)
     r: dict[str, Any] = {"logs": args.logs, "full_part": args.full_part, "small_logs": args.logs // 4,
-                         "cpu_count": os.cpu_count(), "load_before": os.getloadavg(), "runs": [], "small_runs": []}
+                         "rounds": args.rounds, "cpu_count": os.cpu_count(), "load_before": os.getloadavg()}
     csv = args.work / "csv"
     make_replica(args.source, csv, args.logs)
     full_logs = [p.stem for p in sorted(csv.glob("*.csv"))[: args.full_part]]
     small = args.work / "csv_small"
     make_replica(args.source, small, r["small_logs"])
-    # Ray's fixed cost: the 69 real sequences with and without Ray, 1 worker.
-    # (the local one's rasterised dataset is kept for the FLOP count below)
-    tiny = [pipeline(args.source, args.maps, args.work / f"tiny_{b}", b, 1, [p.stem for p in args.source.glob("*.csv")],
-                     keep=b == "local") for b in ("local", "ray")]
-    r["ray_overhead"] = {s: tiny[1][s]["seconds"] - tiny[0][s]["seconds"] for s in STAGES}
-    for backend, workers in CONFIGS:
-        print(f"[scaling] {backend} x {workers} on {args.logs} logs", file=sys.stderr, flush=True)
-        m = pipeline(csv, args.maps, args.work / f"{backend}{workers}", backend, workers, full_logs)
-        m["logs"] = args.logs
-        r["runs"].append(m)
-        if (backend, workers) == ("local", 2):  # beside the local runs, so the load is alike
-            print("[scaling] two independent 1-worker processes", file=sys.stderr, flush=True)
-            r["independent"] = independent_pair(csv, args.maps, args.work / "independent", full_logs)
-        if workers == 2:
-            s = pipeline(small, args.maps, args.work / f"{backend}{workers}_small", backend, workers, None)
-            s["logs"] = r["small_logs"]
-            r["small_runs"].append(s)
+    rounds = [_round(r, args, csv, small, full_logs, i) for i in range(args.rounds)]
+    r["runs"] = [merge_rounds([one["runs"][i] for one in rounds]) for i in range(len(CONFIGS))]
+    r["small_runs"] = [merge_rounds([one["small_runs"][i] for one in rounds]) for i in range(2)]
+    r["independent"] = merge_rounds([one["independent"] for one in rounds])
+    r["ray_overhead"] = {s: round(statistics.median(one["ray_overhead"][s] for one in rounds), 2) for s in STAGES}
+    r["ray_overhead_rounds"] = {s: [one["ray_overhead"][s] for one in rounds] for s in STAGES}
     r["flops"] = flops_per_sample(CHECKPOINTS / "argoverse" / "zhu2020", args.work / "tiny_local" / "dataset")
     r["load_after"] = os.getloadavg()
     r["seconds"] = time.perf_counter() - started
+    args.out.parent.mkdir(parents=True, exist_ok=True)
     measurements.write_text(json.dumps(r, indent=1, sort_keys=True) + "\n")
     args.out.write_text(render(r))
     shutil.rmtree(args.work, ignore_errors=True)

@@ -85,3 +85,16 @@ def test_rays_bound_pays_its_fixed_cost_once_and_speeds_up_only_the_rest() -> No
     assert _ray_bound({"ray_overhead": {"predict_cv": 0.0}}, runs, "predict_cv", 1.8) == pytest.approx(1.8)
     capped = _ray_bound({"ray_overhead": {"predict_cv": 5.0}}, runs, "predict_cv", 2.0)
     assert capped == pytest.approx(20.0 / 12.5) and capped < 1.7
+
+
+def test_rounds_merge_to_median_seconds_and_the_largest_peak() -> None:
+    def measured(seconds: float, peak: float) -> dict[str, Any]:
+        return {"backend": "local", "workers": 2, "ingest": {"seconds": seconds, "peak_mb": peak, "summary": {"n": 1}}}
+
+    merged = scaling.merge_rounds([measured(10.0, 500.0), measured(14.0, 480.0), measured(11.0, 520.0)])
+    assert merged["ingest"]["seconds"] == 11.0 and merged["ingest"]["seconds_rounds"] == [10.0, 14.0, 11.0]
+    assert merged["ingest"]["peak_mb"] == 520.0 and merged["ingest"]["summary"] == {"n": 1}
+    assert merged["backend"] == "local" and "rasterise" not in merged
+    runs = {("local", 1): {"ingest": {"seconds_rounds": [20.0, 21.0, 22.0]}},
+            ("local", 2): {"ingest": {"seconds_rounds": [10.0, 14.0, 11.0]}}}
+    assert scaling._round_ratios(runs, "local", "ingest") == "; rounds 2.00, 1.50, 2.00"
