@@ -73,7 +73,7 @@ replica-cost: setup
 	$(PY) -m scripts.replica_cost
 
 # ingest → rasterise → predict on a 50,000-log AV1 replica, locally and on Ray with 1 and 2 workers (docs/scaling.md).
-# About 30 minutes and ~25 GB of scratch space in out/scaling (removed at the end).
+# Three rounds (medians reported), about an hour, and ~25 GB of scratch space in out/scaling (removed at the end).
 scaling: setup
 	$(PY) -m scripts.scaling
 
