@@ -22,12 +22,15 @@ Run: ``.venv/bin/python -m benchmarks.bench_predict [--quick]`` (prints JSON).
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import statistics
 import sys
 import tempfile
 import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 from unittest import mock
@@ -64,23 +67,64 @@ Counts = list[list[tuple[int, int]]]
 """Per forecast batch, per sample: (agents, decoded agents), as the stage batched them."""
 
 
-def _sample_counts(dataset: Path, checkpoint: Path, **kwargs: Any) -> Counts:
+@dataclass
+class EnvCalls:
+    """The environment net's heavy kernel calls of a predict run: each ROIAlign gather's ``F.embedding_bag``
+    arguments (indices, projected maps, weights) and each W_v projection's product shape (rows, C, K*K*d_v)."""
+
+    bags: list[tuple[Any, Any, Any]] = field(default_factory=list)
+    products: list[tuple[int, int, int]] = field(default_factory=list)
+
+
+def _sample_counts(dataset: Path, checkpoint: Path, env_calls: EnvCalls | None = None, **kwargs: Any) -> Counts:
     """The agents and decoded agents of every sample the stage forecasts, batch by batch (one process, so every
-    batch is forecast here, where the spy sees it)."""
+    batch is forecast here, where the spy sees it); with ``env_calls``, the same run's environment-net kernel calls
+    are recorded into it."""
+    from torch.nn import functional as F  # noqa: N812
+
+    from logpipe.model.environment import EnvironmentNet
     from logpipe.prediction import sample_shards
     from logpipe.stages.predict import predict_dataset
 
     batches: Counts = []
     original = sample_shards.run_batch
+    embedding_bag, project = F.embedding_bag, EnvironmentNet.project
 
     def spy(run: Any, batch: Any, *args: Any) -> None:
         batches.append([(len(s.positions), int(np.isfinite(s.positions[:, s.obs_len - 1]).all(axis=1).sum()))
                         for _, _, s in batch])
         original(run, batch, *args)
 
-    with tempfile.TemporaryDirectory() as tmp, mock.patch.object(sample_shards, "run_batch", spy):
-        predict_dataset(dataset, Path(tmp) / "out", checkpoint=checkpoint, write_mcap=False, workers=1, **kwargs)
+    def bag_spy(indices: Any, weight: Any, *args: Any, **kw: Any) -> Any:
+        assert env_calls is not None
+        env_calls.bags.append((indices, weight, kw.get("per_sample_weights")))
+        return embedding_bag(indices, weight, *args, **kw)
+
+    def project_spy(env: Any, fmap: Any) -> Any:
+        assert env_calls is not None
+        b, c, h, w = fmap.shape
+        env_calls.products.append((b * h * w, c, env.embed.weight.numel() // c))
+        return project(env, fmap)
+
+    with contextlib.ExitStack() as stack:
+        tmp = Path(stack.enter_context(tempfile.TemporaryDirectory()))
+        stack.enter_context(mock.patch.object(sample_shards, "run_batch", spy))
+        if env_calls is not None:
+            stack.enter_context(mock.patch.object(F, "embedding_bag", bag_spy))
+            stack.enter_context(mock.patch.object(EnvironmentNet, "project", project_spy))
+        predict_dataset(dataset, tmp / "out", checkpoint=checkpoint, write_mcap=False, workers=1, **kwargs)
     return batches
+
+
+def _median_seconds(action: Callable[[], Any], repeats: int) -> float:
+    """Median wall seconds of ``action()`` over ``max(repeats, 3)`` timed calls after one warm-up call."""
+    action()
+    times = []
+    for _ in range(max(repeats, 3)):
+        t0 = time.perf_counter()
+        action()
+        times.append(time.perf_counter() - t0)
+    return statistics.median(times)
 
 
 def _macs_per_sample(cfg: Any, batches: Counts, modes: int) -> dict[str, float]:
@@ -143,66 +187,31 @@ def _recurrent_cells_rate(cfg: Any, batches: Counts, modes: int, repeats: int) -
                 if gru is not None:
                     h_g = gru(x_g, h_g)
 
-    samples = sum(len(b) for b in batches)
-    rates = []
     with torch.inference_mode():
-        step_all()
-        for _ in range(max(repeats, 3)):
-            t0 = time.perf_counter()
-            step_all()
-            rates.append(samples / (time.perf_counter() - t0))
-    return statistics.median(rates)
+        return sum(len(b) for b in batches) / _median_seconds(step_all, repeats)
 
 
-def _environment_ops_rates(dataset: Path, checkpoint: Path, repeats: int, **kwargs: Any) -> dict[str, float]:
-    """Samples/s of the environment net's two torch kernels alone, replaying exactly the calls a predict run made:
-    its ROIAlign gathers (``F.embedding_bag`` with the same indices, weights and projected maps) and its W_v
-    projection (one ``(B*h*w, C) x (C, K*K*d_v)`` product per batch, same shapes). Nothing else runs: not the index
-    and weight arithmetic around the gathers, nor the map's transpose. One in-process run records the calls."""
+def _environment_ops_rates(calls: EnvCalls, samples: int, repeats: int) -> dict[str, float]:
+    """Samples/s of the environment net's two torch kernels alone, replaying exactly the ``calls`` a predict run of
+    ``samples`` made (``_sample_counts``): its ROIAlign gathers (``F.embedding_bag`` with the same indices, weights
+    and projected maps) and its W_v projection (one ``(B*h*w, C) x (C, K*K*d_v)`` product per batch, same shapes).
+    Nothing else runs: not the index and weight arithmetic around the gathers, nor the map's transpose."""
     import torch
     from torch.nn import functional as F  # noqa: N812
 
-    from logpipe.model.environment import EnvironmentNet
-    from logpipe.stages.predict import predict_dataset
-
-    bags: list[tuple[Any, Any, Any]] = []
-    shapes: list[tuple[int, int, int]] = []
-    embedding_bag, project = F.embedding_bag, EnvironmentNet.project
-
-    def bag_spy(indices: Any, weight: Any, *args: Any, **kw: Any) -> Any:
-        bags.append((indices, weight, kw.get("per_sample_weights")))
-        return embedding_bag(indices, weight, *args, **kw)
-
-    def project_spy(env: Any, fmap: Any) -> Any:
-        b, c, h, w = fmap.shape
-        shapes.append((b * h * w, c, env.embed.weight.numel() // c))
-        return project(env, fmap)
-
-    with tempfile.TemporaryDirectory() as tmp, mock.patch.object(F, "embedding_bag", bag_spy), \
-            mock.patch.object(EnvironmentNet, "project", project_spy):
-        samples = predict_dataset(dataset, Path(tmp) / "out", checkpoint=checkpoint, write_mcap=False, workers=1,
-                                  **kwargs)["samples"]
-    products = [(torch.randn(rows, c), torch.randn(c, n)) for rows, c, n in shapes]
+    products = [(torch.randn(rows, c), torch.randn(c, n)) for rows, c, n in calls.products]
 
     def gathers() -> None:
-        for indices, weight, per_sample in bags:
-            embedding_bag(indices, weight, per_sample_weights=per_sample, mode="sum")
+        for indices, weight, per_sample in calls.bags:
+            F.embedding_bag(indices, weight, per_sample_weights=per_sample, mode="sum")
 
     def projections() -> None:
         for a, b in products:
             torch.mm(a, b)
 
-    rates = {}
     with torch.inference_mode():
-        for name, replay in (("gathers", gathers), ("projection", projections)):
-            replay()
-            times = []
-            for _ in range(max(repeats, 3)):
-                t0 = time.perf_counter()
-                replay()
-                times.append(time.perf_counter() - t0)
-            rates[name] = samples / statistics.median(times)
-    return rates
+        return {"gathers": samples / _median_seconds(gathers, repeats),
+                "projection": samples / _median_seconds(projections, repeats)}
 
 
 def _matmul_rate(k: int, n: int, repeats: int) -> float:
@@ -290,7 +299,8 @@ def run(quick: bool = False) -> dict[str, Any]:
         env = _predict(av1, tmp / "env_out", repeats, checkpoint=env_ckpt, batch_size=32)
         env["backbone_alone_samples_per_s"] = round(backbone, 1)
         env["ratio_to_backbone"] = round(env["samples_per_s"] / backbone, 3)
-        env_batches = _sample_counts(av1, env_ckpt, batch_size=32)
+        env_calls = EnvCalls()
+        env_batches = _sample_counts(av1, env_ckpt, env_calls, batch_size=32)
         env_cfg = read_meta(env_ckpt).config.model
         env["floor"] = _bound(_macs_per_sample(env_cfg, env_batches, 6), repeats, backbone)
         # The target's own unit: the compute floor (backbone + matmuls at peak, nothing else) over the backbone.
@@ -301,7 +311,8 @@ def run(quick: bool = False) -> dict[str, Any]:
         env["cells_floor_ratio_to_backbone"] = round(1.0 / (1.0 / backbone + 1.0 / cells) / backbone, 3)
         # Add the environment net's own kernels (its gathers and W_v projection, replayed alone): the floor of
         # every heavy kernel this network runs, each at torch's speed, none of the glue between them.
-        ops = _environment_ops_rates(av1, env_ckpt, repeats, batch_size=32)
+        ops = _environment_ops_rates(env_calls, sum(len(b) for b in env_batches), repeats)
+        del env_calls  # the recorded projected maps (~58 MB a batch)
         env["env_gathers_alone_samples_per_s"] = round(ops["gathers"], 1)
         env["env_projection_alone_samples_per_s"] = round(ops["projection"], 1)
         per_sample = 1.0 / backbone + 1.0 / cells + 1.0 / ops["gathers"] + 1.0 / ops["projection"]
@@ -389,15 +400,14 @@ def _originals_read_seconds(dataset: Path, run: Path, repeats: int) -> float:
 
     ds = Dataset.open(dataset)
     originals = [ds.mcap_path(path.stem) for path in sorted((run / "mcap").rglob("*.mcap"))]
-    times = []
-    for _ in range(max(repeats, 3)):
-        t0 = time.perf_counter()
+
+    def read_all() -> None:
         for path in originals:
             with path.open("rb") as fh:
                 for _record in StreamReader(fh, skip_magic=False).records:
                     pass
-        times.append(time.perf_counter() - t0)
-    return round(statistics.median(times), 4)
+
+    return round(_median_seconds(read_all, repeats), 4)
 
 
 def _outputs_write_rate(run: Path, samples: int, repeats: int, mcap: bool = True) -> float:
