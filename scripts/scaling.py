@@ -299,10 +299,10 @@ def _against_targets(r: dict[str, Any], runs: dict[tuple[str, int], dict[str, An
         verdict = ", ".join(f"{b} {v:.2f}x ({'met' if v >= 1.7 else 'NOT met'}{_round_ratios(runs, b, stage)})"
                             for b, v in ratios.items())
         if stage in r.get("independent", {}):
-            verdict += f"; this machine's ceiling {_ceiling_ratio(r, runs, stage):.2f}x"
+            ceiling = _ceiling_ratio(r, runs, stage)
+            verdict += f"; this machine's ceiling {ceiling:.2f}x"
             if stage in r["ray_overhead"]:
-                verdict += (f", Ray's given its fixed cost "
-                            f"{_ray_bound(r, runs, stage, _ceiling_ratio(r, runs, stage)):.2f}x")
+                verdict += f", Ray's given its fixed cost {_ray_bound(r, runs, stage, ceiling):.2f}x"
         lines.append(f"- {stage.replace('_', ' ')}, scaling >= 1.7x: {verdict}")
     growth = r["logs"] / r["small_logs"]
     for stage in STAGES[:3]:
