@@ -33,8 +33,8 @@ def test_dilution_weighs_the_turning_gain_by_the_turning_share_of_the_error() ->
     assert "carry 40 %" in text and "would give 8.0 %" in text
 
 
-def test_argoverse_md_shows_the_gain_rows_and_the_verdict(tmp_path: Path) -> None:
-    from scripts.reproduce_argoverse import synthetic_section
+def test_argoverse_md_shows_every_run_and_the_last_ones_verdict(tmp_path: Path) -> None:
+    from scripts.reproduce_argoverse import SYNTHETIC_RUNS, synthetic_section
 
     assert "Not run yet" in synthetic_section(tmp_path)[-1]
 
@@ -42,13 +42,20 @@ def test_argoverse_md_shows_the_gain_rows_and_the_verdict(tmp_path: Path) -> Non
         return {"full": {"minFDE": full, "agents": 10}, "no EN (v4)": {"minFDE": base, "agents": 10},
                 "gain": {"gain": gain, "low": low, "high": gain + 0.01}}
 
-    result = {"windows": 4000, "targets": 29702, "k": 6,
-              "checkpoints": {"full": {"step": 3000}, "no EN (v4)": {"step": 2500}},
-              "rows": {"all targets": row(2.0, 2.5, 0.2, 0.16), "turning > 20 deg": row(4.0, 5.0, 0.2, 0.1)}}
-    (tmp_path / "argoverse_synthetic.json").write_text(json.dumps(result))
+    def result(low: float) -> dict[str, Any]:
+        return {"windows": 4000, "targets": 29702, "k": 6,
+                "checkpoints": {"full": {"step": 3000}, "no EN (v4)": {"step": 2500}},
+                "rows": {"all targets": row(2.0, 2.5, 0.2, low), "turning > 20 deg": row(4.0, 5.0, 0.3, 0.25)}}
+
+    first, second = SYNTHETIC_RUNS[0][0], SYNTHETIC_RUNS[1][0]
+    (tmp_path / f"{first}.json").write_text(json.dumps(result(0.16)))
     lines = synthetic_section(tmp_path)
-    assert "| all targets | 2.00 | 2.50 | 20.0 % | [16.0, 21.0] % | 10 |" in lines
+    assert any(line.startswith(f"| [{first}]") and "| 2.00 / 2.50 | 20.0 % [16.0, 21.0] | 30.0 % [25.0, 31.0] | — |"
+               in line for line in lines)
     assert any("**met**" in line for line in lines)  # the interval's low end clears 15 %
-    result["rows"]["all targets"] = row(2.0, 2.5, 0.2, 0.14)
-    (tmp_path / "argoverse_synthetic.json").write_text(json.dumps(result))
-    assert any("**NOT met**" in line for line in synthetic_section(tmp_path))
+    (tmp_path / f"{second}.json").write_text(json.dumps(result(0.14)))
+    lines = synthetic_section(tmp_path)
+    assert [line.split(" |")[0] for line in lines if line.startswith("| [")] == [f"| [{first}]({first}.md)",
+                                                                             f"| [{second}]({second}.md)"]
+    assert any(f"`{second}`): **NOT met**" in line for line in lines)  # the later run gives the verdict
+    assert lines[-1].endswith(f"({second}/fork.png)")
