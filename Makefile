@@ -53,7 +53,7 @@ bench: setup
 
 lint: setup
 	$(VENV)/bin/ruff check logpipe stages model tests benchmarks scripts
-	$(VENV)/bin/mypy logpipe stages model scripts
+	$(VENV)/bin/mypy logpipe stages model scripts benchmarks
 
 # Results files in docs/results/ (tables with the protocol beside every number; see docs/results/README.md).
 reproduce-ethucy: setup
