@@ -215,7 +215,9 @@ def driving_section(results: Path) -> list[str]:
             f"From `docs/results/argoverse_logs.md` (`python -m scripts.reproduce_driving`): trained on the AV1 and "
             f"AV2 logs' hash/train, scored on hash/test ({c['test_windows']} windows, {c['test_targets']} targets: "
             "every fully observed vehicle but the AV). A pipeline check on a few hundred windows, not a reproduction "
-            "of Table 3 or 4; protocol, rules and intervals are described there.", "", *table_lines(result)]
+            "of Table 3 or 4; protocol, rules and intervals are described there. The environment net's ResNet18 "
+            "starts from random weights here; the paper's is pre-trained (see the map check below).", "",
+            *table_lines(result)]
 
 
 # Every SYNTHETIC map-check run, oldest first: (result stem, how it was run). The last one found is the verdict.
@@ -247,7 +249,11 @@ def synthetic_section(results: Path) -> list[str]:
              "SYNTHETIC traffic simulated on the real AV1 lane graphs; test windows lie in a region of each city no "
              "training window comes near. The full model against the same model without EN (v4), trained alike, "
              "each at its best validation ADE; K = 6, per agent, Argoverse convention. Gain: 1 - minFDE@6(full) / "
-             "minFDE@6(no EN), 95 % bootstrap over windows. Each run's own file has its tables and plot.", "",
+             "minFDE@6(no EN), 95 % bootstrap over windows. Each run's own file has its tables and plot. One "
+             "deviation from the paper in every run: its ResNet18 is \"pre-trained\" (it does not say on what), ours "
+             "starts from random weights, because no pre-trained weights are on this machine and none may be "
+             "downloaded (`backbone_weights` in a config's `[model]` table loads a torchvision-layout file where a "
+             "user has one).", "",
              "| run | how | test windows (targets) | best step full / v4 | full / no EN minFDE@6 | gain of EN, all "
              "targets | turning > 20 deg | not turning |", "|---|---|---|---|---|---|---|---|"]
     for stem, how, result in runs:
