@@ -248,7 +248,8 @@ def synthetic_section(results: Path) -> list[str]:
     lines = ["", title, "",
              "SYNTHETIC traffic simulated on the real AV1 lane graphs; test windows lie in a region of each city no "
              "training window comes near. The full model against the same model without EN (v4), trained alike, "
-             "each at its best validation ADE; K = 6, per agent, Argoverse convention. Gain: 1 - minFDE@6(full) / "
+             f"each at its best validation ADE; K = {runs[-1][2]['k']}, per agent, Argoverse convention. Gain: 1 - "
+             "minFDE@6(full) / "
              "minFDE@6(no EN), 95 % bootstrap over windows. Each run's own file has its tables and plot. One "
              "deviation from the paper in every run: its ResNet18 is \"pre-trained\" (it does not say on what), ours "
              "starts from random weights, because no pre-trained weights are on this machine and none may be "
@@ -271,6 +272,7 @@ def synthetic_section(results: Path) -> list[str]:
             f"the verdict is the last run's, `{stem}`): **{verdict}**. "
             "SYNTHETIC data: evidence about the model, not about real traffic.", "",
             f"![SYNTHETIC: a held-out fork, the full model and v4 over the raster]({stem}/fork.png)"]
+
 
 if __name__ == "__main__":
     sys.exit(main())
