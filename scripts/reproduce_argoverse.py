@@ -239,7 +239,7 @@ def synthetic_section(results: Path) -> list[str]:
             for stem, how in SYNTHETIC_RUNS if (results / f"{stem}.json").exists()]
     if not runs:
         return ["", title, "", "Not run yet: `make synthetic-map-check` writes it."]
-    from scripts.synthetic_map_check import TARGET_GAIN
+    from scripts.synthetic_map_check import TARGET_GAIN, TURN_DEG
 
     def gain(row: dict[str, Any]) -> str:
         g = row["gain"]
@@ -256,15 +256,14 @@ def synthetic_section(results: Path) -> list[str]:
              "downloaded (`backbone_weights` in a config's `[model]` table loads a torchvision-layout file where a "
              "user has one).", "",
              "| run | how | test windows (targets) | best step full / v4 | full / no EN minFDE@6 | gain of EN, all "
-             "targets | turning > 20 deg | not turning |", "|---|---|---|---|---|---|---|---|"]
+             f"targets | turning > {TURN_DEG:g} deg | not turning |", "|---|---|---|---|---|---|---|---|"]
+    groups = ("all targets", f"turning > {TURN_DEG:g} deg", f"not turning (<= {TURN_DEG:g} deg)")
     for stem, how, result in runs:
         rows, steps = result["rows"], {name: c["step"] for name, c in result["checkpoints"].items()}
-        turning = [row for group, row in rows.items() if group.startswith("turning")]
-        straight = [row for group, row in rows.items() if group.startswith("not turning")]
+        gains = " | ".join(gain(rows[group]) if group in rows else "—" for group in groups)
         lines.append(f"| [{stem}]({stem}.md) | {how} | {result['windows']:,} ({result['targets']:,}) | "
                      f"{steps['full']} / {steps['no EN (v4)']} | {rows['all targets']['full']['minFDE']:.2f} / "
-                     f"{rows['all targets']['no EN (v4)']['minFDE']:.2f} | {gain(rows['all targets'])} | "
-                     f"{gain(turning[0]) if turning else '—'} | {gain(straight[0]) if straight else '—'} |")
+                     f"{rows['all targets']['no EN (v4)']['minFDE']:.2f} | {gains} |")
     stem, _, result = runs[-1]
     overall = result["rows"]["all targets"]["gain"]
     verdict = "met" if overall["low"] >= TARGET_GAIN else "NOT met"

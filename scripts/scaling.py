@@ -231,6 +231,11 @@ def _ceiling_ratio(r: dict[str, Any], runs: dict[tuple[str, int], dict[str, Any]
     return float(runs["local", 1][stage]["seconds"] / r["independent"][stage]["seconds"])
 
 
+def _scaling(runs: dict[tuple[str, int], dict[str, Any]], backend: str, stage: str) -> float:
+    """The 1 -> 2 worker scaling of ``stage`` on ``backend``: its time with 1 worker over its time with 2."""
+    return float(runs[backend, 1][stage]["seconds"] / runs[backend, 2][stage]["seconds"])
+
+
 def _ray_bound(r: dict[str, Any], runs: dict[tuple[str, int], dict[str, Any]], stage: str,
                rest_speedup: float) -> float:
     """Ray's best 1 -> 2 scaling for ``stage`` given its fixed cost: Ray 1's time with the part beyond that cost
@@ -251,7 +256,7 @@ def _ray_bounds(r: dict[str, Any], runs: dict[tuple[str, int], dict[str, Any]]) 
         if stage not in pair or stage not in r["ray_overhead"]:
             continue
         at_ceiling = _ray_bound(r, runs, stage, _ceiling_ratio(r, runs, stage))
-        measured = runs["ray", 1][stage]["seconds"] / runs["ray", 2][stage]["seconds"]
+        measured = _scaling(runs, "ray", stage)
         lines.append(f"| {stage.replace('_', ' ')} | {runs['ray', 1][stage]['seconds']:.1f} s | "
                      f"{r['ray_overhead'][stage]:.1f} s | {at_ceiling:.2f}x | {_ray_bound(r, runs, stage, 2.0):.2f}x "
                      f"| {measured:.2f}x | {measured / at_ceiling:.2f} |")
@@ -278,7 +283,7 @@ def _ceiling(r: dict[str, Any], runs: dict[tuple[str, int], dict[str, Any]]) -> 
         one, two, both = (runs["local", 1][stage]["seconds"], runs["local", 2][stage]["seconds"],
                           pair[stage]["seconds"])
         lines.append(f"| {stage.replace('_', ' ')} | {one:.1f} s | {both:.1f} s | {_ceiling_ratio(r, runs, stage):.2f}x"
-                     f" | {two:.1f} s | {one / two:.2f}x | {both / two:.2f} |")
+                     f" | {two:.1f} s | {_scaling(runs, 'local', stage):.2f}x | {both / two:.2f} |")
     return [*lines, "", (
         "Ceiling: local 1 / the pair, measured in the same run. The pair is the stage's own 1-worker command run "
         "twice at once, each process on every other CSV (its own dataset, rasters and outputs), so nothing our "
@@ -295,7 +300,7 @@ def _against_targets(r: dict[str, Any], runs: dict[tuple[str, int], dict[str, An
     for stage in STAGES:
         if stage not in runs[("local", 1)]:
             continue
-        ratios = {b: runs[b, 1][stage]["seconds"] / runs[b, 2][stage]["seconds"] for b in ("local", "ray")}
+        ratios = {b: _scaling(runs, b, stage) for b in ("local", "ray")}
         verdict = ", ".join(f"{b} {v:.2f}x ({'met' if v >= 1.7 else 'NOT met'}{_round_ratios(runs, b, stage)})"
                             for b, v in ratios.items())
         if stage in r.get("independent", {}):
@@ -366,7 +371,7 @@ def _duration(seconds: float) -> str:
     return f"{seconds / 60:.1f} min" if seconds >= 60 else f"{seconds:.0f} s"
 
 
-def _round(r: dict[str, Any], args: argparse.Namespace, csv: Path, small: Path, full_logs: list[str],
+def _round(args: argparse.Namespace, csv: Path, small: Path, small_logs: int, full_logs: list[str],
            index: int) -> dict[str, Any]:
     """One round of every measurement: Ray's fixed cost on the 69 real sequences, then each configuration on the
     corpus (the independent pair beside local 2) and on the small corpus at 2 workers."""
@@ -387,7 +392,7 @@ def _round(r: dict[str, Any], args: argparse.Namespace, csv: Path, small: Path, 
             one["independent"] = independent_pair(csv, args.maps, args.work / "independent", full_logs)
         if workers == 2:
             s = pipeline(small, args.maps, args.work / f"{backend}{workers}_small", backend, workers, None)
-            s["logs"] = r["small_logs"]
+            s["logs"] = small_logs
             one["small_runs"].append(s)
     return one
 
@@ -433,7 +438,7 @@ def main(argv: list[str] | None = None) -> int:
     full_logs = [p.stem for p in sorted(csv.glob("*.csv"))[: args.full_part]]
     small = args.work / "csv_small"
     make_replica(args.source, small, r["small_logs"])
-    rounds = [_round(r, args, csv, small, full_logs, i) for i in range(args.rounds)]
+    rounds = [_round(args, csv, small, r["small_logs"], full_logs, i) for i in range(args.rounds)]
     r["runs"] = [merge_rounds([one["runs"][i] for one in rounds]) for i in range(len(CONFIGS))]
     r["small_runs"] = [merge_rounds([one["small_runs"][i] for one in rounds]) for i in range(2)]
     r["independent"] = merge_rounds([one["independent"] for one in rounds])
