@@ -154,7 +154,7 @@ def index(  # noqa: PLR0913  public API: keyword options mirror `logpipe index` 
         s["logs_without_samples"]   # {'no agent observed over the whole window': 2, 'too short for 400+400 steps': 1}
     """
     from logpipe.dataset.reader import Dataset
-    from logpipe.stages.ingest import reindex
+    from logpipe.stages.index import reindex
 
     folder = as_path(dataset)
     chosen = sample_protocol(protocol, obs=obs, pred=pred, stride=stride, min_targets=min_targets, targets=targets,

@@ -54,14 +54,26 @@ class VerifyReport(TypedDict):
     leftovers: list[str]
 
 
+class RoadVehicles(TypedDict):
+    """``RasteriseSummary.road_vehicles``: observed road-vehicle positions inside the rasters, on drivable pixels."""
+
+    observed: int
+    on_drivable: int
+    share: float | None
+
+
 class RasteriseSummary(TypedDict):
     """What ``rasterise_dataset`` returns (``logpipe rasterise --json``). Counts are of this invocation:
     ``skipped_existing`` samples were in shards an earlier run committed (their counts are in the run manifest's
     ``counts``, not here).
 
     ``spec`` is ``RasterSpec.to_dict()`` (open JSON: its keys follow the spec's version). ``heading_source`` and
-    ``centre_role`` count rendered samples by rule (``column``/``motion``/``lane``/``none``; ``ego``/``focal``);
-    ``previews`` are PNG paths. The timings are set once the run is committed: ``seconds`` (wall), ``render_seconds``
+    ``centre_role`` count rendered samples by rule (``column``/``motion``/``lane``/``none``;
+    ``ego``/``focal``/``target``);
+    ``road_vehicles`` counts the observed positions of road vehicles (vehicle, bus_truck, motorcyclist) inside the
+    rasters rendered by this invocation and how many fall on drivable pixels (``share``: a low one means map and
+    tracks do not share a frame). ``previews`` are PNG paths. The timings are set once the run is committed:
+    ``seconds`` (wall), ``render_seconds``
     (drawing only) and ``rasters_per_s`` (None when nothing was rendered).
     """
 
@@ -79,6 +91,7 @@ class RasteriseSummary(TypedDict):
     logs_without_map_examples: list[str]
     heading_source: dict[str, int]
     centre_role: dict[str, int]
+    road_vehicles: RoadVehicles
     previews: list[str]
     seconds: NotRequired[float]
     render_seconds: NotRequired[float]

@@ -167,6 +167,9 @@ PROTOCOLS: dict[str, SampleProtocol] = {
     "argoverse2": SampleProtocol("argoverse2", obs_len=50, pred_len=60, window="first", targets="focal"),
     # Robot logs resampled to 10 Hz: 2 s observed + 3 s predicted (the Argoverse horizon), a window every second.
     "rosbag": SampleProtocol("rosbag", obs_len=20, pred_len=30, stride=10, window="sliding"),
+    # CommonRoad scenarios (NGSIM and drone recordings) at 10 Hz: the Argoverse horizon, a window every second,
+    # every agent observed over the whole window a target (the scenarios have no ego and no focal agent).
+    "commonroad": SampleProtocol("commonroad", obs_len=20, pred_len=30, stride=10, window="sliding"),
 }
 
 

@@ -13,18 +13,19 @@ from __future__ import annotations
 
 import shutil
 import time
-from collections import Counter
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Literal
 
 import pyarrow as pa
+import pyarrow.compute as pc
 
-from logpipe.contracts import arrow_schema
-from logpipe.dataset.log_table import canonical_order, log_metas, log_rows
-from logpipe.dataset.reader import mcap_folder, shard_name, shard_number
-from logpipe.dataset.samples import TrackCodes, build_samples, no_sample_reasons
+from logpipe.contracts import arrow_schema, decode_dictionaries
+from logpipe.dataset.locations import annotate_shared, count_shared, dataset_shared_tracks, location_counts
+from logpipe.dataset.log_table import canonical_order, log_rows
+from logpipe.dataset.reader import maps_folder, mcap_folder, shard_name, shard_number
+from logpipe.dataset.samples import TrackCodes, build_samples, no_sample_reasons, reason_counts
 from logpipe.dataset.writer import (
     DatasetManifest,
     DatasetWriter,
@@ -37,7 +38,7 @@ from logpipe.dataset.writer import (
     known_input_sizes,
     write_track_shard,
 )
-from logpipe.errors import DatasetError, SourceError
+from logpipe.errors import SourceError
 from logpipe.executor import Backend, default_workers, run_ordered, warm_up
 from logpipe.formats import detect, get_adapter
 from logpipe.formats.base import FormatAdapter
@@ -234,14 +235,20 @@ def _ingest_batch(job: _BatchJob) -> _BatchResult:
         from logpipe.mcap.tracks import write_log_mcaps
 
         folder = mcap_folder(job.shard_file)
-        messages = write_log_mcaps(tracks, kept, staging / folder)
+        messages = write_log_mcaps(tracks, kept, staging / folder, parsed.maps)
         files |= {f"{folder}/{mcap.name}": file_entry(mcap) for mcap in sorted((staging / folder).iterdir())}
+    if parsed.maps:  # inputs that carry their map (CommonRoad): the dataset keeps it for rasterise
+        from logpipe.maps.store import write_stores
+
+        files |= write_stores({m.log_id: parsed.maps[m.log_id] for m in kept if m.log_id in parsed.maps}, staging,
+                              maps_folder(job.shard_file))
     return _BatchResult(shard, logs, samples, ingested, failures, messages, files, no_samples)
 
 
 def _commit(writer: DatasetWriter, results: list[_BatchResult], manifest: DatasetManifest, staging: Path,
             summary: dict[str, Any]) -> None:
     """Commit the batches (``DatasetWriter.commit_shards``) and count them into ``summary``."""
+    shared = _flag_shared_tracks(writer, manifest, results, staging)
     batches = [
         NewShard(
             shard=r.shard, logs=r.logs, samples=r.samples, files=r.files,
@@ -260,41 +267,28 @@ def _commit(writer: DatasetWriter, results: list[_BatchResult], manifest: Datase
     summary["rows"] = sum(r.shard["rows"] for r in results if r.shard)
     summary["samples"] = sum(r.samples.num_rows for r in results)
     summary["mcap_messages"] = sum(r.mcap_messages for r in results)
-    summary["logs_without_samples"] = _reason_counts(reason for r in results for reason in r.no_samples.values())
+    summary["logs_without_samples"] = reason_counts(reason for r in results for reason in r.no_samples.values())
+    if shared["tracks"]:
+        summary["shared_tracks"] = shared
+    tables = [pa.concat_tables([getattr(r, name) for r in results]) for name in ("logs", "samples")]
+    if per_location := location_counts(*tables):
+        summary["by_location"] = per_location
 
 
-def _reason_counts(reasons: Iterable[str]) -> dict[str, int]:
-    """How many logs give no sample for each reason, the most frequent first."""
-    return dict(Counter(reasons).most_common())
-
-
-def reindex(dataset_dir: Path, protocol: SampleProtocol,
-            progress: Callable[[int], None] | None = None) -> dict[str, Any]:
-    """Rebuild the sample index with ``protocol``, one shard in memory at a time, as one new commit;
-    ``progress`` is called with the number of logs each shard held."""
-    from logpipe.dataset.reader import Dataset
-
-    with output_errors(), DatasetWriter(dataset_dir) as writer:
-        if writer.manifest is None:
-            raise DatasetError(f"{dataset_dir}: not a logpipe dataset (no manifest.json); run `logpipe ingest` first")
-        dataset = Dataset.open(dataset_dir)
-        if dataset.manifest["protocol"] == protocol.to_dict():
-            # The index is a function of the shards and the protocol: nothing to redo (a rerun after a crash
-            # that happened after the commit only had leftovers to clean, done on entering the writer).
-            return {"dataset": str(dataset_dir), "protocol": protocol.to_dict(),
-                    "samples": dataset.manifest["totals"]["samples"], "unchanged": True}
-        metas = log_metas(dataset.logs())
-        report_total(progress, len(metas))
-        parts = []
-        reasons: list[str] = []
-        for path in dataset.shard_paths:
-            tracks = read_table(path)
-            codes = TrackCodes.of(tracks) if tracks.num_rows else None
-            parts.append(build_samples(tracks, metas, protocol, codes))
-            reasons += no_sample_reasons(tracks, protocol, parts[-1], codes).values()
-            if progress:
-                progress(int(dataset.manifest["shards"][len(parts) - 1]["logs"]))
-        samples = pa.concat_tables(parts) if parts else arrow_schema("samples").empty_table()
-        writer.commit_index(samples, protocol)
-    return {"dataset": str(dataset_dir), "protocol": protocol.to_dict(), "samples": samples.num_rows,
-            "logs_without_samples": _reason_counts(reasons)}
+def _flag_shared_tracks(writer: DatasetWriter, manifest: DatasetManifest, results: list[_BatchResult],
+                        staging: Path) -> dict[str, int]:
+    """Record in the new logs' attributes the tracks they share with an earlier log of their location
+    (``logpipe.dataset.locations``); returns the counts for the summary."""
+    tables = manifest["tables"]
+    old = [read_table(writer.root / tables["logs"]["file"])] if "logs" in tables else []
+    # Only the three columns the search reads, as strings: the tables' dictionaries and list types differ.
+    logs = pa.concat_tables([pa.table({c: pc.cast(decode_dictionaries(t).column(c), pa.string())
+                                       for c in ("log_id", "attributes", "shard")})
+                             for t in old + [r.logs for r in results]])
+    files = {s["file"]: writer.root / s["file"] for s in manifest["shards"]}
+    files |= {r.shard["file"]: staging / r.shard["file"] for r in results if r.shard is not None}
+    shared = dataset_shared_tracks(logs, files)
+    for result in results:
+        result.logs = annotate_shared(result.logs, shared)
+    new = {log_id for r in results for log_id in r.logs.column("log_id").to_pylist()}
+    return count_shared({k: v for k, v in shared.items() if k in new})

@@ -27,7 +27,7 @@ import logging
 import math
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -125,6 +125,7 @@ def rasterise_dataset(  # noqa: PLR0913  public API: the command's options one t
     started = time.perf_counter()
     spec = RasterSpec(**{**_spec_kwargs(spec or RasterSpec()), "rotate": rotate})
     ds = Dataset.open(dataset_dir)
+    maps = replace(maps, own={**ds.own_maps(), **maps.own})  # logs whose input carried their map use it
     logs = ds.logs()
     log_ids = logs.column("log_id").to_pylist()
     log_map = dict(zip(log_ids, logs.column("map_id").to_pylist(), strict=True))
@@ -166,7 +167,8 @@ def _rasterise_locked(writer: RasterRunWriter, job: _Job, force: bool, progress:
         "logs_without_map": len(no_map),
         "logs_without_map_examples": no_map[:20],
         "heading_source": {"column": 0, "motion": 0, "lane": 0, "none": 0},
-        "centre_role": {"ego": 0, "focal": 0},
+        "centre_role": {"ego": 0, "focal": 0, "target": 0},
+        "road_vehicles": {"observed": 0, "on_drivable": 0, "share": None},
         "previews": [],
     }
     # One per shard: committed entries now, new ones as they come back (None until then).
@@ -241,6 +243,10 @@ def _add_counts(summary: RasteriseSummary, res: dict[str, Any]) -> None:
         summary["heading_source"][k] += v
     for k, v in res["centre_role"].items():
         summary["centre_role"][k] += v
+    road = summary["road_vehicles"]
+    road["observed"] += res["road_vehicles"][0]
+    road["on_drivable"] += res["road_vehicles"][1]
+    road["share"] = round(road["on_drivable"] / road["observed"], 4) if road["observed"] else None
     summary["previews"].extend(res["previews"])
 
 

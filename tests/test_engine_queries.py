@@ -15,7 +15,8 @@ import pyarrow.dataset as pds
 import pytest
 
 from logpipe.dataset.reader import Dataset
-from logpipe.stages.ingest import IngestOptions, ingest, reindex
+from logpipe.stages.index import reindex
+from logpipe.stages.ingest import IngestOptions, ingest
 from logpipe.stages.predict import predict_dataset
 from logpipe.stages.score import score
 

@@ -10,6 +10,8 @@ Layout::
       logs/logs-NNNNN.parquet          one row per log (schemas/logs.json); NNNNN = the commit's generation
       samples/samples-NNNNN.parquet    the prediction-sample index (schemas/samples.json)
       mcap/part-NNNNN/<log_id>.mcap    each log for a viewer, grouped like the shards
+      maps/part-NNNNN/<log_id>.parquet the log's own map store (schemas/map.json), for formats whose inputs carry
+                                       their map (CommonRoad); ``rasterise`` uses it without ``--maps``
       rasters/<run>/                   raster runs: artifacts of their own (``logpipe rasterise``)
 
 Only what the manifest names is read, so files of an interrupted run are never seen; every commit writes
@@ -49,9 +51,10 @@ TRACKS_DIR = "tracks"
 LOGS_DIR = "logs"
 SAMPLES_DIR = "samples"
 MCAP_DIR = "mcap"
+MAPS_DIR = "maps"
 DATASET_ARTIFACT = "dataset"
 """``manifest.json`` ``artifact`` value of a dataset folder."""
-DATASET_OWNED = Ownership([f"{TRACKS_DIR}/", f"{LOGS_DIR}/", f"{SAMPLES_DIR}/", f"{MCAP_DIR}/",
+DATASET_OWNED = Ownership([f"{TRACKS_DIR}/", f"{LOGS_DIR}/", f"{SAMPLES_DIR}/", f"{MCAP_DIR}/", f"{MAPS_DIR}/",
                            "part-?????.parquet", "logs.parquet", "samples.parquet"])
 """A dataset's own files: the table and MCAP folders, and the top-level files of the previous layout; never
 ``rasters/`` (raster runs are artifacts of their own)."""
@@ -85,6 +88,11 @@ def shard_number(shard: str) -> int:
 def mcap_folder(shard: str) -> str:
     """``mcap/part-NNNNN``: the MCAP files of one shard's logs (moved into place as one folder)."""
     return f"{MCAP_DIR}/{Path(shard).name.removesuffix('.parquet')}"
+
+
+def maps_folder(shard: str) -> str:
+    """``maps/part-NNNNN``: the map stores of one shard's logs that carry their own map."""
+    return f"{MAPS_DIR}/{Path(shard).name.removesuffix('.parquet')}"
 
 
 _SPLIT_OPERATOR = re.compile(r"([+-])")
@@ -123,10 +131,10 @@ class Dataset:
         for key in ("format", "protocol", "shards", "tables"):
             if key not in manifest:
                 raise DatasetError(f"{root / MANIFEST}: damaged manifest (no {key!r})")
-        # The tables and shards every reader opens; not the one MCAP per log, which only viewers and predict's
-        # copy read (stat-ing 50k of them would make every open slow).
+        # The tables and shards every reader opens; not the one MCAP (or map) per log, which only viewers,
+        # predict's copy and rasterise read (stat-ing 50k of them would make every open slow).
         check_files(root, {rel: e for rel, e in manifest.get("files", {}).items()
-                           if not rel.startswith(f"{MCAP_DIR}/")})
+                           if not rel.startswith((f"{MCAP_DIR}/", f"{MAPS_DIR}/"))})
         return cls(root, manifest)
 
     def _table_path(self, table: str) -> Path:
@@ -215,6 +223,11 @@ class Dataset:
     def _shard_of_log(self) -> dict[str, str]:
         logs = decode_dictionaries(read_table(self._table_path("logs"), columns=["log_id", "shard"]))
         return dict(zip(logs.column("log_id").to_pylist(), logs.column("shard").to_pylist(), strict=True))
+
+    def own_maps(self) -> dict[str, Path]:
+        """The map store of each log whose input carried its map (``maps/part-NNNNN/<log_id>.parquet``), by log id."""
+        return {Path(rel).stem: self.root / rel for rel in self.manifest.get("files", {})
+                if rel.startswith(f"{MAPS_DIR}/") and rel.endswith(".parquet")}
 
     def mcap_path(self, log_id: str) -> Path:
         """The MCAP file ingest wrote for ``log_id``."""

@@ -7,7 +7,8 @@ the timestamps of its first, current and last step, and whether its steps are re
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections import Counter
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -372,3 +373,8 @@ def steps_from_sorted_times(ts_ns: NDArrayInt, group: NDArrayInt) -> NDArrayInt:
     group_starts = np.repeat(first_of_group, np.diff(np.append(np.flatnonzero(new_group), n)))
     result: NDArrayInt = counter - group_starts
     return result
+
+
+def reason_counts(reasons: Iterable[str]) -> dict[str, int]:
+    """How many logs give no sample for each reason (``no_sample_reasons``' values), the most frequent first."""
+    return dict(Counter(reasons).most_common())

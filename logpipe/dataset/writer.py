@@ -16,7 +16,7 @@ import pyarrow.compute as pc
 
 from logpipe import __version__
 from logpipe.contracts import arrow_schema, decode_dictionaries, encode_dictionaries, schema_version, value_schema
-from logpipe.dataset.reader import DATASET_ARTIFACT, DATASET_OWNED, MCAP_DIR, SAMPLES_DIR, table_file
+from logpipe.dataset.reader import DATASET_ARTIFACT, DATASET_OWNED, MAPS_DIR, MCAP_DIR, SAMPLES_DIR, table_file
 from logpipe.errors import DatasetError
 from logpipe.storage.artifact import FileEntry, FolderWriter, file_entry
 from logpipe.storage.durability import crash_point
@@ -171,11 +171,12 @@ class DatasetWriter(FolderWriter):
                 (staging / batch.shard["file"]).replace(out / batch.shard["file"])
                 manifest["shards"].append(batch.shard)
             files.update(batch.files)
-        if (staging / MCAP_DIR).is_dir():
-            (out / MCAP_DIR).mkdir(exist_ok=True)
-            for folder in sorted((staging / MCAP_DIR).iterdir()):  # one rename per shard, not per log
-                crash_point(f"move {MCAP_DIR}/{folder.name}")
-                folder.replace(out / MCAP_DIR / folder.name)
+        for per_log in (MCAP_DIR, MAPS_DIR):
+            if (staging / per_log).is_dir():
+                (out / per_log).mkdir(exist_ok=True)
+                for folder in sorted((staging / per_log).iterdir()):  # one rename per shard, not per log
+                    crash_point(f"move {per_log}/{folder.name}")
+                    folder.replace(out / per_log / folder.name)
         old_samples = [read_table(out / tables["samples"]["file"])] if "samples" in tables else []
         all_samples = pa.concat_tables([decode_dictionaries(t) for t in old_samples + [b.samples for b in batches]])
         generation = int(manifest.get("generation", 0)) + 1

@@ -24,12 +24,14 @@ _CLASSES: dict[str, tuple[str, str]] = {  # CLI name -> (module, class)
     "argoverse2": ("logpipe.formats.av2", "Av2Adapter"),
     "rosbag": ("logpipe.formats.rosbag", "RosbagAdapter"),
     "mcap": ("logpipe.formats.mcapfile", "McapAdapter"),
+    "commonroad": ("logpipe.formats.commonroad", "CommonRoadAdapter"),
 }
 FORMATS: tuple[str, ...] = tuple(_CLASSES)
 TEXT_FORMATS = ("argoverse1", "ethucy", "apolloscape")
 """Formats of delimited text (``.csv``/``.txt`` with a header or numeric first line). The other sniffs claim
 only other names or magic bytes (``scenario_*.parquet``, ``*.feather``, ``.bag``/``.db3`` magic, files of a
-rosbag2 folder, the MCAP magic or ``.mcap``), so a file a text format claims is never theirs."""
+rosbag2 folder, the MCAP magic or ``.mcap``, an ``.xml`` opening ``<commonRoad``), so a file a text format claims is
+never theirs."""
 
 
 def adapter_class(name: str) -> type[FormatAdapter]:

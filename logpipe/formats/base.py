@@ -12,9 +12,9 @@ import math
 import os
 import stat
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import ClassVar, Protocol
+from typing import TYPE_CHECKING, ClassVar, Protocol
 
 import numpy as np
 import pyarrow as pa
@@ -24,6 +24,9 @@ from logpipe.dataset.samples import TrackCodes
 from logpipe.errors import LogpipeError, SourceError
 from logpipe.storage.artifact import unsafe_file_name
 from logpipe.types import LogMeta, SampleProtocol, SourceFile
+
+if TYPE_CHECKING:  # annotations only: the text formats' pool workers need not import the map store
+    from logpipe.maps.store import MapStore
 
 
 def read_head(path: Path, size: int) -> bytes | None:
@@ -171,12 +174,15 @@ class ParsedLogs:
             adapter to keep going; otherwise the first error is raised).
         codes: integer codes of ``tracks``' log and track ids, when the adapter has them for free (parsed
             as dictionaries) and ``tracks`` is already in canonical order with ``step``; saves re-hashing.
+        maps: the map of each log, by log id, for formats whose inputs carry their own map (CommonRoad); ingest
+            writes them into the dataset (``maps/``), where ``rasterise`` finds them without ``--maps``.
     """
 
     tracks: pa.Table
     logs: list[LogMeta]
     failures: list[SourceError]
     codes: TrackCodes | None = None
+    maps: dict[str, MapStore] = field(default_factory=dict)
 
 
 ReadOne = Callable[[SourceFile], tuple[pa.Table, LogMeta, list[SourceError]]]
@@ -309,7 +315,8 @@ def read_isolating(adapter: FormatAdapter, sources: list[SourceFile], keep_going
     kept = [p.tracks for p in parts if p.logs]
     tracks = pa.concat_tables(kept, promote_options="permissive") if kept else _empty_tracks()
     return ParsedLogs(tracks=tracks, logs=[m for p in parts for m in p.logs],
-                      failures=[e for p in parts for e in p.failures])
+                      failures=[e for p in parts for e in p.failures],
+                      maps={k: v for p in parts for k, v in p.maps.items()})
 
 
 def refuse_unsafe_log_ids(parsed: ParsedLogs, keep_going: bool) -> ParsedLogs:
@@ -328,7 +335,8 @@ def refuse_unsafe_log_ids(parsed: ParsedLogs, keep_going: bool) -> ParsedLogs:
     tracks = parsed.tracks.filter(pc.invert(pc.is_in(pc.cast(parsed.tracks.column("log_id"), pa.string()),
                                                      pa.array(list(bad), pa.string()))))
     return ParsedLogs(tracks=tracks, logs=[m for m in parsed.logs if m.log_id not in bad],
-                      failures=[*parsed.failures, *bad.values()])  # codes dropped: rows were removed
+                      failures=[*parsed.failures, *bad.values()],  # codes dropped: rows were removed
+                      maps={k: v for k, v in parsed.maps.items() if k not in bad})
 
 
 def source_of(file: str, by_path: dict[str, SourceFile]) -> SourceFile:

@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from logpipe.errors import DatasetError, LogpipeError, SourceError
-from logpipe.maps import argoverse1, av2, lanelet2
+from logpipe.maps import argoverse1, av2, commonroad, lanelet2
 from logpipe.maps.feature_kinds import KINDS, POLYGON_KINDS, FeatureKind
 from logpipe.maps.grid_index import Layer, Window
 from logpipe.maps.store import MapBuilder, MapStore
@@ -63,11 +63,13 @@ def _load_lanelet2(path: Path, map_id: str | None) -> MapStore:
 ADAPTERS: tuple[MapAdapter, ...] = (
     MapAdapter("store_parquet", lambda p: p.suffix == ".parquet", _load_parquet),
     MapAdapter(argoverse1.NPZ_SOURCE, argoverse1.sniff_npz, argoverse1.load_npz),
+    MapAdapter(commonroad.SOURCE, commonroad.sniff, commonroad.load),
     MapAdapter(lanelet2.SOURCE, lanelet2.sniff, _load_lanelet2),
     MapAdapter(argoverse1.XML_SOURCE, argoverse1.sniff_xml, argoverse1.load_xml),
     MapAdapter(av2.SOURCE, av2.sniff, av2.load),
 )
-"""Tried in order; Lanelet2 before AV1 XML because both are XML and only Lanelet2 has lanelet relations."""
+"""Tried in order; CommonRoad and Lanelet2 before AV1 XML because all three are XML, and only CommonRoad opens a
+``<commonRoad>`` element and only Lanelet2 has lanelet relations."""
 
 _MAP_SUFFIXES = {".npz", ".xml", ".osm", ".json", ".parquet"}
 
@@ -178,7 +180,8 @@ def _load(path: Path, map_id: str | None) -> MapStore:
 class MapSource:
     """Finds and caches the map of each log of a dataset.
 
-    Resolution for a log: an explicit ``files[map_id]``; then an AV2 per-log archive
+    Resolution for a log: an explicit ``files[map_id]``; then the log's own map (``own[log_id]``: the store ingest
+    kept for a log whose input carries its map, CommonRoad); then an AV2 per-log archive
     ``log_map_archive_<log_id>*.json`` under ``roots``; then a file named after ``map_id`` (AV1 city
     ``MIA`` → ``MIA_lane_centerlines.npz``). Loaded stores are kept in an LRU of ``cache_size`` maps so a
     run over many per-log AV2 maps holds only a few in memory.
@@ -186,11 +189,13 @@ class MapSource:
     Attributes:
         roots: folders searched for map files.
         files: explicit map file per ``map_id`` (takes precedence).
+        own: the map store file of each log that has its own (``Dataset.own_maps()``), by log id.
         cache_size: how many loaded stores to keep.
     """
 
     roots: tuple[Path, ...] = ()
     files: dict[str, Path] = field(default_factory=dict)
+    own: dict[str, Path] = field(default_factory=dict)
     cache_size: int = 4
     _cache: OrderedDict[Path, MapStore] = field(default_factory=OrderedDict, repr=False)
     _listing: list[Path] | None = field(default=None, repr=False)
@@ -206,6 +211,8 @@ class MapSource:
         """The map file for a log, or None when nothing matches."""
         if map_id is not None and map_id in self.files:
             return self.files[map_id]
+        if log_id in self.own:
+            return self.own[log_id]
         if log_id:
             tail = log_id.rsplit("/", 1)[-1]
             for cand in self._candidates(tail):

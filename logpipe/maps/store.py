@@ -22,6 +22,7 @@ from logpipe.contracts import arrow_schema, conform
 from logpipe.errors import DatasetError
 from logpipe.maps.feature_kinds import KINDS, POLYGON_KINDS, FeatureKind
 from logpipe.maps.grid_index import DEFAULT_CELL_M, Layer, chain_polylines
+from logpipe.storage.artifact import FileEntry, file_entry
 from logpipe.storage.io import write_parquet
 from logpipe.types import NDArrayFloat, NDArrayInt
 
@@ -280,3 +281,14 @@ class MapStore:
     def is_empty_near(self, x: float, y: float, radius: float) -> bool:
         """True when no feature of any kind has a bounding box within ``radius`` metres of (x, y)."""
         return all(not len(self.layer(k).overlapping(x - radius, y - radius, x + radius, y + radius)) for k in KINDS)
+
+
+def write_stores(stores: dict[str, MapStore], root: Path, folder: str) -> dict[str, FileEntry]:
+    """Write each store to ``root/folder/<name>.parquet`` (a folder nobody reads yet: ingest's staging); returns
+    the files' entries by path relative to ``root``."""
+    files: dict[str, FileEntry] = {}
+    for name, store in sorted(stores.items()):
+        rel = f"{folder}/{name}.parquet"
+        store.write(root / rel)
+        files[rel] = file_entry(root / rel)
+    return files

@@ -10,6 +10,8 @@ Channels:
   origin at minus the centre of the log's positions, so the 3D panel opens on the log), and ``world`` →
   ``ego`` at each ego row.
 * ``/logpipe/ego_pose`` (``foxglove.PoseInFrame``, Protobuf): the ego in ``world``.
+* ``/logpipe/map`` (``foxglove.SceneUpdate``, Protobuf), for logs whose input carries its map (CommonRoad): the
+  lanes once, under the agents (``logpipe.mcap.map_scene``).
 Message log times are the true timestamps of the steps; the ``logpipe`` metadata record names the frames
 and the centre.
 """
@@ -35,7 +37,9 @@ from mcap.writer import CompressionType, Writer
 from logpipe import __version__
 from logpipe.contracts import json_schema
 from logpipe.dataset.shards import log_runs
+from logpipe.maps import MapStore
 from logpipe.mcap import foxglove as fx
+from logpipe.mcap.map_scene import MAP_TOPIC, map_scene_update
 from logpipe.storage.io import as_numpy
 from logpipe.types import LogMeta, Role
 
@@ -167,8 +171,10 @@ class LogRows:
         return len(self.steps)
 
 
-def write_log_mcap(log_id: str, tracks: pa.Table | LogRows, target: Path, map_id: str | None) -> int:
-    """Write one log's rows (sorted by step) to ``target``; returns the number of messages.
+def write_log_mcap(log_id: str, tracks: pa.Table | LogRows, target: Path, map_id: str | None,
+                   lanes: MapStore | None = None) -> int:
+    """Write one log's rows (sorted by step) to ``target``, with ``lanes`` drawn under them when given; returns
+    the number of messages.
 
     ``target`` must be in a folder nobody reads yet (ingest's staging folder, renamed into place whole):
     per-file temp-and-rename would cost more than the MCAP itself at millions of small logs.
@@ -204,11 +210,16 @@ def write_log_mcap(log_id: str, tracks: pa.Table | LogRows, target: Path, map_id
         scene_channel = _register_protobuf(writer, SCENE_TOPIC, SceneUpdate)
         tf_channel = _register_protobuf(writer, TF_TOPIC, FrameTransform)
         ego = _register_protobuf(writer, EGO_TOPIC, PoseInFrame) if ego_rows else None
+        map_channel = _register_protobuf(writer, MAP_TOPIC, SceneUpdate) if lanes is not None else None
         if len(ts):
             t0 = int(ts[0])
             writer.add_message(tf_channel, log_time=t0, publish_time=t0, sequence=0,
                                data=fx.frame_transform(LOG_FRAME, WORLD_FRAME, t0, (-cx, -cy, 0.0)))
             count += 1
+            if map_channel is not None and lanes is not None:
+                writer.add_message(map_channel, log_time=t0, publish_time=t0, sequence=0,
+                                   data=map_scene_update(lanes, WORLD_FRAME, t0))
+                count += 1
         for i, (lo, hi) in enumerate(zip(starts, ends, strict=True)):
             t = int(ts[lo])
             parts = [
@@ -229,9 +240,11 @@ def write_log_mcap(log_id: str, tracks: pa.Table | LogRows, target: Path, map_id
     return count
 
 
-def write_log_mcaps(tracks: pa.Table, metas: list[LogMeta], folder: Path) -> int:
+def write_log_mcaps(tracks: pa.Table, metas: list[LogMeta], folder: Path,
+                    lanes: dict[str, MapStore] | None = None) -> int:
     """Write ``folder/<log_id>.mcap`` for every log of ``tracks`` (an ingest batch in canonical order, logs
-    contiguous), each with its map id from ``metas``; returns the number of messages written."""
+    contiguous), each with its map id from ``metas`` and its ``lanes`` (by log id) where given; returns the number
+    of messages written."""
     # Log boundaries from the log codes (no string per row), every column converted once for the batch.
     logs = pc.dictionary_encode(tracks.column("log_id")).combine_chunks()
     codes, names = as_numpy(logs.indices), logs.dictionary.to_pylist()
@@ -241,7 +254,8 @@ def write_log_mcaps(tracks: pa.Table, metas: list[LogMeta], folder: Path) -> int
     starts, ends = log_runs(codes)
     for lo, hi in zip(starts.tolist(), ends.tolist(), strict=True):
         log_id = names[codes[lo]]
-        messages += write_log_mcap(log_id, rows.slice(lo, hi), folder / f"{log_id}.mcap", maps.get(log_id))
+        messages += write_log_mcap(log_id, rows.slice(lo, hi), folder / f"{log_id}.mcap", maps.get(log_id),
+                                   (lanes or {}).get(log_id))
     return messages
 
 

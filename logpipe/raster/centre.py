@@ -1,7 +1,9 @@
 """Where a sample's raster is centred and which way it is turned (``logpipe rasterise``'s centre and heading rules).
 
 Centre: ``centre="ego"`` uses the ego track at the sample's current step, falling back to the focal track
-when the log has no ego (or the ego is not observed then); ``centre="focal"`` always uses the focal track.
+when the log has no ego (or the ego is not observed then), and, in logs with neither (CommonRoad scenarios), to
+the sample's central target: the target nearest the median of the targets' current positions, so the raster
+covers as many of them as one window can; ``centre="focal"`` always uses the focal track.
 Heading (``rotate=True``): the track's ``heading`` column at the current step when present, else the
 direction of its own motion over the observed steps (``heading_from_motion``), else (a stationary agent)
 the direction of the nearest lane centerline within 3 m; without any of these the raster is drawn north up
@@ -31,7 +33,7 @@ class Centre:
 
     Attributes:
         track_id: the centre track, None when none was observed at the current step.
-        role: ``ego`` or ``focal``.
+        role: ``ego``, ``focal`` or ``target`` (the central target of a log without ego and focal).
         x, y: metres, world frame.
         heading: rad CCW from world +x, or None.
         heading_source: ``column`` | ``motion`` | ``lane`` | ``none``.
@@ -74,6 +76,8 @@ class LogView:
         if rule == "ego" and self.ego is not None:
             choices.append((self.ego, "ego"))
         choices.append((sample.get("focal_track_id"), "focal"))
+        if rule == "ego" and self.ego is None and sample.get("focal_track_id") is None:
+            choices.append((self.central_target(sample), "target"))
         for track_id, role in choices:
             if track_id is None:
                 continue
@@ -93,3 +97,17 @@ class LogView:
                 source = "lane" if hm is not None else "none"
             return Centre(str(track_id), role, float(self.x[last]), float(self.y[last]), hm, source)
         return None
+
+    def central_target(self, sample: dict[str, Any]) -> str | None:
+        """The target observed at the current step nearest the median of all such targets' positions (the
+        first in id order on a tie), or None when no target is observed then."""
+        cur, start = int(sample["current_step"]), int(sample["start_step"])
+        found: list[tuple[str, float, float]] = []
+        for track_id in sorted(str(t) for t in sample.get("target_track_ids") or ()):
+            rows = self.rows(track_id, start, cur)
+            if len(rows) and self.step[rows[-1]] == cur:
+                found.append((track_id, float(self.x[rows[-1]]), float(self.y[rows[-1]])))
+        if not found:
+            return None
+        xy = np.array([(x, y) for _, x, y in found])
+        return found[int(np.argmin(np.hypot(*(xy - np.median(xy, axis=0)).T)))][0]

@@ -30,7 +30,7 @@ from logpipe.raster.rasteriser import Rasteriser, RasterSpec
 from logpipe.raster.runs import index_file, shard_file
 from logpipe.storage.artifact import file_entry
 from logpipe.storage.io import atomic_path, read_table, sha256_file, write_parquet
-from logpipe.types import NDArrayByte
+from logpipe.types import OBJECT_TYPES, NDArrayByte, NDArrayFloat
 
 
 @dataclass(frozen=True)
@@ -105,7 +105,8 @@ def render_shard(task: ShardTask) -> dict[str, Any]:
         "empty": 0,
         "no_centre": 0,
         "heading_source": {"column": 0, "motion": 0, "lane": 0, "none": 0},
-        "centre_role": {"ego": 0, "focal": 0},
+        "centre_role": {"ego": 0, "focal": 0, "target": 0},
+        "road_vehicles": [0, 0],
         "previews": [],
     }
     view_cache: tuple[str, LogView] | None = None
@@ -146,6 +147,9 @@ def _render_row(task: ShardTask, view: LogView, sample: dict[str, Any], row_i: i
         res = ras.render(c.x, c.y, c.heading, warn=False, out=image)
         src = c.heading_source if task.spec.rotate else "none"
         counts["centre_role"][c.role or "focal"] += 1
+        seen, on_road = _road_vehicles(task.spec, view, sample, image, res.affine)
+        counts["road_vehicles"][0] += seen
+        counts["road_vehicles"][1] += on_road
     counts["heading_source"][src] += 1
     if res.empty:
         counts["empty"] += 1
@@ -202,3 +206,25 @@ class _TrackReader:
             raise DatasetError(f"{self.root}: log {log_id!r} missing from {shard}")
         start, end = self._slices[log_id]
         return self._table.slice(start, end - start)
+
+
+ROAD_VEHICLE_TYPES = tuple(OBJECT_TYPES.index(t) for t in ("vehicle", "bus_truck", "motorcyclist"))
+"""Codes of the agents that belong on the road (``RasteriseSummary.road_vehicles``); cyclists and pedestrians may
+use paths the map does not draw."""
+
+
+def _road_vehicles(spec: RasterSpec, view: LogView, sample: dict[str, Any], image: NDArrayByte,
+                   affine: NDArrayFloat) -> tuple[int, int]:
+    """(observed positions of road vehicles inside the raster, how many of them are on drivable pixels) over the
+    sample's observed steps: a check that map and tracks share a frame (a pixel counts as drivable when at least
+    half covered: value >= 128 of the anti-aliased fill). (0, 0) without a ``drivable_area`` channel."""
+    if "drivable_area" not in spec.channels:
+        return 0, 0
+    w = view.windows
+    lo, hi = w.span(int(sample["start_step"]), int(sample["current_step"]))
+    rows = lo + np.flatnonzero(np.isin(w.types[lo:hi], ROAD_VEHICLE_TYPES))
+    uv = np.rint(np.stack([w.x[rows], w.y[rows]], axis=1) @ affine[:, :2].T + affine[:, 2]).astype(np.int64)
+    size = spec.size_px
+    inside = (uv >= 0).all(axis=1) & (uv < size).all(axis=1)
+    drivable = image[spec.channels.index("drivable_area")]
+    return int(inside.sum()), int((drivable[uv[inside, 1], uv[inside, 0]] >= 128).sum())

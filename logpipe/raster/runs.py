@@ -26,6 +26,9 @@ RASTER_ARTIFACT = "raster_run"
 """``manifest.json`` ``artifact`` value of a raster run folder."""
 RUN_MANIFEST = "manifest.json"
 CENTRES = ("ego", "focal")
+CENTRE_FALLBACK = "central_target"
+"""What ``centre="ego"`` uses in a log with neither ego nor focal track (``logpipe.raster.centre``); part of the run
+settings since it changes those logs' pixels (runs made before it drew them empty, under other run ids)."""
 MIN_HEADING_DISP_M = 0.5
 """Motion heading: look back to the latest observed position at least this far away (metres)."""
 LANE_HEADING_MAX_DIST_M = 3.0
@@ -47,6 +50,7 @@ class RasterRunSettings(TypedDict):
 
     spec: dict[str, Any]
     centre: str
+    centre_fallback: str
     min_heading_disp_m: float
     lane_heading_max_dist_m: float
 
@@ -118,6 +122,7 @@ def run_settings(spec: RasterSpec, centre: str) -> RasterRunSettings:
     return {
         "spec": spec.to_dict(),
         "centre": centre,
+        "centre_fallback": CENTRE_FALLBACK,
         "min_heading_disp_m": MIN_HEADING_DISP_M,
         "lane_heading_max_dist_m": LANE_HEADING_MAX_DIST_M,
     }

@@ -16,7 +16,8 @@ from mcap.reader import make_reader
 from logpipe.contracts import arrow_schema, json_schema, tracks_schema
 from logpipe.dataset.reader import Dataset
 from logpipe.mcap.foxglove import MESSAGE_CLASSES
-from logpipe.stages.ingest import IngestOptions, ingest, reindex
+from logpipe.stages.index import reindex
+from logpipe.stages.ingest import IngestOptions, ingest
 from logpipe.types import PROTOCOLS
 
 

@@ -43,7 +43,7 @@ def test_stage_writes_index_shards_and_previews(dataset: Path) -> None:
     maps = MapSource(roots=(DATA,))
     summary = rasterise_dataset(dataset, maps, centre="ego", rotate=True, preview=2, shard_size=1)
     assert summary["samples"] == 2 and summary["rendered"] == 2 and summary["empty"] == 0
-    assert summary["centre_role"] == {"ego": 2, "focal": 0}
+    assert summary["centre_role"] == {"ego": 2, "focal": 0, "target": 0}
     run = Path(summary["run_dir"])
     assert [s["rows"] for s in read_manifest(run)["shards"]] == [1, 1]  # type: ignore[index]
     assert len(list(run.glob("shard-*.npy"))) == 2
@@ -112,13 +112,13 @@ def test_stale_run_is_refused_then_replaced_with_force(dataset: Path, tmp_path: 
     with pytest.raises(DatasetError, match="made with other maps"):
         rasterise_dataset(dataset, MapSource(roots=(other,)), centre="focal", rotate=False)
     summary = rasterise_dataset(dataset, MapSource(roots=(other,)), centre="focal", rotate=False, force=True)
-    assert summary["rendered"] == 2 and summary["centre_role"] == {"ego": 0, "focal": 2}
+    assert summary["rendered"] == 2 and summary["centre_role"] == {"ego": 0, "focal": 2, "target": 0}
 
 
 def test_log_without_ego_centres_on_focal_and_missing_map_is_empty(tmp_path: Path) -> None:
     ds = _dataset(tmp_path, drop_av_in="3861.csv")
     summary = rasterise_dataset(ds, MapSource(roots=(DATA,)), centre="ego", rotate=True)
-    assert summary["centre_role"] == {"ego": 1, "focal": 1}
+    assert summary["centre_role"] == {"ego": 1, "focal": 1, "target": 0}
     nomap = rasterise_dataset(ds, MapSource(roots=(tmp_path / "nothing",)), centre="ego", rotate=True, force=True)
     assert nomap["empty"] == 2 and nomap["logs_without_map"] == 2
 
