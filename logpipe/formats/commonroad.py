@@ -271,6 +271,7 @@ def _states_fast(el: etree._Element, n: int) -> np.ndarray | None:
     state lacks a required field, has one twice, holds a non-number or an absurd value: the slow path then says
     which."""
     table = np.full((n, len(_STATE_PATHS)), np.nan)
+    given = np.zeros(len(_STATE_PATHS), dtype=bool)
     for column, (field, path) in enumerate(_STATE_PATHS.items()):
         texts = el.xpath(f"{_STATES}/{path}/text()")
         if not texts and field not in ("time", "x", "y"):
@@ -281,8 +282,9 @@ def _states_fast(el: etree._Element, n: int) -> np.ndarray | None:
             table[:, column] = np.asarray(texts, dtype=np.int64 if field == "time" else np.float64)
         except ValueError:
             return None
-    values = table[:, 1:]
-    if not np.isfinite(values[:, :2]).all() or (np.abs(values[np.isfinite(values)]) > crmap.COORDINATE_LIMIT_M).any():
+        given[column] = True
+    values = table[:, given]
+    if not np.isfinite(values).all() or (np.abs(values[:, 1:]) > crmap.COORDINATE_LIMIT_M).any():
         return None
     if (table[:, 0] < 0).any() or (table[:, 0] >= 1 << 40).any():
         return None

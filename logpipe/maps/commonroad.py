@@ -61,6 +61,10 @@ def parse_scenario(data: bytes, name: str) -> etree._Element:
         SourceError: too large, malformed XML (with its line), a DOCTYPE (entity declarations are refused, not
             expanded), or another root element.
     """
+    head = data[: max(data.find(b"<commonRoad"), 0) or 1 << 16]
+    if b"<!DOCTYPE" in head or b"<!ENTITY" in head:
+        raise SourceError(name, "the file declares a DOCTYPE; CommonRoad files never do, and DTDs (entity "
+                          "declarations) are refused rather than expanded", line=1, field="DOCTYPE")
     if len(data) > MAX_FILE_BYTES:
         raise SourceError(name, f"{len(data):,} bytes is over the {MAX_FILE_BYTES >> 20} MiB a CommonRoad file may "
                           "have; refused before parsing")
