@@ -1,8 +1,8 @@
 """Measure CommonRoad readers side by side: logpipe's own (lxml) and the official ``commonroad-io``.
 
 Why a script: the issue asked which reader to use, measured (install size, parse time per file, what each
-rejects). ``commonroad-io`` cannot live in logpipe's environment (it pins ``protobuf==3.20.2``; the Foxglove
-schemas need protobuf >= 4), so it runs in a venv of its own, given by ``--commonroad-io-python``, through
+rejects). ``commonroad-io`` cannot live in logpipe's environment (it pins ``protobuf==3.20.2``; logpipe and
+``mcap-protobuf-support`` need protobuf >= 4.25), so it runs in a venv of its own, given by ``--commonroad-io-python``, through
 ``scripts/commonroad_io_probe.py``. Both readers parse the same files in the same run, in interleaved rounds;
 medians are reported. Damaged variants are made from one real file in a temporary folder and each reader's outcome
 is recorded (an error, or a silent read).
@@ -90,7 +90,7 @@ def install_cost(python: str) -> dict[str, Any]:
     theirs, mine = distribution_mb(python), distribution_mb(sys.executable)
     added = {k: round(v, 1) for k, v in sorted(theirs.items()) if k not in mine and k not in ("pip", "setuptools")}
     return {"commonroad-io adds (MB)": round(sum(added.values()), 1), "commonroad-io adds": added,
-            "commonroad-io pins": "protobuf==3.20.2 (logpipe needs >= 4.25 for foxglove-schemas-protobuf)",
+            "commonroad-io pins": "protobuf==3.20.2 (logpipe and mcap-protobuf-support need >= 4.25)",
             "logpipe reader adds (MB)": round(mine.get("lxml", 0.0), 1)}
 
 
