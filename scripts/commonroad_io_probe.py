@@ -1,6 +1,7 @@
 """Parse CommonRoad files with the official ``commonroad-io`` reader; one JSON line on stdout (file → result).
 
-Runs in a venv of its own (``commonroad-io`` pins ``protobuf==3.20.2``; logpipe needs protobuf >= 4.25); ``scripts/commonroad_readers.py`` calls it. It touches every state, as logpipe's reader does.
+Runs in a venv of its own (``commonroad-io`` pins ``protobuf==3.20.2``; logpipe needs protobuf >= 4.25);
+``scripts/commonroad_readers.py`` calls it. It touches every state, as logpipe's reader does.
 """
 
 from __future__ import annotations
