@@ -3,9 +3,9 @@
 Why a script: the issue asked which reader to use, measured (install size, parse time per file, what each
 rejects). ``commonroad-io`` cannot live in logpipe's environment (it pins ``protobuf==3.20.2``; logpipe and
 ``mcap-protobuf-support`` need protobuf >= 4.25), so it runs in a venv of its own, given by
-``--commonroad-io-python``, through ``scripts/commonroad_io_probe.py``. Both readers parse the same files in the same run, in interleaved rounds;
-medians are reported. Damaged variants are made from one real file in a temporary folder and each reader's outcome
-is recorded (an error, or a silent read).
+``--commonroad-io-python``, through ``scripts/commonroad_io_probe.py``. Both readers parse the same files in the
+same run, in interleaved rounds; medians are reported. Damaged variants are made from one real file in a temporary
+folder and each reader's outcome is recorded (an error, or a silent read).
 
 Usage::
 
