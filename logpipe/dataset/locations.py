@@ -43,9 +43,11 @@ TRACK_COLUMNS = ["log_id", "track_id", "timestamp_ns", "x", "y", "length", "widt
 
 
 def log_location(attributes: str | dict[str, Any] | None, map_id: str | None) -> str | None:
-    """A log's location: ``attributes["location"]`` (a dict or its JSON text), else ``map_id``."""
+    """A log's location: ``attributes["location"]`` (a dict or its JSON text), else ``map_id``; a simulated log's
+    (``attributes["synthetic"]``) is ``"<location> (synthetic)"``, so counts never mix it with recordings."""
     found = attributes if isinstance(attributes, dict) else json.loads(attributes or "{}")
-    return found.get("location") or map_id
+    location = found.get("location") or map_id
+    return f"{location} (synthetic)" if location and found.get("synthetic") else location
 
 
 def location_counts(logs: pa.Table, samples: pa.Table) -> dict[str, dict[str, int]]:

@@ -6,7 +6,8 @@ A file (format 2018b: ``<obstacle>`` with ``<role>dynamic</role>``; 2020a and la
 * log: ``log_id`` = the ``benchmarkID`` attribute (``USA_US101-9_1_T-1``); ``map_id`` = the same (each scenario
   carries its own lanelet map in its own frame, written into the dataset by ingest, see
   ``logpipe.maps.commonroad``); attributes ``location`` (the benchmark id's ``<country>_<scene>`` part,
-  ``USA_US101``), ``commonroad_version``, ``time_step_s``, ``source``, ``tags``, ``static_obstacles``,
+  ``USA_US101``), ``synthetic`` (a generated scenario: ``source`` starts with ``SYNTHETIC``, membership
+  ``synthetic``), ``commonroad_version``, ``time_step_s``, ``source``, ``tags``, ``static_obstacles``,
   ``resampled_from_hz``; membership ``location/<location>`` so a split can hold a location out
   (``--filter split=location/USA_US101``, ``--train-split all-location/USA_US101``).
 * track per dynamic obstacle: ``track_id`` = obstacle id, ``object_type`` from ``<type>`` (``OBJECT_TYPES``;
@@ -67,6 +68,12 @@ OBSTACLE_TYPES: dict[str, ObjectType] = {
 MAX_TIME_STEP_S = 10.0
 """Largest ``timeStepSize`` accepted, seconds (recordings use 0.04-0.2 s)."""
 _LOCATION = re.compile(r"^([A-Z]{2,3}_[A-Za-z0-9]+)-")
+SYNTHETIC_SOURCE = "SYNTHETIC"
+"""How a generated scenario's ``source`` attribute starts: its log is marked ``synthetic`` (attribute and
+membership), so simulated traffic is never taken for a recording."""
+SYNTHETIC_PREFIX = "synthetic_"
+"""How a generated scenario's benchmark id starts; the location is read from the rest (``synthetic_USA_US101-...``
+is at ``USA_US101``, so holding a location out holds out its simulated traffic too)."""
 
 
 @dataclass
@@ -104,8 +111,8 @@ class CommonRoadAdapter:
         return crmap.sniff(path)
 
     def discover(self, root: Path) -> list[Path]:
-        """CommonRoad files under ``root`` (or ``root`` itself), in path order."""
-        return [p for p in files_with_suffix(root, (".xml",)) if self.sniff(p)]
+        """CommonRoad files (``.xml``, ``.xml.gz``) under ``root`` (or ``root`` itself), in path order."""
+        return [p for p in files_with_suffix(root, (".xml", ".xml.gz")) if self.sniff(p)]
 
     def read(self, sources: Sequence[SourceFile], *, keep_going: bool) -> ParsedLogs:
         """Parse ``sources`` (see ``FormatAdapter.read``); each log's lanelet map is in ``ParsedLogs.maps``."""
@@ -133,7 +140,8 @@ class CommonRoadAdapter:
     def read_scenario(self, src: SourceFile) -> tuple[pa.Table, LogMeta, MapStore]:
         """One file's rows, log metadata and map."""
         name = src.relpath
-        data = Path(src.path).read_bytes()
+        raw = Path(src.path).read_bytes()
+        data = crmap.read_scenario_bytes(Path(src.path), name) if name.endswith(".gz") else raw
         root = crmap.parse_scenario(data, name)
         log_id = check_log_id(root.get("benchmarkID") or "", name, "benchmarkID")
         step_ns = _time_step_ns(root, name)
@@ -144,22 +152,24 @@ class CommonRoadAdapter:
         resample = step_ns != period
         table = _rows(log_id, tracks, step_ns, self.spec if resample else None, name)
         location = _location(log_id)
+        synthetic = (root.get("source") or "").startswith(SYNTHETIC_SOURCE)
         attributes: dict[str, Any] = {
-            "location": location, "commonroad_version": root.get("commonRoadVersion"),
+            "location": location, "synthetic": synthetic, "commonroad_version": root.get("commonRoadVersion"),
             "time_step_s": float(Decimal(step_ns) / Decimal(10**9)), "source": root.get("source"),
             "tags": _tags(root), "static_obstacles": len(_static_obstacles(root)),
             "resampled_from_hz": round(1e9 / step_ns, 6) if resample else None,
         }
         meta = LogMeta(log_id=log_id, source_format=self.name, source_file=name,
-                       source_sha256=hashlib.sha256(data).hexdigest(), map_id=log_id,
+                       source_sha256=hashlib.sha256(raw).hexdigest(), map_id=log_id,
                        frame_rate_hz=1e9 / (period if resample else step_ns),
-                       memberships=(*src.memberships, *([f"location/{location}"] if location else [])),
+                       memberships=(*src.memberships, *([f"location/{location}"] if location else []),
+                                    *(["synthetic"] if synthetic else [])),
                        attributes=attributes)
         return conform_tracks(table), meta, crmap.lanelet_map(root, log_id, name)
 
 
 def _location(benchmark_id: str) -> str | None:
-    found = _LOCATION.match(benchmark_id)
+    found = _LOCATION.match(benchmark_id.removeprefix(SYNTHETIC_PREFIX))
     return found.group(1) if found else None
 
 

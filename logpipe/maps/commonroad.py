@@ -19,13 +19,15 @@ Mapping to the store (``schemas/map.json``):
   lanelets driven the same way), predecessors, successors, ``has_traffic_control`` (a traffic light or stop line),
   and from 2020a intersections ``is_intersection`` and ``turn_direction`` (``LEFT`` | ``RIGHT`` | ``NONE``).
 
-Parsing is defused: no DTD is accepted (a CommonRoad file never has one), entities are never expanded, nothing is
+Files may be gzip-compressed (``.xml.gz``: synthetic scenarios are written so). Parsing is defused: no DTD is
+accepted (a CommonRoad file never has one), entities are never expanded, nothing is
 fetched from a network, and text nodes are bounded (lxml without ``huge_tree``).
 """
 
 from __future__ import annotations
 
 import math
+import zlib
 from pathlib import Path
 from typing import Any
 
@@ -82,11 +84,44 @@ def parse_scenario(data: bytes, name: str) -> etree._Element:
 
 
 def sniff(path: Path) -> bool:
-    """An ``.xml`` file whose first KiB opens a ``<commonRoad`` element."""
-    if path.suffix.lower() != ".xml" or not path.is_file():
+    """An ``.xml`` file (or a gzip-compressed ``.xml.gz``) whose first KiB opens a ``<commonRoad`` element."""
+    name = path.name.lower()
+    if not name.endswith((".xml", ".xml.gz")) or not path.is_file():
         return False
     with path.open("rb") as fh:
-        return b"<commonRoad" in fh.read(1024)
+        head = fh.read(1024)
+        if name.endswith(".gz"):
+            fh.seek(0)
+            try:
+                head = zlib.decompressobj(wbits=31).decompress(fh.read(1 << 16), 1024)
+            except zlib.error:
+                return False
+        return b"<commonRoad" in head
+
+
+def read_scenario_bytes(path: Path, name: str) -> bytes:
+    """A file's XML bytes: as stored, or decompressed from ``.gz`` with at most ``MAX_FILE_BYTES`` out (a
+    decompression bomb is refused once it passes that, never held whole).
+
+    Raises:
+        SourceError: unreadable, or damaged or oversized gzip data.
+    """
+    try:
+        data = path.read_bytes()
+    except OSError as err:
+        raise SourceError(name, f"not readable: {err.strerror or err}") from None
+    if not path.name.lower().endswith(".gz"):
+        return data
+    inflate = zlib.decompressobj(wbits=31)
+    try:
+        out = inflate.decompress(data, MAX_FILE_BYTES + 1)
+    except zlib.error as err:
+        raise SourceError(name, f"damaged gzip data: {err}") from None
+    if len(out) > MAX_FILE_BYTES or inflate.unconsumed_tail:
+        raise SourceError(name, f"decompresses to over {MAX_FILE_BYTES >> 20} MiB; refused (a gzip bomb?)")
+    if not inflate.eof:
+        raise SourceError(name, "damaged gzip data: the stream ends early (cut short?)")
+    return out
 
 
 def load(path: Path, map_id: str | None = None) -> MapStore:
@@ -95,11 +130,7 @@ def load(path: Path, map_id: str | None = None) -> MapStore:
     Raises:
         SourceError: an unreadable file, or a lanelet with a missing, non-numeric or absurd bound.
     """
-    try:
-        data = path.read_bytes()
-    except OSError as err:
-        raise SourceError(str(path), f"not readable: {err.strerror or err}") from None
-    root = parse_scenario(data, str(path))
+    root = parse_scenario(read_scenario_bytes(path, str(path)), str(path))
     return lanelet_map(root, map_id or root.get("benchmarkID") or path.stem, str(path))
 
 

@@ -206,3 +206,38 @@ def test_every_commonroad_obstacle_type_maps_to_one_of_ours(tmp_path: Path) -> N
         mine = rows[rows.track_id == first.group(1)]
         assert set(mine.source_type) == {word}
         assert set(mine.object_type) == {OBSTACLE_TYPES[word].value}
+
+
+def test_gzip_files_read_like_plain_ones_and_bombs_are_refused(tmp_path: Path) -> None:
+    import gzip
+
+    packed = tmp_path / "USA_Peach-4_8_T-1.xml.gz"
+    packed.write_bytes(gzip.compress(V2020.read_bytes()))
+    adapter = CommonRoadAdapter()
+    assert adapter.discover(tmp_path) == [packed] and detect(packed) == "commonroad"
+    plain = adapter.read([src(V2020)], keep_going=False)
+    unpacked = adapter.read([src(packed)], keep_going=False)
+    assert unpacked.tracks.equals(plain.tracks) and unpacked.maps["USA_Peach-4_8_T-1"].table.equals(
+        plain.maps["USA_Peach-4_8_T-1"].table)
+    assert unpacked.logs[0].source_sha256 != plain.logs[0].source_sha256  # the digest of the bytes on disk
+    bomb = tmp_path / "bomb.xml.gz"
+    head = b'<?xml version="1.0"?><commonRoad benchmarkID="A_B-1" timeStepSize="0.1">'
+    bomb.write_bytes(gzip.compress(head + b" " * (300 << 20)))  # 300 MiB of blanks in ~300 KB
+    with pytest.raises(SourceError, match="over 256 MiB"):
+        adapter.read([src(bomb)], keep_going=False)
+    cut = tmp_path / "cut.xml.gz"
+    cut.write_bytes(packed.read_bytes()[:-40])
+    with pytest.raises(SourceError, match="gzip"):
+        adapter.read([src(cut)], keep_going=False)
+
+
+def test_generated_scenarios_are_marked_synthetic(tmp_path: Path) -> None:
+    text = V2020.read_text().replace('benchmarkID="USA_Peach-4_8_T-1"', 'benchmarkID="synthetic_USA_Peach-4_8_T-1_0"')
+    text = re.sub(r'source="[^"]*"', 'source="SYNTHETIC traffic (logpipe)"', text, count=1)
+    path = tmp_path / "synthetic_USA_Peach-4_8_T-1_0.xml"
+    path.write_text(text)
+    meta = CommonRoadAdapter().read([src(path)], keep_going=False).logs[0]
+    assert meta.attributes["synthetic"] is True and meta.attributes["location"] == "USA_Peach"
+    assert set(meta.memberships) == {"location/USA_Peach", "synthetic"}
+    real = CommonRoadAdapter().read([src(V2020)], keep_going=False).logs[0]
+    assert real.attributes["synthetic"] is False and "synthetic" not in real.memberships
