@@ -306,7 +306,8 @@ def predict(  # noqa: PLR0913  public API: keyword options mirror `logpipe predi
     workers: int = 0,
 ) -> dict[str, Any]:
     """``logpipe predict``: run a checkpoint (default: the shipped one for the dataset kind) or a baseline
-    (``predictor="cv"|"linear"|"kalman"|"cv_sampler"``) on every selected sample into the run folder ``out``.
+    (``predictor="cv"|"linear"|"kalman"|"cv_sampler"|"adaptive_cv"``) on every selected sample into the run folder
+    ``out``.
 
     Args:
         modes: K futures per agent (default 20 for pedestrians, 6 for vehicles).

@@ -1,5 +1,6 @@
 """Classical baselines behind the ``Predictor`` interface (the paper's Linear and KF rows, constant
-velocity, and a constant-velocity sampler used as a best-of-K floor).
+velocity, a constant-velocity sampler used as a best-of-K floor, and the driving model's adaptive kinematic prior,
+``model.kinematic_prior``).
 
 All work in world metres per step (the protocols sample at a fixed rate), vectorised over targets. The
 LSTM and Noise-LSTM rows are ``TrajectoryNet`` presets (``config.preset("lstm")`` / ``"baseline"``).
@@ -14,6 +15,7 @@ import numpy as np
 
 from logpipe.types import NDArrayBool, NDArrayFloat, SceneSample
 
+from .kinematic_prior import AdaptiveConstantVelocity
 from .seeding import sample_seed
 
 
@@ -192,10 +194,12 @@ class ConstantVelocitySampler:
         return out
 
 
-CLASSICAL: dict[str, type[ConstantVelocity | LinearFit | KalmanCV | ConstantVelocitySampler]] = {
+CLASSICAL: dict[str, type[ConstantVelocity | LinearFit | KalmanCV | ConstantVelocitySampler
+                          | AdaptiveConstantVelocity]] = {
     "constant_velocity": ConstantVelocity,
     "linear": LinearFit,
     "kalman_cv": KalmanCV,
     "cv_sampler": ConstantVelocitySampler,
+    "adaptive_cv": AdaptiveConstantVelocity,
 }
 """Non-learned predictors by name; construct with ``CLASSICAL[name](pred_len=...)``."""

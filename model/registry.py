@@ -26,7 +26,8 @@ if TYPE_CHECKING:  # the network's modules load torch: imported where a checkpoi
 
     from .predictor import Predictor
 
-BASELINES = {"cv": "constant_velocity", "linear": "linear", "kalman": "kalman_cv", "cv_sampler": "cv_sampler"}
+BASELINES = {"cv": "constant_velocity", "linear": "linear", "kalman": "kalman_cv", "cv_sampler": "cv_sampler",
+             "adaptive_cv": "adaptive_cv"}
 """``--predictor`` names -> ``model.baselines.CLASSICAL`` keys."""
 
 # Shipped baselines and ablations live in folders named after their method (``ethucy/eth/lstm``,

@@ -84,7 +84,8 @@ def predict(  # noqa: PLR0913  typer command: one parameter per CLI option
     checkpoint: Annotated[Path | None, typer.Option(
         "--checkpoint", help="Checkpoint folder (default: the shipped one for the dataset kind).")] = None,
     predictor: Annotated[str | None, typer.Option(
-        "--predictor", help="Baseline instead of a checkpoint: cv | linear | kalman | cv_sampler.")] = None,
+        "--predictor",
+        help="Baseline instead of a checkpoint: cv | linear | kalman | cv_sampler | adaptive_cv.")] = None,
     modes: Annotated[int | None, typer.Option(
         "--modes", "-k", help="K futures per agent (default 20 for pedestrians, 6 for vehicles).")] = None,
     seed: Annotated[int, typer.Option("--seed", help="Seed of the sampled futures.")] = 0,

@@ -36,7 +36,7 @@ class PredictOptions:
 
     Attributes:
         checkpoint: a checkpoint folder (default: ``default_checkpoint`` for the dataset kind and filter split).
-        predictor: a baseline instead (``cv``, ``linear``, ``kalman``, ``cv_sampler``).
+        predictor: a baseline instead (``cv``, ``linear``, ``kalman``, ``cv_sampler``, ``adaptive_cv``).
         modes: K futures per target (default: the K the checkpoint's inference settings were chosen at, else
             ``default_modes``).
         seed: fixes every random draw (noise z, sampler); same seed and settings give the same output.

@@ -217,14 +217,17 @@ def _road_vehicles(spec: RasterSpec, view: LogView, sample: dict[str, Any], imag
                    affine: NDArrayFloat) -> tuple[int, int]:
     """(observed positions of road vehicles inside the raster, how many of them are on drivable pixels) over the
     sample's observed steps: a check that map and tracks share a frame (a pixel counts as drivable when at least
-    half covered: value >= 128 of the anti-aliased fill). (0, 0) without a ``drivable_area`` channel."""
+    half covered: value >= 128 of the anti-aliased fill). (0, 0) without a ``drivable_area`` channel or where the
+    raster has no drivable pixel at all (a map without drivable areas: AV1's centerline files)."""
     if "drivable_area" not in spec.channels:
         return 0, 0
+    drivable = image[spec.channels.index("drivable_area")]
+    if not drivable.any():
+        return 0, 0  # a map without drivable areas (AV1 centerlines) or none here: nothing to check against
     w = view.windows
     lo, hi = w.span(int(sample["start_step"]), int(sample["current_step"]))
     rows = lo + np.flatnonzero(np.isin(w.types[lo:hi], ROAD_VEHICLE_TYPES))
     uv = np.rint(np.stack([w.x[rows], w.y[rows]], axis=1) @ affine[:, :2].T + affine[:, 2]).astype(np.int64)
     size = spec.size_px
     inside = (uv >= 0).all(axis=1) & (uv < size).all(axis=1)
-    drivable = image[spec.channels.index("drivable_area")]
     return int(inside.sum()), int((drivable[uv[inside, 1], uv[inside, 0]] >= 128).sum())
