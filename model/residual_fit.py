@@ -1,0 +1,178 @@
+"""Training the residual driving model: targets cut from samples once (``collect``), then epochs of Adam over
+shuffled targets (``fit_residual``), validated every ``val_every`` epochs; ``best/`` is the checkpoint with the
+lowest validation score (K = 1 FDE + minFDE@K, metres: both are what the model is judged on), ``last/`` the last.
+
+Each epoch draws at most ``max_targets_per_window`` targets of every window (all with 0), so the crowded windows
+of a few recordings do not outweigh the rest. Runs on the CPU with ``num_threads`` torch threads.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from logpipe.types import NDArrayFloat, SceneSample
+
+from .checkpoint_meta import TrainingData
+from .residual_checkpoint import ResidualMeta, load_residual, save_residual
+from .residual_config import ResidualConfig
+from .residual_inputs import CROP_UNIT, TargetInputs, concat, target_inputs
+from .residual_net import ResidualNet, training_loss
+from .residual_ood import training_distribution
+
+LOG = "train_log.jsonl"
+
+
+def collect(samples: Iterable[SceneSample], config: ResidualConfig,
+            progress: Callable[[int], None] | None = None) -> tuple[TargetInputs, np.ndarray]:
+    """The inputs (with their true futures) of every target of ``samples``, and each target's window number."""
+    parts: list[TargetInputs] = []
+    windows: list[np.ndarray] = []
+    for number, sample in enumerate(samples):
+        inputs = target_inputs(sample, config, with_truth=True)
+        if len(inputs):
+            parts.append(inputs)
+            windows.append(np.full(len(inputs), number, np.int64))
+        if progress:
+            progress(1)
+    if not parts:
+        raise ValueError("no targets to train on")
+    return concat(parts), np.concatenate(windows)
+
+
+def tensors(inputs: TargetInputs, rows: np.ndarray) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor,
+                                                              torch.Tensor | None]:
+    """(features, neighbours, mask, crops or None) of ``rows`` as torch tensors."""
+    crops = None if inputs.crops is None else torch.from_numpy(inputs.crops[rows]).float() / CROP_UNIT
+    return (torch.from_numpy(inputs.features[rows]), torch.from_numpy(inputs.neighbours[rows]),
+            torch.from_numpy(inputs.neighbour_mask[rows]), crops)
+
+
+@torch.inference_mode()
+def forecast(net: ResidualNet, inputs: TargetInputs, num_modes: int, batch: int = 1024) -> NDArrayFloat:
+    """(N, num_modes, T, 2) world forecasts: mode 0 the mean head (the K = 1 forecast), then the mode heads by
+    descending score (the mean head repeated where more are asked for than there are heads)."""
+    out = []
+    for lo in range(0, len(inputs), batch):
+        rows = np.arange(lo, min(lo + batch, len(inputs)))
+        mean, modes, logits = (t.numpy() for t in net(*tensors(inputs, rows)))
+        order = np.argsort(-logits, axis=1, kind="stable")[:, : max(num_modes - 1, 0)]
+        ranked = np.take_along_axis(modes, order[:, :, None, None], axis=1)
+        picked = np.concatenate([mean[:, None], ranked], axis=1)
+        if picked.shape[1] < num_modes:
+            picked = np.concatenate([picked, np.repeat(mean[:, None], num_modes - picked.shape[1], axis=1)], 1)
+        out.append(picked)
+    from .residual_inputs import to_world
+
+    residual = np.concatenate(out) if out else np.zeros((0, num_modes, net.config.pred_len, 2))
+    return to_world(residual.astype(np.float64), inputs)
+
+
+def evaluate(net: ResidualNet, inputs: TargetInputs) -> dict[str, float]:
+    """K = 1 FDE/ADE and minFDE@K (K = modes + 1) on targets with their truth, metres."""
+    assert inputs.truth is not None
+    k = net.config.modes + 1
+    world = forecast(net, inputs, k)
+    truth = inputs.prior + np.einsum("nji,ntj->nti", inputs.rotation, inputs.truth * inputs.scale[:, None, None])
+    dist = np.linalg.norm(world - truth[:, None], axis=-1)  # (N, K, T)
+    return {"fde": float(dist[:, 0, -1].mean()), "ade": float(dist[:, 0].mean()),
+            f"min_fde_{k}": float(dist[:, :, -1].min(axis=1).mean()), "targets": float(len(inputs))}
+
+
+@dataclass
+class ResidualFitResult:
+    """What ``fit_residual`` did: epochs run, the best epoch and its validation figures (metres), throughput."""
+
+    epochs: int
+    best_epoch: int
+    best_metrics: dict[str, float]
+    best_checkpoint: Path
+    last_checkpoint: Path
+    train_targets: int
+    targets_per_s: float
+    stopped_early: bool
+
+
+def _epoch_rows(windows: np.ndarray, cap: int, rng: np.random.Generator) -> np.ndarray:
+    """This epoch's target rows, shuffled: all of them, or at most ``cap`` per window drawn anew."""
+    if cap <= 0:
+        return rng.permutation(len(windows))
+    keys = rng.random(len(windows))
+    order = np.lexsort((keys, windows))
+    first = np.searchsorted(windows[order], windows[order], side="left")
+    rank = np.arange(len(order)) - first
+    return rng.permutation(order[rank < cap])
+
+
+def fit_residual(  # noqa: PLR0913  the run's data, config and where it goes
+    train: TargetInputs, windows: np.ndarray, val: TargetInputs | None, config: ResidualConfig, out_dir: Path, *,
+    dataset_kind: str, manifest_hash: str, training_data: TrainingData | None = None, init_from: Path | None = None,
+    progress: Callable[[int], None] | None = None,
+) -> ResidualFitResult:
+    """Train on ``train`` (validating on ``val``), writing ``best/``, ``last/`` and ``train_log.jsonl`` into
+    ``out_dir``; ``init_from`` starts from a checkpoint of the same architecture (pre-training → fine-tuning)."""
+    assert train.truth is not None
+    torch.set_num_threads(config.num_threads)
+    torch.manual_seed(config.seed)
+    rng = np.random.default_rng(config.seed)
+    net = ResidualNet(config)
+    if init_from is not None:
+        net.load_state_dict(load_residual(init_from)[0].state_dict())
+    opt = torch.optim.Adam(net.parameters(), lr=config.lr, weight_decay=config.weight_decay)
+    truth, scale = torch.from_numpy(train.truth), torch.from_numpy(train.scale.astype(np.float32))
+    meta = ResidualMeta(config, dataset_kind, manifest_hash, 0, {}, training_distribution(train),
+                        training_data=training_data)
+    best_score, best_epoch, best_metrics, bad, seen, clock = math.inf, 0, {}, 0, 0, 0.0
+    log = (out_dir / LOG).open("w", encoding="utf-8")
+    epoch = 0
+    try:
+        for epoch in range(1, config.epochs + 1):
+            started = time.perf_counter()
+            net.train()
+            rows = _epoch_rows(windows, config.max_targets_per_window, rng)
+            total = 0.0
+            for lo in range(0, len(rows), config.batch_size):
+                batch = rows[lo:lo + config.batch_size]
+                loss = training_loss(net(*tensors(train, batch)), truth[batch], scale[batch], config.score_weight)
+                opt.zero_grad()
+                loss.backward()  # type: ignore[no-untyped-call]
+                opt.step()
+                total += float(loss.detach()) * len(batch)
+            clock += time.perf_counter() - started
+            seen += len(rows)
+            record: dict[str, Any] = {"epoch": epoch, "train_loss": total / max(len(rows), 1), "targets": len(rows)}
+            if val is not None and (epoch % config.val_every == 0 or epoch == config.epochs):
+                net.eval()
+                metrics = evaluate(net, val)
+                record["val"] = metrics
+                score = metrics["fde"] + metrics[f"min_fde_{config.modes + 1}"]
+                if score < best_score:
+                    best_score, best_epoch, best_metrics, bad = score, epoch, metrics, 0
+                    meta.epoch, meta.metrics = epoch, {f"val_{k}": v for k, v in metrics.items()}
+                    save_residual(out_dir / "best", net, meta)
+                else:
+                    bad += 1
+            log.write(json.dumps(record, sort_keys=True) + "\n")
+            log.flush()
+            if progress:
+                progress(1)
+            if config.patience and bad >= config.patience:
+                break
+    finally:
+        log.close()
+    net.eval()
+    meta.epoch, meta.metrics = epoch, ({"val_" + k: v for k, v in evaluate(net, val).items()} if val else {})
+    save_residual(out_dir / "last", net, meta)
+    if val is None:  # without validation the last epoch is the one to use
+        save_residual(out_dir / "best", net, meta)
+        best_epoch = epoch
+    return ResidualFitResult(epoch, best_epoch, best_metrics, out_dir / "best", out_dir / "last", len(train),
+                             seen / clock if clock > 0 else 0.0, epoch < config.epochs)
