@@ -131,6 +131,7 @@ def fit_residual(  # noqa: PLR0913  the run's data, config and where it goes
     meta = ResidualMeta(config, dataset_kind, manifest_hash, 0, {}, training_distribution(train),
                         training_data=training_data)
     best_score, best_epoch, best_metrics, bad, seen, clock = math.inf, 0, {}, 0, 0, 0.0
+    out_dir.mkdir(parents=True, exist_ok=True)
     log = (out_dir / LOG).open("w", encoding="utf-8")
     epoch = 0
     try:

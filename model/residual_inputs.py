@@ -285,6 +285,11 @@ def _crops(sample: SceneSample, origin: NDArrayFloat, theta: NDArrayFloat, confi
     stacked = np.concatenate([planes[[index["drivable_area"]]], strength[None].astype(np.float32),
                               planes[[index["lane_boundary"], index["crossing"]]],
                               world_dir.astype(np.float32)])
+    # Anti-aliasing: 1-pixel lines sampled every crop_res_m would be hit or missed by chance; blur to the crop's
+    # cell size first (sigma half a cell, in raster pixels).
+    sigma = 0.5 * config.crop_res_m * float(np.sqrt(abs(np.linalg.det(affine[:, :2]))))
+    if sigma > 0.5:
+        stacked = np.stack([cv2.GaussianBlur(plane, (0, 0), sigma) for plane in stacked])
     for row in range(n):
         c, s = np.cos(theta[row]), np.sin(theta[row])
         wxg, wyg = origin[row, 0] + c * gx - s * gy, origin[row, 1] + s * gx + c * gy

@@ -1,0 +1,163 @@
+"""The residual driving model: target frames and inputs, the zero-initialised net equals the prior, training lowers
+the error on real scenarios, checkpoints round-trip and refuse damage, out-of-distribution scores and actions."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from logpipe.dataset.reader import Dataset
+from logpipe.errors import LogpipeError
+from logpipe.maps import MapSource
+from logpipe.model.checkpoint_meta import CheckpointError
+from logpipe.model.kinematic_prior import adaptive_fit
+from logpipe.model.residual_checkpoint import ResidualMeta, load_residual, save_residual
+from logpipe.model.residual_config import ResidualConfig, ResidualConfigError, load_residual_config
+from logpipe.model.residual_fit import collect, evaluate, fit_residual, forecast
+from logpipe.model.residual_inputs import CROP_CHANNELS, CROP_UNIT, target_inputs
+from logpipe.model.residual_net import ResidualNet
+from logpipe.model.residual_ood import ood_scores, training_distribution
+from logpipe.model.residual_predictor import ResidualPredictor
+from logpipe.raster.runs import find_raster_run
+from logpipe.stages.ingest import IngestOptions, ingest
+from logpipe.stages.rasterise import rasterise_dataset
+from logpipe.stages.train import scene_samples
+from logpipe.types import OBJECT_TYPES, SceneSample
+
+DATA = Path(__file__).resolve().parents[1] / "data" / "commonroad"
+SMALL = ResidualConfig(epochs=2, hidden=32, head_hidden=32, modes=3)
+
+
+@pytest.fixture(scope="module")
+def scenes(tmp_path_factory: pytest.TempPathFactory) -> list[SceneSample]:
+    """The bundled CommonRoad scenarios ingested, rasterised from their own maps, cut into samples."""
+    out = tmp_path_factory.mktemp("residual") / "ds"
+    ingest([DATA], IngestOptions(out=out, write_mcap=False))
+    rasterise_dataset(out, MapSource(), rotate=True)
+    ds = Dataset.open(out)
+    return scene_samples(ds, "all", rasters=find_raster_run(out, None, None))
+
+
+def _straight(speed: float = 10.0) -> SceneSample:
+    """A car driving north at ``speed`` m/s (10 Hz), a neighbour 20 m ahead of it, one 100 m away."""
+    t = np.arange(50, dtype=np.float64) * 0.1
+    car = np.stack([np.full(50, 5.0), 100.0 + speed * t], axis=1)
+    positions = np.stack([car, car + [0.0, 20.0], car + [100.0, 0.0]])
+    return SceneSample("x:0", positions, (t * 1e9).astype(np.int64), ["a", "b", "c"], np.zeros(3, np.int64),
+                       np.array([True, False, False]), -1, 20)
+
+
+def test_a_target_is_read_in_its_own_frame() -> None:
+    config = ResidualConfig(environment=False)
+    inputs = target_inputs(_straight(), config, with_truth=True)
+    np.testing.assert_allclose(inputs.origin[0], [5.0, 100.0 + 10.0 * 1.9])
+    np.testing.assert_allclose(inputs.rotation[0] @ [0.0, 1.0], [1.0, 0.0], atol=1e-9)  # north is its forward
+    assert inputs.scale[0] == pytest.approx(30.0) and inputs.speed[0] == pytest.approx(10.0)
+    assert inputs.truth is not None and np.abs(inputs.truth).max() < 1e-9  # constant velocity: no residual
+    assert inputs.neighbour_mask[0].tolist() == [True] + [False] * 15  # the far one is beyond 60 m
+    np.testing.assert_allclose(inputs.neighbours[0, 0, 8:10] * 20.0, [20.0, 0.0], atol=1e-6)  # 20 m ahead
+    assert np.isfinite(inputs.features).all() and inputs.features.shape[1] == 6 * 20 + 3
+    slow = target_inputs(_straight(0.5), config)
+    assert slow.scale[0] == config.min_scale_m
+
+
+def test_crops_show_the_lanes_running_the_targets_way(scenes: list[SceneSample]) -> None:
+    config = ResidualConfig()
+    forward = CROP_CHANNELS.index("lane_forward")
+    ahead = []
+    for sample in scenes:
+        inputs = target_inputs(sample, config)
+        assert inputs.crops is not None and inputs.crops.dtype == np.int8
+        moving = inputs.speed > 2.0
+        # the cells on the target's path: x 0..20 m ahead (columns 12..31), y within 2 m (rows 22..25)
+        strip = inputs.crops[moving][:, forward, 22:26, 12:32].astype(np.float64) / CROP_UNIT
+        ahead += strip.mean(axis=(1, 2)).tolist()
+        assert inputs.has_map.all()
+    # most moving cars have their own lane ahead (a few are between lanes or entering an intersection, where
+    # crossing lanes dominate the strip); a mirrored or turned crop would make most of these negative
+    assert len(ahead) > 10 and np.mean(np.asarray(ahead) > 0) > 0.75 and np.mean(ahead) > 0.05
+
+
+def test_an_untrained_net_is_the_prior(scenes: list[SceneSample]) -> None:
+    net = ResidualNet(SMALL).eval()
+    inputs = target_inputs(scenes[0], SMALL)
+    world = forecast(net, inputs, 4)
+    observed = scenes[0].positions[np.asarray(scenes[0].target_mask, bool), :20]
+    prior = adaptive_fit(observed).forecast(30)
+    for mode in range(4):
+        np.testing.assert_allclose(world[:, mode], prior, atol=1e-9)
+
+
+def test_training_beats_the_prior_on_what_it_trained_on(scenes: list[SceneSample], tmp_path: Path) -> None:
+    config = ResidualConfig(epochs=40, hidden=64, head_hidden=64, modes=3, lr=3e-3)
+    inputs, windows = collect(scenes, config)
+    before = evaluate(ResidualNet(config).eval(), inputs)
+    result = fit_residual(inputs, windows, inputs, config, tmp_path / "run", dataset_kind="commonroad",
+                          manifest_hash="h")
+    net, meta = load_residual(result.best_checkpoint)
+    after = evaluate(net, inputs)
+    assert after["fde"] < 0.8 * before["fde"] and after["min_fde_4"] < after["fde"]
+    assert meta.epoch == result.best_epoch and meta.metrics["val_fde"] == pytest.approx(after["fde"])
+    lines = (tmp_path / "run" / "train_log.jsonl").read_text().splitlines()
+    assert len(lines) == result.epochs and "val" in json.loads(lines[0])
+    assert meta.ood["targets"] == len(inputs) and set(meta.ood["object_types"]) == {"vehicle"}
+
+
+def test_checkpoints_round_trip_and_refuse_damage(tmp_path: Path) -> None:
+    net = ResidualNet(SMALL)
+    meta = ResidualMeta(SMALL, "commonroad", "h", 1, {"val_fde": 1.0}, {"targets": 0})
+    folder = save_residual(tmp_path / "ckpt", net, meta)
+    loaded, read = load_residual(folder)
+    assert read.config == SMALL and read.weights_sha256 == meta.weights_sha256
+    for a, b in zip(net.state_dict().values(), loaded.state_dict().values(), strict=True):
+        assert torch.equal(a, b)
+    broken = tmp_path / "broken"
+    shutil.copytree(folder, broken)
+    data = bytearray((broken / "weights.safetensors").read_bytes())
+    data[-1] ^= 1
+    (broken / "weights.safetensors").write_bytes(bytes(data))
+    with pytest.raises(CheckpointError, match="sha256"):
+        load_residual(broken)
+    absurd = json.loads((folder / "meta.json").read_text())
+    absurd["residual"]["hidden"] = 200_000  # a 640 GB allocation if it were believed
+    (broken / "meta.json").write_text(json.dumps(absurd))
+    with pytest.raises(CheckpointError, match="4096"):
+        load_residual(broken)
+
+
+def test_config_files_refuse_typos(tmp_path: Path) -> None:
+    good = tmp_path / "good.toml"
+    good.write_text("[residual]\nmodes = 4\nenvironment = false\n")
+    assert load_residual_config(good) == ResidualConfig(modes=4, environment=False)
+    typo = tmp_path / "typo.toml"
+    typo.write_text("[residual]\nmode = 4\n")
+    with pytest.raises(ResidualConfigError, match="unknown residual settings"):
+        load_residual_config(typo)
+
+
+def test_out_of_distribution_targets_are_flagged_and_handled(scenes: list[SceneSample], tmp_path: Path) -> None:
+    inputs, _ = collect(scenes, SMALL)
+    ood = training_distribution(inputs)
+    scores, flags, _ = ood_scores(inputs, ood)
+    assert flags.mean() < 0.02  # the training targets themselves are inside
+    fast = _straight(40.0)  # faster than any car of the samples
+    fast.object_types = np.array([OBJECT_TYPES.index("pedestrian")] * 3)
+    fast_inputs = target_inputs(fast, SMALL)
+    f_scores, f_flags, reasons = ood_scores(fast_inputs, ood)
+    assert f_flags.all() and "speed_mps" in reasons[0] and "pedestrian" in reasons[0]
+    net = ResidualNet(SMALL)
+    meta = ResidualMeta(SMALL, "commonroad", "h", 1, {}, ood)
+    fallback = ResidualPredictor(net, meta, "fallback").predict([fast], 3, 0)[0]
+    assert fallback.shape == (1, 3, 30, 2)
+    np.testing.assert_array_equal(fallback[:, 0], fallback[:, 2])
+    assert ResidualPredictor(net, meta, "fallback").predict([fast], 3, 0) is not None
+    with pytest.raises(LogpipeError, match="outside this checkpoint's training data"):
+        ResidualPredictor(net, meta, "refuse").predict([fast], 3, 0)
+    warned = ResidualPredictor(net, meta, "warn")
+    warned.predict([fast, scenes[0]], 3, 0)
+    assert warned.last_ood.flags[0] and not warned.last_ood.fallback.any()
