@@ -47,7 +47,7 @@ def _straight(speed: float = 10.0) -> SceneSample:
     """A car driving north at ``speed`` m/s (10 Hz), a neighbour 20 m ahead of it, one 100 m away."""
     t = np.arange(50, dtype=np.float64) * 0.1
     car = np.stack([np.full(50, 5.0), 100.0 + speed * t], axis=1)
-    positions = np.stack([car, car + [0.0, 20.0], car + [100.0, 0.0]])
+    positions = np.stack([car, car + np.array([0.0, 20.0]), car + np.array([100.0, 0.0])])
     return SceneSample("x:0", positions, (t * 1e9).astype(np.int64), ["a", "b", "c"], np.zeros(3, np.int64),
                        np.array([True, False, False]), -1, 20)
 
@@ -143,12 +143,12 @@ def test_config_files_refuse_typos(tmp_path: Path) -> None:
 def test_out_of_distribution_targets_are_flagged_and_handled(scenes: list[SceneSample], tmp_path: Path) -> None:
     inputs, _ = collect(scenes, SMALL)
     ood = training_distribution(inputs)
-    scores, flags, _ = ood_scores(inputs, ood)
+    _, flags, _ = ood_scores(inputs, ood)
     assert flags.mean() < 0.02  # the training targets themselves are inside
     fast = _straight(40.0)  # faster than any car of the samples
     fast.object_types = np.array([OBJECT_TYPES.index("pedestrian")] * 3)
     fast_inputs = target_inputs(fast, SMALL)
-    f_scores, f_flags, reasons = ood_scores(fast_inputs, ood)
+    _, f_flags, reasons = ood_scores(fast_inputs, ood)
     assert f_flags.all() and "speed_mps" in reasons[0] and "pedestrian" in reasons[0]
     net = ResidualNet(SMALL)
     meta = ResidualMeta(SMALL, "commonroad", "h", 1, {}, ood)
