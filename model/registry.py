@@ -17,9 +17,12 @@ import pyarrow.compute as pc
 
 from logpipe.dataset.reader import Dataset
 from logpipe.errors import LogpipeError
+from logpipe.raster.rasteriser import DEFAULT_CHANNELS
 from logpipe.storage.io import read_json, read_table
 
 from .checkpoint_meta import InferenceSettings, TrainingData, kind_accepts, read_meta
+from .residual_config import MODEL_KIND as RESIDUAL_KIND
+from .residual_meta import model_kind, read_residual_meta
 
 if TYPE_CHECKING:  # the network's modules load torch: imported where a checkpoint is used, so baselines never do
     import torch
@@ -35,9 +38,9 @@ BASELINES = {"cv": "constant_velocity", "linear": "linear", "kalman": "kalman_cv
 # default model.
 COMPARISON_FOLDERS = frozenset({"lstm", "noise_lstm", "no_position", "paper"})
 
-# Dataset kinds whose shipped model lives under another folder: one driving model serves both Argoverse formats
-# (it is trained on both; its ``meta.json`` kind is ``argoverse1+argoverse2``).
-KIND_FOLDERS = {"argoverse1": "argoverse", "argoverse2": "argoverse"}
+# Dataset kinds whose shipped model lives under another folder: one driving model serves the Argoverse formats and
+# CommonRoad (it is trained on all three; its ``meta.json`` kind is ``argoverse1+argoverse2+commonroad``).
+KIND_FOLDERS = {"argoverse1": "argoverse", "argoverse2": "argoverse", "commonroad": "argoverse"}
 
 
 @dataclass(frozen=True)
@@ -146,6 +149,10 @@ def choose_predictor(
     if checkpoint is None:
         checkpoint = default_checkpoint(dataset.kind, split)
     folder = checkpoint.parent if checkpoint.name == "meta.json" else checkpoint
+    if model_kind(folder) == RESIDUAL_KIND:
+        residual = read_residual_meta(folder)
+        return ChosenPredictor(None, "residual", residual.weights_sha256, folder, residual.config.environment,
+                               len(DEFAULT_CHANNELS), residual.weights_sha256, None, residual.training_data)
     meta = read_meta(folder)
     model_cfg = meta.config.model
     return ChosenPredictor(None, "zhu2020", meta.weights_sha256, folder, model_cfg.features.environment,
@@ -162,7 +169,10 @@ def resolve_inference(chosen: ChosenPredictor, *, num_modes: int, noise_scale: f
         LogpipeError: an option for a baseline, or a value out of range.
     """
     options = [v is not None for v in (noise_scale, constant_velocity_modes, context_max_neighbours)]
-    if chosen.checkpoint is None:
+    if chosen.name == "residual" and (any(options) or as_trained):
+        raise LogpipeError("--noise-scale, --constant-velocity-modes, --context-max-neighbours and --as-trained "
+                           "apply to the paper's network; the residual model's heads draw no noise")
+    if chosen.checkpoint is None or chosen.name == "residual":
         if any(options) or as_trained:
             raise LogpipeError("--noise-scale, --constant-velocity-modes, --context-max-neighbours and --as-trained "
                                "apply to a checkpoint's network, not to a --predictor baseline")
@@ -198,14 +208,19 @@ def check_fit(dataset: Dataset, chosen: ChosenPredictor, logs: pa.Table) -> list
     ``meta.json``."""
     if chosen.checkpoint is None:
         return []
-    meta = read_meta(chosen.checkpoint)
     raw = read_json(chosen.checkpoint / "meta.json")
-    cfg, protocol = meta.config.model, dataset.protocol
+    protocol = dataset.protocol
+    if chosen.name == "residual":
+        residual = read_residual_meta(chosen.checkpoint)
+        kind, lengths = residual.dataset_kind, (residual.config.obs_len, residual.config.pred_len)
+    else:
+        meta = read_meta(chosen.checkpoint)
+        kind, lengths = meta.dataset_kind, (meta.config.model.obs_len, meta.config.model.pred_len)
     problems = []
-    if not kind_accepts(meta.dataset_kind, dataset.kind):
-        problems.append(f"dataset kind: checkpoint {meta.dataset_kind!r}, dataset {dataset.kind!r}")
-    if (cfg.obs_len, cfg.pred_len) != (protocol.obs_len, protocol.pred_len):
-        problems.append(f"obs/pred lengths: checkpoint {cfg.obs_len}+{cfg.pred_len} steps, dataset "
+    if not kind_accepts(kind, dataset.kind):
+        problems.append(f"dataset kind: checkpoint {kind!r}, dataset {dataset.kind!r}")
+    if lengths != (protocol.obs_len, protocol.pred_len):
+        problems.append(f"obs/pred lengths: checkpoint {lengths[0]}+{lengths[1]} steps, dataset "
                         f"{protocol.obs_len}+{protocol.pred_len} ({protocol.name})")
     rate = raw.get("frame_rate_hz")
     if rate is not None:
@@ -241,10 +256,17 @@ def seen_in_training(chosen: ChosenPredictor, logs: pa.Table) -> list[str]:
     return warnings
 
 
-def load_net(chosen: ChosenPredictor, dataset: Dataset, batch_size: int, device: torch.device | str = "cpu") -> None:
+def load_net(chosen: ChosenPredictor, dataset: Dataset, batch_size: int, device: torch.device | str = "cpu",
+             out_of_distribution: str = "warn") -> None:
     """Load the checkpoint's weights into ``chosen.model`` with ``chosen.inference``, on ``device`` (after
-    ``check_fit``)."""
+    ``check_fit``); a residual checkpoint handles its out-of-distribution targets as ``out_of_distribution`` says
+    (``model.residual_predictor``)."""
     if chosen.model is not None or chosen.checkpoint is None:
+        return
+    if chosen.name == "residual":
+        from .residual_predictor import ResidualPredictor, check_ood_action
+
+        chosen.model = ResidualPredictor.from_checkpoint(chosen.checkpoint, check_ood_action(out_of_distribution))
         return
     from .predictor import NetPredictor
 

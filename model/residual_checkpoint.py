@@ -1,11 +1,8 @@
 """Checkpoints of the residual driving model: ``weights.safetensors`` and ``meta.json`` in one folder, never a
 pickle, replaced whole (``logpipe.storage.folder_swap``) so a crash leaves the old folder or the new one.
 
-``meta.json`` holds the format and ``model_kind`` (``prior_residual``), the full ``ResidualConfig``, the dataset
-kind and manifest hash, ``TrainingData`` (what it was trained and validated on), the validation metrics, the
-distribution of its training inputs (``ood``: what ``logpipe predict`` scores targets against), the weights'
-sha256 and the logpipe version. Weights load only when their sha256 is the one ``meta.json`` names, and only
-finite weights are accepted.
+``meta.json`` (``model.residual_meta``) names the weights' sha256; weights load only when their sha256 is that one,
+and only finite weights are accepted.
 """
 
 from __future__ import annotations
@@ -15,9 +12,7 @@ import json
 import os
 import shutil
 import time
-from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
 import torch
 from safetensors import SafetensorError
@@ -25,78 +20,9 @@ from safetensors.torch import load_file, save_file
 
 from logpipe.storage.folder_swap import recover_folder, replace_folder, staging_folder_for
 
-from .checkpoint_meta import CHECKPOINT_FORMAT, CheckpointError, TrainingData, logpipe_version
-from .residual_config import MODEL_KIND, ResidualConfig, ResidualConfigError
+from .checkpoint_meta import CheckpointError, logpipe_version
+from .residual_meta import META, WEIGHTS, ResidualMeta, read_residual_meta
 from .residual_net import ResidualNet
-
-FORMAT_VERSION = 1
-WEIGHTS = "weights.safetensors"
-META = "meta.json"
-
-
-@dataclass
-class ResidualMeta:
-    """``meta.json`` of a residual checkpoint (see the module docstring)."""
-
-    config: ResidualConfig
-    dataset_kind: str
-    manifest_hash: str
-    epoch: int
-    metrics: dict[str, float]
-    ood: dict[str, Any]
-    weights_sha256: str = ""
-    training_data: TrainingData | None = None
-    logpipe_version: str = ""
-    created_unix: float = 0.0
-
-    def to_dict(self) -> dict[str, Any]:
-        """The JSON document."""
-        return {"format": CHECKPOINT_FORMAT, "format_version": FORMAT_VERSION, "model_kind": MODEL_KIND,
-                "residual": self.config.to_dict(), "dataset_kind": self.dataset_kind,
-                "manifest_hash": self.manifest_hash, "epoch": self.epoch, "metrics": self.metrics, "ood": self.ood,
-                "weights_sha256": self.weights_sha256, "logpipe_version": self.logpipe_version,
-                "created_unix": self.created_unix,
-                **({"training_data": self.training_data.to_dict()} if self.training_data is not None else {})}
-
-
-def model_kind(folder: Path) -> str | None:
-    """The ``model_kind`` a checkpoint folder's ``meta.json`` names (None when unreadable)."""
-    try:
-        data = json.loads((folder / META).read_text(encoding="utf-8"))
-    except (OSError, ValueError):
-        return None
-    kind = data.get("model_kind") if isinstance(data, dict) else None
-    return kind if isinstance(kind, str) else None
-
-
-def read_residual_meta(folder: Path) -> ResidualMeta:
-    """Parse ``meta.json`` of a residual checkpoint.
-
-    Raises:
-        CheckpointError: unreadable, of another format or kind, or with a malformed config.
-    """
-    path = folder / META
-    try:
-        data = json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, ValueError) as exc:
-        raise CheckpointError(f"{path}: not a readable checkpoint: {exc}") from None
-    if not isinstance(data, dict) or data.get("format") != CHECKPOINT_FORMAT or data.get("model_kind") != MODEL_KIND:
-        raise CheckpointError(f"{path}: not a {MODEL_KIND} {CHECKPOINT_FORMAT}")
-    if data.get("format_version") != FORMAT_VERSION:
-        raise CheckpointError(f"{path}: residual checkpoint version {data.get('format_version')} is not "
-                              f"{FORMAT_VERSION}")
-    try:
-        config = ResidualConfig.from_dict(dict(data["residual"]), str(path))
-        training = data.get("training_data")
-        return ResidualMeta(config=config, dataset_kind=str(data["dataset_kind"]),
-                            manifest_hash=str(data["manifest_hash"]), epoch=int(data["epoch"]),
-                            metrics={str(k): float(v) for k, v in dict(data.get("metrics", {})).items()},
-                            ood=dict(data.get("ood") or {}), weights_sha256=str(data["weights_sha256"]),
-                            training_data=None if training is None else TrainingData.from_dict(training, path),
-                            logpipe_version=str(data.get("logpipe_version", "")),
-                            created_unix=float(data.get("created_unix", 0.0)))
-    except (KeyError, TypeError, ValueError, ResidualConfigError) as exc:
-        raise CheckpointError(f"{path}: malformed residual checkpoint metadata: {exc}") from None
 
 
 def _sha256(path: Path) -> str:

@@ -22,9 +22,10 @@ import torch
 from logpipe.types import NDArrayFloat, SceneSample
 
 from .checkpoint_meta import TrainingData
-from .residual_checkpoint import ResidualMeta, load_residual, save_residual
+from .residual_checkpoint import load_residual, save_residual
 from .residual_config import ResidualConfig
 from .residual_inputs import CROP_UNIT, TargetInputs, concat, target_inputs
+from .residual_meta import ResidualMeta
 from .residual_net import ResidualNet, training_loss
 from .residual_ood import training_distribution
 
@@ -93,6 +94,8 @@ class ResidualFitResult:
 
     epochs: int
     best_epoch: int
+    steps: int
+    best_step: int
     best_metrics: dict[str, float]
     best_checkpoint: Path
     last_checkpoint: Path
@@ -131,6 +134,7 @@ def fit_residual(  # noqa: PLR0913  the run's data, config and where it goes
     meta = ResidualMeta(config, dataset_kind, manifest_hash, 0, {}, training_distribution(train),
                         training_data=training_data)
     best_score, best_epoch, best_metrics, bad, seen, clock = math.inf, 0, {}, 0, 0, 0.0
+    steps = best_step = 0
     out_dir.mkdir(parents=True, exist_ok=True)
     log = (out_dir / LOG).open("w", encoding="utf-8")
     epoch = 0
@@ -146,6 +150,7 @@ def fit_residual(  # noqa: PLR0913  the run's data, config and where it goes
                 opt.zero_grad()
                 loss.backward()  # type: ignore[no-untyped-call]
                 opt.step()
+                steps += 1
                 total += float(loss.detach()) * len(batch)
             clock += time.perf_counter() - started
             seen += len(rows)
@@ -156,7 +161,7 @@ def fit_residual(  # noqa: PLR0913  the run's data, config and where it goes
                 record["val"] = metrics
                 score = metrics["fde"] + metrics[f"min_fde_{config.modes + 1}"]
                 if score < best_score:
-                    best_score, best_epoch, best_metrics, bad = score, epoch, metrics, 0
+                    best_score, best_epoch, best_step, best_metrics, bad = score, epoch, steps, metrics, 0
                     meta.epoch, meta.metrics = epoch, {f"val_{k}": v for k, v in metrics.items()}
                     save_residual(out_dir / "best", net, meta)
                 else:
@@ -174,6 +179,6 @@ def fit_residual(  # noqa: PLR0913  the run's data, config and where it goes
     save_residual(out_dir / "last", net, meta)
     if val is None:  # without validation the last epoch is the one to use
         save_residual(out_dir / "best", net, meta)
-        best_epoch = epoch
-    return ResidualFitResult(epoch, best_epoch, best_metrics, out_dir / "best", out_dir / "last", len(train),
-                             seen / clock if clock > 0 else 0.0, epoch < config.epochs)
+        best_epoch, best_step = epoch, steps
+    return ResidualFitResult(epoch, best_epoch, steps, best_step, best_metrics, out_dir / "best", out_dir / "last",
+                             len(train), seen / clock if clock > 0 else 0.0, epoch < config.epochs)

@@ -22,14 +22,23 @@ from logpipe.errors import LogpipeError
 from logpipe.types import NDArrayBool, NDArrayFloat, SceneSample
 
 from .baselines import KalmanCV
-from .residual_checkpoint import ResidualMeta, load_residual
+from .residual_checkpoint import load_residual
 from .residual_fit import forecast
 from .residual_inputs import concat, target_inputs
+from .residual_meta import ResidualMeta
 from .residual_net import ResidualNet
 from .residual_ood import ood_scores
 
 OodAction = Literal["warn", "fallback", "refuse"]
-OOD_ACTIONS: tuple[str, ...] = ("warn", "fallback", "refuse")
+OOD_ACTIONS: tuple[OodAction, ...] = ("warn", "fallback", "refuse")
+
+
+def check_ood_action(value: str) -> OodAction:
+    """``value`` as an ``OodAction``, or a ``LogpipeError`` naming the choices."""
+    for action in OOD_ACTIONS:
+        if value == action:
+            return action
+    raise LogpipeError(f"--out-of-distribution must be one of {', '.join(OOD_ACTIONS)}, got {value!r}")
 
 
 @dataclass
@@ -56,9 +65,7 @@ class ResidualPredictor:
 
     def __init__(self, net: ResidualNet, meta: ResidualMeta, out_of_distribution: OodAction = "warn",
                  num_threads: int | None = None) -> None:
-        if out_of_distribution not in OOD_ACTIONS:
-            raise LogpipeError(f"--out-of-distribution must be one of {', '.join(OOD_ACTIONS)}, "
-                               f"got {out_of_distribution!r}")
+        check_ood_action(out_of_distribution)
         self.net, self.meta, self.out_of_distribution = net.eval(), meta, out_of_distribution
         self.last_ood = OodRecord()
         if num_threads:

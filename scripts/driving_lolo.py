@@ -35,7 +35,15 @@ from logpipe.model.residual_checkpoint import load_residual
 from logpipe.model.residual_config import ResidualConfig, load_residual_config
 from logpipe.model.residual_fit import fit_residual, forecast
 from logpipe.types import NDArrayFloat
-from scripts.driving_targets import LOCATIONS, Targets, build_datasets, real_targets
+from scripts.driving_targets import (
+    LOCATIONS,
+    Targets,
+    build_datasets,
+    config_key,
+    load_targets,
+    real_targets,
+    save_targets,
+)
 from scripts.locations import REPO
 
 K = 6
@@ -118,6 +126,26 @@ def bootstrap(values: dict[str, NDArrayFloat], location: np.ndarray, cluster: np
     return {k: [float(np.percentile(m, 2.5)), float(np.percentile(m, 97.5))] for k, m in means.items()}
 
 
+def targets_and_baselines(args: argparse.Namespace, config: ResidualConfig
+                          ) -> tuple[Targets, dict[str, dict[str, NDArrayFloat]]]:
+    """The real targets (with crops) and every classical candidate's errors on them, cached in ``--work``
+    by the input settings (the data and the baselines do not change between runs)."""
+    cache = args.work / f"targets-{config_key(config)}.npz"
+    if cache.is_file():
+        real, extra = load_targets(cache)
+    else:
+        datasets = build_datasets(args.shared, args.work / "data")
+        real = real_targets(datasets, replace(config, environment=True))
+        extra = {f"{name}|{key}": v for name, f in classical_forecasts(real, config.pred_len).items()
+                 for key, v in errors(f, real.future).items()}
+        save_targets(real, extra, cache)
+    classical: dict[str, dict[str, NDArrayFloat]] = {}
+    for key, values in extra.items():
+        name, metric = key.split("|")
+        classical.setdefault(name, {})[metric] = values
+    return real, classical
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--shared", type=Path, default=REPO.parent / "shared" / "data")
@@ -129,10 +157,8 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     started = time.perf_counter()
     config = load_residual_config(args.config, {"epochs": args.epochs} if args.epochs else None)
-    datasets = build_datasets(args.shared, args.work / "data")
-    real = real_targets(datasets, replace(config, environment=True))
-    print(f"{len(real.inputs)} real targets in {len(real.samples)} windows", file=sys.stderr)
-    classical = {name: errors(f, real.future) for name, f in classical_forecasts(real, config.pred_len).items()}
+    real, classical = targets_and_baselines(args, config)
+    print(f"{len(real.inputs)} real targets", file=sys.stderr)
     results: dict[str, Any] = {"config": config.to_dict(), "folds": {}, "targets": len(real.inputs)}
     per_target: dict[str, NDArrayFloat] = {}
     for held in args.locations:

@@ -19,7 +19,7 @@ from __future__ import annotations
 import hashlib
 import json
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Any
 
@@ -152,6 +152,30 @@ def config_key(config: ResidualConfig) -> str:
             "neighbour_radius_m", "neighbour_steps", "min_scale_m", "horizon_scale_s")
     blob = json.dumps({k: getattr(config, k) for k in keys}, sort_keys=True).encode()
     return hashlib.sha256(blob).hexdigest()[:12]
+
+
+_ARRAYS = ("future", "location", "log", "cluster", "sample", "window", "turning")
+
+
+def save_targets(targets: Targets, extra: dict[str, NDArrayFloat], path: Path) -> None:
+    """Cache the targets (without their samples) and ``extra`` per-target arrays in one ``.npz``."""
+    arrays = {f"inputs.{f.name}": getattr(targets.inputs, f.name) for f in fields(TargetInputs)
+              if getattr(targets.inputs, f.name) is not None}
+    arrays |= {k: getattr(targets, k) for k in _ARRAYS} | {f"extra.{k}": v for k, v in extra.items()}
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".tmp.npz")
+    np.savez(tmp, **arrays)
+    tmp.replace(path)
+
+
+def load_targets(path: Path) -> tuple[Targets, dict[str, NDArrayFloat]]:
+    """What ``save_targets`` cached (``samples`` empty)."""
+    with np.load(path, allow_pickle=False) as data:
+        got = {k: data[k] for k in data.files}
+    inputs = TargetInputs(**{f.name: got.get(f"inputs.{f.name}") for f in fields(TargetInputs)})
+    extra = {k.removeprefix("extra."): v for k, v in got.items() if k.startswith("extra.")}
+    return Targets(inputs, got["future"], got["location"], got["log"], got["cluster"], got["sample"], got["window"],
+                   got["turning"], []), extra
 
 
 def real_targets(datasets: dict[str, Dataset], config: ResidualConfig) -> Targets:

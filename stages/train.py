@@ -102,6 +102,7 @@ def train(  # noqa: PLR0913  stage entry: keyword options mirror `logpipe train`
             ``logpipe.model.device``).
     """
     from logpipe.model.checkpoint_meta import TrainingData, combined_kind, combined_manifest_hash
+    from logpipe.model.residual_config import is_residual_config
     from logpipe.model.train_config import train_config, with_protocol_lengths
     from logpipe.model.train_run import run_folder, train_device
     from logpipe.model.training import fit
@@ -109,6 +110,14 @@ def train(  # noqa: PLR0913  stage entry: keyword options mirror `logpipe train`
     started = time.perf_counter()
     torch_device = train_device(device)  # a bad --device fails before any data is read
     datasets = _open_datasets([dataset_dir] if isinstance(dataset_dir, Path) else list(dataset_dir))
+    if config_path is not None and is_residual_config(config_path):  # the residual driving model (our extension)
+        from logpipe.model.residual_run import train_residual
+
+        _check_lengths(datasets)
+        summary: TrainSummary = train_residual(datasets, out_dir, config_path, train_split=train_split,
+                                               val_split=val_split, overrides=overrides, raster_run=raster_run,
+                                               init_from=init_from, progress=progress if callable(progress) else None)
+        return summary
     config = train_config(config_path, overrides, preset)
     _check_lengths(datasets)  # one model: every dataset's windows of the same steps, which the config takes
     config = with_protocol_lengths(config, datasets[0].protocol)

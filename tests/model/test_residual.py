@@ -16,10 +16,11 @@ from logpipe.errors import LogpipeError
 from logpipe.maps import MapSource
 from logpipe.model.checkpoint_meta import CheckpointError
 from logpipe.model.kinematic_prior import adaptive_fit
-from logpipe.model.residual_checkpoint import ResidualMeta, load_residual, save_residual
+from logpipe.model.residual_checkpoint import load_residual, save_residual
 from logpipe.model.residual_config import ResidualConfig, ResidualConfigError, load_residual_config
 from logpipe.model.residual_fit import collect, evaluate, fit_residual, forecast
 from logpipe.model.residual_inputs import CROP_CHANNELS, CROP_UNIT, target_inputs
+from logpipe.model.residual_meta import ResidualMeta
 from logpipe.model.residual_net import ResidualNet
 from logpipe.model.residual_ood import ood_scores, training_distribution
 from logpipe.model.residual_predictor import ResidualPredictor
