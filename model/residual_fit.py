@@ -8,6 +8,7 @@ of a few recordings do not outweigh the rest. Runs on the CPU with ``num_threads
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import time
@@ -33,11 +34,21 @@ LOG = "train_log.jsonl"
 
 
 def collect(samples: Iterable[SceneSample], config: ResidualConfig,
-            progress: Callable[[int], None] | None = None) -> tuple[TargetInputs, np.ndarray]:
-    """The inputs (with their true futures) of every target of ``samples``, and each target's window number."""
+            progress: Callable[[int], None] | None = None, *, per_window: int = 0,
+            seed: int = 0) -> tuple[TargetInputs, np.ndarray]:
+    """The inputs (with their true futures) of every target of ``samples`` (at most ``per_window`` of each, drawn
+    by ``seed`` and the window's number, when not 0: what keeps a million simulated windows in memory), and each
+    target's window number."""
     parts: list[TargetInputs] = []
     windows: list[np.ndarray] = []
-    for number, sample in enumerate(samples):
+    for number, whole in enumerate(samples):
+        targets = np.flatnonzero(np.asarray(whole.target_mask, bool))
+        sample = whole
+        if per_window and len(targets) > per_window:  # cut before the inputs: crops are their costly part
+            picked = np.random.default_rng([seed, number]).choice(targets, per_window, replace=False)
+            mask = np.zeros(len(whole.target_mask), bool)
+            mask[picked] = True
+            sample = dataclasses.replace(whole, target_mask=mask)
         inputs = target_inputs(sample, config, with_truth=True)
         if len(inputs):
             parts.append(inputs)
