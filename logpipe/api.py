@@ -304,6 +304,7 @@ def predict(  # noqa: PLR0913  public API: keyword options mirror `logpipe predi
     progress: Progress | None = None,
     backend: str = "local",
     workers: int = 0,
+    allow_blank_rasters: bool = False,
 ) -> dict[str, Any]:
     """``logpipe predict``: run a checkpoint (default: the shipped one for the dataset kind) or a baseline
     (``predictor="cv"|"linear"|"kalman"|"cv_sampler"``) on every selected sample into the run folder ``out``.
@@ -319,9 +320,10 @@ def predict(  # noqa: PLR0913  public API: keyword options mirror `logpipe predi
             ``cuda`` (autocast on CUDA); baselines ignore it.
         backend: ``local`` or ``ray`` (forecasts on ``workers`` Ray actors, 0 = one per GPU, else per CPU; the
             dataset must be on a file system every node shares); the same output bytes at the same ``threads``.
+        allow_blank_rasters: run a network's environment net even where selected samples' rasters are blank.
 
     Raises:
-        LogpipeError: a bad option or filter, a checkpoint that does not fit the dataset, missing rasters.
+        LogpipeError: a bad option or filter, a checkpoint that does not fit the dataset, missing or blank rasters.
 
     Example::
 
@@ -337,7 +339,7 @@ def predict(  # noqa: PLR0913  public API: keyword options mirror `logpipe predi
         constant_velocity_modes=constant_velocity_modes, context_max_neighbours=context_max_neighbours,
         as_trained=as_trained, sample_filter=parse_filter(list(filters)), inputs=as_paths(inputs),
         raster_run=raster_run, raster_images=raster_images, write_mcap=mcap, batch_size=batch_size, threads=threads,
-        device=device, backend=backend, workers=workers,
+        device=device, backend=backend, workers=workers, allow_blank_rasters=allow_blank_rasters,
     )
     summary: dict[str, Any] = predict_dataset(as_path(dataset), as_path(out), options, progress=progress)
     return summary

@@ -61,8 +61,10 @@ class RasteriseSummary(TypedDict):
 
     ``spec`` is ``RasterSpec.to_dict()`` (open JSON: its keys follow the spec's version). ``heading_source`` and
     ``centre_role`` count rendered samples by rule (``column``/``motion``/``lane``/``none``; ``ego``/``focal``);
-    ``previews`` are PNG paths. The timings are set once the run is committed: ``seconds`` (wall), ``render_seconds``
-    (drawing only) and ``rasters_per_s`` (None when nothing was rendered).
+    ``previews`` are PNG paths. ``blank_with_map`` counts rendered rasters that are blank although their log has
+    a map (the centre off it); ``warnings`` says what makes rasters blank, one line each.
+    The timings are set once the run is committed: ``seconds`` (wall), ``render_seconds`` (drawing only)
+    and ``rasters_per_s`` (None when nothing was rendered).
     """
 
     run_dir: str
@@ -75,6 +77,8 @@ class RasteriseSummary(TypedDict):
     skipped_existing: int
     empty: int
     no_centre: int
+    blank_with_map: int
+    warnings: list[str]
     logs_without_map: int
     logs_without_map_examples: list[str]
     heading_source: dict[str, int]

@@ -124,6 +124,9 @@ def predict(  # noqa: PLR0913  typer command: one parameter per CLI option
         "processes of --threads threads (default 1) each, the same bytes (0 = one per core when --threads is 0 and "
         "the run is large enough to repay their ~1.5 s start-up: 250 samples per core with the environment net, "
         "1,500 without).")] = 0,
+    allow_blank_rasters: Annotated[bool, typer.Option(
+        "--allow-blank-rasters", help="Run a checkpoint's environment net even on samples whose raster is blank "
+        "(no map for their log, or the centre off it); refused by default.")] = False,
     as_json: JsonOpt = False,
 ) -> None:
     """Run a checkpoint (or a baseline) on every sample and write predictions as Parquet and, per log, an MCAP
@@ -140,6 +143,7 @@ def predict(  # noqa: PLR0913  typer command: one parameter per CLI option
             context_max_neighbours=context_max_neighbours, as_trained=as_trained, filters=filters or (),
             inputs=inputs, raster_run=raster_run, raster_images=raster_images, mcap=mcap, batch_size=batch_size,
             threads=threads, device=device, progress=advance, backend=backend, workers=workers,
+            allow_blank_rasters=allow_blank_rasters,
         )
     for warning in summary["warnings"]:  # shown with --json and -q too: a leak must not pass unnoticed
         typer.echo(f"warning: {warning}", err=True)
