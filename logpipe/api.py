@@ -42,7 +42,14 @@ from logpipe.options import (
     optional_path,
     sample_protocol,
 )
-from logpipe.summaries import IndexSummary, IngestSummary, RasteriseSummary, TrainSummary, VerifyReport
+from logpipe.summaries import (
+    ExportSummary,
+    IndexSummary,
+    IngestSummary,
+    RasteriseSummary,
+    TrainSummary,
+    VerifyReport,
+)
 
 if TYPE_CHECKING:  # its module loads the storage layer; the API imports it only in score (cheap `import logpipe`)
     from logpipe.scoring.reports import ScoreResult
@@ -420,3 +427,25 @@ def inspect(paths: StrPath | Sequence[StrPath]) -> list[dict[str, Any]]:
     from logpipe.inspect import inspect_paths
 
     return inspect_paths(as_paths(paths))
+
+
+def export(paths: StrPath | Sequence[StrPath], *, out: StrPath, format: str = "rrd") -> ExportSummary:
+    """``logpipe export``: the MCAPs of a dataset or prediction run (or MCAP files) for another viewer; ``rrd``
+    writes one Rerun recording per log into ``out`` (agents, history, truth, forecasts, lanes, raster, legend).
+    Needs ``rerun-sdk`` (``pip install 'logpipe[rerun]'``).
+
+    Raises:
+        LogpipeError: an unknown format, rerun-sdk missing; ``DatasetError``: no MCAP found, an unreadable one.
+
+    Example::
+
+        logpipe.api.export("out/pred", out="out/rrd")
+    """
+    check_choice("--format", format, ("rrd",))
+    try:
+        import rerun  # noqa: F401  only to say what is missing before any work
+    except ImportError:
+        raise LogpipeError("export --format rrd needs rerun-sdk: pip install 'logpipe[rerun]'") from None
+    from logpipe.mcap.rerun_export import export_rrd
+
+    return export_rrd(as_paths(paths), as_path(out))

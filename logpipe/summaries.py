@@ -145,3 +145,21 @@ class TrainSummary(TypedDict):
     seconds: float
     resumed_at_step: NotRequired[int]
     seconds_total: NotRequired[float | None]
+
+
+class ExportedFile(TypedDict):
+    """One file ``export`` wrote: the MCAP it read, the recording it wrote and what that draws, by kind
+    (``boxes``, ``history``, ``truth``, ``modes``, ``current``, ``lines``, ``lane_points``, ``images``)."""
+
+    mcap: str
+    rrd: str
+    drawn: dict[str, int]
+
+
+class ExportSummary(TypedDict):
+    """What ``export`` returns (``logpipe export --json``): the format, the output folder and each file."""
+
+    format: str
+    out: str
+    files: list[ExportedFile]
+    seconds: float
