@@ -80,6 +80,7 @@ def ingest(  # noqa: PLR0913  public API: keyword options mirror `logpipe ingest
     overrides: Sequence[str] = (),
     hz: float | None = None,
     allow_empty: bool = False,
+    retry_quarantined: bool = False,
     progress: Progress | None = None,
 ) -> IngestSummary:
     """``logpipe ingest``: input logs → the dataset folder ``out`` (track shards, logs and samples tables,
@@ -93,6 +94,8 @@ def ingest(  # noqa: PLR0913  public API: keyword options mirror `logpipe ingest
             format's own); ``obs``/``pred``/``stride``/``min_targets``/``targets``/``target_types``/``window``
             (``sliding``: a window every ``stride`` steps; ``first``: one at step 0) override it.
         on_error: ``fail`` (the first bad input stops the run, nothing is written) or ``skip`` (quarantine).
+        retry_quarantined: read again the inputs an earlier run quarantined (after fixing them or the mapping),
+            with this call's options; otherwise a rerun skips them like inputs already ingested.
         mcap: also write each log as an MCAP file.
         workers: processes (0 = all cores); ``backend``: ``local`` or ``ray``; ``batch_files``: inputs per shard.
         mapping: bags/MCAP: TOML or YAML mapping file (``logpipe inspect --format toml`` writes one);
@@ -130,7 +133,7 @@ def ingest(  # noqa: PLR0913  public API: keyword options mirror `logpipe ingest
                                  targets=targets, target_types=target_types, window=window, default=own),
         on_error="skip" if on_error == "skip" else "fail", write_mcap=mcap, workers=workers,
         backend="ray" if backend == "ray" else "local", batch_files=batch_files,
-        adapter_options=adapter_options(mapping, overrides, hz, allow_empty),
+        adapter_options=adapter_options(mapping, overrides, hz, allow_empty), retry_quarantined=retry_quarantined,
     )
     return cast(IngestSummary, run_ingest(roots, options, progress=progress))
 

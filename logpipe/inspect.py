@@ -318,7 +318,8 @@ def _table_width(reports: Sequence[dict[str, Any]]) -> int:
 def render(reports: Sequence[dict[str, Any]], console: Console | None = None) -> None:
     """Print ``reports`` as rich tables, one per input. Off a terminal (piped, a CI log) the console is as wide as
     the widest row, so no topic or type name is cut to fit 80 columns."""
-    console = console or Console(width=None if sys.stdout.isatty() else _table_width(reports))
+    piped = not sys.stdout.isatty()
+    console = console or Console(width=_table_width(reports) if piped else None, soft_wrap=piped)
     for rep in reports:
         status = "[green]ok[/green]" if rep["ok"] else "[red]error[/red]"
         console.rule(f"[bold]{rep['path']}[/bold]  ({rep['format']}, {status})")

@@ -12,7 +12,8 @@ class IngestSummary(TypedDict):
     ``inputs_found`` counts distinct inputs: ``duplicates`` more files were identical copies of one of them
     (listed in ``duplicate_inputs`` as ``{"path", "same_as"}``, relative paths) and were ingested once, as
     that input (their folders are added to its memberships). ``logs_without_samples`` counts the logs that
-    give no prediction sample, by reason (e.g. ``"too short for 8+12 steps"``).
+    give no prediction sample, by reason (e.g. ``"too short for 8+12 steps"``). ``inputs_retried`` counts the
+    quarantined inputs read again (``retry_quarantined``).
     """
 
     dataset: str
@@ -30,6 +31,7 @@ class IngestSummary(TypedDict):
     logs_without_samples: dict[str, int]
     shards_written: list[str]
     mcap_messages: NotRequired[int]
+    inputs_retried: NotRequired[int]
     seconds: float
     totals: dict[str, int]
 

@@ -277,3 +277,20 @@ def test_train_init_from_warm_starts_the_full_model_from_a_noise_lstm(bundled: P
     missing = runner.invoke(app, [*args, "--init-from", str(tmp_path / "nowhere"), "--out", str(tmp_path / "x")])
     assert missing.exit_code != 0 and "nowhere" in missing.output
     assert not (tmp_path / "x").exists()  # nothing made for a run that cannot start
+
+
+def test_retry_quarantined_reads_a_fixed_input_again(bundled: Path, tmp_path: Path) -> None:
+    bag, ds = bundled / "rosbags" / "datmo" / "intersection.bag", tmp_path / "ds"
+    wrong = runner.invoke(app, ["ingest", str(bag), "--out", str(ds), "--on-error", "skip", "--set", "ego=/nope",
+                                "--json"])
+    assert wrong.exit_code == 0, wrong.output
+    assert "/nope" in json.loads(wrong.stdout)["quarantined"][0]["error"]["reason"]
+    again = runner.invoke(app, ["ingest", str(bag), "--out", str(ds)])  # a plain rerun skips it, and says why
+    assert again.exit_code == 0 and "1 inputs quarantined by an earlier run are skipped" in again.output
+    fixed = runner.invoke(app, ["ingest", str(bag), "--out", str(ds), "--retry-quarantined", "--json"])
+    assert fixed.exit_code == 0, fixed.output
+    summary = json.loads(fixed.stdout)
+    assert summary["inputs_retried"] == 1 and summary["inputs_ingested"] == 1 and summary["logs"] == 1
+    assert summary["totals"]["quarantined"] == 0 and summary["totals"]["rows"] == summary["rows"] > 0
+    manifest = json.loads((ds / "manifest.json").read_text())
+    assert manifest["quarantined"] == [] and [i["path"] for i in manifest["inputs"]] == ["intersection.bag"]

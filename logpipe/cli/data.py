@@ -60,6 +60,9 @@ def ingest(  # noqa: PLR0913  typer command: one parameter per CLI option
     allow_empty: Annotated[bool, typer.Option(
         "--allow-empty", help="Bags/MCAP/AV2: a log without tracks is kept empty instead of being an error.")
     ] = False,
+    retry_quarantined: Annotated[bool, typer.Option(
+        "--retry-quarantined", help="Read again the inputs an earlier --on-error skip run quarantined, with this "
+        "run's options (after fixing them or their --mapping); without it a rerun skips them.")] = False,
     as_json: JsonOpt = False,
 ) -> None:
     """Turn logs (Argoverse 1 CSV, ETH/UCY, ApolloScape, ...) into canonical Parquet shards, a sample index
@@ -76,7 +79,7 @@ def ingest(  # noqa: PLR0913  typer command: one parameter per CLI option
             min_targets=min_targets, targets=targets, target_types=target_types, window=window, on_error=on_error,
             mcap=mcap,
             workers=workers, backend=backend, batch_files=batch_files, mapping=mapping, overrides=overrides or (),
-            hz=hz, allow_empty=allow_empty, progress=advance,
+            hz=hz, allow_empty=allow_empty, retry_quarantined=retry_quarantined, progress=advance,
         )
     emit(dict(summary), as_json, ingest_lines, logged)
 
@@ -99,7 +102,11 @@ def ingest_lines(s: dict[str, Any]) -> list[str]:
         where = e["file"] + (f":{e['line']}" if e["line"] else "") + (f" field '{e['field']}'" if e["field"] else "")
         lines.append(f"  quarantined {where}: {e['reason']}")
     lines += [f"  {line}" for line in summary_notes(s)]
-    if s["quarantined"]:
+    earlier = totals.get("quarantined", 0) - len(s["quarantined"])
+    if earlier > 0 and not s.get("inputs_retried"):
+        lines.append(f"  {earlier} inputs quarantined by an earlier run are skipped (--retry-quarantined reads them "
+                     "again)")
+    if s["quarantined"] or earlier > 0:
         lines.append(next_step(f"logpipe ingest INPUTS --out {ds} --retry-quarantined",
                                "after fixing the inputs or the options, e.g. --mapping"))
     elif s["format"] in MAP_FORMATS:
