@@ -9,7 +9,7 @@ from typing import Annotated, Any
 
 import typer
 
-from logpipe.cli.app import JsonOpt, counting_warnings, emit, next_step, say, user_errors
+from logpipe.cli.app import JsonOpt, counting_warnings, emit, next_step, say, stage_progress, user_errors
 
 
 def score(  # noqa: PLR0913  typer command: one parameter per CLI option
@@ -48,7 +48,8 @@ def score(  # noqa: PLR0913  typer command: one parameter per CLI option
     """
     from logpipe import api
 
-    with user_errors(as_json), counting_warnings() as logged:
+    # No units to count: the reporter's heartbeat says it is running (in CI logs, every interval).
+    with user_errors(as_json), counting_warnings() as logged, stage_progress("score", "methods"):
         report = api.score(predictions, truth=truth, out=out, split=split, agents=agents, min_agents=min_agents,
                            k=k, miss_threshold=miss_threshold, fail_above=fail_above, label=label,
                            allow_missing=allow_missing, plots=plots, plot_samples=plot_samples)
@@ -181,7 +182,7 @@ def export(
     """
     from logpipe import api
 
-    with user_errors(as_json):
+    with user_errors(as_json), stage_progress("export", "files"):
         summary = api.export(paths, out=out, format=fmt)
     emit(dict(summary), as_json, export_lines)
 
