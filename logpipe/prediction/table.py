@@ -125,7 +125,7 @@ def targets_table(meta: PredictionMeta, targets: Targets, futures: NDArrayFloat,
     return pa.Table.from_arrays([columns[f.name] for f in schema], schema=schema)
 
 
-def _strings(values: pa.Array, codes: NDArrayInt) -> pa.Array:
+def _strings(values: pa.Array, codes: np.ndarray) -> pa.Array:
     """``values[codes]`` as a plain string array."""
     return values.cast(pa.string()).take(pa.array(codes))
 
