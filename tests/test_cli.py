@@ -26,7 +26,7 @@ def test_version() -> None:
     assert result.exit_code == 0 and __version__ in result.stdout
 
 
-@pytest.mark.parametrize("command", ["ingest", "index", "inspect"])
+@pytest.mark.parametrize("command", ["ingest", "index", "inspect", "export"])
 def test_every_command_has_help(command: str) -> None:
     result = runner.invoke(app, [command, "--help"])
     assert result.exit_code == 0
