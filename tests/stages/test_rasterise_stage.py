@@ -190,3 +190,22 @@ def test_cli_rasterise_workers_and_backend_options(tmp_path: Path) -> None:
     assert json.loads(ok.stdout)["rendered"] == 2
     bad = runner.invoke(app, ["rasterise", str(ds), "--maps", str(DATA), "--backend", "spark"])
     assert bad.exit_code == 2 and "local or ray" in bad.output
+
+
+def test_predict_refuses_the_environment_net_on_blank_rasters_unless_told(tmp_path: Path) -> None:
+    """Log 32's map is not given: its raster is blank, so the shipped driving model (which reads the rasters)
+    refuses the run before any output, naming the count and the option; --allow-blank-rasters lets it run."""
+    import logpipe
+    from logpipe.errors import LogpipeError
+
+    driving = Path(__file__).parents[1] / "data" / "driving"
+    ds = tmp_path / "av1"
+    logpipe.ingest([driving / "20.csv", driving / "32.csv"], out=ds, mcap=False)
+    summary = logpipe.rasterise(ds, map_file=[f"MIA={driving / 'MIA_lane_centerlines_crop_20.npz'}"], rotate=True)
+    assert summary["empty"] == 1 and summary["logs_without_map"] == 1
+    with pytest.raises(LogpipeError, match=r"1 of the 2 selected samples have a blank raster .*--allow-blank-rasters"):
+        logpipe.predict(ds, out=tmp_path / "refused", mcap=False)
+    assert not (tmp_path / "refused").exists()
+    assert logpipe.predict(ds, out=tmp_path / "p", mcap=False, filters=["log=20"])["samples"] == 1  # 20 has its map
+    allowed = logpipe.predict(ds, out=tmp_path / "all", mcap=False, allow_blank_rasters=True)
+    assert allowed["samples"] == 2
