@@ -294,3 +294,13 @@ def test_retry_quarantined_reads_a_fixed_input_again(bundled: Path, tmp_path: Pa
     assert summary["totals"]["quarantined"] == 0 and summary["totals"]["rows"] == summary["rows"] > 0
     manifest = json.loads((ds / "manifest.json").read_text())
     assert manifest["quarantined"] == [] and [i["path"] for i in manifest["inputs"]] == ["intersection.bag"]
+
+
+def test_piped_inspect_never_cuts_a_topic_or_type_name(bundled: Path) -> None:
+    bag = bundled / "rosbags" / "datmo" / "intersection.bag"
+    result = _piped("inspect", str(bag), columns="40")
+    assert result.returncode == 0, result.stderr
+    for name in ("geometry_msgs/msg/PoseStamped", "tf2_msgs/msg/TFMessage", "/wheel_speeds", "barc/msg/Encoder"):
+        assert name in result.stdout, name
+    assert "…" not in result.stdout
+    assert f"next: logpipe ingest {bag} --out out/NAME" in result.stderr
