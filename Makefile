@@ -61,9 +61,9 @@ demo: setup
 	@echo "  Rerun:   $(VENV)/bin/rerun $(DEMO)/rrd/20.rrd"
 	@echo "  report:  $(DEMO)/score-argoverse1/report.md"
 
-# The full suite; its last line says how long it took (on this 2-core machine about 9 minutes, make setup aside).
+# The full suite; its last line says how long it took on this machine (make setup aside).
 test: setup
-	@echo "test: the full suite (about 9 minutes on 2 cores); progress dots below, failures at the end"
+	@echo "test: the full suite (minutes; its last line says how long it took); progress dots below, failures at the end"
 	@start=$$(date +%s); $(PY) -m pytest -q -p no:cacheprovider; rc=$$?; \
 	  echo "test: took $$(( $$(date +%s) - start )) s"; exit $$rc
 
