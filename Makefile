@@ -11,12 +11,15 @@ ETHUCY_SCENES := eth hotel univ zara1 zara2
 .PHONY: setup demo test bench lint clean train-ethucy train-apolloscape train-ethucy-paper train-apolloscape-paper reproduce-ethucy reproduce-apolloscape reproduce-argoverse reproduce-driving replica-cost scaling fuzz synthetic-map-check
 
 # torch first and pinned: a looser pin would pull a multi-GB CUDA build; 2.13.0 is a local CPU wheel here.
+# The installers' output goes to $(INSTALL_LOG), named (and its end shown) only when a step fails.
+INSTALL_LOG := $(VENV).install.log
 $(STAMP): pyproject.toml
-	$(PYTHON) -m venv $(VENV)
-	$(PY) -m pip install -q --upgrade pip
-	$(PY) -m pip install -q torch==2.13.0
-	$(PY) -m pip install -q -e '.[dev]'
-	touch $(STAMP)
+	@echo "setup: creating $(VENV) and installing logpipe with its test tools (a few minutes the first time; log: $(INSTALL_LOG))"
+	@( $(PYTHON) -m venv $(VENV) && $(PY) -m pip install -q --upgrade pip \
+	  && $(PY) -m pip install -q torch==2.13.0 && $(PY) -m pip install -q -e '.[dev]' ) > $(INSTALL_LOG) 2>&1 \
+	  || { tail -n 20 $(INSTALL_LOG); echo "setup failed: the whole log is $(INSTALL_LOG)"; exit 1; }
+	@touch $(STAMP)
+	@echo "setup: done ($(VENV)/bin/logpipe; source $(VENV)/bin/activate to type plain logpipe)"
 
 setup: $(STAMP)
 
@@ -27,26 +30,42 @@ DRV := tests/data/driving
 
 # Every stage on the bundled samples (tests/data): two Argoverse 1 sequences held out from the shipped driving
 # model (hash/test) with their map crops, predicted by that model over their lane rasters; ETH/UCY with the
-# shipped checkpoint for the held-out ETH scene; ApolloScape with its shipped checkpoint.
+# shipped checkpoint for the held-out ETH scene; ApolloScape with its shipped checkpoint. Each step prints one
+# line (the commands run with -q); the scores, then the picture and the MCAP to open, close it.
+DEMO_LP := $(LP) -q
 demo: setup
-	rm -rf $(DEMO)
-	$(LP) ingest $(DRV)/20.csv $(DRV)/32.csv --out $(DEMO)/argoverse1
-	$(LP) rasterise $(DEMO)/argoverse1 --map MIA=$(DRV)/MIA_lane_centerlines_crop_20.npz \
+	@rm -rf $(DEMO)
+	@echo "demo 1/5: Argoverse 1: ingest two logs, rasterise their lane maps, predict with the driving model"
+	@$(DEMO_LP) ingest $(DRV)/20.csv $(DRV)/32.csv --out $(DEMO)/argoverse1
+	@$(DEMO_LP) rasterise $(DEMO)/argoverse1 --map MIA=$(DRV)/MIA_lane_centerlines_crop_20.npz \
 		--map PIT=$(DRV)/PIT_lane_centerlines_crop_32.npz --rotate --preview 2
-	$(LP) predict $(DEMO)/argoverse1 --out $(DEMO)/predict-argoverse1
-	$(LP) score $(DEMO)/predict-argoverse1 --truth $(DEMO)/argoverse1 --agents focal \
+	@$(DEMO_LP) predict $(DEMO)/argoverse1 --out $(DEMO)/predict-argoverse1
+	@echo "demo 2/5: Argoverse 1: score"
+	@$(LP) score $(DEMO)/predict-argoverse1 --truth $(DEMO)/argoverse1 --agents focal \
 		--out $(DEMO)/score-argoverse1
-	$(LP) ingest tests/data/ethucy --out $(DEMO)/ethucy
-	$(LP) predict $(DEMO)/ethucy --filter split=eth/test --out $(DEMO)/predict-ethucy
-	$(LP) score $(DEMO)/predict-ethucy --truth $(DEMO)/ethucy --split eth/test \
+	@echo "demo 3/5: ETH/UCY: ingest, predict the held-out ETH scene, score"
+	@$(DEMO_LP) ingest tests/data/ethucy --out $(DEMO)/ethucy
+	@$(DEMO_LP) predict $(DEMO)/ethucy --filter split=eth/test --out $(DEMO)/predict-ethucy
+	@$(LP) score $(DEMO)/predict-ethucy --truth $(DEMO)/ethucy --split eth/test \
 		--out $(DEMO)/score-ethucy
-	$(LP) ingest tests/data/apolloscape --out $(DEMO)/apolloscape
-	$(LP) predict $(DEMO)/apolloscape --out $(DEMO)/predict-apolloscape
-	@echo "demo outputs in $(DEMO): datasets (Parquet shards, samples, manifest, MCAP), rasters and previews,"
-	@echo "predictions (Parquet + MCAP with Foxglove channels) and score reports (report.md, plots)"
+	@echo "demo 4/5: ApolloScape: ingest, predict"
+	@$(DEMO_LP) ingest tests/data/apolloscape --out $(DEMO)/apolloscape
+	@$(DEMO_LP) predict $(DEMO)/apolloscape --out $(DEMO)/predict-apolloscape
+	@echo "demo 5/5: the picture of a forecast over its raster, and Rerun recordings"
+	@$(PY) -m logpipe.scoring.forecast_picture $(DEMO)/predict-argoverse1 --truth $(DEMO)/argoverse1 \
+		--out $(DEMO)/forecast.png > /dev/null
+	@$(DEMO_LP) export $(DEMO)/predict-argoverse1 --format rrd --out $(DEMO)/rrd
+	@echo "demo done, outputs in $(DEMO)/. Open:"
+	@echo "  picture: $(DEMO)/forecast.png   (a forecast over its lane raster)"
+	@echo "  MCAP:    $(DEMO)/predict-argoverse1/mcap/part-00000/20.mcap   (Foxglove: File > Open local file, 3D panel)"
+	@echo "  Rerun:   $(VENV)/bin/rerun $(DEMO)/rrd/20.rrd"
+	@echo "  report:  $(DEMO)/score-argoverse1/report.md"
 
+# The full suite; its last line says how long it took on this machine (make setup aside).
 test: setup
-	$(PY) -m pytest -q -p no:cacheprovider
+	@echo "test: the full suite (minutes; its last line says how long it took); progress dots below, failures at the end"
+	@start=$$(date +%s); $(PY) -m pytest -q -p no:cacheprovider; rc=$$?; \
+	  echo "test: took $$(( $$(date +%s) - start )) s"; exit $$rc
 
 bench: setup
 	$(PY) -m benchmarks.run --out $(OUT)/bench.json --markdown $(OUT)/bench.md

@@ -42,7 +42,14 @@ from logpipe.options import (
     optional_path,
     sample_protocol,
 )
-from logpipe.summaries import IndexSummary, IngestSummary, RasteriseSummary, TrainSummary, VerifyReport
+from logpipe.summaries import (
+    ExportSummary,
+    IndexSummary,
+    IngestSummary,
+    RasteriseSummary,
+    TrainSummary,
+    VerifyReport,
+)
 
 if TYPE_CHECKING:  # its module loads the storage layer; the API imports it only in score (cheap `import logpipe`)
     from logpipe.scoring.reports import ScoreResult
@@ -73,6 +80,7 @@ def ingest(  # noqa: PLR0913  public API: keyword options mirror `logpipe ingest
     overrides: Sequence[str] = (),
     hz: float | None = None,
     allow_empty: bool = False,
+    retry_quarantined: bool = False,
     progress: Progress | None = None,
 ) -> IngestSummary:
     """``logpipe ingest``: input logs → the dataset folder ``out`` (track shards, logs and samples tables,
@@ -86,6 +94,8 @@ def ingest(  # noqa: PLR0913  public API: keyword options mirror `logpipe ingest
             format's own); ``obs``/``pred``/``stride``/``min_targets``/``targets``/``target_types``/``window``
             (``sliding``: a window every ``stride`` steps; ``first``: one at step 0) override it.
         on_error: ``fail`` (the first bad input stops the run, nothing is written) or ``skip`` (quarantine).
+        retry_quarantined: read again the inputs an earlier run quarantined (after fixing them or the mapping),
+            with this call's options; otherwise a rerun skips them like inputs already ingested.
         mcap: also write each log as an MCAP file.
         workers: processes (0 = all cores); ``backend``: ``local`` or ``ray``; ``batch_files``: inputs per shard.
         mapping: bags/MCAP: TOML or YAML mapping file (``logpipe inspect --format toml`` writes one);
@@ -123,7 +133,7 @@ def ingest(  # noqa: PLR0913  public API: keyword options mirror `logpipe ingest
                                  targets=targets, target_types=target_types, window=window, default=own),
         on_error="skip" if on_error == "skip" else "fail", write_mcap=mcap, workers=workers,
         backend="ray" if backend == "ray" else "local", batch_files=batch_files,
-        adapter_options=adapter_options(mapping, overrides, hz, allow_empty),
+        adapter_options=adapter_options(mapping, overrides, hz, allow_empty), retry_quarantined=retry_quarantined,
     )
     return cast(IngestSummary, run_ingest(roots, options, progress=progress))
 
@@ -304,6 +314,7 @@ def predict(  # noqa: PLR0913  public API: keyword options mirror `logpipe predi
     progress: Progress | None = None,
     backend: str = "local",
     workers: int = 0,
+    allow_blank_rasters: bool = False,
 ) -> dict[str, Any]:
     """``logpipe predict``: run a checkpoint (default: the shipped one for the dataset kind) or a baseline
     (``predictor="cv"|"linear"|"kalman"|"cv_sampler"|"adaptive_cv"``) on every selected sample into the run folder
@@ -320,9 +331,10 @@ def predict(  # noqa: PLR0913  public API: keyword options mirror `logpipe predi
             ``cuda`` (autocast on CUDA); baselines ignore it.
         backend: ``local`` or ``ray`` (forecasts on ``workers`` Ray actors, 0 = one per GPU, else per CPU; the
             dataset must be on a file system every node shares); the same output bytes at the same ``threads``.
+        allow_blank_rasters: run a network's environment net even where selected samples' rasters are blank.
 
     Raises:
-        LogpipeError: a bad option or filter, a checkpoint that does not fit the dataset, missing rasters.
+        LogpipeError: a bad option or filter, a checkpoint that does not fit the dataset, missing or blank rasters.
 
     Example::
 
@@ -338,7 +350,7 @@ def predict(  # noqa: PLR0913  public API: keyword options mirror `logpipe predi
         constant_velocity_modes=constant_velocity_modes, context_max_neighbours=context_max_neighbours,
         as_trained=as_trained, sample_filter=parse_filter(list(filters)), inputs=as_paths(inputs),
         raster_run=raster_run, raster_images=raster_images, write_mcap=mcap, batch_size=batch_size, threads=threads,
-        device=device, backend=backend, workers=workers,
+        device=device, backend=backend, workers=workers, allow_blank_rasters=allow_blank_rasters,
     )
     summary: dict[str, Any] = predict_dataset(as_path(dataset), as_path(out), options, progress=progress)
     return summary
@@ -419,3 +431,25 @@ def inspect(paths: StrPath | Sequence[StrPath]) -> list[dict[str, Any]]:
     from logpipe.inspect import inspect_paths
 
     return inspect_paths(as_paths(paths))
+
+
+def export(paths: StrPath | Sequence[StrPath], *, out: StrPath, format: str = "rrd") -> ExportSummary:
+    """``logpipe export``: the MCAPs of a dataset or prediction run (or MCAP files) for another viewer; ``rrd``
+    writes one Rerun recording per log into ``out`` (agents, history, truth, forecasts, lanes, raster, legend).
+    Needs ``rerun-sdk`` (``pip install 'logpipe[rerun]'``).
+
+    Raises:
+        LogpipeError: an unknown format, rerun-sdk missing; ``DatasetError``: no MCAP found, an unreadable one.
+
+    Example::
+
+        logpipe.api.export("out/pred", out="out/rrd")
+    """
+    check_choice("--format", format, ("rrd",))
+    try:
+        import rerun  # noqa: F401  only to say what is missing before any work
+    except ImportError:
+        raise LogpipeError("export --format rrd needs rerun-sdk: pip install 'logpipe[rerun]'") from None
+    from logpipe.mcap.rerun_export import export_rrd
+
+    return export_rrd(as_paths(paths), as_path(out))

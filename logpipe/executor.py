@@ -20,6 +20,7 @@ from concurrent.futures.process import BrokenProcessPool
 from typing import Any, Literal, TypeVar
 
 from logpipe.errors import LogpipeError
+from logpipe.progress import HEARTBEAT_THREAD
 
 T = TypeVar("T")
 R = TypeVar("R")
@@ -98,11 +99,13 @@ def _fork_is_safe() -> bool:
 
     Forking copies only the calling thread: a lock another thread held stays locked in the child. Safe
     here when this process runs no Python threads besides the main one (a progress bar's refresh thread,
-    a thread pool) and has not loaded torch or OpenCV, whose thread pools (OpenMP, OpenCV's own) do not
-    survive a fork. The native threads numpy and pyarrow start at import (OpenBLAS workers, jemalloc's
+    a thread pool; progress heartbeats excepted: they hold their lock only while writing, and a fork takes
+    it) and has not loaded torch or OpenCV, whose thread pools (OpenMP, OpenCV's own) do not survive a fork.
+    The native threads numpy and pyarrow start at import (OpenBLAS workers, jemalloc's
     background thread) re-initialise in the child through their fork handlers.
     """
-    return (sys.platform == "linux" and threading.active_count() == 1
+    others = [t for t in threading.enumerate() if t is not threading.current_thread() and t.name != HEARTBEAT_THREAD]
+    return (sys.platform == "linux" and not others
             and not any(name in sys.modules for name in _FORK_UNSAFE_MODULES))
 
 

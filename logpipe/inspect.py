@@ -9,6 +9,7 @@ tables; ``mapping_toml`` gives the detected mapping as the TOML file ``logpipe i
 
 from __future__ import annotations
 
+import sys
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -303,9 +304,22 @@ def _fmt_time(ns: int | None) -> str:
     return dt.datetime.fromtimestamp(ns / 1e9, tz=dt.UTC).strftime("%Y-%m-%d %H:%M:%S.%f")[:-3] + "Z"
 
 
+def _table_width(reports: Sequence[dict[str, Any]]) -> int:
+    """Columns a topics table needs without cutting a cell (at least 100)."""
+    widest = [0] * 6
+    for rep in reports:
+        for r in rep.get("topics") or []:
+            cells = (r["topic"], r["type"], str(r["count"]), "12345.6", f"no: {r.get('decode_error')}",
+                     f"usable ({r.get('kind')})")
+            widest = [max(w, len(str(c))) for w, c in zip(widest, cells, strict=True)]
+    return max(100, sum(widest) + 3 * len(widest) + 4)
+
+
 def render(reports: Sequence[dict[str, Any]], console: Console | None = None) -> None:
-    """Print ``reports`` as rich tables, one per input."""
-    console = console or Console()
+    """Print ``reports`` as rich tables, one per input. Off a terminal (piped, a CI log) the console is as wide as
+    the widest row, so no topic or type name is cut to fit 80 columns."""
+    piped = not sys.stdout.isatty()
+    console = console or Console(width=_table_width(reports) if piped else None, soft_wrap=piped)
     for rep in reports:
         status = "[green]ok[/green]" if rep["ok"] else "[red]error[/red]"
         console.rule(f"[bold]{rep['path']}[/bold]  ({rep['format']}, {status})")

@@ -9,7 +9,10 @@ callback the CLI hands them:
   most ten times a second from the caller's thread (no refresh thread, so worker pools may still fork);
 * ``mode="lines"`` (a CI log, a pipe): one line every ``interval_s`` seconds (default 5, environment
   variable ``LOGPIPE_PROGRESS_INTERVAL``), e.g. ``predict: 1,200/5,000 samples (24%) 310/s ETA 0:00:12``,
-  plus a final line; lines go to stderr only, never wrapped, since stdout carries ``--json``;
+  plus a final line; lines go to stderr only, never wrapped, since stdout carries ``--json``. A heartbeat
+  thread writes the line when it is due even while the stage is inside one long batch (a network's forward
+  pass, a worker's shard), so the gaps are the interval whatever the batch size; it writes only under the
+  reporter's lock, which a fork waits for (``os.register_at_fork``), so worker pools may still fork;
 * ``mode="off"``: nothing (``-q``).
 
 Times are seconds of a monotonic clock (injectable for tests). This module imports only the standard
@@ -21,7 +24,9 @@ from __future__ import annotations
 import datetime
 import os
 import sys
+import threading
 import time
+import weakref
 from collections import deque
 from collections.abc import Callable
 from types import TracebackType
@@ -39,6 +44,23 @@ RATE_WINDOW_S = 30.0
 """The rate (and so the ETA) is measured over about the last 30 s: a resumed run's instantly skipped
 shards, or a slow start-up, stop counting once they are that far behind."""
 _BAR_REFRESH_S = 0.1
+HEARTBEAT_THREAD = "logpipe-progress-heartbeat"
+"""Name of the heartbeat threads; ``logpipe.executor`` forks past them (they hold no lock across a fork)."""
+_LIVE: weakref.WeakSet[ProgressReporter] = weakref.WeakSet()
+
+
+def _before_fork() -> None:
+    for reporter in list(_LIVE):
+        reporter._lock.acquire()  # no heartbeat is half-way through a line (and stderr's lock) in the child
+
+
+def _after_fork() -> None:
+    for reporter in list(_LIVE):
+        if reporter._lock.locked():
+            reporter._lock.release()
+
+
+os.register_at_fork(before=_before_fork, after_in_parent=_after_fork, after_in_child=_after_fork)
 
 
 @runtime_checkable
@@ -91,11 +113,13 @@ class ProgressReporter:
         stream: where plain lines go (default: ``sys.stderr`` at the time of writing).
         console: the rich console of the bar (default: a new one on stderr).
         clock: monotonic seconds (tests inject a fake one).
+        heartbeat: in lines mode, write the due line from a thread even when no unit finishes (default: on with
+            the real clock and an interval above 0).
     """
 
     def __init__(self, label: str, unit: str, mode: Mode, *, interval_s: float | None = None,
                  stream: TextIO | None = None, console: Console | None = None,
-                 clock: Callable[[], float] = time.monotonic) -> None:
+                 clock: Callable[[], float] = time.monotonic, heartbeat: bool | None = None) -> None:
         self.label = label
         self.unit = unit
         self.mode: Mode = mode
@@ -113,6 +137,24 @@ class ProgressReporter:
         self._bar: Progress | None = None
         self._task: TaskID | None = None
         self._closed = False
+        self._lock = threading.Lock()
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        if heartbeat is None:
+            heartbeat = clock is time.monotonic and self.interval_s > 0
+        if mode == "lines" and heartbeat:
+            _LIVE.add(self)
+            self._thread = threading.Thread(target=self._beat, name=HEARTBEAT_THREAD, daemon=True)
+            self._thread.start()
+
+    def _beat(self) -> None:
+        """The heartbeat: sleep until the next line is due, write it if nothing else did meanwhile."""
+        while not self._stop.wait(max(0.05, self._last_line + self.interval_s - self._clock())):
+            with self._lock:
+                now = self._clock()
+                if not self._closed and now - self._last_line >= self.interval_s:
+                    self._last_line = now
+                    self._write(self.line())
 
     # -- the callback the stages see ---------------------------------------------------------------------
 
@@ -128,7 +170,8 @@ class ProgressReporter:
             self._samples = deque([(now, 0)])
             self._last_line = now
         if self.mode == "lines" and units > 0:
-            self._write(self.line())
+            with self._lock:
+                self._write(self.line())
         elif self.mode == "bar":
             self._show_bar(force=True)
 
@@ -141,8 +184,9 @@ class ProgressReporter:
         while len(self._samples) >= 2 and self._samples[1][0] <= now - RATE_WINDOW_S:
             self._samples.popleft()
         if self.mode == "lines" and now - self._last_line >= self.interval_s:
-            self._last_line = now
-            self._write(self.line())
+            with self._lock:
+                self._last_line = now
+                self._write(self.line())
         elif self.mode == "bar":
             self._show_bar(force=self.done == self.expected)
 
@@ -162,7 +206,10 @@ class ProgressReporter:
         return max(0, self.expected - self.done) / rate
 
     def line(self) -> str:
-        """The current state as one line: ``predict: 1,200/5,000 samples (24%) 310/s ETA 0:00:12``."""
+        """The current state as one line: ``predict: 1,200/5,000 samples (24%) 310/s ETA 0:00:12``; before the
+        total and the first unit, the time it has been running (``score: running 0:00:10``)."""
+        if self.expected is None and not self.done:
+            return f"{self.label}: running {format_duration(self._clock() - self._started)}"
         parts = [f"{self.label}: {self._count()}"]
         rate = self.rate()
         if rate is not None and self.done:
@@ -212,7 +259,12 @@ class ProgressReporter:
         """End the display: the bar disappears; in lines mode the final line is written (if anything ran)."""
         if self._closed:
             return
-        self._closed = True
+        with self._lock:
+            self._closed = True
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=1.0)
+            _LIVE.discard(self)
         if self._bar is not None:
             self._bar.stop()
         if self.mode == "lines" and (self.done or self.expected is not None):

@@ -12,7 +12,8 @@ class IngestSummary(TypedDict):
     ``inputs_found`` counts distinct inputs: ``duplicates`` more files were identical copies of one of them
     (listed in ``duplicate_inputs`` as ``{"path", "same_as"}``, relative paths) and were ingested once, as
     that input (their folders are added to its memberships). ``logs_without_samples`` counts the logs that
-    give no prediction sample, by reason (e.g. ``"too short for 8+12 steps"``).
+    give no prediction sample, by reason (e.g. ``"too short for 8+12 steps"``). ``inputs_retried`` counts the
+    quarantined inputs read again (``retry_quarantined``).
     """
 
     dataset: str
@@ -30,6 +31,7 @@ class IngestSummary(TypedDict):
     logs_without_samples: dict[str, int]
     shards_written: list[str]
     mcap_messages: NotRequired[int]
+    inputs_retried: NotRequired[int]
     seconds: float
     totals: dict[str, int]
 
@@ -69,12 +71,12 @@ class RasteriseSummary(TypedDict):
 
     ``spec`` is ``RasterSpec.to_dict()`` (open JSON: its keys follow the spec's version). ``heading_source`` and
     ``centre_role`` count rendered samples by rule (``column``/``motion``/``lane``/``none``;
-    ``ego``/``focal``/``target``);
-    ``road_vehicles`` counts the observed positions of road vehicles (vehicle, bus_truck, motorcyclist) inside the
-    rasters rendered by this invocation and how many fall on drivable pixels (``share``: a low one means map and
-    tracks do not share a frame). ``previews`` are PNG paths. The timings are set once the run is committed:
-    ``seconds`` (wall), ``render_seconds``
-    (drawing only) and ``rasters_per_s`` (None when nothing was rendered).
+    ``ego``/``focal``/``target``). ``road_vehicles`` counts the observed positions of road vehicles (vehicle,
+    bus_truck, motorcyclist) inside the rasters rendered by this invocation and how many fall on drivable pixels
+    (``share``: a low one means map and tracks do not share a frame). ``previews`` are PNG paths.
+    ``blank_with_map`` counts rendered rasters that are blank although their log has a map (the centre off it);
+    ``warnings`` says what makes rasters blank, one line each. The timings are set once the run is committed:
+    ``seconds`` (wall), ``render_seconds`` (drawing only) and ``rasters_per_s`` (None when nothing was rendered).
     """
 
     run_dir: str
@@ -87,6 +89,8 @@ class RasteriseSummary(TypedDict):
     skipped_existing: int
     empty: int
     no_centre: int
+    blank_with_map: int
+    warnings: list[str]
     logs_without_map: int
     logs_without_map_examples: list[str]
     heading_source: dict[str, int]
@@ -155,3 +159,21 @@ class TrainSummary(TypedDict):
     seconds: float
     resumed_at_step: NotRequired[int]
     seconds_total: NotRequired[float | None]
+
+
+class ExportedFile(TypedDict):
+    """One file ``export`` wrote: the MCAP it read, the recording it wrote and what that draws, by kind
+    (``boxes``, ``history``, ``truth``, ``modes``, ``current``, ``lines``, ``lane_points``, ``images``)."""
+
+    mcap: str
+    rrd: str
+    drawn: dict[str, int]
+
+
+class ExportSummary(TypedDict):
+    """What ``export`` returns (``logpipe export --json``): the format, the output folder and each file."""
+
+    format: str
+    out: str
+    files: list[ExportedFile]
+    seconds: float

@@ -36,6 +36,7 @@ from logpipe.dataset.writer import (
     add_input_roots,
     known_input_digests,
     known_input_sizes,
+    release_quarantined,
     write_track_shard,
 )
 from logpipe.errors import SourceError
@@ -60,7 +61,8 @@ class IngestOptions:
         out: dataset folder (created if missing; reruns add only new inputs).
         format: adapter name, or None to detect it from the inputs.
         protocol: sample windows; None = the format's default preset.
-        on_error: ``fail`` (nothing written) or ``skip`` (quarantine bad inputs).
+        on_error: ``fail`` (nothing written) or ``skip`` (quarantine bad inputs); ``retry_quarantined``: read again
+            the given inputs an earlier run quarantined (``release_quarantined``).
         write_mcap: also write ``mcap/<log_id>.mcap`` per log.
         workers: processes (0 = every core); ``backend="ray"`` runs batches as Ray tasks.
         batch_files: inputs per batch (= per shard); None = the adapter's default.
@@ -76,6 +78,7 @@ class IngestOptions:
     backend: Backend = "local"
     batch_files: int | None = None
     adapter_options: dict[str, Any] = field(default_factory=dict)
+    retry_quarantined: bool = False
 
 
 @dataclass
@@ -141,13 +144,14 @@ def _ingest_locked(writer: DatasetWriter, roots: Sequence[Path], options: Ingest
     optimistic = unhashed_inputs(found) if known_sizes == set() else None
     sources = optimistic or fingerprint_inputs(found, known_sizes, threads=default_workers())
     add_input_roots(manifest, roots)
+    retried = release_quarantined(manifest, sources) if options.retry_quarantined else 0
     known = known_input_digests(manifest)
     new = [s for s in sources if s.sha256 not in known]
     summary: dict[str, Any] = {
         "dataset": str(options.out), "format": fmt, "protocol": protocol.to_dict(), "inputs_found": len(sources),
         "inputs_skipped_already_ingested": len(sources) - len(new), "inputs_ingested": 0, "quarantined": [],
         "logs": 0, "rows": 0, "samples": 0, "shards_written": [], "logs_without_samples": {},
-    }
+        "inputs_retried": retried}
     if new and not _ingest_new(writer, new, manifest, fmt, default_batch, protocol, options, summary, progress,
                                reject_twins=optimistic is not None):
         new = sources = fingerprint_inputs(found, known_sizes, threads=default_workers())  # merges the twins found

@@ -159,7 +159,7 @@ def _prepare(dataset_dir: Path, out_dir: Path, opts: PredictOptions) -> tuple[_R
     rasters = (find_raster_run(dataset_dir, opts.raster_run, chosen.raster_channels if chosen.needs_raster else None)
                if chosen.needs_raster or opts.raster_images or opts.raster_run is not None else None)
     if chosen.needs_raster:
-        problems += raster_problems(dataset_dir, rasters, samples)
+        problems += raster_problems(dataset_dir, rasters, samples, opts.allow_blank_rasters)
     if problems:
         raise LogpipeError(f"{chosen.checkpoint or 'predictor'} does not fit {dataset_dir}: " + "; ".join(problems))
     logs = SelectedLogs(logs_table)

@@ -38,6 +38,7 @@ from logpipe.errors import DatasetError
 from logpipe.executor import Backend, run_ordered
 from logpipe.maps import MapSource
 from logpipe.progress import report_total
+from logpipe.raster.coverage import blank_warnings, check_map_coverage
 from logpipe.raster.rasteriser import RasterSpec
 from logpipe.raster.render import ShardTask, clear_worker_cache, render_shard
 from logpipe.raster.runs import (
@@ -134,6 +135,7 @@ def rasterise_dataset(  # noqa: PLR0913  public API: the command's options one t
     # Identity of the inputs: the sample index bytes, every map file this run resolves to, and the shard size
     # (it decides which sample lands in which file).
     map_files: dict[str, Path | None] = {lid: maps.resolve(mid, lid) for lid, mid in log_map.items()}
+    check_map_coverage(ds.root, maps, log_map, map_files)
     map_hashes = {str(p): sha256_file(p) for p in sorted({p for p in map_files.values() if p is not None})}
     identity: RasterRunIdentity = {"samples_sha256": ds.manifest["tables"]["samples"]["sha256"], "maps": map_hashes,
                                    "shard_size": shard_size}
@@ -164,6 +166,8 @@ def _rasterise_locked(writer: RasterRunWriter, job: _Job, force: bool, progress:
         "skipped_existing": 0,
         "empty": 0,
         "no_centre": 0,
+        "blank_with_map": 0,
+        "warnings": [],
         "logs_without_map": len(no_map),
         "logs_without_map_examples": no_map[:20],
         "heading_source": {"column": 0, "motion": 0, "lane": 0, "none": 0},
@@ -193,9 +197,8 @@ def _rasterise_locked(writer: RasterRunWriter, job: _Job, force: bool, progress:
                 progress(res["rendered"])
     finally:
         clear_worker_cache()  # inline runs: do not keep city maps alive after the stage
-    if summary["empty"]:
-        logger.warning("%d of %d rasters are empty (centre off the map or no map); see `empty` in %s",
-                       summary["empty"], n, out / "index-*.parquet")
+    for warning in blank_warnings(summary, n, out):
+        logger.warning("%s", warning)
     writer.commit(manifest(complete=True))
     summary["seconds"] = round(time.perf_counter() - started, 3)
     summary["render_seconds"] = round(render_seconds, 3)
@@ -239,6 +242,7 @@ def _add_counts(summary: RasteriseSummary, res: dict[str, Any]) -> None:
     summary["rendered"] += res["rendered"]
     summary["empty"] += res["empty"]
     summary["no_centre"] += res["no_centre"]
+    summary["blank_with_map"] += res["blank_with_map"]
     for k, v in res["heading_source"].items():
         summary["heading_source"][k] += v
     for k, v in res["centre_role"].items():

@@ -54,3 +54,18 @@ def folder_digests() -> Callable[[Path], dict[str, str]]:
     """sha256 of every file of an output folder, by relative POSIX path (the manifest included, the lock file
     not): two runs wrote the same bytes when these are equal."""
     return _folder_digests
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    """Start the README run (``tests/test_readme.py``) in the background when its test is selected: it takes
+    about 1.5 minutes of one mostly idle core, which then overlaps the rest of the suite."""
+    from tests.test_readme import RUN_TEST, start_readme_run
+
+    if any(item.name == RUN_TEST for item in items):
+        config.readme_run = start_readme_run()  # type: ignore[attr-defined]
+
+
+def pytest_unconfigure(config: pytest.Config) -> None:
+    run = getattr(config, "readme_run", None)
+    if run is not None:
+        run.stop()  # killed if a selection or an interrupt left it running; its folder removed

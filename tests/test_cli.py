@@ -26,7 +26,7 @@ def test_version() -> None:
     assert result.exit_code == 0 and __version__ in result.stdout
 
 
-@pytest.mark.parametrize("command", ["ingest", "index", "inspect"])
+@pytest.mark.parametrize("command", ["ingest", "index", "inspect", "export"])
 def test_every_command_has_help(command: str) -> None:
     result = runner.invoke(app, [command, "--help"])
     assert result.exit_code == 0
@@ -52,18 +52,45 @@ def test_piped_help_never_cuts_an_option_name(columns: str) -> None:
     assert "…" not in result.stdout
 
 
-def test_human_summary_is_valid_json_at_any_width(bundled: Path, tmp_path: Path) -> None:
-    ingest = _piped("ingest", str(bundled / "apolloscape"), "--out", str(tmp_path / "a"), "--no-mcap", columns="40")
+def test_human_summaries_name_outputs_and_the_next_command_unwrapped(bundled: Path, tmp_path: Path) -> None:
+    ds, run = tmp_path / "a", tmp_path / "p"
+    ingest = _piped("ingest", str(bundled / "apolloscape"), "--out", str(ds), "--no-mcap", columns="40")
     assert ingest.returncode == 0, ingest.stderr
     # one line however narrow the terminal (it names a long tmp path)
     assert len([line for line in ingest.stderr.splitlines() if "inputs ingested" in line]) == 1
-    result = _piped("predict", str(tmp_path / "a"), "--predictor", "cv", "--out", str(tmp_path / "p"),
-                    "--no-mcap", columns="40")
+    assert f"  dataset: {ds} (now 2 logs" in ingest.stderr
+    assert f"next: logpipe predict {ds} --out {ds}-pred" in ingest.stderr.splitlines()
+    result = _piped("predict", str(ds), "--predictor", "cv", "--out", str(run), "--no-mcap", columns="40")
     assert result.returncode == 0, result.stderr
     assert result.stdout == ""
-    summary = json.loads(result.stderr[result.stderr.index("\n{") :])
-    assert summary["out"] == str(tmp_path / "p") and summary["samples"] == summary["samples_selected"] > 0
-    assert max(len(line) for line in result.stderr.splitlines()) > 40  # long lines were not wrapped
+    lines = result.stderr.splitlines()
+    assert not any(line.lstrip().startswith(("{", '"')) for line in lines)  # a few lines, not a JSON dump
+    summary = [line for line in lines if not line.startswith("predict: ") or " by cv in " in line]
+    assert re.fullmatch(r"predict: \d+ samples, \d+ agents x 20 modes by cv in [\d.]+ s", summary[0])
+    assert f"  predictions: {run}/predictions/*.parquet" in result.stderr
+    assert summary[-1] == f"next: logpipe score {run} --truth {ds} --out {run}-score"
+    assert max(len(line) for line in lines) > 40  # long lines were not wrapped
+    score = _piped("score", str(run), "--truth", str(ds), "--out", str(tmp_path / "s"), "--no-plots", columns="40")
+    assert score.returncode == 0, score.stderr
+    assert score.stderr.splitlines()[-1].startswith(f"next: open {tmp_path / 's' / 'report.md'}")
+
+
+def test_json_errors_are_one_json_object_and_missing_maps_exit_2(bundled: Path, tmp_path: Path) -> None:
+    missing = _piped("predict", str(tmp_path / "nothing"), "--out", str(tmp_path / "p"), "--json", columns="80")
+    assert missing.returncode == 2
+    error = json.loads(missing.stdout)
+    assert error["exit_code"] == 2 and str(tmp_path / "nothing") in error["error"]
+    assert missing.stderr.startswith("error: ")
+    ds = tmp_path / "av1"
+    assert runner.invoke(app, ["ingest", str(bundled / "driving" / "20.csv"), "--out", str(ds), "--no-mcap"]
+                         ).exit_code == 0
+    nomaps = runner.invoke(app, ["rasterise", str(ds), "--maps", str(tmp_path / "no" / "such")])
+    assert nomaps.exit_code == 2 and "no such folder" in nomaps.output
+    (tmp_path / "empty").mkdir()
+    empty = runner.invoke(app, ["rasterise", str(ds), "--maps", str(tmp_path / "empty"), "--json"])
+    assert empty.exit_code == 2
+    assert "no map found for any of its 1 logs (20; map ids looked for: MIA)" in json.loads(empty.stdout)["error"]
+    assert not (ds / "rasters").exists()
 
 
 def test_ingest_json_summary_and_rerun(bundled: Path, tmp_path: Path) -> None:
@@ -250,3 +277,30 @@ def test_train_init_from_warm_starts_the_full_model_from_a_noise_lstm(bundled: P
     missing = runner.invoke(app, [*args, "--init-from", str(tmp_path / "nowhere"), "--out", str(tmp_path / "x")])
     assert missing.exit_code != 0 and "nowhere" in missing.output
     assert not (tmp_path / "x").exists()  # nothing made for a run that cannot start
+
+
+def test_retry_quarantined_reads_a_fixed_input_again(bundled: Path, tmp_path: Path) -> None:
+    bag, ds = bundled / "rosbags" / "datmo" / "intersection.bag", tmp_path / "ds"
+    wrong = runner.invoke(app, ["ingest", str(bag), "--out", str(ds), "--on-error", "skip", "--set", "ego=/nope",
+                                "--json"])
+    assert wrong.exit_code == 0, wrong.output
+    assert "/nope" in json.loads(wrong.stdout)["quarantined"][0]["error"]["reason"]
+    again = runner.invoke(app, ["ingest", str(bag), "--out", str(ds)])  # a plain rerun skips it, and says why
+    assert again.exit_code == 0 and "1 inputs quarantined by an earlier run are skipped" in again.output
+    fixed = runner.invoke(app, ["ingest", str(bag), "--out", str(ds), "--retry-quarantined", "--json"])
+    assert fixed.exit_code == 0, fixed.output
+    summary = json.loads(fixed.stdout)
+    assert summary["inputs_retried"] == 1 and summary["inputs_ingested"] == 1 and summary["logs"] == 1
+    assert summary["totals"]["quarantined"] == 0 and summary["totals"]["rows"] == summary["rows"] > 0
+    manifest = json.loads((ds / "manifest.json").read_text())
+    assert manifest["quarantined"] == [] and [i["path"] for i in manifest["inputs"]] == ["intersection.bag"]
+
+
+def test_piped_inspect_never_cuts_a_topic_or_type_name(bundled: Path) -> None:
+    bag = bundled / "rosbags" / "datmo" / "intersection.bag"
+    result = _piped("inspect", str(bag), columns="40")
+    assert result.returncode == 0, result.stderr
+    for name in ("geometry_msgs/msg/PoseStamped", "tf2_msgs/msg/TFMessage", "/wheel_speeds", "barc/msg/Encoder"):
+        assert name in result.stdout, name
+    assert "…" not in result.stdout
+    assert f"next: logpipe ingest {bag} --out out/NAME" in result.stderr

@@ -23,6 +23,7 @@ from logpipe.stages.score import score
 K, T = 6, 30  # Argoverse protocol: 6 modes, 30 future steps
 IDS = {"logs": ["log_id", "source_format", "map_id", "shard"], "samples": ["sample_id", "log_id", "focal_track_id"],
        "predictions": ["log_id", "sample_id", "track_id", "object_type"]}
+"""Id and label columns per table (the tracks': log_id, track_id, object_type)."""
 
 
 @pytest.fixture(scope="module")
@@ -65,15 +66,13 @@ def _targets(ds_dir: Path) -> int:
     return sum(len(t) for t in Dataset.open(ds_dir).samples().column("target_track_ids").to_pylist())
 
 
-def test_dictionaries_and_fixed_size_lists_survive(outputs: tuple[Path, Path]) -> None:
+def test_ids_are_plain_strings_in_every_table_and_lists_survive(outputs: tuple[Path, Path]) -> None:
     for name, (glob, _) in _globs(outputs).items():
         arrow = pds.dataset(Path(glob).parent, format="parquet").schema
         polars = pl.scan_parquet(glob).collect_schema()
-        for column in IDS.get(name, []):
-            assert arrow.field(column).type == pa.dictionary(pa.int32(), pa.string()), (name, column)
-            assert polars[column] == pl.Categorical, (name, column)
-        for column in ("log_id", "track_id") if name == "tracks" else ():
-            assert polars[column] == pl.String  # tracks keep plain strings (see logpipe/dataset/reader.py)
+        for column in IDS.get(name, ["log_id", "track_id", "object_type"]):  # tracks: the last three
+            assert arrow.field(column).type == pa.string(), (name, column)
+            assert polars[column] == pl.String, (name, column)
     glob = _globs(outputs)["predictions"][0]
     arrow = pds.dataset(Path(glob).parent, format="parquet").schema
     polars = pl.scan_parquet(glob).collect_schema()
@@ -110,7 +109,7 @@ def test_readme_queries(outputs: tuple[Path, Path], tmp_path: Path) -> None:
         WHERE decode(key) = 'logpipe.predictions'
     """).fetchall()
     assert meta == [("cv", K, T)]
-    # 3. Polars: predicted agents per city, joining Categorical ids across tables.
+    # 3. Polars: predicted agents per city, joining the string ids across tables (no cast).
     per_city = (
         pl.scan_parquet(f"{run_dir}/predictions/*.parquet")
         .filter(pl.col("mode") == 0)
@@ -119,5 +118,50 @@ def test_readme_queries(outputs: tuple[Path, Path], tmp_path: Path) -> None:
         .sort("map_id").collect()
     )
     logs = Dataset.open(ds_dir).logs()
-    assert set(per_city["map_id"].cast(pl.String).to_list()) == set(logs.column("map_id").to_pylist())
+    assert set(per_city["map_id"].to_list()) == set(logs.column("map_id").to_pylist())
     assert per_city["agents"].sum() == _targets(ds_dir) and per_city["samples"].sum() == 6
+
+
+def test_natural_joins_work_in_duckdb_polars_and_pandas(outputs: tuple[Path, Path]) -> None:
+    """predictions ⋈ tracks on (log, track, last future time), predictions ⋈ samples on sample_id, samples ⋈ logs
+    on log_id: the same row counts in the three engines, none of them casting a column."""
+    import pandas as pd
+
+    g = {name: glob for name, (glob, _) in _globs(outputs).items()}
+    agents = _targets(outputs[0])
+    duck = duckdb.sql(f"""
+        SELECT count(*) FROM read_parquet('{g["predictions"]}') p
+        JOIN read_parquet('{g["tracks"]}') t ON t.log_id = p.log_id AND t.track_id = p.track_id
+         AND t.timestamp_ns = p.timestamp_ns[-1]
+        JOIN read_parquet('{g["samples"]}') s ON s.sample_id = p.sample_id
+        JOIN read_parquet('{g["logs"]}') l ON l.log_id = s.log_id""").fetchall()[0][0]
+    assert duck == agents * K
+    tracks, preds = pl.scan_parquet(g["tracks"]), pl.scan_parquet(g["predictions"])
+    polars = (preds.with_columns(pl.col("timestamp_ns").arr.last().alias("t_last"))
+              .join(tracks, left_on=["log_id", "track_id", "t_last"], right_on=["log_id", "track_id", "timestamp_ns"])
+              .join(pl.scan_parquet(g["samples"]), on="sample_id")
+              .join(pl.scan_parquet(g["logs"]), left_on="log_id", right_on="log_id").select(pl.len()).collect().item())
+    assert polars == duck
+    frames = {name: pd.read_parquet(Path(glob).parent) for name, glob in g.items()}
+    frames["predictions"]["t_last"] = frames["predictions"]["timestamp_ns"].map(lambda v: v[-1])
+    merged = (frames["predictions"]
+              .merge(frames["tracks"], left_on=["log_id", "track_id", "t_last"],
+                     right_on=["log_id", "track_id", "timestamp_ns"])
+              .merge(frames["samples"], on="sample_id").merge(frames["logs"], left_on="log_id_x", right_on="log_id"))
+    assert len(merged) == duck
+
+
+def test_predictions_written_with_dictionary_ids_score_the_same(outputs: tuple[Path, Path], tmp_path: Path) -> None:
+    """Files of earlier versions stored the ids as dictionaries: read alike (``as_current`` casts them)."""
+    import pyarrow.parquet as pq
+
+    ds_dir, run_dir = outputs
+    [path] = sorted((run_dir / "predictions").glob("*.parquet"))  # one shard: one file is one method
+    table = pq.read_table(path)
+    encoded = pa.table({n: table[n].dictionary_encode() if n in IDS["predictions"] else table[n]
+                        for n in table.column_names}).replace_schema_metadata(table.schema.metadata)
+    assert encoded.schema.field("track_id").type == pa.dictionary(pa.int32(), pa.string())
+    pq.write_table(encoded, tmp_path / "old.parquet")
+    now = score([run_dir], ds_dir, tmp_path / "now", plots=False)["methods"]["cv"]["overall"]
+    before = score([tmp_path / "old.parquet"], ds_dir, tmp_path / "before", plots=False)["methods"]["cv"]["overall"]
+    assert before == now

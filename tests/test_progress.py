@@ -39,6 +39,30 @@ def _reporter(mode: Mode = "lines", interval: float = 5.0) -> tuple[ProgressRepo
     return reporter, clock, out
 
 
+def test_heartbeat_writes_the_due_line_while_a_batch_runs() -> None:
+    """A stage blocked in one long batch (here a sleep) still gets a line every interval, and the final line."""
+    import threading
+    import time
+
+    out = io.StringIO()
+    with ProgressReporter("predict", "samples", "lines", interval_s=0.2, stream=out) as reporter:
+        assert any(t.name == "logpipe-progress-heartbeat" for t in threading.enumerate())
+        reporter.total(10)
+        time.sleep(1.1)  # one "batch" of about five intervals, no unit finished
+        reporter(10)
+    lines = out.getvalue().splitlines()
+    beats = [line for line in lines if line == "predict: 0/10 samples (0%)"]
+    assert len(beats) >= 3  # the total's line and a heartbeat about every 0.2 s (4-5 when the machine is idle)
+    assert lines[-1].startswith("predict: 10/10 samples (100%)") and " done in " in lines[-1]
+    assert not any(t.name == "logpipe-progress-heartbeat" for t in threading.enumerate())  # stopped with the run
+
+
+def test_a_stage_without_units_shows_how_long_it_runs() -> None:
+    reporter, clock, _ = _reporter(interval=5.0)
+    clock.now = 12.0
+    assert reporter.line() == "predict: running 0:00:12"
+
+
 def test_lines_come_every_interval_with_count_rate_and_eta() -> None:
     reporter, clock, out = _reporter()
     reporter.total(5000)

@@ -16,6 +16,7 @@ from typing import Annotated, Any, TextIO
 
 import typer
 from rich.console import Console
+from rich.markup import escape
 
 from logpipe import __version__
 from logpipe.errors import LogpipeError
@@ -101,20 +102,49 @@ def progress_mode() -> Mode:
 
 
 @contextmanager
-def user_errors() -> Iterator[None]:
-    """Turn logpipe's own errors into one clear line and exit code 2 (no traceback)."""
+def user_errors(as_json: bool = False) -> Iterator[None]:
+    """Turn logpipe's own errors into one clear line and exit code 2 (no traceback); with ``--json`` the error
+    is also the one JSON object on stdout (``{"error": ..., "exit_code": 2}``), so a parser never meets text."""
     try:
         yield
     except LogpipeError as exc:
-        err.print(f"[bold red]error:[/] {exc}", highlight=False, soft_wrap=True)
-        raise typer.Exit(code=2) from None
+        _fail(str(exc), as_json)
     except OSError as exc:
         # Disk full, read-only or forbidden outputs: the writers commit only by the manifest swap, so the
         # folder still holds its previous state; one line, not a traceback.
         from logpipe.storage.artifact import os_error_message
 
-        err.print(f"[bold red]error:[/] {os_error_message(exc)}", highlight=False, soft_wrap=True)
-        raise typer.Exit(code=2) from None
+        _fail(os_error_message(exc), as_json)
+
+
+def _fail(message: str, as_json: bool) -> None:
+    err.print(f"[bold red]error:[/] {escape(message)}", highlight=False, soft_wrap=True)
+    if as_json:
+        typer.echo(json.dumps({"error": message, "exit_code": 2}))
+    raise typer.Exit(code=2) from None
+
+
+class WarningCount(logging.Handler):
+    """Collects the warnings logpipe logs while a command runs, so its summary can count them."""
+
+    def __init__(self) -> None:
+        super().__init__(logging.WARNING)
+        self.messages: list[str] = []
+
+    def emit(self, record: logging.LogRecord) -> None:
+        self.messages.append(record.getMessage())
+
+
+@contextmanager
+def counting_warnings() -> Iterator[WarningCount]:
+    """A ``WarningCount`` on logpipe's logger for the duration of the block."""
+    handler = WarningCount()
+    logger = logging.getLogger("logpipe")
+    logger.addHandler(handler)
+    try:
+        yield handler
+    finally:
+        logger.removeHandler(handler)
 
 
 def stage_progress(label: str, unit: str) -> ProgressReporter:
@@ -125,11 +155,30 @@ def stage_progress(label: str, unit: str) -> ProgressReporter:
     return ProgressReporter(label, unit, progress_mode(), console=err)
 
 
-def emit(summary: dict[str, Any], as_json: bool, human: Callable[[dict[str, Any]], None]) -> None:
+def emit(summary: dict[str, Any], as_json: bool, human: Callable[[dict[str, Any]], list[str]],
+         logged: WarningCount | None = None) -> None:
+    """Print a command's summary: ``--json``, one object on stdout; else (unless ``-q``) the few human lines
+    ``human`` gives on stderr (what it did, where the outputs are, the command to run next), closed by the count of
+    warnings (the summary's own ``warnings`` and those logged while it ran, also added to the JSON)."""
+    warnings = list(summary.get("warnings") or [])
+    warnings += [w for w in (logged.messages if logged else []) if w not in warnings]
+    if warnings or "warnings" in summary:
+        summary = {**summary, "warnings": warnings}
     if as_json:
-        typer.echo(json.dumps(summary, indent=2, sort_keys=True))
-    elif not output.quiet:
-        human(summary)
+        typer.echo(json.dumps(summary, indent=2, sort_keys=True, default=str))
+        return
+    if output.quiet:
+        return
+    lines = human(summary)
+    if warnings:
+        lines.append(f"{len(warnings)} warning{'s' if len(warnings) != 1 else ''} (shown above)")
+    say(lines)
+
+
+def say(lines: list[str]) -> None:
+    """Human lines on stderr, never wrapped or cut (a path must stay one piece to be copied)."""
+    for line in lines:
+        typer.echo(line, err=True)
 
 
 ProtocolOpt = Annotated[str | None, typer.Option("--protocol", help=f"Sample preset: {', '.join(PROTOCOLS)} "
@@ -149,7 +198,6 @@ JsonOpt = Annotated[bool, typer.Option("--json", help="Print a JSON summary on s
 DatasetArg = Annotated[Path, typer.Argument(help="Dataset folder written by `logpipe ingest`.")]
 
 
-def print_summary(summary: dict[str, Any]) -> None:
-    """The human form of a summary that has no shorter one: indented JSON on stderr, written as is (rich
-    would wrap long lines at the console width, 80 columns off a terminal, and break the JSON)."""
-    typer.echo(json.dumps(summary, indent=2, default=str), err=True)
+def next_step(command: str, why: str = "") -> str:
+    """The summary's last line: the command to run next (quoted so it can be copied)."""
+    return f"next: {command}" + (f"   ({why})" if why else "")

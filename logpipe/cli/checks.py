@@ -4,13 +4,12 @@ the truth, folders against their manifests, recordings' topics) and exit non-zer
 from __future__ import annotations
 
 import json
-import sys
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Any
 
 import typer
 
-from logpipe.cli.app import JsonOpt, err, output, user_errors
+from logpipe.cli.app import JsonOpt, counting_warnings, emit, next_step, say, stage_progress, user_errors
 
 
 def score(  # noqa: PLR0913  typer command: one parameter per CLI option
@@ -49,24 +48,31 @@ def score(  # noqa: PLR0913  typer command: one parameter per CLI option
     """
     from logpipe import api
 
-    with user_errors():
+    # No units to count: the reporter's heartbeat says it is running (in CI logs, every interval).
+    with user_errors(as_json), counting_warnings() as logged, stage_progress("score", "methods"):
         report = api.score(predictions, truth=truth, out=out, split=split, agents=agents, min_agents=min_agents,
                            k=k, miss_threshold=miss_threshold, fail_above=fail_above, label=label,
                            allow_missing=allow_missing, plots=plots, plot_samples=plot_samples)
-    if as_json:
-        typer.echo(json.dumps(report, indent=2, sort_keys=True))
-    else:
-        for name, e in report["methods"].items() if not output.quiet else ():
-            o = e["overall"]
-            cells = ", ".join(f"K={kk} {o[f'k{kk}']['ade']:.3f}/{o[f'k{kk}']['fde']:.3f}" for kk in e["ks"]
-                              if o.get(f"k{kk}"))
-            print(f"{name}: {o['samples']} samples, {o['agents']} agents, ADE/FDE {cells}", file=sys.stderr)
-        if not output.quiet:
-            print(f"report: {out / 'report.md'}", file=sys.stderr)
-        for v in report["gate"]["violations"]:  # errors: shown with -q too
-            print(f"FAILED: {v['method']} {v['metric']} = {v['value']:.4f} > {v['limit']}", file=sys.stderr)
+    emit(dict(report), as_json, lambda r: score_lines(r, out), logged)
+    if not as_json:
+        say([f"FAILED: {v['method']} {v['metric']} = {v['value']:.4f} > {v['limit']}"  # errors: shown with -q too
+             for v in report["gate"]["violations"]])
     if report["gate"]["failed"]:
         raise typer.Exit(code=1)
+
+
+def score_lines(report: dict[str, Any], out: Path) -> list[str]:
+    """The human summary of ``score``: ADE/FDE per method, where the report and plots are, what to open next."""
+    lines = []
+    for name, e in report["methods"].items():
+        o = e["overall"]
+        cells = ", ".join(f"K={kk} {o[f'k{kk}']['ade']:.3f}/{o[f'k{kk}']['fde']:.3f}" for kk in e["ks"]
+                          if o.get(f"k{kk}"))
+        lines.append(f"score: {name}: {o['samples']} samples, {o['agents']} agents, ADE/FDE (m) {cells}")
+    pngs = sorted(p.name for p in out.glob("*.png"))
+    lines.append(f"  report: {out / 'report.md'} (report.json" + (f", {', '.join(pngs)})" if pngs else ")"))
+    lines.append(next_step(f"open {out / 'report.md'}", "the table in the paper's layout and the plots"))
+    return lines
 
 
 
@@ -83,21 +89,31 @@ def verify(
     per problem and exits 1 when any is found. A dataset's raster runs are checked with it."""
     from logpipe import api
 
-    with user_errors():
+    with user_errors(as_json):
         report = api.verify(folders, repair=repair, shallow=shallow)
-    if as_json:
-        typer.echo(json.dumps(report, indent=2, sort_keys=True))
-    else:
+    if not as_json:  # the problems are shown with -q too, on stdout as before
         for line in report["problems"]:
             typer.echo(line)
         for line in report["leftovers"]:
             typer.echo(f"{line}: uncommitted leftover" + (" (removed)" if repair else " (--repair removes it)"))
-        if not output.quiet:  # the problems above are shown with -q too
-            err.print(f"{report['files_checked']} files checked in {len(report['folders'])} folders: "
-                      f"{len(report['problems'])} problems, {len(report['leftovers'])} leftovers", highlight=False,
-                      soft_wrap=True)
+    emit(dict(report), as_json, lambda r: verify_lines(r, repair))
     if report["problems"]:
         raise typer.Exit(code=1)
+
+
+def verify_lines(report: dict[str, Any], repair: bool) -> list[str]:
+    """The human summary of ``verify``: what was checked, what was found, what to do about it."""
+    lines = [f"verify: {report['files_checked']} files checked in {len(report['folders'])} folders: "
+             f"{len(report['problems'])} problems, {len(report['leftovers'])} leftovers"]
+    folders = " ".join(report["folders"])
+    if report["problems"]:
+        lines.append(next_step("re-run the command that wrote the folder (it rewrites what does not match), or "
+                               "delete the folder and run it again"))
+    elif report["leftovers"] and not repair:
+        lines.append(next_step(f"logpipe verify {folders} --repair", "removes the uncommitted leftovers"))
+    else:
+        lines.append("  every committed file matches its manifest; nothing to do")
+    return lines
 
 
 def inspect(
@@ -119,7 +135,7 @@ def inspect(
 
     if output not in ("human", "toml", "json"):
         raise typer.BadParameter("--format must be human, toml or json")
-    with user_errors():
+    with user_errors(as_json or output == "json"):
         reports = api.inspect(paths)
         if output == "toml":
             typer.echo(mapping_toml(reports), nl=False)
@@ -128,5 +144,57 @@ def inspect(
         typer.echo(json.dumps(reports, indent=2, sort_keys=True, default=str))
     else:
         render(reports)
+        if not _quiet():
+            say(inspect_lines(reports))
     if not all(r.get("ok", False) for r in reports):
         raise typer.Exit(code=2)
+
+
+def _quiet() -> bool:
+    from logpipe.cli.app import output as global_output
+
+    return global_output.quiet
+
+
+def inspect_lines(reports: list[dict[str, Any]]) -> list[str]:
+    """The next command after ``inspect``: ingest with the detected mapping, or write one to edit."""
+    paths = " ".join(str(r["path"]) for r in reports)
+    if not all(r.get("ok") for r in reports):
+        return ["  fix or leave out the unreadable inputs above"]
+    if all(r.get("mapping") is not None or r.get("format") == "argoverse2" for r in reports):
+        return [next_step(f"logpipe ingest {paths} --out out/NAME", "uses the detected mapping")]
+    return [next_step(f"logpipe inspect {paths} --format toml > map.toml",
+                      "edit the topics, then logpipe ingest ... --mapping map.toml")]
+
+
+def export(
+    paths: Annotated[list[Path], typer.Argument(
+        help="A dataset or prediction run folder (its mcap/ files), or MCAP files.", show_default=False)],
+    out: Annotated[Path, typer.Option("--out", "-o", help="Folder for the exported files (one per log).")],
+    fmt: Annotated[str, typer.Option("--format", "-f", help="rrd: a Rerun recording per log.")] = "rrd",
+    as_json: JsonOpt = False,
+) -> None:
+    """Export the MCAPs of a dataset or prediction run for another viewer: --format rrd writes one Rerun recording
+    per log (agents as boxes, history, truth, forecasts, lanes, the raster image and a legend), which `rerun FILE`
+    opens. Needs rerun-sdk (pip install 'logpipe[rerun]').
+
+    Example: logpipe export out/pred --format rrd --out out/rrd && rerun out/rrd/20.rrd
+    """
+    from logpipe import api
+
+    with user_errors(as_json), stage_progress("export", "files"):
+        summary = api.export(paths, out=out, format=fmt)
+    emit(dict(summary), as_json, export_lines)
+
+
+def export_lines(s: dict[str, Any]) -> list[str]:
+    """The human summary of ``export``: files written, what they draw, how to open one."""
+    totals: dict[str, int] = {}
+    for f in s["files"]:
+        for kind, n in f["drawn"].items():
+            totals[kind] = totals.get(kind, 0) + n
+    drawn = ", ".join(f"{n:,} {kind.replace('_', ' ')}" for kind, n in sorted(totals.items()))
+    first = s["files"][0]["rrd"] if s["files"] else f"{s['out']}/LOG.rrd"
+    return [f"export: {len(s['files'])} Rerun recordings in {s['out']} in {s['seconds']} s "
+            f"({drawn or 'nothing drawn'})",
+            next_step(f"rerun {first}", "the viewer rerun-sdk installs")]

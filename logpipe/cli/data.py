@@ -20,12 +20,15 @@ from logpipe.cli.app import (
     TargetsOpt,
     TargetTypesOpt,
     WindowOpt,
+    counting_warnings,
     emit,
-    err,
-    print_summary,
+    next_step,
     stage_progress,
     user_errors,
 )
+
+MAP_FORMATS = ("argoverse1", "argoverse2")
+"""Formats whose shipped model reads map rasters: their next step after ingest is rasterise."""
 
 
 def ingest(  # noqa: PLR0913  typer command: one parameter per CLI option
@@ -57,6 +60,9 @@ def ingest(  # noqa: PLR0913  typer command: one parameter per CLI option
     allow_empty: Annotated[bool, typer.Option(
         "--allow-empty", help="Bags/MCAP/AV2: a log without tracks is kept empty instead of being an error.")
     ] = False,
+    retry_quarantined: Annotated[bool, typer.Option(
+        "--retry-quarantined", help="Read again the inputs an earlier --on-error skip run quarantined, with this "
+        "run's options (after fixing them or their --mapping); without it a rerun skips them.")] = False,
     as_json: JsonOpt = False,
 ) -> None:
     """Turn logs (Argoverse 1 CSV, ETH/UCY, ApolloScape, ...) into canonical Parquet shards, a sample index
@@ -67,36 +73,48 @@ def ingest(  # noqa: PLR0913  typer command: one parameter per CLI option
     """
     from logpipe import api
 
-    with user_errors(), stage_progress("ingest", "inputs") as advance:
+    with user_errors(as_json), counting_warnings() as logged, stage_progress("ingest", "inputs") as advance:
         summary = api.ingest(
             inputs, out=out, format=fmt, protocol=protocol, obs=obs, pred=pred, stride=stride,
             min_targets=min_targets, targets=targets, target_types=target_types, window=window, on_error=on_error,
             mcap=mcap,
             workers=workers, backend=backend, batch_files=batch_files, mapping=mapping, overrides=overrides or (),
-            hz=hz, allow_empty=allow_empty, progress=advance,
+            hz=hz, allow_empty=allow_empty, retry_quarantined=retry_quarantined, progress=advance,
         )
-    emit(dict(summary), as_json, _print_ingest)
+    emit(dict(summary), as_json, ingest_lines, logged)
 
 
-def _print_ingest(s: dict[str, Any]) -> None:
-    err.print(
-        f"[bold]{s['dataset']}[/] ({s['format']}): {s['inputs_ingested']} inputs ingested, "
-        f"{s['inputs_skipped_already_ingested']} already there, {len(s['quarantined'])} quarantined; "
-        f"{s['logs']} logs, {s['rows']} rows, {s['samples']} samples in {s['seconds']} s. "
-        f"Dataset totals: {s['totals']['logs']} logs, {s['totals']['rows']} rows, {s['totals']['samples']} samples.",
-        highlight=False, soft_wrap=True,  # one line in a CI log, not cut at 80 columns
-    )
+def ingest_lines(s: dict[str, Any]) -> list[str]:
+    """The human summary of ``ingest``: counts, where the outputs are, quarantined inputs, the next command."""
+    ds, totals = s["dataset"], s["totals"]
+    lines = [
+        f"ingest: {s['inputs_ingested']} inputs ingested, {s['inputs_skipped_already_ingested']} already there, "
+        f"{len(s['quarantined'])} quarantined: {s['logs']} logs, {s['rows']:,} rows, {s['samples']:,} samples "
+        f"in {s['seconds']} s ({s['format']})",
+        f"  dataset: {ds} (now {totals['logs']} logs, {totals['rows']:,} rows, {totals['samples']:,} samples: "
+        f"tracks/, logs/, samples/, manifest.json)",
+    ]
+    if s.get("mcap_messages"):
+        lines.append(f"  MCAPs: {ds}/mcap/part-*/<log>.mcap (open one in Foxglove, or `logpipe export {ds} "
+                     "--format rrd --out DIR` for Rerun)")
     for q in s["quarantined"]:
         e = q["error"]
         where = e["file"] + (f":{e['line']}" if e["line"] else "") + (f" field '{e['field']}'" if e["field"] else "")
-        err.print(f"  quarantined {where}: {e['reason']}", highlight=False, soft_wrap=True)
-    _print_notes(s)
-
-
-def _print_notes(s: dict[str, Any]) -> None:
-    """The lines that explain the counts: inputs that were copies, and why logs gave no sample."""
-    for line in summary_notes(s):
-        err.print(f"  {line}", highlight=False, soft_wrap=True)
+        lines.append(f"  quarantined {where}: {e['reason']}")
+    lines += [f"  {line}" for line in summary_notes(s)]
+    earlier = totals.get("quarantined", 0) - len(s["quarantined"])
+    if earlier > 0 and not s.get("inputs_retried"):
+        lines.append(f"  {earlier} inputs quarantined by an earlier run are skipped (--retry-quarantined reads them "
+                     "again)")
+    if s["quarantined"] or earlier > 0:
+        lines.append(next_step(f"logpipe ingest INPUTS --out {ds} --retry-quarantined",
+                               "after fixing the inputs or the options, e.g. --mapping"))
+    elif s["format"] in MAP_FORMATS:
+        lines.append(next_step(f"logpipe rasterise {ds} --maps MAPS_FOLDER --rotate",
+                               "map rasters for the driving model; then logpipe predict"))
+    else:
+        lines.append(next_step(f"logpipe predict {ds} --out {ds}-pred"))
+    return lines
 
 
 def summary_notes(summary: Mapping[str, Any]) -> list[str]:
@@ -113,9 +131,22 @@ def summary_notes(summary: Mapping[str, Any]) -> list[str]:
     return lines
 
 
-def _print_index(s: dict[str, Any]) -> None:
-    err.print(f"{s['dataset']}: {s['samples']} samples ({s['protocol']})", highlight=False, soft_wrap=True)
-    _print_notes(s)
+def protocol_text(protocol: dict[str, Any]) -> str:
+    """``argoverse: 20 + 30 steps, targets focal, window first`` (a sample protocol in one phrase)."""
+    extra = [f"{k.replace('_', ' ')} {protocol[k]}" for k in ("targets", "window", "stride", "min_targets")
+             if protocol.get(k) not in (None, "", [])]
+    steps = f"{protocol.get('obs_len')} + {protocol.get('pred_len')} steps"
+    return f"{protocol.get('name', '?')}: " + ", ".join([steps, *extra])
+
+
+def index_lines(s: dict[str, Any]) -> list[str]:
+    """The human summary of ``index``."""
+    what = "unchanged" if s.get("unchanged") else "rebuilt"
+    lines = [f"index: {s['dataset']}: sample index {what}, {s['samples']:,} samples",
+             f"  protocol {protocol_text(s['protocol'])}"]
+    lines += [f"  {line}" for line in summary_notes(s)]
+    lines.append(next_step(f"logpipe predict {s['dataset']} --out {s['dataset']}-pred"))
+    return lines
 
 
 def index(  # noqa: PLR0913  typer command: one parameter per CLI option
@@ -136,10 +167,10 @@ def index(  # noqa: PLR0913  typer command: one parameter per CLI option
     """
     from logpipe import api
 
-    with user_errors(), stage_progress("index", "logs") as advance:
+    with user_errors(as_json), counting_warnings() as logged, stage_progress("index", "logs") as advance:
         summary = api.index(dataset, protocol=protocol, obs=obs, pred=pred, stride=stride, min_targets=min_targets,
                             targets=targets, target_types=target_types, window=window, progress=advance)
-    emit(dict(summary), as_json, _print_index)
+    emit(dict(summary), as_json, index_lines, logged)
 
 
 def rasterise(  # noqa: PLR0913  typer command: one parameter per CLI option
@@ -173,8 +204,22 @@ def rasterise(  # noqa: PLR0913  typer command: one parameter per CLI option
     """
     from logpipe import api
 
-    with user_errors(), stage_progress("rasterise", "samples") as advance:
+    with user_errors(as_json), counting_warnings() as logged, stage_progress("rasterise", "samples") as advance:
         summary = api.rasterise(dataset, maps=maps, map_file=map_file, centre=centre, rotate=rotate, preview=preview,
                                 size=size, extent=extent, channels=channels, shard_size=shard_size, force=force,
                                 workers=workers, backend=backend, progress=advance)
-    emit(dict(summary), as_json, print_summary)
+    emit(dict(summary), as_json, rasterise_lines, logged)
+
+
+def rasterise_lines(s: dict[str, Any]) -> list[str]:
+    """The human summary of ``rasterise``: counts (blank ones too), the run folder, previews, the next command."""
+    dataset = str(Path(s["run_dir"]).parent.parent)
+    lines = [f"rasterise: {s['samples']:,} samples: {s['rendered']:,} rendered, {s['skipped_existing']:,} already "
+             f"there; {s['empty']:,} blank ({s['logs_without_map']} logs without a map, {s['blank_with_map']} off "
+             f"their map) in {s.get('seconds', 0)} s",
+             f"  rasters: {s['run_dir']} (shards, index, manifest.json)"]
+    if s["previews"]:
+        lines.append(f"  previews: {Path(s['previews'][0]).parent}/ ({len(s['previews'])} PNG, e.g. "
+                     f"{Path(s['previews'][0]).name})")
+    lines.append(next_step(f"logpipe predict {dataset} --out {dataset}-pred"))
+    return lines

@@ -4,15 +4,16 @@ from __future__ import annotations
 
 from contextlib import nullcontext
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Any
 
 import typer
 
 from logpipe.cli.app import (
     DatasetArg,
     JsonOpt,
+    counting_warnings,
     emit,
-    print_summary,
+    next_step,
     progress_mode,
     stage_progress,
     user_errors,
@@ -70,12 +71,25 @@ def train(  # noqa: PLR0913  typer command: one parameter per CLI option
     # On a terminal the training loop draws its own bar (with loss and val ADE/FDE), on stdout: not under --json.
     # Elsewhere it reports steps to the plain progress lines.
     terminal = progress_mode() == "bar"
-    with user_errors(), (nullcontext(None) if terminal else stage_progress("train", "steps")) as advance:
+    with (user_errors(as_json), counting_warnings() as logged,
+          (nullcontext(None) if terminal else stage_progress("train", "steps")) as advance):
         summary = api.train(dataset, out=out, scene=scene, train_split=train_split, val_split=val_split,
                             config=config, steps=steps, seed=seed, preset=preset, resume=resume,
                             raster_run=raster_run, loader_workers=loader_workers, init_from=init_from,
                             device=device, progress=(not as_json) if advance is None else advance)
-    emit(dict(summary), as_json, print_summary)
+    emit(dict(summary), as_json, train_lines, logged)
+
+
+def train_lines(s: dict[str, Any]) -> list[str]:
+    """The human summary of ``train``: steps, the best validation errors, the checkpoints, the next command."""
+    datasets = s["dataset"] if isinstance(s["dataset"], list) else [s["dataset"]]
+    best = s["best_checkpoint"] or s["last_checkpoint"]
+    lines = [f"train: {s['steps']:,} steps on {s['train_samples']} samples in {s['seconds']} s ({s['device']}); "
+             f"best validation ADE/FDE {s['best_val_ade']:.3f}/{s['best_val_fde']:.3f} m at step {s['best_step']}"
+             + (" (stopped early)" if s["stopped_early"] else ""),
+             f"  run: {s['run']} (checkpoints best/ and last/, train_log.jsonl)",
+             next_step(f"logpipe predict {datasets[0]} --checkpoint {best} --out {s['run']}-pred")]
+    return lines
 
 
 def predict(  # noqa: PLR0913  typer command: one parameter per CLI option
@@ -125,6 +139,9 @@ def predict(  # noqa: PLR0913  typer command: one parameter per CLI option
         "processes of --threads threads (default 1) each, the same bytes (0 = one per core when --threads is 0 and "
         "the run is large enough to repay their ~1.5 s start-up: 250 samples per core with the environment net, "
         "1,500 without).")] = 0,
+    allow_blank_rasters: Annotated[bool, typer.Option(
+        "--allow-blank-rasters", help="Run a checkpoint's environment net even on samples whose raster is blank "
+        "(no map for their log, or the centre off it); refused by default.")] = False,
     as_json: JsonOpt = False,
 ) -> None:
     """Run a checkpoint (or a baseline) on every sample and write predictions as Parquet and, per log, an MCAP
@@ -134,14 +151,30 @@ def predict(  # noqa: PLR0913  typer command: one parameter per CLI option
     """
     from logpipe import api
 
-    with user_errors(), stage_progress("predict", "samples") as advance:
+    with user_errors(as_json), counting_warnings() as logged, stage_progress("predict", "samples") as advance:
         summary = api.predict(
             dataset, out=out, checkpoint=checkpoint, predictor=predictor, modes=modes, seed=seed,
             noise_scale=noise_scale, constant_velocity_modes=constant_velocity_modes,
             context_max_neighbours=context_max_neighbours, as_trained=as_trained, filters=filters or (),
             inputs=inputs, raster_run=raster_run, raster_images=raster_images, mcap=mcap, batch_size=batch_size,
             threads=threads, device=device, progress=advance, backend=backend, workers=workers,
+            allow_blank_rasters=allow_blank_rasters,
         )
     for warning in summary["warnings"]:  # shown with --json and -q too: a leak must not pass unnoticed
         typer.echo(f"warning: {warning}", err=True)
-    emit(summary, as_json, print_summary)
+    emit(summary, as_json, predict_lines, logged)
+
+
+def predict_lines(s: dict[str, Any]) -> list[str]:
+    """The human summary of ``predict``: what was forecast by what, where the table and MCAPs are, what next."""
+    out, ds = s["out"], s["dataset"]
+    by = s["checkpoint"] or s["predictor"]
+    lines = [f"predict: {s['samples']:,} samples, {s['targets']:,} agents x {s['num_modes']} modes by {by} in "
+             f"{s['seconds']} s" + (f" ({s['shards_skipped_done']} shards already done)" if s["shards_skipped_done"]
+                                   else ""),
+             f"  predictions: {out}/predictions/*.parquet ({s['rows_total']:,} rows; manifest.json)"]
+    if s["mcap_files"]:
+        lines.append(f"  MCAPs: {out}/mcap/part-*/<log>.mcap ({s['mcap_files']} files; Foxglove: File > Open, "
+                     f"3D panel; Rerun: logpipe export {out} --format rrd --out {out}-rrd)")
+    lines.append(next_step(f"logpipe score {out} --truth {ds} --out {out}-score"))
+    return lines

@@ -21,10 +21,10 @@ the manifest names their files.
 
 Each table folder holds that table only, so engines read one table with one glob
 (``read_parquet('DATASET/samples/*.parquet')`` in DuckDB, ``pl.scan_parquet``, ``pyarrow.dataset.dataset``).
-The logs and samples files store their ids and labels as dictionaries (``dictionary<int32,string>`` in
-schemas/logs.json and samples.json: Polars reads them as Categorical); ``Dataset`` hands them to logpipe's
-stages as plain strings (the kernels they use, ``is_in`` against another table's column and ``sort_by``, refuse
-dictionaries), as in tables written before, which stored strings.
+Ids and labels are plain strings in every table (tracks, logs, samples, and a prediction run's predictions), so
+the natural joins work in DuckDB, Polars and pandas without a cast. Tables written by earlier versions stored the
+logs' and samples' ids as dictionaries (``dictionary<int32,string>``, Polars: Categorical); ``Dataset`` hands every
+table to logpipe's stages as plain strings either way (``decode_dictionaries``).
 """
 
 from __future__ import annotations

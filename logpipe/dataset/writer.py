@@ -21,7 +21,7 @@ from logpipe.errors import DatasetError
 from logpipe.storage.artifact import FileEntry, FolderWriter, file_entry
 from logpipe.storage.durability import crash_point
 from logpipe.storage.io import parquet_options, read_table, write_parquet
-from logpipe.types import SampleProtocol
+from logpipe.types import SampleProtocol, SourceFile
 
 SCHEMAS = ("tracks", "logs", "samples")
 """The contracts a dataset's tables follow; their versions are part of the manifest."""
@@ -250,6 +250,17 @@ def known_input_sizes(manifest: DatasetManifest) -> set[int] | None:
 def known_input_digests(manifest: DatasetManifest) -> set[str]:
     """sha256 of every input the dataset already holds or quarantined (a rerun skips those)."""
     return {i["sha256"] for i in manifest["inputs"]} | {q["sha256"] for q in manifest["quarantined"]}
+
+
+def release_quarantined(manifest: DatasetManifest, sources: Sequence[SourceFile]) -> int:
+    """Drop from ``manifest`` the quarantine entries of ``sources`` so this run reads them again (``ingest
+    --retry-quarantined``, after fixing an input or its mapping); returns how many. Still bad, they are
+    quarantined again; nothing changes on disk before the run commits."""
+    again = {s.sha256 for s in sources}
+    kept = [q for q in manifest["quarantined"] if q["sha256"] not in again]
+    released = len(manifest["quarantined"]) - len(kept)
+    manifest["quarantined"] = kept
+    return released
 
 
 def add_input_roots(manifest: DatasetManifest, roots: Sequence[Path]) -> None:

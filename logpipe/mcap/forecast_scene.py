@@ -1,7 +1,8 @@
 """The Foxglove ``SceneUpdate`` of one prediction sample (predict's MCAPs): per target its observed history
-(grey), the true future where the log has it (green), a sphere at its current position (its type's colour) and
-the K modes (blue, more opaque the higher their score), living for the horizon. Positions are metres in the
-log's world frame, snapped to ``foxglove.POSITION_QUANTUM``; times are ns on the log's clock.
+(grey), the true future where the log has it (orange; the raster's lanes are green), a sphere at its current
+position (its type's colour) and the K modes (blue, more opaque the higher their score), living for the horizon.
+Positions are metres in the log's world frame, snapped to ``foxglove.POSITION_QUANTUM``; times are ns on the
+log's clock. ``legend_scene`` is the legend entity naming these colours.
 """
 
 from __future__ import annotations
@@ -20,6 +21,7 @@ from foxglove_schemas_protobuf.Quaternion_pb2 import Quaternion
 from foxglove_schemas_protobuf.SceneEntity_pb2 import SceneEntity
 from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
 from foxglove_schemas_protobuf.SpherePrimitive_pb2 import SpherePrimitive
+from foxglove_schemas_protobuf.TextPrimitive_pb2 import TextPrimitive
 from foxglove_schemas_protobuf.Vector3_pb2 import Vector3
 from google.protobuf.duration_pb2 import Duration
 
@@ -29,10 +31,14 @@ from logpipe.types import OBJECT_TYPES, NDArrayFloat, NDArrayInt, SceneSample
 
 HISTORY_RGBA = (0.6, 0.6, 0.6, 0.9)
 """Colour of a forecast target's observed history (RGBA 0..1)."""
-TRUTH_RGBA = (0.1, 0.85, 0.25, 1.0)
-"""Colour of its true future."""
+TRUTH_RGBA = (1.0, 0.5, 0.0, 1.0)
+"""Colour of its true future: orange, apart from the raster's green lanes, red drivable area and blue boundaries."""
 MODE_RGB = (0.2, 0.45, 1.0)
 """Colour of its modes; opacity 0.25..1 by score relative to its best mode."""
+LANES_RGBA = (0.0, 1.0, 0.0, 1.0)
+"""The raster's lane colour (``raster_image.raster_rgb``: green), as the legend shows it."""
+LEGEND = (("history", HISTORY_RGBA), ("truth", TRUTH_RGBA), ("forecasts", (*MODE_RGB, 1.0)), ("lanes", LANES_RGBA))
+"""The legend's lines: what each colour of a prediction scene means."""
 _LINE_Z = 0.05  # metres above the ground, so lines are not hidden in a raster drawn at z = 0
 _LINES_KEY = field_key(SceneEntity.LINES_FIELD_NUMBER)
 _METADATA_KEY = field_key(SceneEntity.METADATA_FIELD_NUMBER)
@@ -131,6 +137,18 @@ def forecast_scene_updates(forecasts: TargetForecasts, frames: Sequence[str], no
             entities.append(_ENTITIES_KEY + _varint(len(entity)) + entity)
         updates.append(b"".join(entities))
     return updates
+
+
+def legend_scene(frame: str, now_ns: int, at: tuple[float, float]) -> bytes:
+    """A serialized ``SceneUpdate`` with one ``legend`` entity (living until replaced): a line of text per colour
+    of the prediction scenes, in that colour, a few metres above ``at`` (x, y metres in ``frame``)."""
+    x, y = (float(v) for v in snap(np.asarray(at, np.float64), POSITION_QUANTUM))
+    texts = [TextPrimitive(pose=Pose(position=Vector3(x=x, y=y + 8.0 - 1.5 * i, z=1.0), orientation=Quaternion(w=1)),
+                           billboard=True, font_size=14.0, scale_invariant=True, text=name,
+                           color=Color(r=c[0], g=c[1], b=c[2], a=c[3]))
+             for i, (name, c) in enumerate(LEGEND)]
+    return serialize(SceneUpdate(entities=[SceneEntity(timestamp=timestamp(now_ns), frame_id=frame, id="legend",
+                                                       texts=texts)]))
 
 
 def _string_field(number: int, text: str) -> bytes:

@@ -9,8 +9,9 @@ What the files show (``logpipe.mcap.tracks`` writes ingest's MCAP, ``logpipe.sta
   an arrow along the heading where the log gives one or the agent's motion shows one; an agent that leaves is
   deleted in the next step's message. Metadata: track id, object type, role.
 * forecasts (``logpipe.mcap.forecast_scene``): one ``SceneUpdate`` per prediction sample, per target its
-  observed history (grey), the true future where the log has it (green), a sphere at its current position
-  (its type's colour) and the K modes (blue, more opaque the higher their score), living for the horizon.
+  observed history (grey), the true future where the log has it (orange), a sphere at its current position
+  (its type's colour) and the K modes (blue, more opaque the higher their score), living for the horizon; and a
+  ``legend`` entity of texts naming each colour (its own channel, once per log).
 * rasters: the sample's map raster as a ``foxglove.CompressedImage`` (PNG) and, because the 3D panel draws
   an image only through a camera calibration (its image layer projects through a pinhole camera model;
   without one an image shows only in the Image panel), also as a ``foxglove.Grid`` with ``red``/``green``/

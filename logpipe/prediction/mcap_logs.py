@@ -8,6 +8,9 @@ Channels::
     /logpipe/raster/tf          foxglove.FrameTransform placing frame logpipe_raster      } with raster
     /logpipe/raster             foxglove.CompressedImage (PNG) in frame logpipe_raster    } images only
     /logpipe/raster/grid        foxglove.Grid in frame logpipe_raster                     }
+    /logpipe/legend             foxglove.SceneUpdate: once, texts naming the scene's colours
+    /logpipe/scene              foxglove.SceneUpdate: the agents' boxes per step, for ROS bags and MCAPs
+                                (other logs' originals, ingest's MCAPs, have this channel already)
 
 Positions are metres in the log's world frame (``prediction.originals.world_frame``); times are ns on the log's clock.
 """
@@ -28,10 +31,11 @@ from logpipe.dataset.sample_filter import SelectedLogs
 from logpipe.errors import DatasetError
 from logpipe.mcap import foxglove as fx
 from logpipe.mcap import raster_image as fr
-from logpipe.mcap.forecast_scene import TargetForecasts, forecast_scene_updates
+from logpipe.mcap.agent_scene import AGENTS_SCENE_TOPIC, agent_scene_messages
+from logpipe.mcap.forecast_scene import TargetForecasts, forecast_scene_updates, legend_scene
 from logpipe.mcap.merge import NewChannel, NewMessage, Source, write_merged
 from logpipe.mcap.tracks import json_schema_bytes
-from logpipe.prediction.originals import find_original, world_frame
+from logpipe.prediction.originals import ORIGINAL_FORMATS, find_original, world_frame
 from logpipe.prediction.output import SamplePrediction
 from logpipe.storage.artifact import unsafe_file_name
 from logpipe.types import NDArrayInt, SampleProtocol
@@ -56,6 +60,7 @@ RASTER_TOPIC = "/logpipe/raster"
 RASTER_GRID_TOPIC = "/logpipe/raster/grid"
 RASTER_TF_TOPIC = "/logpipe/raster/tf"
 RASTER_FRAME = "logpipe_raster"
+LEGEND_TOPIC = "/logpipe/legend"
 
 
 def check_log_ids(root: Path, log_ids: Iterable[str]) -> None:
@@ -87,6 +92,15 @@ def new_channels(with_raster: bool, frame: str) -> list[NewChannel]:
     return channels
 
 
+def extra_channels(frame: str, agents: bool) -> list[NewChannel]:
+    """Channels after ``new_channels``: the legend and, for a log whose original has no logpipe scene, its
+    agents."""
+    channels = [fx.new_channel(LEGEND_TOPIC, "foxglove.SceneUpdate", frame)]
+    if agents:
+        channels.append(fx.new_channel(AGENTS_SCENE_TOPIC, "foxglove.SceneUpdate", frame))
+    return channels
+
+
 @dataclass(frozen=True)
 class PredictionMcaps:
     """What every log MCAP of a run shares; ``write`` is a ``prediction.output.LogMcapWriter``.
@@ -96,6 +110,8 @@ class PredictionMcaps:
         raster_channels: the raster layers, when raster images are added (None: no raster channels).
         frames: the world frame of each log's positions (``originals.world_frame``); ``dt_ns``: its median step
             (ns); ``originals``: its original recording.
+        dataset_root: the dataset; ``agent_logs``: the logs whose original (a ROS bag or MCAP) has no logpipe
+            scene, whose agents are drawn from the dataset's tracks.
     """
 
     protocol: SampleProtocol
@@ -107,6 +123,8 @@ class PredictionMcaps:
     frames: dict[str, str]
     dt_ns: dict[str, int]
     originals: dict[str, Source]
+    dataset_root: Path | None = None
+    agent_logs: frozenset[str] = frozenset()
 
     @classmethod
     def of_run(cls, dataset: Dataset, logs: SelectedLogs, inputs: Sequence[Path], predictor: str,
@@ -117,12 +135,15 @@ class PredictionMcaps:
         Raises:
             DatasetError: an original is missing or has other contents.
         """
-        frames, dt_ns, originals = {}, {}, {}
+        frames, dt_ns, originals, agent_logs = {}, {}, {}, set()
         for row in logs.rows():
             log_id = str(row["log_id"])
             frames[log_id], dt_ns[log_id] = world_frame(row), int(row["median_dt_ns"])
             originals[log_id] = find_original(row, inputs, dataset)
-        return cls(dataset.protocol, predictor, checkpoint_id, modes, seed, raster_channels, frames, dt_ns, originals)
+            if row["source_format"] in ORIGINAL_FORMATS:
+                agent_logs.add(log_id)
+        return cls(dataset.protocol, predictor, checkpoint_id, modes, seed, raster_channels, frames, dt_ns, originals,
+                   dataset.root, frozenset(agent_logs))
 
     def of_logs(self, log_ids: Iterable[str]) -> PredictionMcaps:
         """This writer for ``log_ids`` only (what a shard job carries)."""
@@ -154,15 +175,36 @@ class PredictionMcaps:
     def write_messages(self, log_id: str, messages: Iterable[NewMessage], target: Path) -> int:
         """Original log + ``messages`` on the prediction channels (``new_channels``); returns the number of
         original messages copied."""
+        frame, with_raster = self.frame(log_id), self.raster_channels is not None
+        agents = log_id in self.agent_logs and self.dataset_root is not None
         stats = write_merged(
-            target, [self.originals[log_id]], new_channels(self.raster_channels is not None, self.frame(log_id)),
-            messages,
+            target, [self.originals[log_id]], new_channels(with_raster, frame) + extra_channels(frame, agents),
+            self._with_extras(log_id, messages, 5 if with_raster else 2, agents),
             metadata={"logpipe.predictions": {"log_id": log_id, "frame_id": self.frame(log_id),
                                               "predictor": self.predictor, "checkpoint_id": self.checkpoint_id,
                                               "num_modes": str(self.modes), "seed": str(self.seed),
                                               "logpipe_version": __version__}},
         )
         return stats.messages
+
+    def _with_extras(self, log_id: str, messages: Iterable[NewMessage], legend: int,
+                     agents: bool) -> Iterator[NewMessage]:
+        """``messages``, then the legend (channel ``legend``) above the first target's current position, and with
+        ``agents`` the log's agent boxes (channel ``legend + 1``) from the dataset's tracks."""
+        first: NewMessage | None = None
+        for m in messages:
+            if first is None and m.channel == 0:
+                first = m
+            yield m
+        if first is not None:
+            record = json.loads(first.data)
+            at = (record["current_x"][0], record["current_y"][0]) if record["current_x"] else (0.0, 0.0)
+            yield NewMessage(legend, first.log_time, first.log_time, legend_scene(self.frame(log_id),
+                                                                                  first.log_time, at))
+        if agents and self.dataset_root is not None:
+            tracks = Dataset.open(self.dataset_root).log_tracks(log_id)
+            for t, scene in agent_scene_messages(tracks, self.frame(log_id)):
+                yield NewMessage(legend + 1, t, t, scene)
 
     def frame(self, log_id: str) -> str:
         """The world frame of a log's positions."""

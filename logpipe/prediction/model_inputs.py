@@ -101,9 +101,11 @@ def work_items(planned: Sequence[tuple[Path, BatchPlan]], parts: int) -> list[Wo
             for i in range(0, len(batches), per_item)]
 
 
-def raster_problems(dataset_dir: Path, rasters: RasterShards | None, samples: SelectedSamples) -> list[str]:
+def raster_problems(dataset_dir: Path, rasters: RasterShards | None, samples: SelectedSamples,
+                    allow_blank: bool = False) -> list[str]:
     """Why the raster run ``rasters`` cannot feed a network that needs a raster for each of the selected
-    ``samples``; empty when it can."""
+    ``samples``; empty when it can. Blank rasters (no map, or the centre off it) are a problem unless
+    ``allow_blank``: the environment net would take an empty picture for a road with no lanes."""
     if rasters is None:
         return [f"the checkpoint uses the environment net but {dataset_dir} has no raster run with the channels "
                 "it expects; run `logpipe rasterise`"]
@@ -113,6 +115,12 @@ def raster_problems(dataset_dir: Path, rasters: RasterShards | None, samples: Se
     if missing:
         return [f"raster run {rasters.run_dir.name} lacks {len(missing)} selected samples (e.g. {missing[0]}); "
                 "re-run `logpipe rasterise`"]
+    blank = pc.sum(pc.is_in(ids, value_set=rasters.index.filter(rasters.index.column("empty")).column("sample_id")
+                            .combine_chunks())).as_py() or 0
+    if blank and not allow_blank:
+        return [f"{blank} of the {len(ids)} selected samples have a blank raster in run {rasters.run_dir.name} "
+                "(their log has no map, or the centre is off it: see `logpipe rasterise`'s summary); give the "
+                "maps to `logpipe rasterise`, or --allow-blank-rasters to predict on them anyway"]
     return []
 
 

@@ -65,6 +65,8 @@ class PredictOptions:
         workers: Ray actors (0: one per GPU of the cluster, else one per CPU); locally, the constant-velocity
             columnar path's parallel shard jobs (0: one per core), and the worker processes a network on the
             CPU forecasts in (``forecast_processes``).
+        allow_blank_rasters: let the environment net run on selected samples whose raster is blank (no map, or
+            the centre off it); refused by default, since the net would read an empty road as a fact.
     """
 
     checkpoint: Path | None = None
@@ -85,6 +87,7 @@ class PredictOptions:
     device: str = "auto"
     backend: str = "local"
     workers: int = 0
+    allow_blank_rasters: bool = False
 
     def check(self, modes: int) -> None:
         """Refuse settings no run can use, ``modes`` being the K resolved for the run.

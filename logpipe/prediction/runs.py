@@ -7,7 +7,8 @@ scripts) goes through this module, so the table's layout and its metadata keys a
 Layout (``schemas/predictions.json``, version 2): one row per (sample, target track, mode), ordered sample by
 sample, target by target (``target_mask`` order), mode 0..K-1; the horizon is fixed-size lists of T values
 (``x``, ``y`` in metres, ``timestamp_ns``), as Argoverse 2's submission format keeps ``predicted_trajectory_x/y``.
-Ids and the object type are dictionaries (Polars: Categorical). What is constant over a table (predictor,
+Ids and the object type are plain strings (earlier files: dictionaries, read alike).
+What is constant over a table (predictor,
 checkpoint, protocol, K, T, seed, ...) is only its metadata: ``PredictionMeta`` as JSON under the Parquet key
 ``logpipe.predictions``. Version 1 tables (one row per future step, ``step`` column, constant ``predictor`` and
 ``checkpoint_id`` columns; run manifests of ``format_version`` 1) are still read: ``PredictionRun.table`` turns

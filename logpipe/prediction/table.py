@@ -45,8 +45,8 @@ class SampleForecast:
 def build_table(meta: PredictionMeta, forecasts: Sequence[SampleForecast]) -> pa.Table:
     """The predictions rows of ``forecasts`` in the table's order, built column-wise (no per-row Python).
 
-    Id columns are dictionary-encoded per table; ``RowGroupWriter`` re-encodes them per row group, so a file
-    does not depend on how its forecasts were batched into tables.
+    Id columns are plain strings (``schemas/predictions.json``); ``RowGroupWriter`` writes whole row groups, so a
+    file does not depend on how its forecasts were batched into tables.
 
     Raises:
         PredictionsError: a forecast whose shape is not (N, K, T, 2) with the metadata's K and T, step times
@@ -108,12 +108,13 @@ def targets_table(meta: PredictionMeta, targets: Targets, futures: NDArrayFloat,
     k, t = meta.num_modes, meta.pred_len
     per_row = np.repeat(np.asarray(targets.sample_of, np.int32), k)
     n = len(targets.type_codes)
+    # Ids as plain strings, the other tables' type: an engine joins them with the tracks without a cast.
     columns = {
-        "log_id": pa.DictionaryArray.from_arrays(per_row, targets.log_ids),
-        "sample_id": pa.DictionaryArray.from_arrays(per_row, targets.sample_ids),
-        "track_id": pa.DictionaryArray.from_arrays(np.repeat(np.arange(n, dtype=np.int32), k), targets.track_ids),
-        "object_type": pa.DictionaryArray.from_arrays(np.repeat(np.asarray(targets.type_codes, np.int32), k),
-                                                      pa.array(OBJECT_TYPES, pa.string())),
+        "log_id": _strings(targets.log_ids, per_row),
+        "sample_id": _strings(targets.sample_ids, per_row),
+        "track_id": _strings(targets.track_ids, np.repeat(np.arange(n, dtype=np.int32), k)),
+        "object_type": _strings(pa.array(OBJECT_TYPES, pa.string()),
+                                np.repeat(np.asarray(targets.type_codes, np.int32), k)),
         "mode": pa.array(np.tile(np.arange(k, dtype=np.int16), n)),
         "score": pa.array(np.asarray(scores, np.float32).reshape(-1)),
         "timestamp_ns": pa.FixedSizeListArray.from_arrays(
@@ -122,6 +123,11 @@ def targets_table(meta: PredictionMeta, targets: Targets, futures: NDArrayFloat,
         "y": pa.FixedSizeListArray.from_arrays(pa.array(np.ascontiguousarray(futures[..., 1]).reshape(-1)), t),
     }
     return pa.Table.from_arrays([columns[f.name] for f in schema], schema=schema)
+
+
+def _strings(values: pa.Array, codes: np.ndarray) -> pa.Array:
+    """``values[codes]`` as a plain string array."""
+    return values.cast(pa.string()).take(pa.array(codes))
 
 
 def samples_table(meta: PredictionMeta, samples: Sequence[SceneSample], forecasts: Sequence[NDArrayFloat], *,
@@ -152,9 +158,11 @@ def row_group_table(table: pa.Table) -> pa.Table:
     """``table`` (one row group's rows) with its id columns dictionary-encoded over exactly these rows (distinct
     values numbered in order of first appearance, as ``pyarrow.compute.dictionary_encode`` numbers them): what a
     Parquet writer stores then depends on the rows alone, not on the tables they arrived in."""
-    # One chunk per column too: the writer cuts pages at chunk boundaries.
-    columns = [_by_first_appearance(table.column(f.name)).cast(f.type) if f.name in _IDS
-               else table.column(f.name).combine_chunks() for f in table.schema]
+    # One chunk per column too: the writer cuts pages at chunk boundaries. String ids need nothing more: the
+    # Parquet writer's dictionary pages then depend on the row group's values only.
+    columns = [_by_first_appearance(table.column(f.name)).cast(f.type)
+               if f.name in _IDS and pa.types.is_dictionary(f.type) else table.column(f.name).combine_chunks()
+               for f in table.schema]
     return pa.Table.from_arrays(columns, schema=table.schema)
 
 

@@ -104,6 +104,7 @@ def render_shard(task: ShardTask) -> dict[str, Any]:
         "rendered": len(task.samples),
         "empty": 0,
         "no_centre": 0,
+        "blank_with_map": 0,
         "heading_source": {"column": 0, "motion": 0, "lane": 0, "none": 0},
         "centre_role": {"ego": 0, "focal": 0, "target": 0},
         "road_vehicles": [0, 0],
@@ -153,6 +154,8 @@ def _render_row(task: ShardTask, view: LogView, sample: dict[str, Any], row_i: i
     counts["heading_source"][src] += 1
     if res.empty:
         counts["empty"] += 1
+        if map_path is not None:  # the log has a map, yet nothing of it is drawn: worth a line in the summary
+            counts["blank_with_map"] += 1
     k = task.first + row_i
     if k < task.preview and c is not None:
         png = task.out / "previews" / f"{k:05d}_{_safe(str(sample['sample_id']))}.png"

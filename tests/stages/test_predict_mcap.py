@@ -118,7 +118,11 @@ def test_text_logs_keep_the_ingest_mcap_and_gain_valid_prediction_channels(eth_p
         assert {k: channels_out[k] for k in channels_in} == channels_in
         assert messages_out[: len(messages_in)] == messages_in
         added = messages_out[len(messages_in):]
-        assert {t for t, *_ in added} == {"/logpipe/predictions", "/logpipe/predictions/scene"}
+        assert {t for t, *_ in added} == {"/logpipe/predictions", "/logpipe/predictions/scene", "/logpipe/legend"}
+        legend = [fx.MESSAGE_CLASSES["foxglove.SceneUpdate"].FromString(d) for t, *_, d in added
+                  if t == "/logpipe/legend"]
+        assert len(legend) == 1 and [x.text for x in legend[0].entities[0].texts] == [
+            "history", "truth", "forecasts", "lanes"]  # once per log; the ingest MCAP has the agents already
         raw_schema = jsonschema.Draft202012Validator(json.loads(channels_out["/logpipe/predictions"][2][2]))
         assert channels_out["/logpipe/predictions/scene"][2][:2] == ("foxglove.SceneUpdate", "protobuf")
         assert channels_out["/logpipe/predictions/scene"][2][2] == fx.schema_data(

@@ -64,13 +64,18 @@ def test_datmo_bag_is_copied_unchanged_with_predictions_in_its_map_frame(shared:
         out = make_reader(fh, decoder_factories=[DecoderFactory()])
         assert out.get_header().profile == "ros1"
         got = []
-        poses = 0
+        poses = boxes = 0
         for schema, channel, message in out.iter_messages(log_time_order=False):
             if channel.topic.startswith("/logpipe/"):
                 assert schema is not None
-                if channel.topic == "/logpipe/predictions/scene":
+                if channel.topic in ("/logpipe/predictions/scene", "/logpipe/legend"):
                     scene = _foxglove(schema.name, message.data)
                     assert scene.entities[0].frame_id == "map"  # the bag's world frame
+                elif channel.topic == "/logpipe/scene":  # the agents' boxes, which the bag lacks
+                    scene = _foxglove(schema.name, message.data)
+                    assert {e.id for e in scene.entities} <= {"ego", "red"} and all(e.cubes for e in scene.entities)
+                    assert scene.entities[0].frame_id == "map"
+                    boxes += 1
                 else:
                     doc = json.loads(message.data)
                     jsonschema.validate(doc, json.loads(schema.data))
@@ -84,6 +89,7 @@ def test_datmo_bag_is_copied_unchanged_with_predictions_in_its_map_frame(shared:
             assert decoded.header.frame_id == "map"
     assert got == expected  # every original message, same bytes, same times, same order
     assert poses == sum(1 for topic, _, _ in expected if topic == "/ego_pose")
+    assert boxes == len(Dataset.open(tmp_path / "ds").tracks().column("step").unique())  # one per step
     table = pq.read_table(tmp_path / "out" / "predictions" / "part-00000.parquet")
     assert table.num_rows == 2 * 2 * 6 and PredictionRun.open(tmp_path / "out").meta.predictor == "kalman"
 

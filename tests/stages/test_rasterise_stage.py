@@ -119,8 +119,23 @@ def test_log_without_ego_centres_on_focal_and_missing_map_is_empty(tmp_path: Pat
     ds = _dataset(tmp_path, drop_av_in="3861.csv")
     summary = rasterise_dataset(ds, MapSource(roots=(DATA,)), centre="ego", rotate=True)
     assert summary["centre_role"] == {"ego": 1, "focal": 1, "target": 0}
-    nomap = rasterise_dataset(ds, MapSource(roots=(tmp_path / "nothing",)), centre="ego", rotate=True, force=True)
-    assert nomap["empty"] == 2 and nomap["logs_without_map"] == 2
+    # One log's map only: its raster is drawn, the other log's is blank, counted and named in a warning.
+    half = rasterise_dataset(ds, MapSource(files={"MIA": DATA / "MIA_lane_centerlines_crop_2645.npz"}),
+                             centre="ego", rotate=True, force=True)
+    assert half["empty"] == 1 and half["logs_without_map"] == 1 and half["blank_with_map"] == 0
+    assert half["warnings"] == ["1 logs have no map, their rasters are blank (e.g. 3861)"]
+
+
+def test_maps_that_cover_no_log_are_an_error_naming_logs_and_map_ids(dataset: Path, tmp_path: Path) -> None:
+    before = sorted((dataset / "rasters").rglob("*")) if (dataset / "rasters").exists() else []
+    with pytest.raises(DatasetError, match=r"--maps .*/no/such: no such folder"):
+        rasterise_dataset(dataset, MapSource(roots=(tmp_path / "no" / "such",)))
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(DatasetError, match=r"no map found for any of its 2 logs \(2645, 3861; map ids looked for: "
+                                           r"MIA, PIT\) under --maps .*/empty"):
+        rasterise_dataset(dataset, MapSource(roots=(tmp_path / "empty",)))
+    after = sorted((dataset / "rasters").rglob("*")) if (dataset / "rasters").exists() else []
+    assert after == before  # refused before any run folder was made
 
 
 def _run_files(run: Path) -> dict[str, bytes]:
@@ -175,3 +190,22 @@ def test_cli_rasterise_workers_and_backend_options(tmp_path: Path) -> None:
     assert json.loads(ok.stdout)["rendered"] == 2
     bad = runner.invoke(app, ["rasterise", str(ds), "--maps", str(DATA), "--backend", "spark"])
     assert bad.exit_code == 2 and "local or ray" in bad.output
+
+
+def test_predict_refuses_the_environment_net_on_blank_rasters_unless_told(tmp_path: Path) -> None:
+    """Log 32's map is not given: its raster is blank, so the shipped driving model (which reads the rasters)
+    refuses the run before any output, naming the count and the option; --allow-blank-rasters lets it run."""
+    import logpipe
+    from logpipe.errors import LogpipeError
+
+    driving = Path(__file__).parents[1] / "data" / "driving"
+    ds = tmp_path / "av1"
+    logpipe.ingest([driving / "20.csv", driving / "32.csv"], out=ds, mcap=False)
+    summary = logpipe.rasterise(ds, map_file=[f"MIA={driving / 'MIA_lane_centerlines_crop_20.npz'}"], rotate=True)
+    assert summary["empty"] == 1 and summary["logs_without_map"] == 1
+    with pytest.raises(LogpipeError, match=r"1 of the 2 selected samples have a blank raster .*--allow-blank-rasters"):
+        logpipe.predict(ds, out=tmp_path / "refused", mcap=False)
+    assert not (tmp_path / "refused").exists()
+    assert logpipe.predict(ds, out=tmp_path / "p", mcap=False, filters=["log=20"])["samples"] == 1  # 20 has its map
+    allowed = logpipe.predict(ds, out=tmp_path / "all", mcap=False, allow_blank_rasters=True)
+    assert allowed["samples"] == 2
