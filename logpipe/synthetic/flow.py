@@ -44,7 +44,7 @@ class FlowConfig:
             truck_share: share of trucks.
     """
 
-    speed_factor: tuple[float, float] = (0.75, 1.2)
+    speed_factor: tuple[float, float] = (0.75, 1.25)
     v_cap: float = 35.0
     a_max: float = 1.8
     b_comfort: float = 2.5
@@ -53,8 +53,8 @@ class FlowConfig:
     headway: tuple[float, float] = (0.9, 1.8)
     gap_min: float = 2.0
     a_lat: float = 2.5
-    demand: tuple[float, float] = (0.03, 0.3)
-    fill: float = 2.0
+    demand: tuple[float, float] = (0.02, 0.12)
+    fill: float = 1.0
     disturb_per_s: float = 1 / 240
     disturb_wait: tuple[float, float] = (0.5, 4.0)
     lc_duration: tuple[float, float] = (2.0, 5.0)
@@ -148,6 +148,7 @@ class Flow:
         self.cars: list[Vehicle] = []
         self.next_id = 1
         self.t = 0
+        self.clock0 = float(rng.uniform(0.0, 300.0))  # where in their cycles the lights are at step 0, s
         self.events: list[tuple[int, int, str]] = []
         self.sizes: dict[int, tuple[float, float, bool]] = {}
         self.owner: dict[tuple[int, int, int], int] = {}
@@ -235,7 +236,7 @@ class Flow:
         """Advance every vehicle by ``DT_S``."""
         cfg, roads = self.cfg, self.roads
         occ = rules.occupancy(roads, self.cars)
-        t_s = self.t * DT_S
+        t_s = self.clock0 + self.t * DT_S
         accel = np.zeros(len(self.cars))
         for i, car in enumerate(self.cars):
             gap, v_lead = rules.obstacle_ahead(self, occ, i, t_s)
@@ -249,7 +250,7 @@ class Flow:
             want = float(accel[i])
             a = min(max(want, car.a - jerk), car.a + jerk)
             if want < -cfg.b_comfort * 1.5:
-                a = want  # an emergency brake is not jerk-limited: safety first
+                a = max(want, car.a - 4 * jerk)  # an emergency brake builds up four times faster
             a = max(min(a, cfg.a_max), -cfg.b_max, -car.v / DT_S)
             v_new = car.v + a * DT_S
             car.s += 0.5 * (car.v + v_new) * DT_S
@@ -388,7 +389,7 @@ def _curve_limits(roads: Roads, a_lat: float) -> NDArrayFloat:
     out = np.zeros(len(roads))
     for k in range(len(roads)):
         h = np.unwrap(roads.heading[roads.start[k]:roads.start[k] + roads.count[k]])
-        w = max(int(round(3.0 / max(roads.step[k], 1e-3))), 1)  # curvature over a 6 m baseline: polyline kinks are not turns
+        w = max(int(round(10.0 / max(roads.step[k], 1e-3))), 1)  # curvature over 20 m: polyline kinks are not turns
         if len(h) <= 2 * w:
             kappa = abs(float(h[-1] - h[0])) / max(roads.lens[k], 1.0)
         else:
