@@ -282,7 +282,7 @@ class Flow:
         if car.lc_dur <= 0:
             car.d_rate = 0.0
             return
-        car.lc_t += DT_S
+        car.lc_t += DT_S * min(1.0, car.v / 4.0)  # a slow car moves across slowly: no sideways crab at a crawl
         tau = min(car.lc_t / car.lc_dur, 1.0)
         shape = 10 * tau**3 - 15 * tau**4 + 6 * tau**5
         d_new = car.lc_from * (1 - shape)

@@ -117,13 +117,25 @@ class Roads:
         f = (k - i)[:, None]
         row = self.start[lane] + i
         xy = self.pts[row] * (1 - f) + self.pts[row + 1] * f
-        return xy, self.heading[row]
+        h0 = self.heading[row]
+        turn = (self.heading[row + 1] - h0 + np.pi) % (2 * np.pi) - np.pi
+        # headings blend between points, so an offset from the centerline moves smoothly round a bend
+        return xy, h0 + turn * f[:, 0]
 
     def project(self, lane: int, xy: NDArrayFloat) -> float:
         """Arc (m) of the point of ``lane``'s centerline nearest ``xy``."""
         rows = self.pts[self.start[lane]:self.start[lane] + self.count[lane]]
-        k = int(np.argmin(np.hypot(rows[:, 0] - xy[0], rows[:, 1] - xy[1])))
-        return k * float(self.step[lane])
+        k = min(int(np.argmin(np.hypot(rows[:, 0] - xy[0], rows[:, 1] - xy[1]))), len(rows) - 2)
+        best, best_d = k * float(self.step[lane]), np.inf
+        for j in (k - 1, k):  # the segments on either side of the nearest point
+            if j < 0:
+                continue
+            seg = rows[j + 1] - rows[j]
+            t = float(np.clip(np.dot(xy - rows[j], seg) / max(float(np.dot(seg, seg)), 1e-12), 0.0, 1.0))
+            d = float(np.hypot(*(rows[j] + t * seg - xy)))
+            if d < best_d:
+                best, best_d = (j + t) * float(self.step[lane]), d
+        return best
 
     def entries(self) -> NDArrayInt:
         """Lanes with no predecessor: where traffic enters the map."""

@@ -193,13 +193,13 @@ def lane_change(flow: Flow, occ: Occupancy, i: int) -> None:
     lane = car.lane
     ends = not car.plan and not roads.succ[lane]
     if car.lc_dur > 0 or car.v < (1.0 if ends else 3.0) or car.disturb > 0 or flow.t - car.last_lc < 80 \
-            or car.claims or roads.conflicts[lane]:
-        return  # no lane change inside a junction (its conflict points are negotiated per lane)
+            or car.claims or roads.conflicts[lane] or not _straight_ahead(flow, car):
+        return  # not inside a junction (its conflicts are negotiated per lane), nor into a bend
     to_end = roads.lens[lane] - car.s
     best, best_gain, forced = -1, cfg.lc_threshold, False
     a_now = car.a_want
     for nb in (int(roads.left[lane]), int(roads.right[lane])):
-        if nb < 0 or not flow.inside[nb] or roads.conflicts[nb]:
+        if nb < 0 or not flow.inside[nb] or roads.conflicts[nb] or flow.vcurve[nb] < 15.0:
             continue
         s_nb = roads.project(nb, _position(roads, car))
         lead_s, lead, fol_s, fol = _around(roads, occ, nb, s_nb, i)
@@ -224,6 +224,19 @@ def lane_change(flow: Flow, occ: Occupancy, i: int) -> None:
             best, best_gain, forced = nb, gain, must
     if best >= 0:
         _start_change(flow, car, best, forced)
+
+
+def _straight_ahead(flow: Flow, car: Vehicle) -> bool:
+    """The lanes the car covers during a lane change (5 s at its speed, plus 10 m) are nearly straight (their
+    bends allow 15 m/s): an offset from a tight bend's centerline would sweep sideways faster than the car."""
+    reach, ahead = car.v * 5.0 + 10.0, -car.s
+    for lane in [car.lane, *car.plan]:
+        if ahead > reach:
+            break
+        if flow.vcurve[lane] < 15.0:
+            return False
+        ahead += flow.roads.lens[lane]
+    return True
 
 
 def _car_behind(occ: Occupancy, lane: int, before: float, me: int) -> tuple[float, int]:

@@ -196,8 +196,8 @@ def write_commonroad(path: Path, src: LaneletSource, n: int, tracks: Tracks, noi
         written += 1
     parts.append(b"</commonRoad>\n")
     path.parent.mkdir(parents=True, exist_ok=True)
-    with gzip.open(path, "wb", compresslevel=6) as fh:
-        fh.write(b"".join(parts))
+    with path.open("wb") as raw, gzip.GzipFile(fileobj=raw, mode="wb", compresslevel=6, mtime=0) as fh:
+        fh.write(b"".join(parts))  # mtime 0: the same seed gives the same bytes
     return written
 
 
