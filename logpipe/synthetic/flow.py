@@ -108,7 +108,8 @@ class Tracks:
 
     Attributes:
         step, vid: (R,) ints. xy: (R, 2) metres. heading: (R,) rad. speed, accel: (R,) m/s, m/s².
-        sizes: vid -> (length, width, is_truck). events: (step, vid, kind) with kind one of ``EVENTS``.
+        sizes: vid -> (length, width, is_truck). events: (step, vid, kind) with kind one of ``EVENTS``; the
+            step is the first recorded one that shows it (a stop: the car stands at that step).
         steps: recorded steps.
     """
 
@@ -272,7 +273,8 @@ class Flow:
         if car.disturb > 0:
             v0 = 0.0
         v0 = max(v0, 0.1)
-        s_star = cfg.gap_min + max(car.v * car.headway + car.v * (car.v - v_lead) / (2 * math.sqrt(cfg.a_max * cfg.b_comfort)), 0.0)
+        brake_term = car.v * (car.v - v_lead) / (2 * math.sqrt(cfg.a_max * cfg.b_comfort))
+        s_star = cfg.gap_min + max(car.v * car.headway + brake_term, 0.0)
         free = 1 - (car.v / v0) ** 4 if car.v <= v0 else -(1 - v0 / car.v) * 2
         inter = (s_star / max(gap, 0.2)) ** 2 if math.isfinite(gap) else 0.0
         return cfg.a_max * (free - inter)
@@ -308,9 +310,9 @@ class Flow:
                     if side >= 0:
                         car.lc_shift = roads.project(side, self.positions_of(car)) - car.s
                 if roads.turn[car.lane]:
-                    self.events.append((self.t, car.vid, "turn"))
+                    self.events.append((self.t + 1, car.vid, "turn"))
                 if len(roads.pred[car.lane]) >= 2:
-                    self.events.append((self.t, car.vid, "merge"))
+                    self.events.append((self.t + 1, car.vid, "merge"))
                 self.extend_plan(car)
             if not gone:
                 self.standstill_events(car)
@@ -331,9 +333,9 @@ class Flow:
             controlled = car.lane in self.roads.signals or car.lane in self.roads.stops
             if controlled and to_end < 25.0:
                 kind = "red_light_stop" if car.lane in self.roads.signals else "junction_stop"
-                self.events.append((self.t, car.vid, kind))
+                self.events.append((self.t + 1, car.vid, kind))
             else:
-                self.events.append((self.t, car.vid, "stop_and_go"))
+                self.events.append((self.t + 1, car.vid, "stop_and_go"))
         elif car.v > 3.0:
             car.standstill = False
         if car.disturb <= 0 and car.v > 5.0 and self.rng.random() < self.cfg.disturb_per_s * DT_S:
@@ -389,7 +391,7 @@ def _curve_limits(roads: Roads, a_lat: float) -> NDArrayFloat:
     out = np.zeros(len(roads))
     for k in range(len(roads)):
         h = np.unwrap(roads.heading[roads.start[k]:roads.start[k] + roads.count[k]])
-        w = max(int(round(10.0 / max(roads.step[k], 1e-3))), 1)  # curvature over 20 m: polyline kinks are not turns
+        w = max(round(10.0 / max(roads.step[k], 1e-3)), 1)  # curvature over 20 m: polyline kinks are not turns
         if len(h) <= 2 * w:
             kappa = abs(float(h[-1] - h[0])) / max(roads.lens[k], 1.0)
         else:

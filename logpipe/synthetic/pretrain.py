@@ -6,8 +6,9 @@ get ``scene_s``-long scenes (60 s: 56 windows a file at ingest's one-a-second pr
 location's real map files; AV1 cities get 60 s scenes on 250 m boxes, cut into one CSV per window every
 ``AV1_STRIDE`` steps. Scene ``n`` of location ``l`` draws everything from ``default_rng([seed, l, n])``.
 
-Output (``--out``): ``commonroad/<location>/synthetic_<real id>_<n>.xml.gz``, ``av1/<city>/synthetic_<city>_<n>_<w>.csv``,
-``generation.json`` (counts, behaviour events, speed histograms, physics extremes, timings) and a README.
+Output (``--out``): ``commonroad/<location>/synthetic_<real id>_<n>.xml.gz``,
+``av1/<city>/synthetic_<city>_<n>_<w>.csv``, ``generation.json`` (counts, behaviour events, speed histograms,
+physical extremes, timings) and a README.
 
 CLI: ``python -m logpipe.synthetic.pretrain --shared ../shared/data --out DIR [--scale F] [--seed S]``.
 """
@@ -22,12 +23,13 @@ from collections import Counter
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from logpipe.synthetic import scenes
 from logpipe.synthetic.flow import EVENTS, FlowConfig, Tracks, simulate
-from logpipe.synthetic.roads import Roads, build_roads
+from logpipe.synthetic.roads import LaneExtras, Roads, build_roads
 
 SHARES: dict[str, int] = {"USA_US101": 55_000, "USA_Lanker": 45_000, "USA_Peach": 35_000, "USA_AV2": 45_000,
                           "MIA": 15_000, "PIT": 15_000}
@@ -57,12 +59,12 @@ class Location:
 def load_locations(shared: Path, names: Sequence[str], seed: int) -> list[Location]:
     """The real maps of each named location under ``shared`` (the project's ``../shared/data``)."""
     out = []
-    for li, name in enumerate(names):
-        rng = np.random.default_rng([seed, li, 1_000_000])
+    for name in names:
+        rng = np.random.default_rng([seed, list(SHARES).index(name), 1_000_000])
         loc = Location(name, "av1" if name in ("MIA", "PIT") else "commonroad")
         if loc.kind == "av1":
             path = next(shared.glob(f"argoverse1/maps/**/{name}_lane_centerlines.npz"))
-            loc.roads.append(build_roads(scenes.load_av1(path), scenes.LaneExtras(), scenes.CITY_LIMIT, rng, name))
+            loc.roads.append(build_roads(scenes.load_av1(path), LaneExtras(), scenes.CITY_LIMIT, rng, name))
         else:
             if name == "USA_AV2":
                 files = sorted(shared.glob("av2/**/log_map_archive_*.json"))
@@ -104,43 +106,72 @@ def windows_of(loc: Location, tracks: Tracks, files: int) -> int:
     return max((tracks.steps - 50) // 10 + 1, 0)
 
 
-def generate(shared: Path, out: Path, *, seed: int = 0, scale: float = 1.0, scene_s: float = 60.0,  # noqa: PLR0913
+def generate(shared: Path, out: Path, *, seed: int = 0, scale: float = 1.0, scene_s: float = 60.0,
              locations: Sequence[str] | None = None, progress: bool = True) -> dict[str, object]:
-    """Write the set (module docstring) and return the summary written to ``out/generation.json``."""
-    names = list(locations or SHARES)
-    t_load = time.perf_counter()
+    """Write the set (module docstring) and return the summary written to ``out/generation.json``.
+
+    Locations take turns (the one furthest from its share goes next), so a run cut short still covers all of
+    them; each scene's statistics go to ``out/stats/<location>/<n>.json`` after its files, and a scene that has
+    them is not simulated again: re-running the same command resumes.
+    """
+    names = [n for n in SHARES if n in set(locations or SHARES)]
+    t_load = time.process_time()
     locs = load_locations(shared, names, seed)
-    load_s = time.perf_counter() - t_load
+    load_s = time.process_time() - t_load
     steps = round(scene_s * 10)
-    summary: dict[str, object] = {"synthetic": True, "seed": seed, "scale": scale, "scene_steps": steps,
-                                  "map_load_seconds": round(load_s, 1), "locations": {}}
+    stats = {loc.name: SceneStats() for loc in locs}
+    done = dict.fromkeys(stats, 0)
+    targets = {name: round(SHARES[name] * scale) for name in stats}
     t_all = time.perf_counter()
-    for li, loc in enumerate(locs):
-        target = round(SHARES[loc.name] * scale)
-        stats = SceneStats()
-        t0 = time.perf_counter()
-        n = 0
-        while stats.windows < target:
-            rng = np.random.default_rng([seed, li, n])
-            tracks, files, dropped = run_scene(loc, n, rng, steps, out)
-            stats.add(tracks, files, dropped, windows_of(loc, tracks, files))
-            n += 1
-            if progress:
-                print(f"\r{loc.name}: {stats.windows:,}/{target:,} windows, {n} scenes, "
-                      f"{time.perf_counter() - t0:.0f} s", end="", file=sys.stderr, flush=True)
-        if progress:
-            print(file=sys.stderr)
-        entry = stats.summary()
-        entry.update(scenes=n, seconds=round(time.perf_counter() - t0, 1), noise_sd_m=NOISE[loc.name],
-                     maps=[r.name for r in loc.roads])
-        summary["locations"][loc.name] = entry  # type: ignore[index]
-    summary["seconds"] = round(time.perf_counter() - t_all, 1)
-    summary["windows"] = sum(v["windows"] for v in summary["locations"].values())  # type: ignore[attr-defined]
-    summary["flow"] = asdict(FlowConfig())
+    while True:
+        todo = [loc for loc in locs if stats[loc.name].windows < targets[loc.name]]
+        if not todo:
+            break
+        loc = min(todo, key=lambda x: stats[x.name].windows / max(targets[x.name], 1))
+        n = done[loc.name]
+        stats[loc.name].merge(scene_stats(loc, n, seed, steps, out))
+        done[loc.name] += 1
+        if progress and sum(done.values()) % 20 == 0:
+            total = sum(x.windows for x in stats.values())
+            print(f"{total:,}/{sum(targets.values()):,} windows, {sum(done.values())} scenes, "
+                  f"{time.perf_counter() - t_all:.0f} s", file=sys.stderr, flush=True)
+    summary: dict[str, object] = {
+        "synthetic": True, "seed": seed, "scale": scale, "scene_steps": steps, "map_load_cpu_s": round(load_s, 1),
+        "wall_s": round(time.perf_counter() - t_all, 1),
+        "locations": {name: {**st.summary(), "scenes": done[name], "noise_sd_m": NOISE[name],
+                             "maps": [r.name for r in loc.roads]}
+                      for (name, st), loc in zip(stats.items(), locs, strict=True)},
+        "flow": asdict(FlowConfig()),
+    }
+    summary["windows"] = sum(st.windows for st in stats.values())
+    summary["scene_cpu_s"] = round(sum(st.cpu_s for st in stats.values()), 1)
     out.mkdir(parents=True, exist_ok=True)
     (out / "generation.json").write_text(json.dumps(summary, indent=1) + "\n")
     (out / "README.md").write_text(README.format(seed=seed, windows=summary["windows"]))
     return summary
+
+
+def scene_stats(loc: Location, n: int, seed: int, steps: int, out: Path) -> dict[str, Any]:
+    """Scene ``n`` of ``loc``: its statistics from ``out/stats`` when a previous run finished it, else simulated,
+    written and recorded there."""
+    path = out / "stats" / loc.name / f"{n:06d}.json"
+    if path.exists():
+        found: dict[str, Any] = json.loads(path.read_text())
+        return found
+    t0 = time.process_time()
+    rng = np.random.default_rng([seed, list(SHARES).index(loc.name), n])
+    tracks, files, dropped = run_scene(loc, n, rng, steps, out)
+    one = SceneStats()
+    one.add(tracks, files, dropped, windows_of(loc, tracks, files))
+    one.cpu_s = time.process_time() - t0
+    record = {k: getattr(one, k) for k in ("windows", "files", "cars", "car_steps", "dropped", "accel_min",
+                                           "accel_max", "jerk_max", "speed_max", "cpu_s")}
+    record.update(events=dict(one.events), speed_hist=one.speed_hist.tolist())
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(".tmp")
+    tmp.write_text(json.dumps(record))
+    tmp.replace(path)  # written after the scene's files: a scene with stats is complete
+    return record
 
 
 @dataclass
@@ -153,11 +184,12 @@ class SceneStats:
     car_steps: int = 0
     dropped: int = 0
     events: Counter[str] = field(default_factory=Counter)
-    speed_hist: np.ndarray = field(default_factory=lambda: np.zeros(36, dtype=np.int64))  # type: ignore[type-arg]
+    speed_hist: np.ndarray = field(default_factory=lambda: np.zeros(36, dtype=np.int64))
     accel_min: float = 0.0
     accel_max: float = 0.0
     jerk_max: float = 0.0
     speed_max: float = 0.0
+    cpu_s: float = 0.0
 
     def add(self, tracks: Tracks, files: int, dropped: int, windows: int) -> None:
         """Add one scene."""
@@ -174,21 +206,32 @@ class SceneStats:
             self.accel_max = max(self.accel_max, float(tracks.accel.max()))
             self.jerk_max = max(self.jerk_max, float(np.abs(car_jerks(tracks)).max(initial=0.0)))
 
+    def merge(self, other: dict[str, Any]) -> None:
+        """Add another scene's record (``scene_stats``)."""
+        for key in ("windows", "files", "cars", "car_steps", "dropped", "cpu_s"):
+            setattr(self, key, getattr(self, key) + other[key])
+        self.events.update(other["events"])
+        self.speed_hist += np.asarray(other["speed_hist"], dtype=np.int64)
+        self.accel_min = min(self.accel_min, float(other["accel_min"]))
+        self.accel_max = max(self.accel_max, float(other["accel_max"]))
+        self.jerk_max = max(self.jerk_max, float(other["jerk_max"]))
+        self.speed_max = max(self.speed_max, float(other["speed_max"]))
+
     def summary(self) -> dict[str, object]:
         """JSON-ready figures."""
         return {"windows": self.windows, "files": self.files, "cars": self.cars, "car_steps": self.car_steps,
                 "cars_dropped_for_overlap": self.dropped, "events": {k: self.events.get(k, 0) for k in EVENTS},
                 "speed_hist_1ms": self.speed_hist.tolist(), "speed_max": round(self.speed_max, 2),
                 "accel_min": round(self.accel_min, 2), "accel_max": round(self.accel_max, 2),
-                "jerk_max": round(self.jerk_max, 1)}
+                "jerk_max": round(self.jerk_max, 1), "cpu_s": round(self.cpu_s, 1)}
 
 
-def car_jerks(tracks: Tracks) -> np.ndarray:  # type: ignore[type-arg]
+def car_jerks(tracks: Tracks) -> np.ndarray:
     """Jerk (m/s³) between consecutive steps of the same car."""
     order = np.lexsort((tracks.step, tracks.vid))
     a, v = tracks.accel[order], tracks.vid[order]
     same = v[1:] == v[:-1]
-    out: np.ndarray = (np.diff(a) / 0.1)[same]  # type: ignore[type-arg]
+    out: np.ndarray = (np.diff(a) / 0.1)[same]
     return out
 
 
@@ -221,7 +264,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = ap.parse_args(argv)
     summary = generate(args.shared, args.out, seed=args.seed, scale=args.scale, scene_s=args.scene_seconds,
                        locations=args.locations)
-    print(json.dumps({"windows": summary["windows"], "seconds": summary["seconds"]}))
+    print(json.dumps({"windows": summary["windows"], "scene_cpu_s": summary["scene_cpu_s"]}))
     return 0
 
 

@@ -196,12 +196,12 @@ def resample_all(lines: Sequence[NDArrayFloat]) -> tuple[NDArrayFloat, NDArrayFl
     """Every centerline resampled at an even step near ``DS_M``: (points, headings, start, count, step, length)."""
     pts_l, head_l, start, count, step, lengths = [], [], [], [], [], []
     row = 0
-    for p in lines:
-        seg = np.hypot(*np.diff(p, axis=0).T)
-        p = p[np.concatenate([[True], seg > 1e-6])]
+    for line in lines:
+        seg = np.hypot(*np.diff(line, axis=0).T)
+        p = line[np.concatenate([[True], seg > 1e-6])]
         arc = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(p, axis=0).T))])
         total = max(float(arc[-1]), 1e-3)
-        n = max(int(math.ceil(total / DS_M)) + 1, 2)
+        n = max(math.ceil(total / DS_M) + 1, 2)
         s = np.linspace(0.0, total, n)
         xy = np.stack([np.interp(s, arc, p[:, 0]), np.interp(s, arc, p[:, 1])], axis=1) if len(p) > 1 \
             else np.repeat(p[:1], n, axis=0)
@@ -243,7 +243,8 @@ def derive_neighbours(lines: Sequence[NDArrayFloat], lo: float = 2.5, hi: float 
     return left, right
 
 
-def _side_neighbour(r: int, a: int, pts: NDArrayFloat, heading: NDArrayFloat, owner: NDArrayInt,
+def _side_neighbour(  # noqa: PLR0913  one query point against the prepared grid
+    r: int, a: int, pts: NDArrayFloat, heading: NDArrayFloat, owner: NDArrayInt,
                     grid: dict[tuple[int, int], list[int]], cell: float, lo: float, hi: float,
                     max_turn: float) -> tuple[int, int]:
     """(lane, side +1 left / -1 right) of the nearest parallel point ``lo``-``hi`` m beside row ``r``."""

@@ -275,9 +275,9 @@ def _first_after(occ: Occupancy, lane: int, after: float, me: int) -> tuple[floa
     return math.inf, -1
 
 
-def _position(roads: Roads, car: Vehicle) -> np.ndarray:  # type: ignore[type-arg]
+def _position(roads: Roads, car: Vehicle) -> np.ndarray:
     here, h = roads.at(np.array([car.lane]), np.array([car.s]))
-    out: np.ndarray = here[0] + car.d * np.array([-math.sin(h[0]), math.cos(h[0])])  # type: ignore[type-arg]
+    out: np.ndarray = here[0] + car.d * np.array([-math.sin(h[0]), math.cos(h[0])])
     return out
 
 
@@ -296,4 +296,4 @@ def _start_change(flow: Flow, car: Vehicle, nb: int, forced: bool) -> None:
     car.last_lc = flow.t
     car.plan = []
     flow.extend_plan(car)
-    flow.events.append((flow.t, car.vid, "forced_lane_change" if forced else "lane_change"))
+    flow.events.append((flow.t + 1, car.vid, "forced_lane_change" if forced else "lane_change"))

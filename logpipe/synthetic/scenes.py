@@ -72,7 +72,7 @@ def ngsim_source(path: Path) -> LaneletSource:
     limit = HIGHWAY_LIMIT if "highway" in tags else URBAN_LIMIT
     keep = ("lanelet", "trafficSign", "trafficLight", "intersection")
     elements = [el for el in root if el.tag in keep]
-    ids = [int(el.get("id")) for el in root.iter() if (el.get("id") or "").lstrip("-").isdigit()]  # type: ignore[arg-type]
+    ids = [int(el.get("id")) for el in root.iter() if (el.get("id") or "").lstrip("-").isdigit()]
     return LaneletSource(store, lanelet_extras(root, rng_offset=0.0), [etree.tostring(el) for el in elements],
                          real_id, real_id.split("-")[0], max(ids, default=0), limit)
 
@@ -134,8 +134,8 @@ def av2_source(path: Path) -> LaneletSource:
 
 
 def _av2_lanelet(lid: int, lane: dict[str, object], known: set[int]) -> bytes:
-    left = np.array([[p["x"], p["y"]] for p in lane["left_lane_boundary"]])  # type: ignore[index, union-attr, attr-defined]
-    right = np.array([[p["x"], p["y"]] for p in lane["right_lane_boundary"]])  # type: ignore[index, union-attr, attr-defined]
+    left = np.array([[p["x"], p["y"]] for p in lane["left_lane_boundary"]])  # type: ignore[attr-defined]
+    right = np.array([[p["x"], p["y"]] for p in lane["right_lane_boundary"]])  # type: ignore[attr-defined]
     paint = tuple(_av2_paint(str(lane.get(f"{side}_lane_mark_type"))) for side in ("left", "right"))
     kind = _AV2_TYPES.get(str(lane.get("lane_type")), "unknown")
     nbrs = [int(n) if n is not None and int(n) in known else None  # type: ignore[call-overload]
@@ -151,7 +151,8 @@ def _av2_paint(mark: str) -> str:
     return "solid" if "SOLID" in mark else "dashed" if "DASH" in mark else "unknown"
 
 
-def _lanelet_xml(lid: int, left: NDArrayFloat, right: NDArrayFloat, pred: list[int], succ: list[int],
+def _lanelet_xml(  # noqa: PLR0913  one lanelet's fields in schema order
+    lid: int, left: NDArrayFloat, right: NDArrayFloat, pred: list[int], succ: list[int],
                  left_nb: int | None, right_nb: int | None, paint: tuple[str, str], types: list[str]) -> bytes:
     def bound(tag: str, pts: NDArrayFloat, mark: str) -> str:
         points = "".join(f"<point><x>{x:.4f}</x><y>{y:.4f}</y></point>" for x, y in pts)
@@ -207,7 +208,8 @@ def _state(step: int, xy: NDArrayFloat, heading: float, speed: float, accel: flo
             f"<velocity><exact>{speed:.3f}</exact></velocity><acceleration><exact>{accel:.3f}</exact></acceleration>")
 
 
-def av1_windows(tracks: Tracks, city: str, name: str, out: Path, rng: np.random.Generator, stride: int,
+def av1_windows(  # noqa: PLR0913  the scene, where and how to write it
+    tracks: Tracks, city: str, name: str, out: Path, rng: np.random.Generator, stride: int,
                 noise_sd: float, t0_s: float, radius: float = 80.0) -> int:
     """Cut a scene into AV1 forecasting CSVs, one 50-step window every ``stride`` steps: the AV and the AGENT
     are cars seen over the whole window (the AGENT within 40 m of the AV at the current step, a car with a turn,
@@ -243,10 +245,10 @@ def av1_windows(tracks: Tracks, city: str, name: str, out: Path, rng: np.random.
             ns = round((t0_s + k * DT_S) * 1e9)
             stamp = f"{ns // 1_000_000_000}.{ns % 1_000_000_000:09d}"
             for v, kind in [(av, "AV"), (agent, "AGENT"), *((o, "OTHERS") for o in others)]:
-                r = by_vid[v].get(k)
-                if r is not None:
+                row = by_vid[v].get(k)
+                if row is not None:
                     tid = AV_TRACK_ID if kind == "AV" else f"00000000-0000-0000-0000-{v:012d}"
-                    lines.append(f"{stamp},{tid},{kind},{xy[r, 0]:.4f},{xy[r, 1]:.4f},{city}")
+                    lines.append(f"{stamp},{tid},{kind},{xy[row, 0]:.4f},{xy[row, 1]:.4f},{city}")
         (out / f"{name}_{w:02d}.csv").write_text("\n".join(lines) + "\n")
         written += 1
     return written
