@@ -21,6 +21,7 @@ from logpipe.stages.rasterise import rasterise_dataset
 from logpipe.synthetic import scenes
 from logpipe.synthetic.flow import FlowConfig, Tracks, simulate
 from logpipe.synthetic.pretrain import car_jerks, main
+from logpipe.synthetic.report import markdown, summarise
 from logpipe.synthetic.roads import LaneExtras, Roads, build_roads
 
 STEPS = 300
@@ -184,3 +185,9 @@ def test_cli_small_set(shared: Path, tmp_path: Path) -> None:
     files = sorted((tmp_path / "commonroad" / "USA_Peach").glob("synthetic_USA_Peach-*.xml.gz"))
     assert len(files) == 6  # 35 windows at 6 a 10 s scene: 6 scenes, cycling over Peachtree's 7 real maps
     assert "SYNTHETIC" in (tmp_path / "README.md").read_text()
+    summary = summarise(tmp_path)
+    assert summary["windows"] == 36 and summary["locations"]["USA_Peach"]["scenes"] == 6
+    assert "| USA_Peach | 6 | 36 |" in markdown(summary)
+    assert main(["--shared", str(shared), "--out", str(tmp_path), "--scale", "0.001", "--scene-seconds", "10",
+                 "--locations", "USA_Peach"]) == 0  # resumes: every scene is already there
+    assert sorted((tmp_path / "commonroad" / "USA_Peach").glob("*.xml.gz")) == files
