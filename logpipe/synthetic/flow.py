@@ -4,9 +4,9 @@ yield at crossing conflicts, and now and then brake to a standstill and restart 
 
 Per step (``DT_S`` = 0.1 s), for every vehicle: ``logpipe.synthetic.rules.obstacle_ahead`` finds the nearest
 thing to keep a gap to along its planned lanes (a car, including cars on a lane merging into or forking from
-its own and cars still half in the lane they leave; a red light or stop line; a conflict point a car with the
-earlier arrival will pass first); IDM turns that gap into an acceleration (jerk-limited); every second
-``rules.lane_change`` asks MOBIL whether a neighbour lane is better and safe (a lane that ends forces it).
+its own and cars still half in the lane they leave; a red light or stop line; the first conflict point it could
+not claim); IDM turns that gap into an acceleration (jerk-limited); every second ``rules.lane_change`` asks
+MOBIL whether a neighbour lane is better and safe (a lane that ends forces it).
 
 Frames and units: metres in the map's frame, m/s, m/s², seconds. Lateral offsets are metres to the left of
 the lane's centerline.
@@ -70,7 +70,10 @@ class FlowConfig:
 @dataclass
 class Vehicle:
     """One simulated car. ``plan``: lanes after the current one. ``lc_*``: the running lane change (lateral
-    offset ``lc_from`` at its start, ``lc_t`` s into ``lc_dur``; ``lc_old`` the lane left, -1 when none)."""
+    offset ``lc_from`` at its start, ``lc_t`` s into ``lc_dur``; ``lc_old`` the lane left, -1 when none;
+    ``lc_shift`` arc on the old lane minus arc on the new). ``stopped_at``/``wait``: the stop line served and the
+    wait there. ``disturb``: seconds left of a stop-and-go standstill. ``held``/``why``: what the car last kept
+    its gap to (``car``, ``control``, ``yield``, ``free``; diagnostics). ``claims``: conflict points it holds."""
 
     vid: int
     lane: int
