@@ -12,7 +12,8 @@ from scripts.synthetic_av2_rasters import compare
 
 @pytest.mark.shared
 def test_lanelet_conversion_keeps_the_lanes(shared: Path) -> None:
-    path = next((shared / "av2" / "sensor_logs" / "adcf7d18-0510-35b0-a2fa-b4cea13a6d76" / "map").glob("log_map_*.json"))
+    folder = shared / "av2" / "sensor_logs" / "adcf7d18-0510-35b0-a2fa-b4cea13a6d76" / "map"
+    path = next(folder.glob("log_map_*.json"))
     result = compare(path, every=400)
     iou = result["iou"]
     assert isinstance(iou, dict) and result["windows"] >= 10
