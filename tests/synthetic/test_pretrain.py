@@ -191,3 +191,30 @@ def test_cli_small_set(shared: Path, tmp_path: Path) -> None:
     assert main(["--shared", str(shared), "--out", str(tmp_path), "--scale", "0.001", "--scene-seconds", "10",
                  "--locations", "USA_Peach"]) == 0  # resumes: every scene is already there
     assert sorted((tmp_path / "commonroad" / "USA_Peach").glob("*.xml.gz")) == files
+
+
+def test_av1_neighbours_and_invented_lights(bundled: Path) -> None:
+    crop = bundled / "maps" / "MIA_lane_centerlines_crop_2645.npz"
+    roads = build_roads(load_map(crop), LaneExtras(), scenes.CITY_LIMIT, np.random.default_rng(0), "MIA")
+    pairs = [(a, int(b)) for a, b in enumerate(roads.left) if b >= 0] + \
+        [(a, int(b)) for a, b in enumerate(roads.right) if b >= 0]
+    assert len(pairs) > 50
+    for a, b in pairs:  # a derived neighbour runs alongside, one lane over, the same way
+        mid = roads.pts[roads.start[a] + roads.count[a] // 2]
+        s_b = roads.project(b, mid)
+        there, h_b = roads.at(np.array([b]), np.array([s_b]))
+        assert 2.4 < float(np.hypot(*(there[0] - mid))) < 4.9
+        h_a = roads.heading[roads.start[a] + roads.count[a] // 2]
+        assert abs((h_b[0] - h_a + np.pi) % (2 * np.pi) - np.pi) < np.radians(15)
+    # crossing approaches of one invented junction never show green together
+    ends = {a: roads.heading[roads.start[a] + roads.count[a] - 1] for a in roads.signals}
+    crossing = [(a, b) for a in roads.signals for b in roads.signals
+                if a < b and abs(np.sin(ends[a] - ends[b])) > np.sin(np.radians(45))
+                and np.hypot(*(roads.pts[roads.start[a] + roads.count[a] - 1]
+                               - roads.pts[roads.start[b] + roads.count[b] - 1])) < 40.0
+                and roads.signals[a].green_s == roads.signals[b].red_s]
+    assert crossing
+    for a, b in crossing:
+        greens = [t for t in np.arange(0.0, 200.0, 0.5)
+                  if not roads.signals[a].is_red(t) and not roads.signals[b].is_red(t)]
+        assert not greens, (a, b, greens[:3])
