@@ -197,8 +197,10 @@ def write_commonroad(path: Path, src: LaneletSource, n: int, tracks: Tracks, noi
         written += 1
     parts.append(b"</commonRoad>\n")
     path.parent.mkdir(parents=True, exist_ok=True)
-    with path.open("wb") as raw, gzip.GzipFile(fileobj=raw, mode="wb", compresslevel=6, mtime=0) as fh:
+    tmp = path.with_name(path.name + ".tmp")  # renamed when whole: a killed run leaves no cut file to ingest
+    with tmp.open("wb") as raw, gzip.GzipFile(fileobj=raw, mode="wb", compresslevel=6, mtime=0) as fh:
         fh.write(b"".join(parts))  # mtime 0: the same seed gives the same bytes
+    tmp.replace(path)
     return written
 
 
