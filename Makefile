@@ -8,7 +8,7 @@ OUT ?= out
 SHARED ?= ../shared/data
 ETHUCY_SCENES := eth hotel univ zara1 zara2
 
-.PHONY: setup demo test bench lint clean train-ethucy train-apolloscape train-ethucy-paper train-apolloscape-paper reproduce-ethucy reproduce-apolloscape reproduce-argoverse reproduce-driving replica-cost scaling fuzz synthetic-map-check
+.PHONY: setup demo test bench lint clean train-ethucy train-apolloscape train-ethucy-paper train-apolloscape-paper reproduce-ethucy reproduce-apolloscape reproduce-argoverse reproduce-driving replica-cost scaling fuzz synthetic-map-check synthetic-pretrain
 
 # torch first and pinned: a looser pin would pull a multi-GB CUDA build; 2.13.0 is a local CPU wheel here.
 # The installers' output goes to $(INSTALL_LOG), named (and its end shown) only when a step fails.
@@ -195,3 +195,25 @@ synthetic-map-check: setup
 $(SYN)/runs/%:
 	mkdir -p $(SYN)/runs && OMP_NUM_THREADS=1 $(LP) train $(SYN)/train --train-split hash/train --val-split hash/val \
 		--config configs/argoverse_synthetic.toml --preset $* --steps $(SYN_STEPS) --out $@ --json > $@.json
+
+# SYNTHETIC pre-training traffic (issue 57 item 2; docs/synthetic.md): 210,000 windows of simulated traffic on every
+# real lane graph held (NGSIM US-101 / Lankershim / Peachtree lanelets, AV2 log maps, AV1 MIA / PIT centerlines), on
+# one core; re-running resumes (finished scenes are skipped, ingest skips ingested files). Ingested whole into
+# $(PRETRAIN)/commonroad and $(PRETRAIN)/av1; rasters (343 KiB a window at the real 7 x 224 x 224 spec, 70 GB for all)
+# for every 10th scene only, ingested apart into $(PRETRAIN)/commonroad_r and $(PRETRAIN)/av1_r.
+PRETRAIN := $(OUT)/synthetic57
+PRETRAIN_SCALE ?= 1
+ONE_CORE := OMP_NUM_THREADS=1 nice -n 10
+synthetic-pretrain: setup
+	$(ONE_CORE) $(PY) -m logpipe.synthetic.pretrain --shared $(SHARED) --out $(PRETRAIN)/data --seed 0 --scale $(PRETRAIN_SCALE)
+	$(ONE_CORE) $(LP) ingest $(PRETRAIN)/data/commonroad --out $(PRETRAIN)/commonroad --no-mcap --workers 1
+	$(ONE_CORE) $(LP) ingest $(PRETRAIN)/data/av1 --out $(PRETRAIN)/av1 --protocol argoverse --targets fully_observed_no_ego \
+		--no-mcap --workers 1
+	rm -rf $(PRETRAIN)/subset && mkdir -p $(PRETRAIN)/subset/commonroad $(PRETRAIN)/subset/av1
+	find $(PRETRAIN)/data/commonroad -name 'synthetic_*0.xml.gz' -exec ln -f {} $(PRETRAIN)/subset/commonroad/ \;
+	find $(PRETRAIN)/data/av1 -name 'synthetic_*0_[0-9][0-9].csv' -exec ln -f {} $(PRETRAIN)/subset/av1/ \;
+	$(ONE_CORE) $(LP) ingest $(PRETRAIN)/subset/commonroad --out $(PRETRAIN)/commonroad_r --no-mcap --workers 1
+	$(ONE_CORE) $(LP) ingest $(PRETRAIN)/subset/av1 --out $(PRETRAIN)/av1_r --protocol argoverse \
+		--targets fully_observed_no_ego --no-mcap --workers 1
+	$(ONE_CORE) $(LP) rasterise $(PRETRAIN)/commonroad_r --rotate
+	$(ONE_CORE) $(LP) rasterise $(PRETRAIN)/av1_r --maps $(AV1_MAPS) --rotate
