@@ -44,6 +44,12 @@ DEMAND: dict[str, tuple[float, float]] = {"USA_US101": (0.06, 0.4), "MIA": (0.01
 """Arrivals per second per entry lane where the default (``FlowConfig.demand``) does not fit: the freeway runs
 from free flow to congested; an AV1 box has many entry lanes (every lane crossing its edge)."""
 WARMUP = 80
+FAST_SHARE = 0.3
+"""Share of scenes driven well above their lanes' limits (up to ``FlowConfig.v_cap``, bends still slowing cars):
+only US-101's maps have a highway limit, so without these a model held out from US-101 would pre-train on no
+highway speeds at all (issue 57: standstill to 35 m/s on every lane graph)."""
+FAST_FACTOR = (1.6, 2.6)
+"""Range of the factor a fast scene's desired speeds are multiplied by (a 35 mph arterial becomes 56-91 mph)."""
 
 
 @dataclass
@@ -79,6 +85,9 @@ def load_locations(shared: Path, names: Sequence[str], seed: int) -> list[Locati
 def run_scene(loc: Location, n: int, rng: np.random.Generator, steps: int, out: Path) -> tuple[Tracks, int, int]:
     """Simulate and write scene ``n`` of ``loc``: (recorded tracks, files written, cars dropped for overlap)."""
     cfg = FlowConfig(demand=DEMAND.get(loc.name, FlowConfig.demand))
+    if rng.random() < FAST_SHARE:
+        factor = rng.uniform(*FAST_FACTOR)
+        cfg = replace(cfg, speed_factor=(cfg.speed_factor[0] * factor, cfg.speed_factor[1] * factor))
     if loc.kind == "av1":
         roads = loc.roads[0]
         region = scenes.av1_region_of(roads, rng)
