@@ -61,8 +61,8 @@ def test_a_target_is_read_in_its_own_frame() -> None:
     assert inputs.scale[0] == pytest.approx(30.0) and inputs.speed[0] == pytest.approx(10.0)
     assert inputs.truth is not None and np.abs(inputs.truth).max() < 1e-9  # constant velocity: no residual
     assert inputs.neighbour_mask[0].tolist() == [True] + [False] * 15  # the far one is beyond 60 m
-    np.testing.assert_allclose(inputs.neighbours[0, 0, 8:10] * 20.0, [20.0, 0.0], atol=1e-6)  # 20 m ahead
-    assert np.isfinite(inputs.features).all() and inputs.features.shape[1] == 6 * 20 + 3
+    np.testing.assert_allclose(inputs.neighbours[0, 0, 8:10] * 30.0, [20.0, 0.0], atol=1e-6)  # 20 m ahead, L = 30
+    assert np.isfinite(inputs.features).all() and inputs.features.shape[1] == 4 * 20 + 3
     slow = target_inputs(_straight(0.5), config)
     assert slow.scale[0] == config.min_scale_m
 
