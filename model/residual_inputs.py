@@ -34,6 +34,8 @@ from .residual_config import ResidualConfig
 
 CROP_CHANNELS = ("drivable_area", "lane_centerline", "lane_boundary", "crossing", "lane_forward", "lane_left")
 """The crop's channels (the last two: the lanes' travel direction in the target's frame, x forward, y left)."""
+INPUTS_VERSION = 2
+"""Bumped whenever what ``target_inputs`` computes changes (cached inputs of an older version are not reused)."""
 CROP_UNIT = 127.0
 """A crop value of 1 is stored as this (int8)."""
 STILL_MPS = 0.5

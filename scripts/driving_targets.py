@@ -29,7 +29,7 @@ from logpipe.api import ingest, rasterise
 from logpipe.dataset.reader import Dataset, hash_fraction
 from logpipe.model.residual_config import ResidualConfig
 from logpipe.model.residual_fit import collect
-from logpipe.model.residual_inputs import TargetInputs, concat
+from logpipe.model.residual_inputs import INPUTS_VERSION, TargetInputs, concat
 from logpipe.raster.runs import find_raster_run
 from logpipe.stages.train import scene_samples
 from logpipe.types import NDArrayFloat, SceneSample
@@ -150,7 +150,8 @@ def config_key(config: ResidualConfig) -> str:
     """Short hash of the settings the inputs depend on (the cache key)."""
     keys = ("obs_len", "pred_len", "environment", "crop_px", "crop_res_m", "crop_behind_m", "neighbours",
             "neighbour_radius_m", "neighbour_steps", "min_scale_m", "horizon_scale_s")
-    blob = json.dumps({k: getattr(config, k) for k in keys}, sort_keys=True).encode()
+    blob = json.dumps({k: getattr(config, k) for k in keys} | {"inputs_version": INPUTS_VERSION},
+                      sort_keys=True).encode()
     return hashlib.sha256(blob).hexdigest()[:12]
 
 
