@@ -315,6 +315,7 @@ def predict(  # noqa: PLR0913  public API: keyword options mirror `logpipe predi
     backend: str = "local",
     workers: int = 0,
     allow_blank_rasters: bool = False,
+    out_of_distribution: str = "warn",
 ) -> dict[str, Any]:
     """``logpipe predict``: run a checkpoint (default: the shipped one for the dataset kind) or a baseline
     (``predictor="cv"|"linear"|"kalman"|"cv_sampler"|"adaptive_cv"``) on every selected sample into the run folder
@@ -332,6 +333,8 @@ def predict(  # noqa: PLR0913  public API: keyword options mirror `logpipe predi
         backend: ``local`` or ``ray`` (forecasts on ``workers`` Ray actors, 0 = one per GPU, else per CPU; the
             dataset must be on a file system every node shares); the same output bytes at the same ``threads``.
         allow_blank_rasters: run a network's environment net even where selected samples' rasters are blank.
+        out_of_distribution: ``warn``, ``fallback`` (Kalman) or ``refuse`` for targets outside a residual
+            checkpoint's training data (see ``PredictOptions``).
 
     Raises:
         LogpipeError: a bad option or filter, a checkpoint that does not fit the dataset, missing or blank rasters.
@@ -351,6 +354,7 @@ def predict(  # noqa: PLR0913  public API: keyword options mirror `logpipe predi
         as_trained=as_trained, sample_filter=parse_filter(list(filters)), inputs=as_paths(inputs),
         raster_run=raster_run, raster_images=raster_images, write_mcap=mcap, batch_size=batch_size, threads=threads,
         device=device, backend=backend, workers=workers, allow_blank_rasters=allow_blank_rasters,
+        out_of_distribution=out_of_distribution,
     )
     summary: dict[str, Any] = predict_dataset(as_path(dataset), as_path(out), options, progress=progress)
     return summary

@@ -80,6 +80,14 @@ def arrow_schema(name: str, **sizes: int) -> pa.Schema:
     return pa.schema(fields, metadata={"logpipe.schema": doc["name"], "logpipe.schema_version": doc["version"]})
 
 
+def optional_fields(name: str, **sizes: int) -> list[pa.Field]:
+    """The ``optional_fields`` of ``schemas/<name>.json`` (columns some tables add after the contract's), as Arrow
+    fields; [] when it lists none."""
+    doc = read_schema_file(f"{name}.json")
+    return [pa.field(f["name"], _arrow_type(f["type"], sizes), nullable=bool(f["nullable"]), metadata={"doc": f["doc"]})
+            for f in doc.get("optional_fields", [])]
+
+
 def field_names(name: str) -> list[str]:
     """Column names of ``schemas/<name>.json`` in order (no parameters needed)."""
     return [str(f["name"]) for f in read_schema_file(f"{name}.json")["fields"]]

@@ -123,37 +123,43 @@ class KalmanCV:
     def predict(self, samples: Sequence[SceneSample], num_modes: int, seed: int) -> list[NDArrayFloat]:
         """Deterministic: the filter's mean forecast repeated ``num_modes`` times."""
         del seed
+        out = []
+        for s in samples:
+            fut = self.predict_tracks(_observed(s)[0])
+            out.append(np.repeat(fut[:, None], num_modes, axis=1))
+        return out
+
+    def predict_tracks(self, observed: NDArrayFloat) -> NDArrayFloat:
+        """(N, pred_len, 2) forecasts of N tracks (N, T_obs, 2) world metres, NaN where unobserved."""
+        obs = np.asarray(observed, np.float64)
+        ok: NDArrayBool = np.all(np.isfinite(obs), axis=-1)
         f = np.array([[1, 0, 1, 0], [0, 1, 0, 1], [0, 0, 1, 0], [0, 0, 0, 1]], np.float64)
         g = np.array([[0.5, 0], [0, 0.5], [1, 0], [0, 1]])
         q = self.accel_std**2 * g @ g.T
         h = np.eye(2, 4)
         r = self.meas_std**2 * np.eye(2)
-        out = []
-        for s in samples:
-            obs, ok = _observed(s)
-            n, t_obs = ok.shape
-            first = np.argmax(ok, axis=1)
-            x = np.zeros((n, 4))
-            x[:, :2] = np.nan_to_num(obs[np.arange(n), first])
-            p = np.tile(np.diag([self.meas_std**2] * 2 + [self.init_vel_std**2] * 2), (n, 1, 1))
-            for t in range(t_obs):
-                upd = ok[:, t] & (t > first)
-                pred_x = x @ f.T
-                pred_p = f @ p @ f.T + q
-                started = (t > first)[:, None]
-                x = np.where(started, pred_x, x)
-                p = np.where(started[..., None], pred_p, p)
-                innov = np.nan_to_num(obs[:, t]) - x[:, :2]
-                s_mat = h @ p @ h.T + r
-                gain = p @ h.T @ np.linalg.inv(s_mat)
-                x = np.where(upd[:, None], x + np.einsum("nij,nj->ni", gain, innov), x)
-                p = np.where(upd[:, None, None], (np.eye(4) - gain @ h) @ p, p)
-            fut = np.empty((n, self.pred_len, 2))
-            for k in range(self.pred_len):
-                x = x @ f.T
-                fut[:, k] = x[:, :2]
-            out.append(np.repeat(fut[:, None], num_modes, axis=1))
-        return out
+        n, t_obs = ok.shape
+        first = np.argmax(ok, axis=1)
+        x = np.zeros((n, 4))
+        x[:, :2] = np.nan_to_num(obs[np.arange(n), first])
+        p = np.tile(np.diag([self.meas_std**2] * 2 + [self.init_vel_std**2] * 2), (n, 1, 1))
+        for t in range(t_obs):
+            upd = ok[:, t] & (t > first)
+            pred_x = x @ f.T
+            pred_p = f @ p @ f.T + q
+            started = (t > first)[:, None]
+            x = np.where(started, pred_x, x)
+            p = np.where(started[..., None], pred_p, p)
+            innov = np.nan_to_num(obs[:, t]) - x[:, :2]
+            s_mat = h @ p @ h.T + r
+            gain = p @ h.T @ np.linalg.inv(s_mat)
+            x = np.where(upd[:, None], x + np.einsum("nij,nj->ni", gain, innov), x)
+            p = np.where(upd[:, None, None], (np.eye(4) - gain @ h) @ p, p)
+        fut = np.empty((n, self.pred_len, 2))
+        for k in range(self.pred_len):
+            x = x @ f.T
+            fut[:, k] = x[:, :2]
+        return fut
 
 
 @dataclass

@@ -256,17 +256,15 @@ def seen_in_training(chosen: ChosenPredictor, logs: pa.Table) -> list[str]:
     return warnings
 
 
-def load_net(chosen: ChosenPredictor, dataset: Dataset, batch_size: int, device: torch.device | str = "cpu",
-             out_of_distribution: str = "warn") -> None:
+def load_net(chosen: ChosenPredictor, dataset: Dataset, batch_size: int, device: torch.device | str = "cpu") -> None:
     """Load the checkpoint's weights into ``chosen.model`` with ``chosen.inference``, on ``device`` (after
-    ``check_fit``); a residual checkpoint handles its out-of-distribution targets as ``out_of_distribution`` says
-    (``model.residual_predictor``)."""
+    ``check_fit``)."""
     if chosen.model is not None or chosen.checkpoint is None:
         return
     if chosen.name == "residual":
-        from .residual_predictor import ResidualPredictor, check_ood_action
+        from .residual_predictor import ResidualPredictor
 
-        chosen.model = ResidualPredictor.from_checkpoint(chosen.checkpoint, check_ood_action(out_of_distribution))
+        chosen.model = ResidualPredictor.from_checkpoint(chosen.checkpoint)
         return
     from .predictor import NetPredictor
 

@@ -28,7 +28,7 @@ from .residual_config import ResidualConfig
 from .residual_inputs import CROP_UNIT, TargetInputs, concat, target_inputs
 from .residual_meta import ResidualMeta
 from .residual_net import ResidualNet, training_loss
-from .residual_ood import training_distribution
+from .residual_ood import training_distribution, tune_fallback
 
 LOG = "train_log.jsonl"
 
@@ -142,8 +142,8 @@ def fit_residual(  # noqa: PLR0913  the run's data, config and where it goes
         net.load_state_dict(load_residual(init_from)[0].state_dict())
     opt = torch.optim.Adam(net.parameters(), lr=config.lr, weight_decay=config.weight_decay)
     truth, scale = torch.from_numpy(train.truth), torch.from_numpy(train.scale.astype(np.float32))
-    meta = ResidualMeta(config, dataset_kind, manifest_hash, 0, {}, training_distribution(train),
-                        training_data=training_data)
+    ood = training_distribution(train) | {"fallback_kalman": tune_fallback(train, seed=config.seed)}
+    meta = ResidualMeta(config, dataset_kind, manifest_hash, 0, {}, ood, training_data=training_data)
     best_score, best_epoch, best_metrics, bad, seen, clock = math.inf, 0, {}, 0, 0, 0.0
     steps = best_step = 0
     out_dir.mkdir(parents=True, exist_ok=True)

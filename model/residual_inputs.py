@@ -34,7 +34,7 @@ from .residual_config import ResidualConfig
 
 CROP_CHANNELS = ("drivable_area", "lane_centerline", "lane_boundary", "crossing", "lane_forward", "lane_left")
 """The crop's channels (the last two: the lanes' travel direction in the target's frame, x forward, y left)."""
-INPUTS_VERSION = 2
+INPUTS_VERSION = 3
 """Bumped whenever what ``target_inputs`` computes changes (cached inputs of an older version are not reused)."""
 CROP_UNIT = 127.0
 """A crop value of 1 is stored as this (int8)."""
@@ -58,6 +58,7 @@ class TargetInputs:
         window: (N,) the prior's fit window (steps).
         object_type: (N,) codes into ``OBJECT_TYPES``.
         motion: (N, 2) acceleration along the track (m/s^2) and yaw rate (rad/s) over the last 10 observed steps.
+        observed: (N, T_obs, 2) the observed track, world metres (the Kalman fallback's input).
     """
 
     features: NDArrayFloat32
@@ -75,6 +76,7 @@ class TargetInputs:
     window: np.ndarray
     object_type: np.ndarray
     motion: NDArrayFloat
+    observed: NDArrayFloat
 
     def __len__(self) -> int:
         return len(self.features)
@@ -131,7 +133,7 @@ def target_inputs(sample: SceneSample, config: ResidualConfig, *, with_truth: bo
         truth = (np.einsum("nij,ntj->nti", rotation, future - prior) / scale[:, None, None]).astype(np.float32)
     return TargetInputs(features, neighbours, mask, crops, fit.origin, rotation, scale, prior, speed,
                         np.full(len(targets), rate), truth, has_map, fit.window,
-                        np.asarray(sample.object_types, np.int64)[targets], _motion(observed, rate))
+                        np.asarray(sample.object_types, np.int64)[targets], _motion(observed, rate), observed)
 
 
 def _motion(observed: NDArrayFloat, rate: float) -> NDArrayFloat:

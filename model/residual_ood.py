@@ -8,17 +8,27 @@ in units of the range's width (0 inside), plus 1 for an agent type or a frame ra
 never had, and 1 for a target without a map when at least half the training targets had one. A target is flagged
 when its score exceeds ``FLAG_SCORE`` (a quarter of a range beyond, or any unseen type or rate, or no map). The
 reasons name the descriptors that put it there.
+
+``OodCheck`` applies this in ``logpipe predict`` (``--out-of-distribution warn|fallback|refuse``); the fallback is a
+constant-velocity Kalman filter whose noise was chosen on the training targets (``tune_fallback``, stored in the
+``ood`` record).
 """
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+from dataclasses import dataclass, replace
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from logpipe.types import OBJECT_TYPES, NDArrayBool, NDArrayFloat
+from logpipe.errors import LogpipeError
+from logpipe.types import OBJECT_TYPES, NDArrayBool, NDArrayFloat, SceneSample
 
-from .residual_inputs import TargetInputs
+from .baselines import KalmanCV
+from .residual_config import ResidualConfig
+from .residual_inputs import TargetInputs, target_inputs
 
 QUANTILES = (0.001, 0.999)
 """The range each numeric descriptor is checked against."""
@@ -72,3 +82,72 @@ def ood_scores(inputs: TargetInputs, ood: dict[str, Any]) -> tuple[NDArrayFloat,
             score[i] += 1.0
             reasons[i].append("no map under the target")
     return score, score > FLAG_SCORE, ["; ".join(r) for r in reasons]
+
+
+FALLBACK_GRID = tuple((q, r) for q in (0.003, 0.01, 0.03, 0.1, 0.3) for r in (0.01, 0.03, 0.1, 0.3, 1.0))
+"""Candidate (accel_std m/step^2, meas_std m) of the fallback Kalman filter, chosen on the training targets."""
+
+
+def tune_fallback(inputs: TargetInputs, max_targets: int = 20_000, seed: int = 0) -> dict[str, float]:
+    """The Kalman filter's noise with the lowest mean FDE on (at most ``max_targets`` of) the training targets."""
+    assert inputs.truth is not None
+    rows = np.arange(len(inputs))
+    if len(rows) > max_targets:
+        rows = np.sort(np.random.default_rng(seed).choice(rows, max_targets, replace=False))
+    part = inputs.take(rows)
+    assert part.truth is not None
+    truth = part.prior + np.einsum("nji,ntj->nti", part.rotation, part.truth * part.scale[:, None, None])
+    pred_len = truth.shape[1]
+
+    def fde(q: float, r: float) -> float:
+        forecast = KalmanCV(pred_len=pred_len, accel_std=q, meas_std=r).predict_tracks(part.observed)
+        return float(np.nanmean(np.linalg.norm(forecast[:, -1] - truth[:, -1], axis=1)))
+
+    q, r = min(FALLBACK_GRID, key=lambda g: fde(*g))
+    return {"accel_std": q, "meas_std": r}
+
+
+@dataclass(frozen=True)
+class OodCheck:
+    """``logpipe predict``'s out-of-distribution check for a residual checkpoint (picklable: shard workers run it).
+
+    Attributes:
+        ood: the checkpoint's ``ood`` record; ``config``: its ``ResidualConfig`` (the inputs are computed as the
+            network's, without crops); ``action``: ``warn``, ``fallback`` or ``refuse``.
+    """
+
+    ood: dict[str, Any]
+    config: ResidualConfig
+    action: str
+
+    def __call__(self, samples: Sequence[SceneSample], futures: Sequence[Any]
+                 ) -> tuple[list[Any], list[tuple[NDArrayFloat, NDArrayBool, NDArrayBool]]]:
+        """(the forecasts to write, each sample's (scores, flags, fallback) per target)."""
+        config = replace(self.config, environment=False)
+        fallback = self.ood.get("fallback_kalman", {})
+        kalman = KalmanCV(pred_len=config.pred_len, **fallback)
+        out, rows = [], []
+        for sample, given in zip(samples, futures, strict=True):
+            inputs = target_inputs(sample, config)
+            scores, flags, reasons = ood_scores(inputs, self.ood)
+            if flags.any() and self.action == "refuse":
+                first = int(np.flatnonzero(flags)[0])
+                raise LogpipeError(f"{int(flags.sum())} targets of {sample.sample_id} are outside the checkpoint's "
+                                   f"training data (--out-of-distribution refuse), e.g. "
+                                   f"{sample.track_ids[int(np.flatnonzero(sample.target_mask)[first])]}: "
+                                   f"{reasons[first]}")
+            replaced = flags & (self.action == "fallback")
+            future = np.array(given, np.float64, copy=True)
+            if replaced.any():
+                future[replaced] = kalman.predict_tracks(inputs.observed[replaced])[:, None, : future.shape[2]]
+            out.append(future)
+            rows.append((scores, flags, replaced))
+        return out, rows
+
+
+def ood_check_for(checkpoint: Path, action: str) -> OodCheck:
+    """The check of a residual checkpoint folder with ``--out-of-distribution`` ``action``."""
+    from .residual_meta import read_residual_meta  # here: the check is built only for residual checkpoints
+
+    meta = read_residual_meta(checkpoint)
+    return OodCheck(meta.ood, meta.config, action)

@@ -43,6 +43,7 @@ from logpipe.model.registry import (
     resolve_inference,
     seen_in_training,
 )
+from logpipe.model.residual_ood import OodCheck, ood_check_for
 from logpipe.prediction.columnar import (
     ColumnarRun,
     TrackPredictor,
@@ -72,6 +73,7 @@ class _Run:
     samples: SelectedSamples
     meta: PredictionMeta
     mcaps: PredictionMcaps | None  # the per-log MCAP writer (None: --no-mcap)
+    ood_check: OodCheck | None = None  # a residual checkpoint's out-of-distribution check
 
 
 def predict_dataset(dataset_dir: Path, out_dir: Path, options: PredictOptions | None = None, *,
@@ -114,6 +116,10 @@ def predict_dataset(dataset_dir: Path, out_dir: Path, options: PredictOptions | 
                 writer.commit(settings, run.meta, shards, files)
         if uncommitted:
             writer.commit(settings, run.meta, shards, files)
+    if summary.targets_out_of_distribution:
+        summary.warnings.append(f"{summary.targets_out_of_distribution} of {summary.targets} targets are outside the "
+                                f"checkpoint's training data (column ood_flag; --out-of-distribution "
+                                f"{opts.out_of_distribution}: {summary.targets_fallback} got the Kalman fallback)")
     summary.shards = len(shards)
     summary.rows_total = sum(int(s["rows"]) for s in shards)
     summary.seconds = time.perf_counter() - started
@@ -177,6 +183,9 @@ def _prepare(dataset_dir: Path, out_dir: Path, opts: PredictOptions) -> tuple[_R
         "protocol": dataset.protocol.to_dict(), "write_mcap": opts.write_mcap,
         "raster_run": rasters.run_dir.name if rasters is not None and raster_images else None,
     }
+    ood_check = ood_check_for(chosen.checkpoint, opts.out_of_distribution) if chosen.name == "residual" else None
+    if ood_check is not None:
+        settings["out_of_distribution"] = opts.out_of_distribution
     protocol = dataset.protocol
     meta = PredictionMeta(
         predictor=chosen.name, checkpoint_id=chosen.checkpoint_id, protocol=protocol.name, obs_len=protocol.obs_len,
@@ -184,6 +193,7 @@ def _prepare(dataset_dir: Path, out_dir: Path, opts: PredictOptions) -> tuple[_R
         dataset_manifest_sha256=manifest_sha, noise_scale=inference.noise_scale,
         constant_velocity_modes=inference.constant_velocity_modes,
         context_max_neighbours=inference.context_max_neighbours,
+        out_of_distribution=opts.out_of_distribution if ood_check is not None else None,
     )
     PredictionRunWriter.refuse_other_folders(out_dir)
     summary = PredictSummary(
@@ -198,7 +208,7 @@ def _prepare(dataset_dir: Path, out_dir: Path, opts: PredictOptions) -> tuple[_R
     cutter = SampleCutter(protocol.obs_len, sample_filter.object_types, rasters, raster_ids)
     # The job's dataset without the input list (most of a large corpus's manifest): found originals were its use.
     run = _Run(ForecastJob(dataset.without_inputs(), chosen, modes, opts.seed, opts.batch_size, cutter), logs,
-               samples, meta, mcaps)
+               samples, meta, mcaps, ood_check)
     return run, settings, summary, torch_device
 
 
@@ -226,7 +236,8 @@ def _sample_shards(run: _Run, pending: list[tuple[int, Path]], out_dir: Path, su
     job = run.job
     remote_forecast = processes > 0 or opts.backend == "ray"
     shard_run = SampleShardRun(job.cutter, job.dataset.protocol, job.modes, job.batch_size, run.meta, out_dir,
-                               cut_rasters=not remote_forecast or bool(run.mcaps and run.mcaps.raster_channels))
+                               cut_rasters=not remote_forecast or bool(run.mcaps and run.mcaps.raster_channels),
+                               ood_check=run.ood_check)
     jobs = shard_jobs(shard_run, job.dataset.root, pending, run.logs, run.samples, summary, run.mcaps)
     if remote_forecast:
         done_remotely = shard_predictions(job, jobs, processes or opts.workers, opts.threads, opts.device,

@@ -142,6 +142,10 @@ def predict(  # noqa: PLR0913  typer command: one parameter per CLI option
     allow_blank_rasters: Annotated[bool, typer.Option(
         "--allow-blank-rasters", help="Run a checkpoint's environment net even on samples whose raster is blank "
         "(no map for their log, or the centre off it); refused by default.")] = False,
+    out_of_distribution: Annotated[str, typer.Option(
+        "--out-of-distribution", help="For a checkpoint that records its training data (the residual driving "
+        "model): targets outside it are flagged (warn, the default), get the Kalman filter's forecast, marked in "
+        "the fallback column (fallback), or stop the run (refuse).")] = "warn",
     as_json: JsonOpt = False,
 ) -> None:
     """Run a checkpoint (or a baseline) on every sample and write predictions as Parquet and, per log, an MCAP
@@ -158,7 +162,7 @@ def predict(  # noqa: PLR0913  typer command: one parameter per CLI option
             context_max_neighbours=context_max_neighbours, as_trained=as_trained, filters=filters or (),
             inputs=inputs, raster_run=raster_run, raster_images=raster_images, mcap=mcap, batch_size=batch_size,
             threads=threads, device=device, progress=advance, backend=backend, workers=workers,
-            allow_blank_rasters=allow_blank_rasters,
+            allow_blank_rasters=allow_blank_rasters, out_of_distribution=out_of_distribution,
         )
     for warning in summary["warnings"]:  # shown with --json and -q too: a leak must not pass unnoticed
         typer.echo(f"warning: {warning}", err=True)

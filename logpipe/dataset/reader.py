@@ -172,7 +172,9 @@ class Dataset:
 
         A split is a folder membership (``eth/train``, from the ETH/UCY layout), ``hash/train``, ``hash/val``,
         ``hash/test`` (70/15/15 by log, see ``HASH_SPLITS``), ``all`` or a log id; or such terms joined by ``+``
-        (union) and ``-`` (difference), read left to right. ``eth/train-biwi_hotel_train`` is the ETH fold's
+        (union) and ``-`` (difference), read left to right. A split that is exactly one log id or membership is
+        that term even when it contains a ``-`` (CommonRoad ids do); in a longer expression such ids cannot be
+        named. ``eth/train-biwi_hotel_train`` is the ETH fold's
         training logs without the HOTEL recording, so a whole scene can be held out for validation
         (``biwi_hotel_train+biwi_hotel_val``).
 
@@ -182,7 +184,9 @@ class Dataset:
         logs = self.logs()
         ids = logs.column("log_id").to_pylist()
         memberships = logs.column("memberships").to_pylist()
-        parts = _SPLIT_OPERATOR.split(split.strip())
+        # A whole log id or membership is one term even with a - in it (CommonRoad ids: USA_Peach-4_8_T-1).
+        whole = self._term_logs(split.strip(), ids, memberships)
+        parts = [split.strip()] if whole else _SPLIT_OPERATOR.split(split.strip())
         chosen: set[str] = set()
         for i in range(0, len(parts), 2):
             term = parts[i].strip()

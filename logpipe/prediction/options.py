@@ -67,6 +67,10 @@ class PredictOptions:
             CPU forecasts in (``forecast_processes``).
         allow_blank_rasters: let the environment net run on selected samples whose raster is blank (no map, or
             the centre off it); refused by default, since the net would read an empty road as a fact.
+        out_of_distribution: for a checkpoint that records its training data's distribution (the residual driving
+            model): ``warn`` (flag the targets outside it, keep the network's forecasts), ``fallback`` (their
+            forecast is the Kalman filter's, marked in the ``fallback`` column) or ``refuse`` (an error at the
+            first batch with one; shards committed before it stay).
     """
 
     checkpoint: Path | None = None
@@ -88,6 +92,7 @@ class PredictOptions:
     backend: str = "local"
     workers: int = 0
     allow_blank_rasters: bool = False
+    out_of_distribution: str = "warn"
 
     def check(self, modes: int) -> None:
         """Refuse settings no run can use, ``modes`` being the K resolved for the run.
@@ -99,6 +104,9 @@ class PredictOptions:
             raise LogpipeError(f"--modes and --batch-size must be >= 1, got {modes} and {self.batch_size}")
         if self.backend not in ("local", "ray"):
             raise LogpipeError(f"--backend must be local or ray, got {self.backend!r}")
+        if self.out_of_distribution not in ("warn", "fallback", "refuse"):
+            raise LogpipeError(f"--out-of-distribution must be warn, fallback or refuse, got "
+                               f"{self.out_of_distribution!r}")
 
     def forecast_processes(self, samples: int, *, on_cpu: bool, environment_net: bool) -> int:
         """Local worker processes a network forecasts ``samples`` in (0: this process, on ``threads`` threads);
@@ -143,6 +151,8 @@ class PredictSummary:
     rows: int = 0
     targets_unobserved: int = 0
     samples_without_targets: int = 0
+    targets_out_of_distribution: int = 0
+    targets_fallback: int = 0
     mcap_files: int = 0
     original_messages: int = 0
     model_seconds: float = 0.0
@@ -184,6 +194,7 @@ class PredictSummary:
         return out
 
 
-_COUNTERS = ("samples", "targets", "rows", "targets_unobserved", "samples_without_targets", "mcap_files",
-             "original_messages", "model_seconds", "io_seconds", "io_wait_seconds", "io_busy_seconds")
+_COUNTERS = ("samples", "targets", "rows", "targets_unobserved", "samples_without_targets",
+             "targets_out_of_distribution", "targets_fallback", "mcap_files", "original_messages", "model_seconds",
+             "io_seconds", "io_wait_seconds", "io_busy_seconds")
 """``PredictSummary`` fields that count the work of this invocation, shard by shard."""

@@ -24,7 +24,7 @@ import pyarrow.parquet as pq
 
 from logpipe.errors import DatasetError
 from logpipe.prediction.runs import MCAP_DIR, PREDICTIONS_DIR, PredictionMeta, RunShardEntry
-from logpipe.prediction.table import RowGroupWriter, SampleForecast, build_table
+from logpipe.prediction.table import OodRows, RowGroupWriter, SampleForecast, build_table
 from logpipe.storage.artifact import FileEntry, file_entry
 from logpipe.storage.io import atomic_path, parquet_options
 from logpipe.types import OBJECT_TYPES, NDArrayFloat, NDArrayInt, SampleProtocol, SceneSample
@@ -51,6 +51,7 @@ class SamplePrediction:
         futures: (N, K, T_pred, 2) world metres.
         scores: (N, K) mode scores.
         step_ns: (T_pred,) times of the future steps.
+        ood: the targets' out-of-distribution rows (``table.OodRows``), when the run checks them.
     """
 
     row: dict[str, Any]
@@ -59,10 +60,11 @@ class SamplePrediction:
     futures: NDArrayFloat
     scores: NDArrayFloat
     step_ns: NDArrayInt
+    ood: OodRows | None = None
 
     @classmethod
     def of(cls, row: dict[str, Any], sample: SceneSample, forecast: Any, protocol: SampleProtocol, modes: int,
-           dt_ns: int) -> tuple[SamplePrediction, int]:
+           dt_ns: int, ood: OodRows | None = None) -> tuple[SamplePrediction, int]:
         """The prediction of ``forecast`` ((targets, >= K, >= T_pred, 2) world metres, one per target of the
         sample) cut to K ``modes`` and the prediction horizon, with equal mode scores; targets with a non-finite
         forecast (unobserved at the current step) are left out. Returns it and how many were left out.
@@ -73,7 +75,8 @@ class SamplePrediction:
         ok = np.isfinite(fut).all(axis=(1, 2, 3))
         scores = np.full((int(ok.sum()), modes), 1.0 / modes)
         step_ns = future_times(sample, obs_len, pred_len, dt_ns)
-        return cls(row, sample, targets[ok], fut[ok], scores, step_ns), int((~ok).sum())
+        kept = None if ood is None else (ood[0][ok], ood[1][ok], ood[2][ok])
+        return cls(row, sample, targets[ok], fut[ok], scores, step_ns, kept), int((~ok).sum())
 
 
 @dataclass
@@ -108,7 +111,7 @@ def log_table(meta: PredictionMeta, log_id: str, done: list[SamplePrediction]) -
         SampleForecast(log_id=log_id, sample_id=p.sample.sample_id,
                        track_ids=[p.sample.track_ids[i] for i in p.targets],
                        object_types=[OBJECT_TYPES[int(p.sample.object_types[i])] for i in p.targets],
-                       futures=p.futures, scores=p.scores, step_ns=p.step_ns)
+                       futures=p.futures, scores=p.scores, step_ns=p.step_ns, ood=p.ood)
         for p in done
     ])
 

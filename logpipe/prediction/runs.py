@@ -28,7 +28,7 @@ from __future__ import annotations
 import json
 from dataclasses import asdict, dataclass, fields, replace
 from pathlib import Path
-from typing import Any, TypedDict
+from typing import Any, NotRequired, TypedDict
 
 import numpy as np
 import pyarrow as pa
@@ -36,7 +36,7 @@ import pyarrow.compute as pc
 import pyarrow.parquet as pq
 
 from logpipe import __version__
-from logpipe.contracts import arrow_schema, decode_dictionaries, field_names
+from logpipe.contracts import arrow_schema, decode_dictionaries, field_names, optional_fields
 from logpipe.errors import DatasetError, LogpipeError
 from logpipe.storage.artifact import MANIFEST, FileEntry, FolderWriter, Ownership, check_files, read_manifest
 from logpipe.storage.io import as_numpy
@@ -79,6 +79,9 @@ class PredictionMeta:
         constant_velocity_modes: modes held to constant velocity (None = the checkpoint's own).
         context_max_neighbours: neighbour cap of the context (None = all).
         logpipe_version: the writer's version.
+        out_of_distribution: what flagged targets got (``warn``, ``fallback``), when the predictor scores each
+            target against its training data: the table then has the ``optional_fields`` of
+            schemas/predictions.json (``ood_score``, ``ood_flag``, ``fallback``). None: it has not.
     """
 
     predictor: str
@@ -94,10 +97,15 @@ class PredictionMeta:
     constant_velocity_modes: int | None = None
     context_max_neighbours: int | None = None
     logpipe_version: str = __version__
+    out_of_distribution: str | None = None
 
     def to_dict(self) -> dict[str, Any]:
-        """The JSON form (manifest ``metadata``, Parquet ``logpipe.predictions``)."""
-        return asdict(self)
+        """The JSON form (manifest ``metadata``, Parquet ``logpipe.predictions``); ``out_of_distribution`` only when
+        set, so the metadata of runs without it is as before."""
+        data = asdict(self)
+        if data["out_of_distribution"] is None:
+            del data["out_of_distribution"]
+        return data
 
     @classmethod
     def from_dict(cls, data: Any, where: str) -> PredictionMeta:
@@ -121,8 +129,11 @@ class PredictionMeta:
         return meta
 
     def schema(self) -> pa.Schema:
-        """The contract schema (lists of ``pred_len`` values) with this metadata attached."""
+        """The contract schema (lists of ``pred_len`` values; with the out-of-distribution columns when the run
+        has them) with this metadata attached."""
         schema = arrow_schema("predictions", pred_len=self.pred_len)
+        if self.out_of_distribution is not None:
+            schema = pa.schema([*schema, *optional_fields("predictions")], metadata=schema.metadata)
         extra = {META_KEY.encode(): json.dumps(self.to_dict(), sort_keys=True).encode()}
         return schema.with_metadata({**(schema.metadata or {}), **extra})
 
@@ -434,6 +445,7 @@ class RunSettings(TypedDict):
     protocol: dict[str, Any]
     write_mcap: bool
     raster_run: str | None
+    out_of_distribution: NotRequired[str]  # a residual checkpoint's --out-of-distribution action
 
 
 class RunShardEntry(TypedDict):

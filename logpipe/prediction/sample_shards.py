@@ -24,9 +24,12 @@ from logpipe.prediction.options import PredictSummary
 from logpipe.prediction.output import LogOutput, SamplePrediction, ShardWriter, counted_shard_writer
 from logpipe.prediction.runs import PredictionMeta
 from logpipe.prediction.shard_jobs import ShardDone, ShardJob
+from logpipe.prediction.table import OodRows
 from logpipe.types import SampleProtocol, SceneSample
 
 Forecast = Callable[[list[SceneSample]], Sequence[Any]]
+OodCheck = Callable[[list[SceneSample], Sequence[Any]], tuple[Sequence[Any], list[OodRows]]]
+"""(samples, their forecasts) → (the forecasts to write, each sample's out-of-distribution rows)."""
 """A batch of samples → one forecast per sample (an array of its targets' K futures), in order."""
 
 
@@ -38,6 +41,8 @@ class SampleShardRun:
         cutter: cuts samples from track windows; ``protocol``: the dataset's; ``modes``: K;
         batch_size: samples per forecast batch; ``meta``: the table metadata; ``out_dir``: the run folder.
         cut_rasters: whether samples are cut with their rasters (the forecast or the MCAPs use them).
+        ood_check: scores each batch's targets against the predictor's training data and applies
+            ``--out-of-distribution`` to the forecasts (``model.residual_ood.OodCheck``); None: no check.
     """
 
     cutter: SampleCutter
@@ -47,6 +52,7 @@ class SampleShardRun:
     meta: PredictionMeta
     out_dir: Path
     cut_rasters: bool
+    ood_check: OodCheck | None = None
 
 
 def predict_sample_shard(job: ShardJob[SampleShardRun], forecast: Forecast,
@@ -107,10 +113,16 @@ def run_batch(job: ShardJob[SampleShardRun], batch: list[tuple[LogOutput, dict[s
     # kernels (logpipe.model.row_blocks): batching and resuming change no bit of a forecast.
     futures = forecast(samples)
     summary.model_seconds += time.perf_counter() - t0
+    oods: list[OodRows | None] = [None] * len(samples)
+    if job.run.ood_check is not None:
+        futures, checked = job.run.ood_check(samples, futures)
+        oods = list(checked)
+        summary.targets_out_of_distribution += sum(int(o[1].sum()) for o in checked)
+        summary.targets_fallback += sum(int(o[2].sum()) for o in checked)
     by_log: dict[str, tuple[LogOutput, list[SamplePrediction]]] = {}
-    for (out, row, sample), future in zip(batch, futures, strict=True):
+    for (out, row, sample), future, ood in zip(batch, futures, oods, strict=True):
         prediction, unobserved = SamplePrediction.of(row, sample, future, job.run.protocol, job.run.modes,
-                                                     job.dt_ns[out.log_id])
+                                                     job.dt_ns[out.log_id], ood)
         by_log.setdefault(out.log_id, (out, []))[1].append(prediction)
         out.finished += 1
         summary.targets_unobserved += unobserved

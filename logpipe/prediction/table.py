@@ -6,7 +6,7 @@ Positions are metres in the log's world frame; times are ns on the log's clock.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import pyarrow as pa
@@ -14,7 +14,7 @@ import pyarrow.compute as pc
 import pyarrow.parquet as pq
 
 from logpipe.prediction.runs import PredictionMeta, PredictionsError
-from logpipe.types import OBJECT_TYPES, NDArrayFloat, NDArrayInt, SceneSample
+from logpipe.types import OBJECT_TYPES, NDArrayBool, NDArrayFloat, NDArrayInt, SceneSample
 
 _IDS = ("log_id", "sample_id", "track_id")
 
@@ -31,6 +31,8 @@ class SampleForecast:
         futures: (N, K, T, 2) metres, world frame.
         scores: (N, K) mode scores, or None for uniform ones (predictors without scores).
         step_ns: (T,) times of the future steps.
+        ood: (scores (N,), flags (N,), fallback (N,)) of a predictor that scores targets against its training
+            data (``PredictionMeta.out_of_distribution``), else None.
     """
 
     log_id: str
@@ -40,6 +42,11 @@ class SampleForecast:
     futures: NDArrayFloat
     scores: NDArrayFloat | None
     step_ns: NDArrayInt
+    ood: OodRows | None = None
+
+
+OodRows = tuple[NDArrayFloat, NDArrayBool, NDArrayBool]
+"""Per target: out-of-distribution score, flag, and whether the Kalman fallback replaced the forecast."""
 
 
 def build_table(meta: PredictionMeta, forecasts: Sequence[SampleForecast]) -> pa.Table:
@@ -73,12 +80,27 @@ def build_table(meta: PredictionMeta, forecasts: Sequence[SampleForecast]) -> pa
     targets = Targets(pa.array([f.log_id for f in done], pa.string()),
                       pa.array([f.sample_id for f in done], pa.string()), np.repeat(np.arange(len(done)), n_targets),
                       pa.array([str(n) for f in done for n in f.track_ids], pa.string()), type_codes)
-    return targets_table(
+    table = targets_table(
         meta, targets, np.concatenate([np.asarray(f.futures, np.float64) for f in done]),
         np.concatenate([np.broadcast_to(uniform, (n, k)) if f.scores is None else np.asarray(f.scores)
                         for f, n in zip(done, n_targets, strict=True)]),
         np.concatenate([np.broadcast_to(np.asarray(f.step_ns, np.int64), (n, t))
                         for f, n in zip(done, n_targets, strict=True)]))
+    if meta.out_of_distribution is None:
+        return table
+    return _with_ood(table, schema, done, k)
+
+
+def _with_ood(table: pa.Table, schema: pa.Schema, done: Sequence[SampleForecast], k: int) -> pa.Table:
+    """``table`` with the out-of-distribution columns, each target's values on its K rows (zeros and False for a
+    forecast without them)."""
+    parts = [f.ood if f.ood is not None else (np.zeros(len(f.track_ids)), np.zeros(len(f.track_ids), bool),
+                                              np.zeros(len(f.track_ids), bool)) for f in done]
+    columns = {"ood_score": pa.array(np.repeat(np.concatenate([p[0] for p in parts]).astype(np.float32), k)),
+               "ood_flag": pa.array(np.repeat(np.concatenate([p[1] for p in parts]).astype(bool), k)),
+               "fallback": pa.array(np.repeat(np.concatenate([p[2] for p in parts]).astype(bool), k))}
+    arrays = [table.column(f.name) if f.name in table.column_names else columns[f.name] for f in schema]
+    return pa.Table.from_arrays(arrays, schema=schema)
 
 
 @dataclass(frozen=True)
@@ -104,7 +126,8 @@ def targets_table(meta: PredictionMeta, targets: Targets, futures: NDArrayFloat,
     Args:
         futures: (N, K, T, 2) world metres; ``scores``: (N, K); ``step_ns``: (N, T) ns.
     """
-    schema = meta.schema()
+    # the contract's columns (``build_table`` adds the out-of-distribution ones of a run that has them)
+    schema = meta.schema() if meta.out_of_distribution is None else replace(meta, out_of_distribution=None).schema()
     k, t = meta.num_modes, meta.pred_len
     per_row = np.repeat(np.asarray(targets.sample_of, np.int32), k)
     n = len(targets.type_codes)

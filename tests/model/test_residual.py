@@ -14,6 +14,7 @@ import torch
 from logpipe.dataset.reader import Dataset
 from logpipe.errors import LogpipeError
 from logpipe.maps import MapSource
+from logpipe.model.baselines import KalmanCV
 from logpipe.model.checkpoint_meta import CheckpointError
 from logpipe.model.kinematic_prior import adaptive_fit
 from logpipe.model.residual_checkpoint import load_residual, save_residual
@@ -22,7 +23,7 @@ from logpipe.model.residual_fit import collect, evaluate, fit_residual, forecast
 from logpipe.model.residual_inputs import CROP_CHANNELS, CROP_UNIT, target_inputs
 from logpipe.model.residual_meta import ResidualMeta
 from logpipe.model.residual_net import ResidualNet
-from logpipe.model.residual_ood import ood_scores, training_distribution
+from logpipe.model.residual_ood import OodCheck, ood_scores, training_distribution, tune_fallback
 from logpipe.model.residual_predictor import ResidualPredictor
 from logpipe.raster.runs import find_raster_run
 from logpipe.stages.ingest import IngestOptions, ingest
@@ -141,24 +142,25 @@ def test_config_files_refuse_typos(tmp_path: Path) -> None:
         load_residual_config(typo)
 
 
-def test_out_of_distribution_targets_are_flagged_and_handled(scenes: list[SceneSample], tmp_path: Path) -> None:
+def test_out_of_distribution_targets_are_flagged_and_handled(scenes: list[SceneSample]) -> None:
     inputs, _ = collect(scenes, SMALL)
-    ood = training_distribution(inputs)
+    ood = training_distribution(inputs) | {"fallback_kalman": tune_fallback(inputs)}
     _, flags, _ = ood_scores(inputs, ood)
     assert flags.mean() < 0.02  # the training targets themselves are inside
     fast = _straight(40.0)  # faster than any car of the samples
     fast.object_types = np.array([OBJECT_TYPES.index("pedestrian")] * 3)
-    fast_inputs = target_inputs(fast, SMALL)
-    _, f_flags, reasons = ood_scores(fast_inputs, ood)
+    _, f_flags, reasons = ood_scores(target_inputs(fast, SMALL), ood)
     assert f_flags.all() and "speed_mps" in reasons[0] and "pedestrian" in reasons[0]
-    net = ResidualNet(SMALL)
-    meta = ResidualMeta(SMALL, "commonroad", "h", 1, {}, ood)
-    fallback = ResidualPredictor(net, meta, "fallback").predict([fast], 3, 0)[0]
-    assert fallback.shape == (1, 3, 30, 2)
-    np.testing.assert_array_equal(fallback[:, 0], fallback[:, 2])
-    assert ResidualPredictor(net, meta, "fallback").predict([fast], 3, 0) is not None
-    with pytest.raises(LogpipeError, match="outside this checkpoint's training data"):
-        ResidualPredictor(net, meta, "refuse").predict([fast], 3, 0)
-    warned = ResidualPredictor(net, meta, "warn")
-    warned.predict([fast, scenes[0]], 3, 0)
-    assert warned.last_ood.flags[0] and not warned.last_ood.fallback.any()
+    forecasts = ResidualPredictor(ResidualNet(SMALL), ResidualMeta(SMALL, "x", "h", 1, {}, ood)).predict(
+        [fast, scenes[0]], 3, 0)
+    checked, rows = OodCheck(ood, SMALL, "fallback")([fast, scenes[0]], forecasts)
+    kalman = KalmanCV(pred_len=30, **ood["fallback_kalman"]).predict([fast], 1, 0)[0]
+    assert rows[0][2].all() and not rows[1][2].any()
+    for mode in range(3):
+        np.testing.assert_allclose(checked[0][:, mode], kalman[:, 0])
+    np.testing.assert_array_equal(checked[1], forecasts[1])  # inside: the network's forecast, untouched
+    warned, rows = OodCheck(ood, SMALL, "warn")([fast], forecasts[:1])
+    assert rows[0][1].all() and not rows[0][2].any()
+    np.testing.assert_array_equal(warned[0], forecasts[0])
+    with pytest.raises(LogpipeError, match="outside the checkpoint's training data"):
+        OodCheck(ood, SMALL, "refuse")([fast], forecasts[:1])

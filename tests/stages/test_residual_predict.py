@@ -1,0 +1,80 @@
+"""``logpipe train`` with a residual config and ``logpipe predict`` with its checkpoint: the out-of-distribution
+columns and the Kalman fallback on a scenario three times as fast as the one it trained on."""
+
+from __future__ import annotations
+
+import json
+import xml.etree.ElementTree as ET
+from pathlib import Path
+
+import numpy as np
+import pyarrow.parquet as pq
+import pytest
+
+from logpipe import api
+from logpipe.errors import LogpipeError
+from logpipe.model.residual_meta import read_residual_meta
+
+DATA = Path(__file__).resolve().parents[1] / "data" / "commonroad"
+SCENARIO = DATA / "USA_Peach-4_8_T-1.xml"
+FAST = "USA_Peach-9_9_T-1"
+
+
+def _faster_copy(target: Path, factor: float = 3.0) -> None:
+    """The scenario with every position (cars and lanes) scaled by ``factor`` about the origin, speeds with them:
+    the same traffic three times as fast on a three times larger road."""
+    tree = ET.parse(SCENARIO)
+    root = tree.getroot()
+    root.set("benchmarkID", FAST)
+    for point in root.iter("point"):
+        for axis in ("x", "y"):
+            el = point.find(axis)
+            assert el is not None and el.text is not None
+            el.text = repr(float(el.text) * factor)
+    for velocity in root.iter("velocity"):
+        exact = velocity.find("exact")
+        if exact is not None and exact.text is not None:
+            exact.text = repr(float(exact.text) * factor)
+    tree.write(target)
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
+    work = tmp_path_factory.mktemp("residual_predict")
+    inputs = work / "in"
+    inputs.mkdir()
+    (inputs / SCENARIO.name).write_bytes(SCENARIO.read_bytes())
+    _faster_copy(inputs / "fast.xml")
+    api.ingest(inputs, out=work / "ds", mcap=False)
+    api.rasterise(work / "ds", rotate=True)
+    config = work / "residual.toml"
+    config.write_text("[residual]\nepochs = 3\nhidden = 32\nhead_hidden = 32\nmodes = 3\n")
+    summary = api.train(work / "ds", train_split="USA_Peach-4_8_T-1", val_split="USA_Peach-4_8_T-1",
+                        config=config, out=work / "run")
+    assert summary["steps"] > 0 and summary["environment_net"] and summary["best_val_min_fde"] > 0
+    return work / "ds", work / "run" / "best"
+
+
+def test_fast_targets_get_the_kalman_fallback_and_say_so(trained: tuple[Path, Path], tmp_path: Path) -> None:
+    dataset, checkpoint = trained
+    summary = api.predict(dataset, out=tmp_path / "pred", checkpoint=checkpoint, filters=[f"log={FAST}"],
+                          mcap=False, modes=4, out_of_distribution="fallback")
+    table = pq.read_table(tmp_path / "pred" / "predictions").to_pandas()
+    assert {"ood_score", "ood_flag", "fallback"} <= set(table.columns)
+    per_target = table.groupby(["sample_id", "track_id"]).agg(flag=("ood_flag", "first"), fell=("fallback", "first"))
+    flagged = int(per_target.flag.sum())
+    assert flagged > 0 and summary["targets_out_of_distribution"] == flagged == summary["targets_fallback"]
+    assert any("outside the checkpoint's training data" in w for w in summary["warnings"])
+    assert set(read_residual_meta(checkpoint).ood["fallback_kalman"]) == {"accel_std", "meas_std"}
+    fell = table[table.fallback]
+    for _, rows in fell.groupby(["sample_id", "track_id"]):
+        modes = np.stack(rows.sort_values("mode").x.to_list())
+        assert np.allclose(modes, modes[0])  # every mode is the one Kalman forecast
+    settings = json.loads((tmp_path / "pred" / "manifest.json").read_text())["settings"]
+    assert settings["out_of_distribution"] == "fallback"
+    with pytest.raises(LogpipeError, match="outside the checkpoint's training data"):
+        api.predict(dataset, out=tmp_path / "refused", checkpoint=checkpoint, filters=[f"log={FAST}"], mcap=False,
+                    out_of_distribution="refuse")
+    inside = api.predict(dataset, out=tmp_path / "inside", checkpoint=checkpoint,
+                         filters=["log=USA_Peach-4_8_T-1"], mcap=False, out_of_distribution="refuse")
+    assert inside["targets_out_of_distribution"] == 0 and inside["targets"] > 0
