@@ -23,6 +23,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from logpipe.raster.runs import find_raster_run
 from logpipe.stages.score import score
 from logpipe.stages.train import scene_samples
 from scripts.forecasts import write_classical, write_predictions
@@ -67,7 +68,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         timings["rasterise"] = time.perf_counter() - tr
     pred_len = ds.protocol.pred_len
     tp = time.perf_counter()
-    every = scene_samples(ds, "hash/train") + scene_samples(ds, "hash/val") + scene_samples(ds, "hash/test")
+    # the run plain `predict` reads (the one finished run): learned methods see the rasters predict gives them
+    rasters = None if args.no_maps else find_raster_run(ds.root, None, None)
+    every = [s for split in ("hash/train", "hash/val", "hash/test") for s in scene_samples(ds, split, rasters=rasters)]
     tune = scene_samples(ds, "hash/train")
     choice, grid = tune_sampler(tune, pred_len, K, args.seed)
     pdir = args.work / "predictions"

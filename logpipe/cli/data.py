@@ -29,6 +29,8 @@ from logpipe.cli.app import (
 
 MAP_FORMATS = ("argoverse1", "argoverse2")
 """Formats whose shipped model reads map rasters: their next step after ingest is rasterise."""
+OWN_MAP_FORMATS = ("commonroad",)
+"""Formats whose inputs carry their own map: rasterise needs no ``--maps``."""
 
 
 def ingest(  # noqa: PLR0913  typer command: one parameter per CLI option
@@ -101,7 +103,7 @@ def ingest_lines(s: dict[str, Any]) -> list[str]:
         e = q["error"]
         where = e["file"] + (f":{e['line']}" if e["line"] else "") + (f" field '{e['field']}'" if e["field"] else "")
         lines.append(f"  quarantined {where}: {e['reason']}")
-    lines += [f"  {line}" for line in summary_notes(s)]
+    lines += [f"  {line}" for line in summary_notes(s) + location_lines(s)]
     earlier = totals.get("quarantined", 0) - len(s["quarantined"])
     if earlier > 0 and not s.get("inputs_retried"):
         lines.append(f"  {earlier} inputs quarantined by an earlier run are skipped (--retry-quarantined reads them "
@@ -109,6 +111,8 @@ def ingest_lines(s: dict[str, Any]) -> list[str]:
     if s["quarantined"] or earlier > 0:
         lines.append(next_step(f"logpipe ingest INPUTS --out {ds} --retry-quarantined",
                                "after fixing the inputs or the options, e.g. --mapping"))
+    elif s["format"] in OWN_MAP_FORMATS:
+        lines.append(next_step(f"logpipe rasterise {ds} --rotate", "each log's own map; then logpipe predict"))
     elif s["format"] in MAP_FORMATS:
         lines.append(next_step(f"logpipe rasterise {ds} --maps MAPS_FOLDER --rotate",
                                "map rasters for the driving model; then logpipe predict"))
@@ -128,6 +132,16 @@ def summary_notes(summary: Mapping[str, Any]) -> list[str]:
                      f"with it{example} (--json lists them)")
     for reason, count in (summary.get("logs_without_samples") or {}).items():
         lines.append(f"{count} log{'s' if count != 1 else ''} gave no sample: {reason}")
+    return lines
+
+
+def location_lines(summary: Mapping[str, Any]) -> list[str]:
+    """One line per location (logs, tracks, windows, targets) and the tracks logs of one location share."""
+    lines = [f"{loc}: {c['logs']} logs, {c['tracks']:,} tracks, {c['windows']:,} windows, {c['targets']:,} targets"
+             for loc, c in (summary.get("by_location") or {}).items()]
+    if shared := summary.get("shared_tracks"):
+        lines.append(f"{shared['tracks']} tracks recur in another log of their location ({shared['pairs']} log "
+                     f"pairs): flagged in the logs' attributes (shared_tracks); keep such logs in one split")
     return lines
 
 
@@ -218,6 +232,10 @@ def rasterise_lines(s: dict[str, Any]) -> list[str]:
              f"there; {s['empty']:,} blank ({s['logs_without_map']} logs without a map, {s['blank_with_map']} off "
              f"their map) in {s.get('seconds', 0)} s",
              f"  rasters: {s['run_dir']} (shards, index, manifest.json)"]
+    road = s.get("road_vehicles") or {}
+    if road.get("observed"):
+        lines.append(f"  {road['share']:.2%} of {road['observed']:,} observed road-vehicle positions lie on drivable "
+                     "pixels (a check that each log met its own map)")
     if s["previews"]:
         lines.append(f"  previews: {Path(s['previews'][0]).parent}/ ({len(s['previews'])} PNG, e.g. "
                      f"{Path(s['previews'][0]).name})")

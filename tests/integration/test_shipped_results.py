@@ -56,3 +56,25 @@ def test_apolloscape_checkpoint_gives_its_results_through_plain_predict_and_scor
 def test_ethucy_checkpoint_gives_its_results_through_plain_predict_and_score(shared: Path, tmp_path: Path) -> None:
     got = _predict_and_score(shared / "ethucy", tmp_path, "eth/test")
     _same_numbers(got, json.loads((RESULTS / "ethucy.json").read_text())["scenes"]["eth"]["min1"]["zhu2020"])
+
+
+@pytest.mark.shared
+def test_argoverse_checkpoint_gives_its_results_row_through_plain_predict_and_score(shared: Path,
+                                                                                    tmp_path: Path) -> None:
+    """The held-out focal-agent row of docs/results/argoverse.md: plain ingest, rasterise (the shipped model reads
+    ego-centred rasters turned to the ego's heading), predict and score of hash/test give its numbers."""
+    av1 = shared / "argoverse1"
+    dataset, predictions = tmp_path / "dataset", tmp_path / "pred"
+    _logpipe("ingest", str(av1 / "data"), "--out", str(dataset), "--no-mcap")
+    _logpipe("rasterise", str(dataset), "--maps", str(av1 / "maps"), "--rotate")
+    summary = json.loads(_logpipe("predict", str(dataset), "--filter", "split=hash/test", "--out", str(predictions),
+                                  "--no-mcap", "--json"))
+    assert summary["predictor"] == "zhu2020" and not summary["warnings"]
+    report = json.loads(_logpipe("score", str(predictions), "--truth", str(dataset), "--split", "hash/test",
+                                 "--agents", "focal", "--out", str(tmp_path / "score"), "--no-plots", "--json"))
+    got = report["methods"]["zhu2020"]["overall"]
+    expected = json.loads((RESULTS / "argoverse.json").read_text())["hash_test"]["zhu2020"]
+    assert got["agents"] == expected["agents"] == 7
+    for k in ("k1", "k6"):
+        for metric in ("ade", "fde"):
+            assert got[k][metric] == pytest.approx(expected[k][metric], abs=1e-4), (k, metric)

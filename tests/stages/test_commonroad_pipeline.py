@@ -16,6 +16,7 @@ from mcap.reader import make_reader
 from typer.testing import CliRunner
 
 from logpipe.cli import app
+from logpipe.cli.data import ingest_lines
 from logpipe.dataset.reader import Dataset
 from logpipe.maps import MapSource, MapStore
 from logpipe.stages.ingest import IngestOptions, ingest
@@ -121,6 +122,12 @@ def test_the_same_cars_in_two_files_are_flagged_with_the_frame_offset(tmp_path: 
     assert shared["offset_m"] == [-100.5, 20.25] and shared["offset_s"] == -0.7
     earlier = json.loads(next(r for r in logs if r["log_id"] == "USA_Peach-4_8_T-1")["attributes"])
     assert "shared_tracks" not in earlier
+
+    # the human summary says the same, per location, and that rasterise needs no --maps for these logs
+    text = "\n".join(ingest_lines(summary))
+    assert f"USA_Peach: 2 logs, {2 * _cars(V2020)} tracks" in text
+    assert f"{moving} tracks recur in another log of their location (1 log pairs)" in text
+    assert f"next: logpipe rasterise {tmp_path / 'ds'} --rotate" in text
 
 
 def test_bad_file_exits_2_with_one_line_or_is_quarantined(tmp_path: Path) -> None:
