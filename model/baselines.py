@@ -123,13 +123,16 @@ class KalmanCV:
     def predict(self, samples: Sequence[SceneSample], num_modes: int, seed: int) -> list[NDArrayFloat]:
         """Deterministic: the filter's mean forecast repeated ``num_modes`` times."""
         del seed
-        out = []
-        for s in samples:
-            fut = self.predict_tracks(_observed(s)[0])
-            out.append(np.repeat(fut[:, None], num_modes, axis=1))
-        return out
+        return [np.repeat(self.filter_tracks(_observed(s)[0])[:, None], num_modes, axis=1) for s in samples]
 
-    def predict_tracks(self, observed: NDArrayFloat) -> NDArrayFloat:
+    def predict_tracks(self, observed: NDArrayFloat, num_modes: int) -> NDArrayFloat:
+        """(N, K, pred_len, 2): ``filter_tracks`` repeated as K equal modes (a read-only view), the columnar path
+        (``logpipe.prediction.columnar.TrackPredictor``)."""
+        fut = self.filter_tracks(observed)
+        modes: NDArrayFloat = np.broadcast_to(fut[:, None], (len(fut), num_modes, *fut.shape[1:]))
+        return modes
+
+    def filter_tracks(self, observed: NDArrayFloat) -> NDArrayFloat:
         """(N, pred_len, 2) forecasts of N tracks (N, T_obs, 2) world metres, NaN where unobserved."""
         obs = np.asarray(observed, np.float64)
         ok: NDArrayBool = np.all(np.isfinite(obs), axis=-1)

@@ -34,7 +34,7 @@ from .residual_config import ResidualConfig
 
 CROP_CHANNELS = ("drivable_area", "lane_centerline", "lane_boundary", "crossing", "lane_forward", "lane_left")
 """The crop's channels (the last two: the lanes' travel direction in the target's frame, x forward, y left)."""
-INPUTS_VERSION = 3
+INPUTS_VERSION = 4
 """Bumped whenever what ``target_inputs`` computes changes (cached inputs of an older version are not reused)."""
 CROP_UNIT = 127.0
 """A crop value of 1 is stored as this (int8)."""
@@ -54,7 +54,8 @@ class TargetInputs:
         origin: (N, 2) the frame's origin; rotation (N, 2, 2) world → target frame; scale (N,) L in metres.
         prior: (N, T_pred, 2) the prior's forecast; speed (N,) m/s; rate_hz (N,) the window's steps per second.
         truth: (N, T_pred, 2) float32 residual of the true future (frame, units of L), or None when unknown.
-        has_map: (N,) whether the crop holds any map (False: no raster, or off the map).
+        has_map: (N,) whether the raster draws any map within ~5 m of the target (False: no raster, or off it
+            or its map).
         window: (N,) the prior's fit window (steps).
         object_type: (N,) codes into ``OBJECT_TYPES``.
         motion: (N, 2) acceleration along the track (m/s^2) and yaw rate (rad/s) over the last 10 observed steps.
@@ -123,10 +124,8 @@ def target_inputs(sample: SceneSample, config: ResidualConfig, *, with_truth: bo
     prior = fit.forecast(config.pred_len)
     features = _target_features(observed, fit.origin, fit.velocity, fit.window, rotation, scale, speed)
     neighbours, mask = _neighbours(positions, targets, obs_len, fit.origin, rotation, scale, rate, config)
-    if config.environment:
-        crops, has_map = _crops(sample, fit.origin, theta, config)
-    else:
-        crops, has_map = None, _map_under(sample, fit.origin)
+    crops = _crops(sample, fit.origin, theta, config) if config.environment else None
+    has_map = _map_under(sample, fit.origin)  # one definition with or without crops: the OOD check compares them
     truth = None
     if with_truth:
         future = positions[targets, obs_len:obs_len + config.pred_len]
@@ -256,7 +255,8 @@ def _neighbours(positions: NDArrayFloat, targets: np.ndarray, obs_len: int, orig
 
 
 def _map_under(sample: SceneSample, xy: NDArrayFloat) -> NDArrayBool:
-    """(N,) whether the raster has any map within ~5 m of each point (False without a raster)."""
+    """(N,) whether the raster (every channel is map) draws anything within ~5 m of each point (False without a
+    raster, or off it)."""
     if sample.raster is None or sample.world_to_raster is None:
         return np.zeros(len(xy), bool)
     raster = np.asarray(sample.raster)
@@ -268,15 +268,14 @@ def _map_under(sample: SceneSample, xy: NDArrayFloat) -> NDArrayBool:
                      if -r <= u < size[1] + r and -r <= v < size[0] + r else False for u, v in uv.tolist()])
 
 
-def _crops(sample: SceneSample, origin: NDArrayFloat, theta: NDArrayFloat, config: ResidualConfig
-           ) -> tuple[np.ndarray, NDArrayBool]:
+def _crops(sample: SceneSample, origin: NDArrayFloat, theta: NDArrayFloat, config: ResidualConfig) -> np.ndarray:
     """(N, 6, P, P) int8 crops of the sample's raster in each target's frame (``TargetInputs.crops``; zeros
     without a raster)."""
     p = config.crop_px
     n = len(origin)
     crops = np.zeros((n, len(CROP_CHANNELS), p, p), np.int8)
     if sample.raster is None or sample.world_to_raster is None:
-        return crops, np.zeros(n, bool)
+        return crops
     raster = np.asarray(sample.raster)
     affine = np.asarray(sample.world_to_raster, np.float64)
     inverse = np.linalg.inv(affine[:, :2])
@@ -306,4 +305,4 @@ def _crops(sample: SceneSample, origin: NDArrayFloat, theta: NDArrayFloat, confi
         fx, fy = got[4], got[5]  # world direction → the target's frame (x forward, y left)
         got[4], got[5] = c * fx + s * fy, -s * fx + c * fy
         crops[row] = np.rint(np.clip(got, -1.0, 1.0) * CROP_UNIT).astype(np.int8)
-    return crops, crops[:, :4].reshape(n, -1).max(axis=1) > 0
+    return crops

@@ -5,7 +5,8 @@ A checkpoint records (``meta.json`` ``ood``) of its training targets: the 0.1 % 
 (m/s), acceleration along the track (m/s^2) and yaw rate (rad/s); the frame rates (Hz); the agent types with their
 counts; and the share of targets with a map under them. A target's score is the largest excess over those ranges
 in units of the range's width (0 inside), plus 1 for an agent type or a frame rate (beyond 5 %) the training
-never had, and 1 for a target without a map when at least half the training targets had one. A target is flagged
+never had, and 1 for a target without a map when fewer than ``UNSEEN_SHARE`` of the training targets lacked one
+(the network has learnt to forecast without a map only if it saw enough targets without one). A target is flagged
 when its score exceeds ``FLAG_SCORE`` (a quarter of a range beyond, or any unseen type or rate, or no map). The
 reasons name the descriptors that put it there.
 
@@ -36,6 +37,8 @@ FLAG_SCORE = 0.25
 """Scores above this are flagged."""
 RATE_TOLERANCE = 0.05
 """A frame rate within this relative difference of a training rate is a training rate."""
+UNSEEN_SHARE = 0.01
+"""A condition rarer than this among the training targets (a target without a map under it) counts as never seen."""
 _NUMERIC = ("speed_mps", "accel_mps2", "yaw_rate_rps")
 
 
@@ -78,7 +81,7 @@ def ood_scores(inputs: TargetInputs, ood: dict[str, Any]) -> tuple[NDArrayFloat,
         if not len(rates) or np.min(np.abs(rates - rate) / rates) > RATE_TOLERANCE:
             score[i] += 1.0
             reasons[i].append(f"frame rate {rate:g} Hz not in training {rates.tolist()}")
-        if ood["map_share"] >= 0.5 and not inputs.has_map[i]:
+        if ood["map_share"] > 1.0 - UNSEEN_SHARE and not inputs.has_map[i]:
             score[i] += 1.0
             reasons[i].append("no map under the target")
     return score, score > FLAG_SCORE, ["; ".join(r) for r in reasons]
@@ -100,7 +103,7 @@ def tune_fallback(inputs: TargetInputs, max_targets: int = 20_000, seed: int = 0
     pred_len = truth.shape[1]
 
     def fde(q: float, r: float) -> float:
-        forecast = KalmanCV(pred_len=pred_len, accel_std=q, meas_std=r).predict_tracks(part.observed)
+        forecast = KalmanCV(pred_len=pred_len, accel_std=q, meas_std=r).filter_tracks(part.observed)
         return float(np.nanmean(np.linalg.norm(forecast[:, -1] - truth[:, -1], axis=1)))
 
     q, r = min(FALLBACK_GRID, key=lambda g: fde(*g))
@@ -139,7 +142,7 @@ class OodCheck:
             replaced = flags & (self.action == "fallback")
             future = np.array(given, np.float64, copy=True)
             if replaced.any():
-                future[replaced] = kalman.predict_tracks(inputs.observed[replaced])[:, None, : future.shape[2]]
+                future[replaced] = kalman.filter_tracks(inputs.observed[replaced])[:, None, : future.shape[2]]
             out.append(future)
             rows.append((scores, flags, replaced))
         return out, rows

@@ -3,6 +3,7 @@ the error on real scenarios, checkpoints round-trip and refuse damage, out-of-di
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import shutil
 from pathlib import Path
@@ -164,3 +165,19 @@ def test_out_of_distribution_targets_are_flagged_and_handled(scenes: list[SceneS
     np.testing.assert_array_equal(warned[0], forecasts[0])
     with pytest.raises(LogpipeError, match="outside the checkpoint's training data"):
         OodCheck(ood, SMALL, "refuse")([fast], forecasts[:1])
+
+
+def test_a_target_off_the_map_is_flagged_only_where_training_never_had_one(scenes: list[SceneSample]) -> None:
+    sample = scenes[0]
+    # one definition of "a map under the target", with crops (training) or without (the OOD check)
+    with_crops = target_inputs(sample, dataclasses.replace(SMALL, environment=True))
+    without = target_inputs(sample, dataclasses.replace(SMALL, environment=False))
+    np.testing.assert_array_equal(with_crops.has_map, without.has_map)
+    assert with_crops.has_map.all()
+    off_map = target_inputs(dataclasses.replace(sample, raster=None), SMALL)
+    assert not off_map.has_map.any()
+    ood = training_distribution(with_crops)
+    assert ood["map_share"] == 1.0
+    assert ood_scores(off_map, ood)[1].all()  # never trained without a map: flagged
+    assert "no map under the target" in ood_scores(off_map, ood)[2][0]
+    assert not ood_scores(off_map, ood | {"map_share": 0.9})[1].any()  # 10 % of training had none: inside

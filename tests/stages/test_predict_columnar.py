@@ -18,13 +18,14 @@ from logpipe.stages.ingest import IngestOptions, ingest
 COUNTS = ("samples", "rows", "targets", "targets_unobserved", "samples_without_targets", "shards", "logs_selected")
 
 
-@pytest.mark.parametrize(("name", "filters", "mcap"), [
-    ("ethucy", [], False), ("argoverse1", [], False), ("ethucy", ["type=pedestrian"], False),
-    ("argoverse1", ["type=cyclist"], False), ("ethucy", [], True), ("argoverse1", [], True),
+@pytest.mark.parametrize(("name", "filters", "mcap", "predictor"), [
+    ("ethucy", [], False, "cv"), ("argoverse1", [], False, "cv"), ("ethucy", ["type=pedestrian"], False, "cv"),
+    ("argoverse1", ["type=cyclist"], False, "cv"), ("ethucy", [], True, "cv"), ("argoverse1", [], True, "cv"),
+    ("argoverse1", [], False, "kalman"),
 ])
-def test_columnar_cv_writes_the_per_sample_bytes(folder_digests: Callable[[Path], dict[str, str]], bundled: Path,
-                                                 tmp_path: Path, monkeypatch: pytest.MonkeyPatch, name: str,
-                                                 filters: list[str], mcap: bool) -> None:
+def test_columnar_path_writes_the_per_sample_bytes(folder_digests: Callable[[Path], dict[str, str]], bundled: Path,
+                                                   tmp_path: Path, monkeypatch: pytest.MonkeyPatch, name: str,
+                                                   filters: list[str], mcap: bool, predictor: str) -> None:
     ingest([bundled / name], IngestOptions(out=tmp_path / "d", workers=1, write_mcap=mcap))
     monkeypatch.setattr(output, "ROW_GROUP_ROWS", 1000)  # several row groups, cut inside samples
     monkeypatch.setattr(columnar, "CHUNK_SAMPLES", 7)
@@ -38,7 +39,7 @@ def test_columnar_cv_writes_the_per_sample_bytes(folder_digests: Callable[[Path]
             yield chunk
 
     monkeypatch.setattr(columnar, "chunk_rows", counted)
-    settings: dict[str, Any] = {"predictor": "cv", "write_mcap": mcap, "sample_filter": parse_filter(filters),
+    settings: dict[str, Any] = {"predictor": predictor, "write_mcap": mcap, "sample_filter": parse_filter(filters),
                                 "batch_size": 5}
     fast = stage.predict_dataset(tmp_path / "d", tmp_path / "columnar", **settings)
     assert chunks > 0
