@@ -8,7 +8,7 @@ OUT ?= out
 SHARED ?= ../shared/data
 ETHUCY_SCENES := eth hotel univ zara1 zara2
 
-.PHONY: setup demo test bench lint clean train-ethucy train-apolloscape train-ethucy-paper train-apolloscape-paper reproduce-ethucy reproduce-apolloscape reproduce-argoverse reproduce-driving replica-cost scaling fuzz synthetic-map-check synthetic-pretrain
+.PHONY: setup demo test bench lint clean train-driving train-ethucy train-apolloscape train-ethucy-paper train-apolloscape-paper reproduce-ethucy reproduce-apolloscape reproduce-argoverse reproduce-driving replica-cost scaling fuzz synthetic-map-check synthetic-pretrain
 
 # torch first and pinned: a looser pin would pull a multi-GB CUDA build; 2.13.0 is a local CPU wheel here.
 # The installers' output goes to $(INSTALL_LOG), named (and its end shown) only when a step fails.
@@ -119,6 +119,22 @@ preset_flag = $(if $(filter noise_lstm,$(1)),--preset baseline,$(if $(filter lst
 # copy_best(run, dest): replace only the files of the checkpoint in dest, so baselines nested in it survive.
 copy_best = mkdir -p $(2) && find $(2) -maxdepth 1 -type f -delete && cp $(1)/best/* $(1)/train_log.jsonl $(2)/ \
 	&& cp $(1).json $(2)/train_summary.json
+
+# predict's default for Argoverse 1, AV2 and CommonRoad data (model/checkpoints/argoverse/residual): the residual
+# model trained on hash/train of all six real locations (scripts/driving_targets.py builds the same datasets for
+# the leave-one-location-out run, `python -m scripts.driving_lolo`); ~0.3 core-hours.
+DRIVING := $(OUT)/driving_residual
+train-driving: setup
+	$(LP) -q ingest $(SHARED)/argoverse1/data --out $(DRIVING)/av1 --protocol argoverse \
+		--targets fully_observed_no_ego --no-mcap
+	$(LP) -q ingest $(SHARED)/av2 --out $(DRIVING)/av2 --protocol argoverse2 --obs 20 --pred 30 --window sliding \
+		--stride 10 --targets fully_observed_no_ego --target-types vehicle,bus_truck --no-mcap
+	$(LP) -q ingest $(SHARED)/commonroad/ngsim --out $(DRIVING)/ngsim --no-mcap
+	$(LP) -q rasterise $(DRIVING)/av1 --maps $(SHARED)/argoverse1/maps --rotate
+	$(LP) -q rasterise $(DRIVING)/av2 --maps $(SHARED)/av2 --rotate
+	$(LP) -q rasterise $(DRIVING)/ngsim --rotate
+	$(LP) train $(DRIVING)/av1 $(DRIVING)/av2 $(DRIVING)/ngsim --config configs/driving_residual.toml \
+		--train-split hash/train --val-split hash/val --out $(OUT)/checkpoints/argoverse/residual
 
 train-ethucy: setup
 	$(VENV)/bin/logpipe ingest $(SHARED)/ethucy --out $(OUT)/ethucy --no-mcap

@@ -16,6 +16,10 @@ Parts, named after the paper's where they play the same role:
 
 Residuals are (T_pred, 2) in the target's frame in units of its scale L; all heads start at zero, so an untrained
 network is the prior exactly, and a network that has learned nothing for a situation stays near it.
+
+At inference a target's forecast does not depend on the batch it shares (issue 35's promise, kept as for the
+paper's network): every linear layer runs ``row_blocks.row_mm`` (``RowLinear``, same parameters and keys) and the
+environment CNN runs on zero-padded blocks of a fixed ``CONV_BLOCK`` crops, so every convolution sees one shape.
 """
 
 from __future__ import annotations
@@ -25,6 +29,11 @@ from torch import Tensor, nn
 
 from .residual_config import ResidualConfig
 from .residual_inputs import CROP_CHANNELS, feature_width, neighbour_width
+from .row_blocks import RowLinear
+
+CONV_BLOCK = 32
+"""Crops per environment-net call at inference: oneDNN picks a convolution's algorithm by the batch size, so
+every call gets this one shape (the tail zero-padded)."""
 
 
 class ResidualNet(nn.Module):
@@ -34,9 +43,9 @@ class ResidualNet(nn.Module):
         super().__init__()
         self.config = config
         h, t = config.hidden, config.pred_len
-        self.target = nn.Sequential(nn.Linear(feature_width(config), h), nn.ReLU(), nn.Linear(h, h), nn.ReLU())
-        self.neighbour = nn.Sequential(nn.Linear(neighbour_width(config), h // 2), nn.ReLU(),
-                                       nn.Linear(h // 2, h // 2), nn.ReLU())
+        self.target = nn.Sequential(RowLinear(feature_width(config), h), nn.ReLU(), RowLinear(h, h), nn.ReLU())
+        self.neighbour = nn.Sequential(RowLinear(neighbour_width(config), h // 2), nn.ReLU(),
+                                       RowLinear(h // 2, h // 2), nn.ReLU())
         width = h + h // 2
         self.environment: nn.Sequential | None = None
         if config.environment:
@@ -44,13 +53,13 @@ class ResidualNet(nn.Module):
             self.environment = nn.Sequential(
                 nn.Conv2d(len(CROP_CHANNELS), 32, 3, 2, 1), nn.ReLU(), nn.Conv2d(32, 64, 3, 2, 1), nn.ReLU(),
                 nn.Conv2d(64, 64, 3, 2, 1), nn.ReLU(), nn.Conv2d(64, 64, 3, 2, 1), nn.ReLU(), nn.Flatten(),
-                nn.Linear(64 * cells * cells, h), nn.ReLU())
+                RowLinear(64 * cells * cells, h), nn.ReLU())
             width += h
         g = config.head_hidden
-        self.fuse = nn.Sequential(nn.Linear(width, g), nn.ReLU(), nn.Linear(g, g), nn.ReLU())
-        self.mean = nn.Linear(g, t * 2)
-        self.modes = nn.Linear(g, config.modes * t * 2)
-        self.logits = nn.Linear(g, config.modes)
+        self.fuse = nn.Sequential(RowLinear(width, g), nn.ReLU(), RowLinear(g, g), nn.ReLU())
+        self.mean = RowLinear(g, t * 2)
+        self.modes = RowLinear(g, config.modes * t * 2)
+        self.logits = RowLinear(g, config.modes)
         for head in (self.mean, self.modes):  # start at the prior
             nn.init.zeros_(head.weight)
             nn.init.zeros_(head.bias)
@@ -64,10 +73,21 @@ class ResidualNet(nn.Module):
         if self.environment is not None:
             if crops is None:
                 raise ValueError("the environment net needs crops")
-            parts.append(self.environment(crops))
+            parts.append(self._environment(crops))
         z = self.fuse(torch.cat(parts, dim=1))
         t, k = self.config.pred_len, self.config.modes
         return self.mean(z).view(-1, t, 2), self.modes(z).view(-1, k, t, 2), self.logits(z)
+
+
+    def _environment(self, crops: Tensor) -> Tensor:
+        assert self.environment is not None
+        if torch.is_grad_enabled() or not len(crops):
+            return self.environment(crops)  # type: ignore[no-any-return]
+        rows = len(crops)
+        padded = crops.new_zeros(rows + (-rows) % CONV_BLOCK, *crops.shape[1:])
+        padded[:rows] = crops
+        blocks = [self.environment(padded[lo : lo + CONV_BLOCK]) for lo in range(0, len(padded), CONV_BLOCK)]
+        return torch.cat(blocks)[:rows]
 
 
 def displacement_errors(residual: Tensor, truth: Tensor, scale: Tensor) -> Tensor:

@@ -173,7 +173,7 @@ def main(argv: list[str] | None = None) -> int:
         m[f"rasterise_w{workers}_s"], rs = timed(partial(rasterise, ds, maps=[args.maps], rotate=True,
                                                          workers=workers))
     m["samples"] = int(rs["samples"])
-    ckpt = CHECKPOINTS / "argoverse" / "zhu2020"
+    ckpt = CHECKPOINTS / "argoverse" / "paper"
     for threads in (1, 2):
         m[f"predict_full_t{threads}_s"], ps = timed(partial(predict, ds, out=args.work / f"pred_full{threads}",
                                                             checkpoint=ckpt, mcap=False, threads=threads))

@@ -116,7 +116,7 @@ def stage_commands(csv: Path, maps: Path, work: Path, backend: str, workers: int
     }
     if full_logs is not None:
         commands["predict_full"] = ["predict", str(ds), "--out", str(work / "full"), "--no-mcap", "--checkpoint",
-                                    str(CHECKPOINTS / "argoverse" / "zhu2020"), "--filter",
+                                    str(CHECKPOINTS / "argoverse" / "paper"), "--filter",
                                     "log=" + ",".join(full_logs), *forecasters]
     return commands
 
@@ -444,7 +444,7 @@ def main(argv: list[str] | None = None) -> int:
     r["independent"] = merge_rounds([one["independent"] for one in rounds])
     r["ray_overhead"] = {s: round(statistics.median(one["ray_overhead"][s] for one in rounds), 2) for s in STAGES}
     r["ray_overhead_rounds"] = {s: [one["ray_overhead"][s] for one in rounds] for s in STAGES}
-    r["flops"] = flops_per_sample(CHECKPOINTS / "argoverse" / "zhu2020", args.work / "tiny_local" / "dataset")
+    r["flops"] = flops_per_sample(CHECKPOINTS / "argoverse" / "paper", args.work / "tiny_local" / "dataset")
     r["load_after"] = os.getloadavg()
     r["seconds"] = time.perf_counter() - started
     args.out.parent.mkdir(parents=True, exist_ok=True)

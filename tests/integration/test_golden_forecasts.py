@@ -28,6 +28,8 @@ from typer.testing import CliRunner
 from logpipe.cli import app
 from logpipe.model.backbone import backbone_runs_bf16
 from logpipe.model.checkpoint_meta import read_meta
+from logpipe.model.registry import RESIDUAL_KIND
+from logpipe.model.residual_meta import model_kind
 from logpipe.prediction.runs import PredictionRun
 
 REPO = Path(__file__).resolve().parents[2]
@@ -67,7 +69,7 @@ def _forecasts(checkpoint: Path, data: Path, filters: list[str], out: Path) -> n
 
 def test_shipped_checkpoints_predict_the_pinned_forecasts(datasets: dict[str, tuple[Path, list[str]]],
                                                           tmp_path: Path) -> None:
-    assert len(CHECKPOINTS) >= 10 and Path("argoverse/zhu2020") in CHECKPOINTS
+    assert len(CHECKPOINTS) >= 11 and {Path("argoverse/paper"), Path("argoverse/residual")} <= set(CHECKPOINTS)
     got = {}
     for i, ckpt in enumerate(CHECKPOINTS):
         data, filters = datasets[ckpt.parts[0]]
@@ -94,7 +96,10 @@ def test_shipped_checkpoints_predict_the_pinned_forecasts(datasets: dict[str, tu
 
 
 def _arithmetic(checkpoint: Path) -> str:
-    """``@bf16`` where the checkpoint's backbone runs in bf16 on this CPU, else ''."""
+    """``@bf16`` where the checkpoint's backbone runs in bf16 on this CPU, else '' (the residual model has no
+    backbone: fp32 everywhere)."""
+    if model_kind(SHIPPED / checkpoint) == RESIDUAL_KIND:
+        return ""
     return "@bf16" if backbone_runs_bf16(read_meta(SHIPPED / checkpoint).config.model) else ""
 
 

@@ -14,6 +14,7 @@ import pytest
 
 REPO = Path(__file__).resolve().parents[2]
 RESULTS = REPO / "docs" / "results"
+SHIPPED = REPO / "model" / "checkpoints"
 
 
 def _logpipe(*args: str) -> str:
@@ -59,22 +60,26 @@ def test_ethucy_checkpoint_gives_its_results_through_plain_predict_and_score(sha
 
 
 @pytest.mark.shared
-def test_argoverse_checkpoint_gives_its_results_row_through_plain_predict_and_score(shared: Path,
-                                                                                    tmp_path: Path) -> None:
-    """The held-out focal-agent row of docs/results/argoverse.md: plain ingest, rasterise (the shipped model reads
-    ego-centred rasters turned to the ego's heading), predict and score of hash/test give its numbers."""
+def test_argoverse_checkpoints_give_their_results_rows_through_plain_predict_and_score(shared: Path,
+                                                                                      tmp_path: Path) -> None:
+    """The held-out focal-agent rows of docs/results/argoverse.md: plain ingest, rasterise (both driving models read
+    ego-centred rasters turned to the ego's heading), predict (the default, the residual model; and the paper's
+    network by --checkpoint) and score of hash/test give their numbers."""
     av1 = shared / "argoverse1"
-    dataset, predictions = tmp_path / "dataset", tmp_path / "pred"
+    dataset = tmp_path / "dataset"
     _logpipe("ingest", str(av1 / "data"), "--out", str(dataset), "--no-mcap")
     _logpipe("rasterise", str(dataset), "--maps", str(av1 / "maps"), "--rotate")
-    summary = json.loads(_logpipe("predict", str(dataset), "--filter", "split=hash/test", "--out", str(predictions),
-                                  "--no-mcap", "--json"))
-    assert summary["predictor"] == "zhu2020" and not summary["warnings"]
-    report = json.loads(_logpipe("score", str(predictions), "--truth", str(dataset), "--split", "hash/test",
-                                 "--agents", "focal", "--out", str(tmp_path / "score"), "--no-plots", "--json"))
-    got = report["methods"]["zhu2020"]["overall"]
-    expected = json.loads((RESULTS / "argoverse.json").read_text())["hash_test"]["zhu2020"]
-    assert got["agents"] == expected["agents"] == 7
-    for k in ("k1", "k6"):
-        for metric in ("ade", "fde"):
-            assert got[k][metric] == pytest.approx(expected[k][metric], abs=1e-4), (k, metric)
+    expected = json.loads((RESULTS / "argoverse.json").read_text())["hash_test"]
+    for method, choice in (("residual", []), ("zhu2020", ["--checkpoint", str(SHIPPED / "argoverse" / "paper")])):
+        predictions = tmp_path / f"pred-{method}"
+        summary = json.loads(_logpipe("predict", str(dataset), *choice, "--filter", "split=hash/test", "--out",
+                                      str(predictions), "--no-mcap", "--json"))
+        assert summary["predictor"] == method and not any("trained" in w for w in summary["warnings"])
+        report = json.loads(_logpipe("score", str(predictions), "--truth", str(dataset), "--split", "hash/test",
+                                     "--agents", "focal", "--out", str(tmp_path / f"score-{method}"), "--no-plots",
+                                     "--json"))
+        got = report["methods"][method]["overall"]
+        assert got["agents"] == expected[method]["agents"] == 7
+        for k in ("k1", "k6"):
+            for metric in ("ade", "fde"):
+                assert got[k][metric] == pytest.approx(expected[method][k][metric], abs=1e-4), (method, k, metric)

@@ -64,7 +64,7 @@ def test_scoring_run_over_the_real_logs_counts_windows_by_log_split(shared: Path
 def test_learned_rows_name_the_seeds_that_finished(shared: Path, tmp_path: Path) -> None:
     # A finished run for seed 1 only (the shipped full model stands in for it); seed 0 never ran.
     run = tmp_path / "runs" / "full"
-    shutil.copytree(REPO / "model" / "checkpoints" / "argoverse" / "zhu2020", run / "seed1" / "best")
+    shutil.copytree(REPO / "model" / "checkpoints" / "argoverse" / "paper", run / "seed1" / "best")
     (run / "seed1.json").write_text(json.dumps({"seconds": 30.0, "seconds_total": 90.0}))
     code = main(["--av1", str(shared / "argoverse1" / "data"), "--av1-maps", str(shared / "argoverse1" / "maps"),
                  "--av2", str(shared / "av2"), "--work", str(tmp_path / "work"), "--runs", str(tmp_path / "runs"),

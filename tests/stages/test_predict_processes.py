@@ -14,7 +14,8 @@ from logpipe.stages.ingest import IngestOptions, ingest
 from logpipe.stages.predict import predict_dataset
 
 DATA = Path(__file__).resolve().parents[1] / "data"
-ETH_CHECKPOINT = Path(__file__).resolve().parents[2] / "model" / "checkpoints" / "ethucy" / "eth"
+SHIPPED = Path(__file__).resolve().parents[2] / "model" / "checkpoints"
+ETH_CHECKPOINT = SHIPPED / "ethucy" / "eth"
 
 
 def test_eth_network_in_two_processes_writes_the_bytes_of_one(folder_digests: Callable[[Path], dict[str, str]],
@@ -34,13 +35,18 @@ def test_eth_network_in_two_processes_writes_the_bytes_of_one(folder_digests: Ca
     assert folder_digests(tmp_path / "two") == files
 
 
+@pytest.mark.parametrize(("checkpoint", "predictor"),
+                         [(None, "residual"), (SHIPPED / "argoverse" / "paper", "zhu2020")])
 def test_driving_model_over_rasters_in_two_processes_writes_the_bytes_of_one(
-        folder_digests: Callable[[Path], dict[str, str]], driving_rasterised: Path, tmp_path: Path) -> None:
+        folder_digests: Callable[[Path], dict[str, str]], driving_rasterised: Path, tmp_path: Path,
+        checkpoint: Path | None, predictor: str) -> None:
     data = driving_rasterised
-    # The shipped Argoverse checkpoint (environment net on the rasters); its MCAPs carry the raster images.
-    one = predict_dataset(data, tmp_path / "one", workers=1, batch_size=1, threads=1)
-    two = predict_dataset(data, tmp_path / "two", workers=2, batch_size=1, threads=1)
-    assert one["predictor"] == "zhu2020" and one["raster_run"] is not None
+    # The shipped Argoverse checkpoints, predict's default and the paper's network (both read the rasters with an
+    # environment net); their MCAPs carry the raster images.
+    settings = {"checkpoint": checkpoint, "batch_size": 1, "threads": 1}
+    one = predict_dataset(data, tmp_path / "one", workers=1, **settings)
+    two = predict_dataset(data, tmp_path / "two", workers=2, **settings)
+    assert one["predictor"] == predictor and one["raster_run"] is not None
     assert two["samples"] == one["samples"] == 2 and two["mcap_files"] == one["mcap_files"] == 2
     assert folder_digests(tmp_path / "two") == folder_digests(tmp_path / "one")
 
@@ -81,7 +87,8 @@ def test_driving_shard_jobs_carry_their_own_rasters(folder_digests: Callable[[Pa
     from logpipe.maps import MapSource
     from logpipe.stages.rasterise import rasterise_dataset
 
-    # A shard per sequence, so each worker gets one shard and only that shard's raster (environment net on it).
+    # A shard per sequence, so each worker gets one shard and only that shard's raster (the default model's
+    # environment net reads it).
     driving = DATA / "driving"
     ingest([driving / "20.csv", driving / "32.csv"], IngestOptions(out=tmp_path / "av1", batch_files=1))
     rasterise_dataset(tmp_path / "av1", MapSource(files={"MIA": driving / "MIA_lane_centerlines_crop_20.npz",
@@ -100,7 +107,7 @@ def test_driving_shard_jobs_carry_their_own_rasters(folder_digests: Callable[[Pa
 
     monkeypatch.setattr(ray_predict, "_in_processes", counting)
     two = predict_dataset(tmp_path / "av1", tmp_path / "two", workers=2, batch_size=1, threads=1)
-    assert one["predictor"] == "zhu2020" and one["shards"] == 2 and shipped == [1, 1]
+    assert one["predictor"] == "residual" and one["shards"] == 2 and shipped == [1, 1]
     assert two["samples"] == one["samples"] == 2 and two["mcap_files"] == 2
     assert folder_digests(tmp_path / "two") == folder_digests(tmp_path / "one")
 

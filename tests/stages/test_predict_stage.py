@@ -26,9 +26,9 @@ FRAME_STEP = 10  # ETH/UCY frame numbers advance by 10 per 0.4 s step
 SUMMARY_KEYS = [
     "dataset", "out", "predictor", "checkpoint_id", "num_modes", "seed", "checkpoint", "raster_run", "inference",
     "warnings", "protocol", "logs_selected", "samples_selected", "shards_skipped_done", "samples", "targets", "rows",
-    "targets_unobserved", "samples_without_targets", "mcap_files", "original_messages", "model_seconds",
-    "io_seconds", "io_wait_seconds", "io_busy_seconds", "device", "backend", "shards", "rows_total", "seconds",
-    "samples_per_s",
+    "targets_unobserved", "samples_without_targets", "targets_out_of_distribution", "targets_fallback", "mcap_files",
+    "original_messages", "model_seconds", "io_seconds", "io_wait_seconds", "io_busy_seconds", "device", "backend",
+    "shards", "rows_total", "seconds", "samples_per_s",
 ]
 
 
