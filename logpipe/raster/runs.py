@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import hashlib
 import json
-from pathlib import Path
+from pathlib import Path, PurePath
 from typing import Any, TypedDict
 
 import numpy as np
@@ -112,9 +112,17 @@ def index_file(i: int, tag: str) -> str:
     return f"index-{tag}-{i:05d}.parquet"
 
 
+def _by_content(identity: dict[str, Any]) -> dict[str, Any]:
+    """``identity`` with its maps keyed by file name, not path: the same map files reached by another path
+    (``../data`` against ``/work/data``, a moved folder) are the same inputs, while two files that swapped their
+    contents are not."""
+    maps = identity.get("maps") or {}
+    return {**identity, "maps": sorted((PurePath(path).name, digest) for path, digest in maps.items())}
+
+
 def inputs_tag(identity: RasterRunIdentity) -> str:
-    """Short hash of a run's input identity (sample index, map files, shard size)."""
-    return hashlib.sha256(json.dumps(identity, sort_keys=True).encode()).hexdigest()[:8]
+    """Short hash of a run's input identity (sample index, map files by content, shard size)."""
+    return hashlib.sha256(json.dumps(_by_content(dict(identity)), sort_keys=True).encode()).hexdigest()[:8]
 
 
 def run_settings(spec: RasterSpec, centre: str) -> RasterRunSettings:
@@ -255,11 +263,11 @@ class RasterRunWriter(FolderWriter):
         manifest, out = self._writer.manifest, self.root
         if manifest is None:
             return {}
-        old = manifest.get("identity")
-        if old != json.loads(json.dumps(identity)):
+        old = _by_content(manifest.get("identity") or {})
+        if old != _by_content(json.loads(json.dumps(identity))):
             if force:
                 return {}
-            changed = sorted(k for k, v in identity.items() if (old or {}).get(k) != v)
+            changed = sorted(k for k, v in _by_content(dict(identity)).items() if old.get(k) != v)
             was = f" (shard size was {(old or {}).get('shard_size')})" if "shard_size" in changed else ""
             raise DatasetError(f"{out} holds rasters made with other {', '.join(changed) or 'inputs'}{was}; "
                                "rerun with --force to replace them")

@@ -101,10 +101,23 @@ def test_rerun_skips_and_repairs_identically(dataset: Path) -> None:
 def test_stale_run_is_refused_then_replaced_with_force(dataset: Path, tmp_path: Path) -> None:
     maps = MapSource(roots=(DATA,))
     rasterise_dataset(dataset, maps, centre="focal", rotate=False)
+    moved = tmp_path / "moved"
+    moved.mkdir()
     other = tmp_path / "maps"
     other.mkdir()
     for name in ("MIA_lane_centerlines_crop_2645.npz", "PIT_lane_centerlines_crop_3861.npz"):
+        shutil.copy(DATA / name, moved / name)
         shutil.copy(DATA / name, other / name.replace("crop", "copy"))
+    # the same map files reached by another path are the same inputs: nothing to redo, no refusal
+    again = rasterise_dataset(dataset, MapSource(roots=(moved,)), centre="focal", rotate=False)
+    assert again["rendered"] == 0 and again["skipped_existing"] == 2
+    # two files that swapped their contents are not
+    mia, pit = moved / "MIA_lane_centerlines_crop_2645.npz", moved / "PIT_lane_centerlines_crop_3861.npz"
+    mia_bytes = mia.read_bytes()
+    mia.write_bytes(pit.read_bytes())
+    pit.write_bytes(mia_bytes)
+    with pytest.raises(DatasetError, match="made with other maps"):
+        rasterise_dataset(dataset, MapSource(roots=(moved,)), centre="focal", rotate=False)
     with np.load(other / "PIT_lane_centerlines_copy_3861.npz") as z:
         arrays = {k: z[k] for k in z.files}
     arrays["points"] = arrays["points"] + 0.5  # a different survey of the city
