@@ -13,7 +13,8 @@ clusters, resampled within each location::
     python -m scripts.driving_lolo [--synthetic DS ...] [--locations AV2 ...] [--epochs N]
 
 Writes ``docs/results/driving_lolo.json`` and ``.md``; the fold checkpoints stay in ``out/driving_lolo/`` (not
-shipped).
+shipped), and a fold whose training finished (its ``cost.json``) is reused by the next run, so an interrupted run
+resumes and a rerun only evaluates.
 """
 
 from __future__ import annotations
@@ -112,6 +113,17 @@ def train_variant(config: ResidualConfig, real: Targets, synthetic: Targets | No
     return fine.best_checkpoint, cost
 
 
+def fold_model(config: ResidualConfig, real: Targets, held: str, out: Path) -> tuple[Path, dict[str, Any]]:
+    """A fold's best checkpoint and training cost: the finished one in ``out`` (its ``cost.json`` is written only
+    after training ended, so an interrupted fold trains again), else trained now."""
+    done = out / "cost.json"
+    if done.is_file():
+        return out / "real" / "best", dict(json.loads(done.read_text()))
+    best, cost = train_variant(config, real, None, held, out)
+    done.write_text(json.dumps(cost) + "\n")
+    return best, cost
+
+
 def bootstrap(values: dict[str, NDArrayFloat], location: np.ndarray, cluster: np.ndarray, rows: np.ndarray,
               seed: int = 0) -> dict[str, list[float]]:
     """95 % intervals of each value's mean over ``rows``, resampling clusters within each location."""
@@ -175,7 +187,7 @@ def main(argv: list[str] | None = None) -> int:
         for variant, en in (("full", True), ("no_en", False)):
             cfg = replace(config, environment=en)
             inputs = real if en else replace(real, inputs=replace(real.inputs, crops=None))
-            best, cost = train_variant(cfg, inputs, None, held, args.work / held / variant)
+            best, cost = fold_model(cfg, inputs, held, args.work / held / variant)
             net, _ = load_residual(best)
             world = forecast(net, inputs.inputs.take(test), K)
             for key, v in errors(world, real.future[test]).items():
@@ -183,7 +195,8 @@ def main(argv: list[str] | None = None) -> int:
             fold[variant] = cost
             print(held, variant, cost, file=sys.stderr)
         results["folds"][held] = fold
-    results["per_target"] = {k: v.tolist() for k, v in per_target.items()}
+    # Millimetres: the bootstrap needs every target's error, not its float64 noise (a third of the bytes).
+    results["per_target"] = {k: np.round(v, 3).tolist() for k, v in per_target.items()}
     results["location"] = real.location.tolist()
     results["cluster"] = real.cluster.tolist()
     results["turning"] = real.turning.tolist()
