@@ -413,8 +413,9 @@ def _originals_read_seconds(dataset: Path, run: Path, repeats: int) -> float:
 def _outputs_write_rate(run: Path, samples: int, repeats: int, mcap: bool = True) -> float:
     """Samples/s of writing the run's outputs alone, nothing encoded: its predictions tables (pyarrow, the stage's
     codec) and, with ``mcap``, every log MCAP's records, already serialized, through the writer the stage picks for
-    them with its settings (``rewrite_as_stage``: the native one for every MCAP here; read back from its files). The floor of a predict path that writes them with
-    these libraries; the forecasting, the message encoding and the durability work (fsync, hashes) are not in it."""
+    them with its settings (``rewrite_as_stage``: the native one for every MCAP here; read back from its files).
+    The floor of a predict path that writes them with these libraries; the forecasting, the message encoding and
+    the durability work (fsync, hashes) are not in it."""
     import pyarrow.parquet as pq
 
     files = sorted((run / "predictions").glob("*.parquet"))
