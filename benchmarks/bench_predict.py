@@ -418,6 +418,8 @@ def _outputs_write_rate(run: Path, samples: int, repeats: int, mcap: bool = True
     the durability work (fsync, hashes) are not in it."""
     import pyarrow.parquet as pq
 
+    from logpipe.mcap.merge import NATIVE_COMPRESSION_THREADS
+
     files = sorted((run / "predictions").glob("*.parquet"))
     tables = [pq.read_table(f) for f in files]
     codec = pq.ParquetFile(files[0]).metadata.row_group(0).column(0).compression.lower()
@@ -429,7 +431,7 @@ def _outputs_write_rate(run: Path, samples: int, repeats: int, mcap: bool = True
             for i, table in enumerate(tables):
                 pq.write_table(table, Path(tmp) / f"{i}.parquet", compression=codec)
             for i, records in enumerate(logs):
-                rewrite_as_stage(Path(tmp) / f"{i}.mcap", records)
+                rewrite_as_stage(Path(tmp) / f"{i}.mcap", records, NATIVE_COMPRESSION_THREADS)
             rates.append(samples / (time.perf_counter() - t0))
     return round(statistics.median(rates), 1)
 

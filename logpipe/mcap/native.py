@@ -30,10 +30,11 @@ from foxglove.mcap import MCAPWriteOptions
 class NativeMcap:
     """One MCAP file being written (use as a context manager; the file is finished on exit)."""
 
-    def __init__(self, target: Path, profile: str = "") -> None:
+    def __init__(self, target: Path, profile: str = "", compression_threads: int = 0) -> None:
+        """``compression_threads``: 0 compresses each chunk in the logging call, n > 0 on n threads of the SDK
+        while the caller goes on (the same CPU, less waiting where a file has many chunks)."""
         self._context = foxglove.Context()
-        # No compression threads: ingest and predict already run one writer per core.
-        options = MCAPWriteOptions(profile=profile, compression_threads=0)
+        options = MCAPWriteOptions(profile=profile, compression_threads=compression_threads)
         self._writer = foxglove.open_mcap(target, allow_overwrite=True, context=self._context,
                                           writer_options=options)
 
