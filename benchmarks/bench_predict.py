@@ -37,7 +37,7 @@ from unittest import mock
 
 import numpy as np
 
-from benchmarks.mcap_floor import mcap_records, rewrite_mcap
+from benchmarks.mcap_floor import mcap_records, rewrite_as_stage
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED = REPO.parent / "shared" / "data"
@@ -412,11 +412,13 @@ def _originals_read_seconds(dataset: Path, run: Path, repeats: int) -> float:
 
 def _outputs_write_rate(run: Path, samples: int, repeats: int, mcap: bool = True) -> float:
     """Samples/s of writing the run's outputs alone, nothing encoded: its predictions tables (pyarrow, the stage's
-    codec) and, with ``mcap``, every log MCAP's records, already serialized, through the ``mcap`` writer with the
-    stage's settings (zstd chunks; read back from its files). The floor of a predict path that writes them with
-    these libraries; the forecasting, the message encoding and the durability work (fsync, hashes) are not in it."""
+    codec) and, with ``mcap``, every log MCAP's records, already serialized, through the writer the stage picks for
+    them with its settings (``rewrite_as_stage``: the native one for every MCAP here; read back from its files).
+    The floor of a predict path that writes them with these libraries; the forecasting, the message encoding and
+    the durability work (fsync, hashes) are not in it."""
     import pyarrow.parquet as pq
-    from mcap.writer import CompressionType, Writer
+
+    from logpipe.mcap.merge import NATIVE_COMPRESSION_THREADS
 
     files = sorted((run / "predictions").glob("*.parquet"))
     tables = [pq.read_table(f) for f in files]
@@ -429,8 +431,7 @@ def _outputs_write_rate(run: Path, samples: int, repeats: int, mcap: bool = True
             for i, table in enumerate(tables):
                 pq.write_table(table, Path(tmp) / f"{i}.parquet", compression=codec)
             for i, records in enumerate(logs):
-                with (Path(tmp) / f"{i}.mcap").open("wb") as fh:
-                    rewrite_mcap(Writer(fh, compression=CompressionType.ZSTD), records)
+                rewrite_as_stage(Path(tmp) / f"{i}.mcap", records, NATIVE_COMPRESSION_THREADS)
             rates.append(samples / (time.perf_counter() - t0))
     return round(statistics.median(rates), 1)
 

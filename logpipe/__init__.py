@@ -6,7 +6,13 @@ The commands are also Python functions (``logpipe.api``): ``logpipe.ingest(...)`
 
 from __future__ import annotations
 
+import os
 from typing import TYPE_CHECKING, Any
+
+# OpenMP threads that sleep at a barrier instead of spinning, set before torch loads its OpenMP (read once, at
+# load; a value the user set wins). With spinning threads, training on 2 threads while another job shared the 2
+# cores ran 6-20x slower than with sleeping ones (0.5-0.8 against 6-15 samples/s, benchmarks/bench_train.py).
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 # The one place the version is written (pyproject.toml reads it from here): importlib.metadata would cost
 # ~60 ms of start-up in every process, pool workers' server included.

@@ -141,3 +141,28 @@ def test_the_empty_run_predicts_nothing_of_a_split_that_has_samples(bundled: Pat
     assert full["samples"] > 0 and seconds > 0
     with pytest.raises(AssertionError, match="selected samples"):
         _empty_run_seconds(tmp_path / "d", tmp_path / "not_empty", 1, sample_filter=parse_filter(split))
+
+
+def test_the_training_floor_replays_the_steps_kernels_with_and_without_autograd() -> None:
+    """bench_train's floor runs what one training step ran: the environment net's gathers and W_v products of the
+    encoding and the picked mode with autograd, those of the H modes' decode without, and its replay runs them
+    forward and backward (no timing here)."""
+    from dataclasses import replace
+
+    from benchmarks.bench_train import _batches, _floor_step, _record
+    from logpipe.model.config import ModelConfig
+    from logpipe.model.synthetic import make_scenes
+
+    cfg = ModelConfig(obs_len=4, pred_len=3, raster_channels=3, backbone_bf16=False)
+    scenes = make_scenes(8, seed=1, min_agents=3, max_agents=5, obs_len=4, pred_len=3, with_ego=True,
+                         with_raster=True, channels=3, size=64)
+    calls = _record(cfg, _batches(cfg, scenes))
+    assert len(calls.shapes) == 1 and calls.rasters[0] is not None
+    grads = {grad for *_, grad in calls.bags}
+    assert grads == {True, False}  # the encoder and picked mode with autograd, the H modes without
+    assert calls.products and all(grad for *_, grad in calls.products)  # W_v once per batch, trained
+    _floor_step(cfg, calls)()
+    plain = replace(cfg, features=replace(cfg.features, environment=False, ego_trajectory=False))
+    no_env = _record(plain, _batches(plain, scenes))
+    assert not no_env.bags and not no_env.products
+    _floor_step(plain, no_env)()

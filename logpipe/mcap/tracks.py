@@ -32,14 +32,13 @@ import pyarrow.compute as pc
 from foxglove_schemas_protobuf.FrameTransform_pb2 import FrameTransform
 from foxglove_schemas_protobuf.PoseInFrame_pb2 import PoseInFrame
 from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
-from mcap.writer import CompressionType, Writer
 
-from logpipe import __version__
 from logpipe.contracts import json_schema
 from logpipe.dataset.shards import log_runs
 from logpipe.maps import MapStore
 from logpipe.mcap import foxglove as fx
 from logpipe.mcap.map_scene import MAP_TOPIC, map_scene_update
+from logpipe.mcap.native import NativeMcap
 from logpipe.storage.io import as_numpy
 from logpipe.types import LogMeta, Role
 
@@ -60,15 +59,13 @@ def json_schema_bytes(schema_name: str) -> bytes:
     return json.dumps(json_schema(schema_name), sort_keys=True).encode()
 
 
-def _register(writer: Writer, topic: str, schema_name: str) -> int:
-    schema_id = writer.register_schema(name=schema_name, encoding="jsonschema", data=json_schema_bytes(schema_name))
-    return writer.register_channel(topic=topic, message_encoding="json", schema_id=schema_id)
+def _register(writer: NativeMcap, topic: str, schema_name: str) -> Any:
+    return writer.channel(topic, "json", (schema_name, "jsonschema", json_schema_bytes(schema_name)))
 
 
-def _register_protobuf(writer: Writer, topic: str, message_class: Any) -> int:
-    schema_id = writer.register_schema(name=fx.schema_name(message_class), encoding=fx.SCHEMA_ENCODING,
-                                       data=fx.schema_data(message_class))
-    return writer.register_channel(topic=topic, message_encoding=fx.MESSAGE_ENCODING, schema_id=schema_id)
+def _register_protobuf(writer: NativeMcap, topic: str, message_class: Any) -> Any:
+    return writer.channel(topic, fx.MESSAGE_ENCODING,
+                          (fx.schema_name(message_class), fx.SCHEMA_ENCODING, fx.schema_data(message_class)))
 
 
 def _codes(column: pa.ChunkedArray) -> tuple[np.ndarray, list[str]]:
@@ -201,11 +198,10 @@ def write_log_mcap(log_id: str, tracks: pa.Table | LogRows, target: Path, map_id
     cx, cy = fx.log_centre(rows.x, rows.y)
     count = 0
     target.parent.mkdir(parents=True, exist_ok=True)
-    with target.open("wb") as fh:
-        writer = Writer(fh, compression=CompressionType.ZSTD)
-        writer.start(profile="", library=f"logpipe {__version__}")
-        writer.add_metadata("logpipe", {"log_id": log_id, "map_id": map_id or "", "frame_id": WORLD_FRAME,
-                                        "root_frame_id": LOG_FRAME, "centre_x": repr(cx), "centre_y": repr(cy)})
+    # Sequences 1, 2, ... per channel (the SDK numbers them) and publish time = log time (ours was the same).
+    with NativeMcap(target) as writer:
+        writer.metadata("logpipe", {"log_id": log_id, "map_id": map_id or "", "frame_id": WORLD_FRAME,
+                                    "root_frame_id": LOG_FRAME, "centre_x": repr(cx), "centre_y": repr(cy)})
         agents_channel = _register(writer, AGENTS_TOPIC, "logpipe.AgentStates")
         scene_channel = _register_protobuf(writer, SCENE_TOPIC, SceneUpdate)
         tf_channel = _register_protobuf(writer, TF_TOPIC, FrameTransform)
@@ -213,13 +209,12 @@ def write_log_mcap(log_id: str, tracks: pa.Table | LogRows, target: Path, map_id
         map_channel = _register_protobuf(writer, MAP_TOPIC, SceneUpdate) if lanes is not None else None
         if len(ts):
             t0 = int(ts[0])
-            writer.add_message(tf_channel, log_time=t0, publish_time=t0, sequence=0,
-                               data=fx.frame_transform(LOG_FRAME, WORLD_FRAME, t0, (-cx, -cy, 0.0)))
+            tf_channel.log(fx.frame_transform(LOG_FRAME, WORLD_FRAME, t0, (-cx, -cy, 0.0)), t0, None)
             count += 1
             if map_channel is not None and lanes is not None:
-                writer.add_message(map_channel, log_time=t0, publish_time=t0, sequence=0,
-                                   data=map_scene_update(lanes, WORLD_FRAME, t0))
+                map_channel.log(map_scene_update(lanes, WORLD_FRAME, t0), t0, None)
                 count += 1
+        agents_log, scene_log = agents_channel.log, scene_channel.log
         for i, (lo, hi) in enumerate(zip(starts, ends, strict=True)):
             t = int(ts[lo])
             parts = [
@@ -231,12 +226,11 @@ def write_log_mcap(log_id: str, tracks: pa.Table | LogRows, target: Path, map_id
             if headings is not None:
                 parts += [',"heading":[', ",".join(headings[lo:hi]), "]"]
             parts.append("}")
-            writer.add_message(agents_channel, log_time=t, publish_time=t, data="".join(parts).encode(), sequence=i)
-            writer.add_message(scene_channel, log_time=t, publish_time=t, data=scenes[i], sequence=i)
+            agents_log("".join(parts).encode(), t, None)
+            scene_log(scenes[i], t, None)
             count += 2
         if ego is not None:
-            count += _write_ego(writer, ego, tf_channel, np.asarray(ego_rows), ts, rows.x, rows.y, yaw, has_heading)
-        writer.finish()  # type: ignore[no-untyped-call]
+            count += _write_ego(ego, tf_channel, np.asarray(ego_rows), ts, rows.x, rows.y, yaw, has_heading)
     return count
 
 
@@ -259,8 +253,8 @@ def write_log_mcaps(tracks: pa.Table, metas: list[LogMeta], folder: Path,
     return messages
 
 
-def _write_ego(  # noqa: PLR0913  the table's parallel column arrays; a holder would only be unpacked
-    writer: Writer, pose_channel: int, tf_channel: int, rows: np.ndarray, ts: np.ndarray, x: np.ndarray,
+def _write_ego(
+    pose_channel: Any, tf_channel: Any, rows: np.ndarray, ts: np.ndarray, x: np.ndarray,
     y: np.ndarray, yaw: np.ndarray, has_heading: np.ndarray,
 ) -> int:
     """The ego's pose and ``world`` → ``ego`` transform at each ego row (not turned where it has no heading)."""
@@ -268,7 +262,7 @@ def _write_ego(  # noqa: PLR0913  the table's parallel column arrays; a holder w
     heading = np.where(has_heading[rows], yaw[rows], np.nan)
     poses = fx.poses_in_frame(WORLD_FRAME, times, ex, ey, heading)
     transforms = fx.frame_transforms(WORLD_FRAME, EGO_FRAME, times, ex, ey, heading)
-    for i, (t, pose, tf) in enumerate(zip(times.tolist(), poses, transforms, strict=True)):
-        writer.add_message(pose_channel, log_time=t, publish_time=t, data=pose, sequence=i)
-        writer.add_message(tf_channel, log_time=t, publish_time=t, data=tf, sequence=i + 1)
+    for t, pose, tf in zip(times.tolist(), poses, transforms, strict=True):
+        pose_channel.log(pose, t, None)
+        tf_channel.log(tf, t, None)
     return 2 * len(poses)
