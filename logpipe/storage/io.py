@@ -14,7 +14,7 @@ from typing import IO, Any
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from logpipe.errors import DatasetError
+from logpipe.errors import DatasetError, OutputError
 from logpipe.storage.durability import crash_point
 
 _HASH_CHUNK = 1 << 20
@@ -120,8 +120,17 @@ def atomic_path(target: Path, *, durable: bool = False) -> Iterator[Path]:
     and ``target`` is untouched. ``durable``: the bytes reach the disk before the rename (a manifest: the
     commit point must never name a file the disk does not hold yet).
     """
-    target.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp_name = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
+    for attempt in range(3):
+        target.parent.mkdir(parents=True, exist_ok=True)
+        if target.parent.is_symlink():
+            raise OutputError(f"{target.parent}: is a symbolic link where logpipe writes a folder; logpipe never "
+                              "writes through links: remove it or choose another folder")
+        try:  # mkstemp: O_EXCL | O_NOFOLLOW, a new file of this process only
+            fd, tmp_name = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
+            break
+        except FileNotFoundError:  # the empty folder was just removed by a cleanup: make it again
+            if attempt == 2:
+                raise
     os.fchmod(fd, _FILE_MODE)
     os.close(fd)
     tmp = Path(tmp_name)
