@@ -235,7 +235,7 @@ class Av2Adapter:
         scenario_id = extra.get("scenario_id") or path.stem.removeprefix("scenario_")
         map_file = path.with_name(f"log_map_archive_{scenario_id}.json")
         attributes = {"kind": "scenario", **extra, "map_file": map_file.name if map_file.exists() else None}
-        if map_file.exists():
+        if map_file.is_file():  # a regular file only: a FIFO of that name would block the read forever
             # newer map archives may name the city; the scenario's own column is the fallback
             with contextlib.suppress(OSError, ValueError):
                 city = str(json.loads(map_file.read_text(encoding="utf-8")).get("city_name", city))
@@ -254,6 +254,8 @@ class Av2Adapter:
         ]
         if not ann_files:
             raise SourceError(rel, "sensor log has no annotations.feather or annotations_with_ego.feather")
+        for name in ("city_SE3_egovehicle.feather", ann_files[0].name):  # a FIFO here would block the read forever
+            require_regular(folder / name, f"{rel}/{name}")
         try:
             ego = feather.read_table(folder / "city_SE3_egovehicle.feather")
             boxes = feather.read_table(ann_files[0])

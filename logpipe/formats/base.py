@@ -197,6 +197,7 @@ def read_each(sources: Sequence[SourceFile], read_one: ReadOne, *, keep_going: b
     failures: list[SourceError] = []
     for source in sources:
         try:
+            _refuse_escaping_link(source)
             require_regular(source.path, source.relpath, folder_ok=True)
             table, meta, problems = read_one(source)
             check_log_id(meta.log_id, source.relpath)
@@ -286,6 +287,7 @@ def regular_sources(
     refused: list[tuple[SourceFile, SourceError]] = []
     for source in sources:
         try:
+            _refuse_escaping_link(source)
             require_regular(source.path, source.relpath, folder_ok=True)
         except SourceError as err:
             if not keep_going:
@@ -294,6 +296,19 @@ def regular_sources(
             continue
         good.append(source)
     return good, refused
+
+
+def _refuse_escaping_link(source: SourceFile) -> None:
+    """Refuse an input that is a symbolic link to a file outside its input folder: in skip mode its parse
+    error (which quotes the offending line) would copy another file's first line into the manifest."""
+    path = str(source.path)
+    if not os.path.islink(path):
+        return
+    base = path[: -len(source.relpath)] if path.endswith(source.relpath) else os.path.dirname(path)
+    inside = os.path.realpath(base or ".")
+    if os.path.commonpath([os.path.realpath(path), inside]) != inside:
+        raise SourceError(source.relpath, "a symbolic link to a file outside its input folder; not read "
+                          "(pass the file itself)")
 
 
 def read_isolating(adapter: FormatAdapter, sources: list[SourceFile], keep_going: bool) -> ParsedLogs:
@@ -321,11 +336,18 @@ def read_isolating(adapter: FormatAdapter, sources: list[SourceFile], keep_going
 
 def refuse_unsafe_log_ids(parsed: ParsedLogs, keep_going: bool) -> ParsedLogs:
     """``parsed`` without the logs whose id is not one safe file name (ids become ``mcap/<log_id>.mcap`` and
-    prediction files): ``../../x`` from a data column must not write outside the dataset."""
+    prediction files): ``../../x`` from a data column must not write outside the dataset; nor those with a
+    negative time (no MCAP can hold it)."""
     bad: dict[str, SourceError] = {}
+    early = _earliest_times(parsed.tracks)
     for meta in parsed.logs:
         try:
             check_log_id(meta.log_id, meta.source_file)
+            # MCAP log times are unsigned: a negative frame or time (ETH/UCY frame -400) is this input's error,
+            # quarantined in skip mode, never a crash of the whole batch in the MCAP writer.
+            if early.get(meta.log_id, 0) < 0:
+                raise SourceError(meta.source_file, f"time {early[meta.log_id]} ns is negative (a negative frame "
+                                  "number or time stamp; log times start at 0)", field="timestamp_ns")
         except SourceError as err:
             if not keep_going:
                 raise
@@ -337,6 +359,15 @@ def refuse_unsafe_log_ids(parsed: ParsedLogs, keep_going: bool) -> ParsedLogs:
     return ParsedLogs(tracks=tracks, logs=[m for m in parsed.logs if m.log_id not in bad],
                       failures=[*parsed.failures, *bad.values()],  # codes dropped: rows were removed
                       maps={k: v for k, v in parsed.maps.items() if k not in bad})
+
+
+def _earliest_times(tracks: pa.Table) -> dict[str, int]:
+    """The earliest ``timestamp_ns`` of each log of ``tracks``."""
+    if tracks.num_rows == 0:
+        return {}
+    table = pa.table({"log": pc.cast(tracks.column("log_id"), pa.string()), "t": tracks.column("timestamp_ns")})
+    earliest = table.group_by("log").aggregate([("t", "min")])
+    return dict(zip(earliest.column("log").to_pylist(), earliest.column("t_min").to_pylist(), strict=True))
 
 
 def source_of(file: str, by_path: dict[str, SourceFile]) -> SourceFile:
