@@ -457,12 +457,17 @@ def owned_by(prefixes: Sequence[str], names: Sequence[str] = ()) -> Ownership:
 
 
 def os_error_message(exc: OSError) -> str:
-    """One line for an OS error on an output (disk full, read-only, permissions)."""
-    where = exc.filename or "output"
+    """One line for an OS error on an output (disk full, read-only, permissions): the file, the error in words
+    and its errno name, and what the folder holds now (true whether or not earlier commits of the run landed)."""
+    where = str(exc.filename) if exc.filename else "a file the operating system did not name"
+    if exc.filename2:
+        where += f" -> {exc.filename2}"
     hints = {errno.ENOSPC: "disk full", errno.EROFS: "read-only file system", errno.EACCES: "permission denied",
              errno.EDQUOT: "disk quota exceeded", errno.EPERM: "operation not permitted"}
     what = hints.get(exc.errno or 0, exc.strerror or type(exc).__name__)
-    return f"{where}: {what}; nothing was committed, the folder holds its previous state"
+    code = errno.errorcode.get(exc.errno or -1)
+    return (f"{where}: {what}{f' ({code})' if code else ''}; the folder keeps its last committed state, this "
+            "run's uncommitted work was discarded")
 
 
 # ---- the base of the typed writers ---------------------------------------------------------------------
