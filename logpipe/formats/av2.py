@@ -83,6 +83,10 @@ BOX_COLUMNS = ("timestamp_ns", "track_uuid", "category", "length_m", "width_m", 
 _CITY = re.compile(r"____(?P<city>[A-Z]{3})_city_\d+\.json$")
 
 
+QUAT_TOLERANCE = 1e-3
+"""Largest accepted | |q| - 1 | of a pose or box rotation."""
+
+
 def _require(table: pa.Table, columns: Sequence[str], rel: str) -> None:
     for c in columns:
         if c not in table.column_names:
@@ -360,11 +364,14 @@ def _check_poses(table: pa.Table, rel: str, *, increasing: bool) -> None:
         if not np.isfinite(values).all():
             row = int(np.flatnonzero(~np.isfinite(values))[0])
             raise SourceError(rel, f"not finite: {values[row]!r}", line=row + 1, field=name)
-    norms = np.linalg.norm(_quat(table), axis=1)
-    if (norms < 1e-6).any():
-        row = int(np.flatnonzero(norms < 1e-6)[0])
-        raise SourceError(rel, f"{int((norms < 1e-6).sum())} rows have a zero-length rotation quaternion",
-                          line=row + 1, field="qw")
+    # AV2 writes unit quaternions (float64): one off by more than the tolerance is damage (scaled by 1e-3, it
+    # would turn headings silently), not a rotation to normalise.
+    off = np.abs(np.linalg.norm(_quat(table), axis=1) - 1.0) > QUAT_TOLERANCE
+    if off.any():
+        row = int(np.flatnonzero(off)[0])
+        norm = float(np.linalg.norm(_quat(table)[row]))
+        raise SourceError(rel, f"{int(off.sum())} rows have a rotation quaternion that is not unit length (first: "
+                          f"norm {norm:.6g}, tolerance {QUAT_TOLERANCE})", line=row + 1, field="qw")
 
 
 def _pose_at(

@@ -340,6 +340,7 @@ def refuse_unsafe_log_ids(parsed: ParsedLogs, keep_going: bool) -> ParsedLogs:
     negative time (no MCAP can hold it)."""
     bad: dict[str, SourceError] = {}
     early = _earliest_times(parsed.tracks)
+    implausible = implausible_rows(parsed.tracks)
     for meta in parsed.logs:
         try:
             check_log_id(meta.log_id, meta.source_file)
@@ -348,6 +349,9 @@ def refuse_unsafe_log_ids(parsed: ParsedLogs, keep_going: bool) -> ParsedLogs:
             if early.get(meta.log_id, 0) < 0:
                 raise SourceError(meta.source_file, f"time {early[meta.log_id]} ns is negative (a negative frame "
                                   "number or time stamp; log times start at 0)", field="timestamp_ns")
+            if meta.log_id in implausible:
+                field, reason = implausible[meta.log_id]
+                raise SourceError(meta.source_file, reason, field=field)
         except SourceError as err:
             if not keep_going:
                 raise
@@ -359,6 +363,30 @@ def refuse_unsafe_log_ids(parsed: ParsedLogs, keep_going: bool) -> ParsedLogs:
     return ParsedLogs(tracks=tracks, logs=[m for m in parsed.logs if m.log_id not in bad],
                       failures=[*parsed.failures, *bad.values()],  # codes dropped: rows were removed
                       maps={k: v for k, v in parsed.maps.items() if k not in bad})
+
+
+COORD_LIMIT_M = 1e7
+"""Largest |x| or |y| accepted, in metres (10,000 km): above any UTM northing or city frame; 1e12 m is damage."""
+
+
+def implausible_rows(tracks: pa.Table) -> dict[str, tuple[str, str]]:
+    """(field, reason) for each log of ``tracks`` holding a physically implausible row: a coordinate beyond
+    ``COORD_LIMIT_M``, or a track id with NUL or control characters (ids reach file names, MCAP and terminals).
+    One vectorised pass, the same for every format."""
+    if tracks.num_rows == 0:
+        return {}
+    logs = pc.cast(tracks.column("log_id"), pa.string())
+    found: dict[str, tuple[str, str]] = {}
+    for name in ("x", "y"):
+        far = pc.fill_null(pc.greater_equal(pc.abs(tracks.column(name)), COORD_LIMIT_M), False)
+        for log, value in zip(pc.filter(logs, far).to_pylist(), pc.filter(tracks.column(name), far).to_pylist(),
+                              strict=True):
+            found.setdefault(log, (name, f"{value!r} m is beyond the plausible {COORD_LIMIT_M:.0e} m"))
+    ids = pc.cast(tracks.column("track_id"), pa.string())
+    control = pc.fill_null(pc.match_substring_regex(ids, r"[\x00-\x1f\x7f]"), False)
+    for log, value in zip(pc.filter(logs, control).to_pylist(), pc.filter(ids, control).to_pylist(), strict=True):
+        found.setdefault(log, ("track_id", f"track id {value[:40]!r} holds NUL or control characters"))
+    return found
 
 
 def _earliest_times(tracks: pa.Table) -> dict[str, int]:

@@ -97,3 +97,54 @@ def test_a_fifo_inside_an_av2_sensor_log_is_that_logs_error_not_a_hang(tmp_path:
     [quarantined] = manifest["quarantined"]
     assert "FIFO" in str(quarantined["error"]["reason"]) and annotations.name in str(quarantined["error"]["file"])
     assert sorted(p.name for p in out.iterdir() if p.name.startswith(".")) == []  # no lock, no staging left
+
+
+@pytest.mark.parametrize(("column", "value", "field", "words"), [
+    ("X", "1e12", "x", "beyond the plausible"),
+    ("Y", "-3.5e9", "y", "beyond the plausible"),
+    ("TRACK_ID", "evil\x01id", "track_id", "NUL or control characters"),
+])
+def test_absurd_values_are_quarantined_with_their_field(tmp_path: Path, column: str, value: str, field: str,
+                                                        words: str) -> None:
+    """Red-team item 9: coordinates of 1e12 m and control characters in ids were stored as given."""
+    inputs = tmp_path / "in"
+    inputs.mkdir()
+    good = DATA / "argoverse1" / "2645.csv"
+    shutil.copy(good, inputs / good.name)
+    lines = (DATA / "argoverse1" / "3861.csv").read_text().splitlines()
+    header = lines[0].split(",")
+    row = lines[5].split(",")
+    row[header.index(column)] = value
+    lines[5] = ",".join(row)
+    (inputs / "3861.csv").write_text("\n".join(lines) + "\n")
+    out = tmp_path / "ds"
+    ingest([inputs], IngestOptions(out=out, on_error="skip", format="argoverse1", write_mcap=False))
+    manifest = Dataset.open(out).manifest
+    assert [i["path"] for i in manifest["inputs"]] == [good.name]
+    [quarantined] = manifest["quarantined"]
+    assert quarantined["error"]["field"] == field and words in str(quarantined["error"]["reason"])
+
+
+@pytest.mark.shared
+@pytest.mark.skipif(not AV2.is_dir(), reason="needs ../shared/data/av2")
+def test_a_scaled_quaternion_in_an_av2_sensor_log_is_refused(tmp_path: Path) -> None:
+    """Red-team item 9: quaternions scaled by 1e-3 turned headings silently."""
+    import pyarrow as pa
+    from pyarrow import feather
+
+    from logpipe.formats.av2 import Av2Adapter
+    from logpipe.types import SourceFile
+
+    log = sorted((AV2 / "sensor_logs").iterdir())[0]
+    copy = tmp_path / log.name
+    shutil.copytree(log, copy)
+    annotations = next(copy.glob("annotations*.feather"))
+    table = feather.read_table(annotations)
+    for name in ("qw", "qx", "qy", "qz"):
+        scaled = pa.array(table.column(name).to_numpy() * 1e-3)
+        table = table.set_column(table.schema.get_field_index(name), name, scaled)
+    feather.write_feather(table, annotations)
+    with pytest.raises(SourceError, match="not unit length") as info:
+        Av2Adapter().read([SourceFile(str(copy), log.name, "0" * 64, 0)], keep_going=False)
+    assert info.value.field == "qw"
+    Av2Adapter().read([SourceFile(str(log), log.name, "0" * 64, 0)], keep_going=False)  # the real one passes
