@@ -38,6 +38,7 @@ from logpipe.formats.base import (
     conform_tracks,
     empty_tracks,
     require_regular,
+    require_regular_tree,
 )
 from logpipe.geometry import quat_mul, quat_rotate, quat_yaw
 from logpipe.types import PROTOCOLS, LogMeta, NDArrayFloat, SampleProtocol, SourceFile
@@ -258,8 +259,7 @@ class Av2Adapter:
         ]
         if not ann_files:
             raise SourceError(rel, "sensor log has no annotations.feather or annotations_with_ego.feather")
-        for name in ("city_SE3_egovehicle.feather", ann_files[0].name):  # a FIFO here would block the read forever
-            require_regular(folder / name, f"{rel}/{name}")
+        require_regular_tree(folder, rel)  # a FIFO here (annotations, map JSON) would block a read forever
         try:
             ego = feather.read_table(folder / "city_SE3_egovehicle.feather")
             boxes = feather.read_table(ann_files[0])

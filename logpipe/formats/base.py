@@ -86,6 +86,15 @@ def require_regular(path: str | Path, relpath: str, *, folder_ok: bool = False) 
     raise SourceError(relpath, f"not a regular file: {kind}; only regular files are read")
 
 
+def require_regular_tree(folder: str | Path, relpath: str) -> None:
+    """``require_regular`` on everything inside an input folder (a bag folder, an AV2 sensor log), each entry
+    checked: readers open the files they find there, and one FIFO among them would block forever."""
+    for here, dirs, names in os.walk(folder):
+        for name in [*names, *(d for d in dirs if os.path.islink(os.path.join(here, d)))]:
+            path = os.path.join(here, name)
+            require_regular(path, f"{relpath}/{os.path.relpath(path, folder)}", folder_ok=True)
+
+
 def check_log_id(log_id: object, relpath: str, field: str = "log_id") -> str:
     """``log_id`` when it is safe as one path component (ids become file names), else a ``SourceError``
     (the rule: ``logpipe.storage.artifact.unsafe_file_name``)."""

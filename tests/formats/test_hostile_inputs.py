@@ -86,6 +86,7 @@ def test_a_fifo_inside_an_av2_sensor_log_is_that_logs_error_not_a_hang(tmp_path:
     inputs.mkdir()
     for log in logs:
         shutil.copytree(log, inputs / log.name)
+        (inputs / log.name).chmod(0o755)  # the shared data is read-only
     hostile = inputs / logs[0].name
     annotations = next(hostile.glob("annotations*.feather"))
     annotations.unlink()
@@ -138,6 +139,7 @@ def test_a_scaled_quaternion_in_an_av2_sensor_log_is_refused(tmp_path: Path) -> 
     log = sorted((AV2 / "sensor_logs").iterdir())[0]
     copy = tmp_path / log.name
     shutil.copytree(log, copy)
+    copy.chmod(0o755)
     annotations = next(copy.glob("annotations*.feather"))
     table = feather.read_table(annotations)
     for name in ("qw", "qx", "qy", "qz"):
@@ -148,3 +150,24 @@ def test_a_scaled_quaternion_in_an_av2_sensor_log_is_refused(tmp_path: Path) -> 
         Av2Adapter().read([SourceFile(str(copy), log.name, "0" * 64, 0)], keep_going=False)
     assert info.value.field == "qw"
     Av2Adapter().read([SourceFile(str(log), log.name, "0" * 64, 0)], keep_going=False)  # the real one passes
+
+
+ROS2_BAG = REPO.parent / "shared" / "data" / "rosbags" / "evo" / "tf_example"
+
+
+@pytest.mark.shared
+@pytest.mark.skipif(not ROS2_BAG.is_dir(), reason="needs ../shared/data/rosbags")
+@pytest.mark.timeout(120)
+def test_a_fifo_inside_a_bag_folder_is_refused_not_read(tmp_path: Path) -> None:
+    """The same hang as item 6 for any folder input: a ROS 2 bag whose storage file is a FIFO."""
+    from logpipe.formats.rosbag import RosbagAdapter
+    from logpipe.types import SourceFile
+
+    bag = tmp_path / "tf_example"
+    shutil.copytree(ROS2_BAG, bag)
+    bag.chmod(0o755)  # the shared data is read-only
+    storage = next(bag.glob("*.db3"))
+    storage.unlink()
+    os.mkfifo(storage)
+    with pytest.raises(SourceError, match=f"tf_example/{storage.name}: not a regular file: a FIFO"):
+        RosbagAdapter().read([SourceFile(str(bag), "tf_example", "0" * 64, 0)], keep_going=False)
