@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import errno
 import hashlib
 import json
 import os
@@ -152,6 +153,19 @@ def atomic_open(target: Path, mode: str = "wb") -> Iterator[IO[Any]]:
     """Open a temporary file beside ``target`` for writing; it replaces ``target`` when the block succeeds."""
     with atomic_path(target) as tmp, tmp.open(mode) as fh:
         yield fh
+
+
+def open_nofollow(path: Path, mode: str = "a") -> IO[str]:
+    """A text file in an output folder opened for appending (``a``) or rewriting (``w``) without following a
+    link: a ``train_log.jsonl`` symlinked to someone's file must not receive the log (``ELOOP``, one line)."""
+    flags = os.O_WRONLY | os.O_CREAT | os.O_NOFOLLOW | os.O_CLOEXEC | (os.O_APPEND if mode == "a" else os.O_TRUNC)
+    try:
+        fd = os.open(path, flags, _FILE_MODE)
+    except OSError as exc:
+        if exc.errno == errno.ELOOP:
+            raise OutputError(f"{path}: is a symbolic link; logpipe never writes through links: remove it") from None
+        raise
+    return os.fdopen(fd, mode, encoding="utf-8")
 
 
 def write_parquet(table: pa.Table, target: Path, options: dict[str, Any] | None = None, *,

@@ -221,3 +221,21 @@ def test_a_commit_never_removes_a_workers_new_empty_folder(tmp_path: Path) -> No
         writer.commit({"files": {"predictions/part-00000.parquet": file_entry(new)}})
         assert fresh.is_dir()
         assert not (root / "mcap" / "part-00000").exists()  # emptied by this commit: removed
+
+
+def test_a_symlinked_training_log_receives_nothing(tmp_path: Path) -> None:
+    """A training run folder is locked but not a committed artifact: its append-only log is opened O_NOFOLLOW."""
+    from logpipe.model.training import _Log
+    from logpipe.storage.io import open_nofollow
+
+    victim = tmp_path / "victim"
+    victim.write_text("precious\n")
+    (tmp_path / "train_log.jsonl").symlink_to(victim)
+    with pytest.raises(OutputError, match=r"train_log\.jsonl: is a symbolic link"):
+        _Log(tmp_path / "train_log.jsonl").write("start", step=0)
+    with pytest.raises(OutputError, match="symbolic link"):
+        open_nofollow(tmp_path / "train_log.jsonl", "w")
+    assert victim.read_text() == "precious\n"
+    with open_nofollow(tmp_path / "own.jsonl", "a") as fh:
+        fh.write("x\n")
+    assert (tmp_path / "own.jsonl").read_text() == "x\n"
