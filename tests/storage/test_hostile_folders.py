@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 
 from logpipe.dataset.reader import Dataset
-from logpipe.errors import DatasetError, OutputError
+from logpipe.errors import ArtifactBusyError, DatasetError, OutputError
 from logpipe.stages.ingest import IngestOptions, ingest
 from logpipe.storage import folder_lock
 from logpipe.storage.artifact import MANIFEST, ArtifactWriter, Ownership, file_entry, manifest_checksum, read_manifest
@@ -239,3 +239,33 @@ def test_a_symlinked_training_log_receives_nothing(tmp_path: Path) -> None:
     with open_nofollow(tmp_path / "own.jsonl", "a") as fh:
         fh.write("x\n")
     assert (tmp_path / "own.jsonl").read_text() == "x\n"
+
+
+def test_a_lock_taken_on_a_folder_removed_meanwhile_is_taken_again(tmp_path: Path,
+                                                                    monkeypatch: pytest.MonkeyPatch) -> None:
+    """Item 3's other side: a writer that opened the folder just before a failed first run removed it (under its
+    lock) would hold a lock on a deleted folder; the lock checks the path still leads to what it locked."""
+    root = tmp_path / "ds"
+    root.mkdir()
+    real_open = os.open
+    replaced: list[bool] = []
+
+    def open_then_replace(path: object, flags: int, *args: object, **kwargs: object) -> int:
+        fd = real_open(path, flags, *args, **kwargs)  # type: ignore[arg-type]
+        if path == root and not replaced:
+            replaced.append(True)
+            root.rmdir()  # the other run's cleanup, in the instant after this open
+            root.mkdir()
+        return fd
+
+    monkeypatch.setattr(folder_lock.os, "open", open_then_replace)
+    lock = FolderLock(root)
+    lock.acquire()
+    try:
+        assert replaced and (root / LOCK_FILE).is_file()  # the lock file is in the folder the path names now
+        monkeypatch.setattr(folder_lock.os, "open", real_open)
+        with pytest.raises(ArtifactBusyError):  # and the lock is on it: a second writer is refused
+            FolderLock(root).acquire()
+    finally:
+        lock.release()
+    assert not (root / LOCK_FILE).exists()
