@@ -10,7 +10,7 @@ from __future__ import annotations
 import hashlib
 import json
 from pathlib import Path
-from typing import Any, TypedDict
+from typing import Any, Self, TypedDict
 
 import numpy as np
 import pyarrow as pa
@@ -19,6 +19,7 @@ from logpipe.errors import DatasetError
 from logpipe.raster.rasteriser import RasterSpec
 from logpipe.storage.artifact import EVERYTHING, FileEntry, FolderWriter, check_files, read_manifest
 from logpipe.storage.io import read_table, sha256_file
+from logpipe.storage.safe_paths import real_folder
 from logpipe.types import NDArrayByte, NDArrayFloat
 
 RASTER_DIR = "rasters"
@@ -237,6 +238,11 @@ class RasterRunWriter(FolderWriter):
 
     ownership = EVERYTHING
     kind = RASTER_ARTIFACT
+
+    def __enter__(self) -> Self:
+        if self.root.parent.name == RASTER_DIR:  # a link as the dataset's rasters/ would put the run outside it
+            real_folder(self.root.parent.parent, RASTER_DIR)
+        return super().__enter__()
 
     def commit(self, manifest: RasterRunManifest) -> None:
         self._writer.commit(dict(manifest))

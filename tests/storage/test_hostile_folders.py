@@ -269,3 +269,17 @@ def test_a_lock_taken_on_a_folder_removed_meanwhile_is_taken_again(tmp_path: Pat
     finally:
         lock.release()
     assert not (root / LOCK_FILE).exists()
+
+
+def test_a_symlinked_rasters_folder_of_a_dataset_receives_no_run(tmp_path: Path) -> None:
+    """A raster run is an artifact nested in its dataset's ``rasters/``: a link there is refused like ``mcap/``."""
+    from logpipe.raster.runs import RasterRunWriter
+
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    (tmp_path / "ds").mkdir()
+    (tmp_path / "ds" / "rasters").symlink_to(elsewhere, target_is_directory=True)
+    writer = RasterRunWriter(tmp_path / "ds" / "rasters" / "r1")
+    with pytest.raises(OutputError, match="rasters: is a symbolic link"):
+        writer.__enter__()
+    assert list(elsewhere.iterdir()) == []
