@@ -15,7 +15,7 @@ from logpipe.storage.artifact import os_error_message
 def test_an_os_error_keeps_its_errno_name_and_file() -> None:
     line = os_error_message(OSError(errno.EIO, "Input/output error", "/data/ds/tracks/part-00003.parquet"))
     assert line.startswith("/data/ds/tracks/part-00003.parquet: Input/output error (EIO);")
-    assert "nothing was committed" not in line and "last committed state" in line
+    assert "nothing was committed" not in line and "previous state (its last commit)" in line
     full = os_error_message(OSError(errno.ENOSPC, "No space left on device", "/d/x.tmp"))
     assert "disk full (ENOSPC)" in full
     moved = os_error_message(OSError(errno.EXDEV, "Invalid cross-device link", "/a", None, "/b"))

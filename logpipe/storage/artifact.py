@@ -466,8 +466,8 @@ def os_error_message(exc: OSError) -> str:
              errno.EDQUOT: "disk quota exceeded", errno.EPERM: "operation not permitted"}
     what = hints.get(exc.errno or 0, exc.strerror or type(exc).__name__)
     code = errno.errorcode.get(exc.errno or -1)
-    return (f"{where}: {what}{f' ({code})' if code else ''}; the folder keeps its last committed state, this "
-            "run's uncommitted work was discarded")
+    return (f"{where}: {what}{f' ({code})' if code else ''}; the folder holds its previous state (its last "
+            "commit), this run's uncommitted work was discarded")
 
 
 # ---- the base of the typed writers ---------------------------------------------------------------------
