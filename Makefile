@@ -185,7 +185,7 @@ train-apolloscape/%:
 		--json > $(RUNS)/apolloscape/$*.json
 	$(call copy_best,$(RUNS)/apolloscape/$*,$(CKPT)/apolloscape/$*)
 
-# The damaged-input corpus (tests/fuzz/corpus.py, ~580 cases over every format and the map files; the
+# The damaged-input corpus (tests/fuzz/corpus.py, ~1,130 cases over every format and the map files; the
 # ../shared ones are skipped when it is absent): figures in $(OUT)/fuzz.json. A fast subset runs in `make test`.
 # Then the crash injection with 20 random-time kills per stage (make test runs 6).
 fuzz: setup

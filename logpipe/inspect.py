@@ -19,6 +19,7 @@ from rich.table import Table
 
 from logpipe.formats.av2 import Av2Adapter
 from logpipe.formats.base import as_source_error, require_regular
+from logpipe.formats.inflation import check_ros1_bags
 from logpipe.formats.mcapfile import McapAdapter, McapFile
 from logpipe.formats.ros.mapping import AmbiguousMappingError, TopicSummary, auto_mapping
 from logpipe.formats.ros.message_types import topic_kind, unsupported_reason
@@ -69,6 +70,7 @@ def inspect_paths(paths: Sequence[Path]) -> list[dict[str, Any]]:
 
 def _inspect_one(fmt: str, path: Path) -> dict[str, Any]:
     if fmt == "rosbag":
+        check_ros1_bags(storage_paths(path))  # before rosbags decompresses any chunk, unbounded
         return inspect_rosbag(path)
     if fmt == "mcap":
         return inspect_mcap(path)

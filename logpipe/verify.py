@@ -9,23 +9,41 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-from logpipe.dataset.reader import DATASET_ARTIFACT, DATASET_OWNED
+from logpipe.dataset.reader import DATASET_ARTIFACT, DATASET_LEGACY_KEYS, DATASET_OWNED
 from logpipe.errors import DatasetError
-from logpipe.storage.artifact import EVERYTHING, MANIFEST, ArtifactWriter, Ownership, read_manifest, verify_folder
+from logpipe.prediction.runs import RUN_ARTIFACT, RUN_OWNED
+from logpipe.raster.runs import RASTER_ARTIFACT
+from logpipe.scoring.reports import REPORT_ARTIFACT, REPORT_OWNED
+from logpipe.storage.artifact import (
+    EVERYTHING,
+    MANIFEST,
+    ArtifactWriter,
+    Ownership,
+    foreign_manifest,
+    manifest_checksum,
+    read_manifest,
+    verify_folder,
+)
+
+WRITERS_OWN = {DATASET_ARTIFACT: DATASET_OWNED, RASTER_ARTIFACT: EVERYTHING, RUN_ARTIFACT: RUN_OWNED,
+               REPORT_ARTIFACT: REPORT_OWNED}
+"""What each kind's writer owns, from the writers' code: ``--repair`` removes only such files, whatever a
+manifest's own ``owns`` claims (a foreign or edited manifest must never widen what logpipe deletes)."""
 
 
-def _kind_and_owned(folder: Path) -> tuple[str, Ownership, int]:
-    """The artifact kind, ownership and number of files a folder's manifest records (older datasets: recognised
-    by their keys; a damaged manifest counts no file, ``verify_folder`` reports it)."""
+def _kind_and_owned(folder: Path) -> tuple[str, Ownership | None, int]:
+    """The artifact kind, the ownership of its writer (None: no logpipe writer's manifest, never repaired) and
+    number of files a folder's manifest records (older datasets: recognised by their keys; a damaged manifest
+    counts no file, ``verify_folder`` reports it)."""
     try:
-        manifest = read_manifest(folder, required=False) or {}
-    except DatasetError:
-        manifest = {}
-    legacy_dataset = "format" in manifest and "shards" in manifest and "tables" in manifest
-    kind = str(manifest.get("artifact", DATASET_ARTIFACT if legacy_dataset else "unknown"))
+        manifest = read_manifest(folder, required=False)
+    except DatasetError:  # damaged: ``verify_folder`` reports it and finds no leftovers, so nothing is removed
+        return "unknown", EVERYTHING, 0
+    if manifest is None or foreign_manifest(manifest, DATASET_LEGACY_KEYS):
+        return "unknown", None, 0
+    kind = str(manifest.get("artifact", DATASET_ARTIFACT))
     files = manifest.get("files")
-    return (kind, Ownership.of(manifest, DATASET_OWNED if kind == DATASET_ARTIFACT else EVERYTHING),
-            len(files) if isinstance(files, dict) else 0)
+    return kind, WRITERS_OWN.get(kind), len(files) if isinstance(files, dict) else 0
 
 
 CHECKPOINT_META = "meta.json"
@@ -43,6 +61,8 @@ def _verify_checkpoint(folder: Path) -> list[str]:
         expected = str(meta["weights_sha256"])
     except (OSError, ValueError, KeyError, TypeError) as exc:
         return [f"{folder / CHECKPOINT_META}: unreadable checkpoint metadata ({type(exc).__name__})"]
+    if "checksum" in meta and meta["checksum"] != manifest_checksum(meta):  # the config, inference settings...
+        return [f"{folder / CHECKPOINT_META}: content differs from its checksum (edited or damaged)"]
     weights = folder / "weights.safetensors"
     if not weights.is_file():
         return [f"{weights}: missing"]
@@ -78,12 +98,16 @@ def verify_tree(roots: list[Path], *, repair: bool = False, deep: bool = True) -
             checked += 1
             continue
         kind, owned, files = _kind_and_owned(folder)
+        if owned is None:  # not written by logpipe: nothing in it is logpipe's to judge or to remove
+            problems.append(f"{folder / MANIFEST}: not written by logpipe (no known artifact kind); "
+                            "verify and --repair leave the folder alone")
+            continue
         found, left = verify_folder(folder, owned, deep=deep)
         checked += files
         problems += [p.line() for p in found]
         leftovers += [str(folder / rel) for rel in left]
         if repair and left:
-            with ArtifactWriter(folder, owned, kind):
+            with ArtifactWriter(folder, owned, kind, DATASET_LEGACY_KEYS if kind == DATASET_ARTIFACT else ()):
                 pass  # entering the writer removes what no commit names
     return {"folders": [str(f) for f in folders], "files_checked": checked, "problems": problems,
             "leftovers": leftovers}

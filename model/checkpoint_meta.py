@@ -18,6 +18,7 @@ from typing import Any
 
 from logpipe.dataset.reader import Dataset
 from logpipe.errors import LogpipeError
+from logpipe.storage.artifact import manifest_checksum
 from logpipe.storage.folder_lock import FolderLock
 from logpipe.storage.io import atomic_path
 
@@ -226,7 +227,10 @@ class CheckpointMeta:
         return {"frame": m.frame, "pos_scale_m": m.pos_scale_m, "disp_scale_m": m.disp_scale_m}
 
     def to_dict(self) -> dict[str, Any]:
-        """The JSON document written to ``meta.json``."""
+        """The JSON document written to ``meta.json``, with the ``checksum`` of everything else in it."""
+        return stamped_meta(self._body())
+
+    def _body(self) -> dict[str, Any]:
         return {
             "format": CHECKPOINT_FORMAT,
             "format_version": FORMAT_VERSION,
@@ -245,6 +249,20 @@ class CheckpointMeta:
         }
 
 
+def stamped_meta(body: dict[str, Any]) -> dict[str, Any]:
+    """``body`` with its ``checksum``: the weights' sha256 alone left the rest of ``meta.json`` (the config
+    that rebuilds the network, the inference settings predict uses) open to an unnoticed edit."""
+    body = {k: v for k, v in body.items() if k != "checksum"}
+    return {**body, "checksum": manifest_checksum(body)}
+
+
+def meta_checksum_problem(data: dict[str, Any]) -> str | None:
+    """Why a parsed ``meta.json`` fails its ``checksum``, or None (also for one written before checksums)."""
+    if "checksum" in data and data["checksum"] != manifest_checksum(data):
+        return "content differs from its checksum (edited or damaged); re-create it with `logpipe train`"
+    return None
+
+
 def read_meta(folder: Path) -> CheckpointMeta:
     """Parse and check ``meta.json`` of a checkpoint folder."""
     path = folder / "meta.json"
@@ -252,6 +270,16 @@ def read_meta(folder: Path) -> CheckpointMeta:
         data = json.loads(path.read_text(encoding="utf-8"))
     except (OSError, ValueError) as exc:
         raise CheckpointError(f"{path}: not a readable checkpoint: {exc}") from exc
+    if not isinstance(data, dict):
+        raise CheckpointError(f"{path}: not a readable checkpoint: not a JSON object")
+    meta = _parse_meta(data, path)
+    problem = meta_checksum_problem(data)
+    if problem:
+        raise CheckpointError(f"{path}: {problem}")
+    return meta
+
+
+def _parse_meta(data: dict[str, Any], path: Path) -> CheckpointMeta:
     if data.get("format") != CHECKPOINT_FORMAT or data.get("model_kind") != MODEL_KIND:
         raise CheckpointError(f"{path}: not a {MODEL_KIND} {CHECKPOINT_FORMAT}")
     if data.get("format_version") != FORMAT_VERSION:

@@ -154,10 +154,16 @@ def _verified_weights(folder: Path, meta: CheckpointMeta) -> dict[str, torch.Ten
     if not weights.is_file() or _sha256(weights) != meta.weights_sha256:
         raise CheckpointError(f"{weights}: missing or does not match the sha256 in meta.json")
     try:
-        return load_file(str(weights))
+        tensors = load_file(str(weights))
     except Exception as exc:  # safetensors raises its own header/format errors: one line naming the file
         first = str(exc).strip().splitlines()[0][:200] if str(exc).strip() else type(exc).__name__
         raise CheckpointError(f"{weights}: not a readable safetensors file: {first}") from None
+    # One NaN weight makes every forecast NaN, and predict then drops every row (rows: 0, exit 0).
+    for name, tensor in tensors.items():
+        if tensor.is_floating_point() and not bool(torch.isfinite(tensor).all()):
+            raise CheckpointError(f"{weights}: tensor {name!r} holds NaN or infinite values; the checkpoint is "
+                                  "damaged (retrain or restore it)")
+    return tensors
 
 
 def load_checkpoint(

@@ -68,6 +68,11 @@ SPEED_SCALE_MAX = 4.0
 """Largest per-scene scale (scenes of people standing still or moving under a quarter of the unit)."""
 
 
+MODEL_SIZE_LIMITS = {"obs_len": 1000, "pred_len": 1000, "embed_dim": 4096, "gru_dim": 4096, "lstm_dim": 4096,
+                     "noise_dim": 4096, "raster_channels": 64, "roi_pool": 64, "roi_sampling": 64}
+"""Largest accepted sizes: 64x the paper's widths (a 4096-cell LSTM is ~0.5 GB), far above any config here."""
+
+
 @dataclass(frozen=True)
 class ModelConfig:
     """Architecture, input frame and normalisation of the trajectory network.
@@ -202,6 +207,11 @@ class ModelConfig:
         for name in ("embed_dim", "gru_dim", "lstm_dim", "raster_channels", "roi_pool", "roi_sampling"):
             if getattr(self, name) < 1:
                 raise ConfigError(f"model.{name} must be >= 1, got {getattr(self, name)}")
+        # Bounded before any allocation: a damaged or hostile meta.json asking for lstm_dim 200000 would try to
+        # allocate hundreds of GB (a traceback, or the machine swapping) instead of one line.
+        for name, most in MODEL_SIZE_LIMITS.items():
+            if not 0 <= getattr(self, name) <= most:
+                raise ConfigError(f"model.{name} must be at most {most}, got {getattr(self, name)}")
         if self.noise_dim < 0:
             raise ConfigError(f"model.noise_dim must be >= 0, got {self.noise_dim}")
         if self.step_output not in get_args(StepOutput):

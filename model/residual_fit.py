@@ -20,6 +20,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from logpipe.storage.io import open_nofollow
 from logpipe.types import NDArrayFloat, SceneSample
 
 from .checkpoint_meta import TrainingData
@@ -147,7 +148,7 @@ def fit_residual(  # noqa: PLR0913  the run's data, config and where it goes
     best_score, best_epoch, best_metrics, bad, seen, clock = math.inf, 0, {}, 0, 0, 0.0
     steps = best_step = 0
     out_dir.mkdir(parents=True, exist_ok=True)
-    log = (out_dir / LOG).open("w", encoding="utf-8")
+    log = open_nofollow(out_dir / LOG, "w")
     epoch = 0
     try:
         for epoch in range(1, config.epochs + 1):

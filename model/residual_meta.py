@@ -12,7 +12,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from .checkpoint_meta import CHECKPOINT_FORMAT, CheckpointError, TrainingData
+from .checkpoint_meta import CHECKPOINT_FORMAT, CheckpointError, TrainingData, meta_checksum_problem, stamped_meta
 from .residual_config import MODEL_KIND, ResidualConfig, ResidualConfigError
 
 WEIGHTS = "weights.safetensors"
@@ -36,13 +36,13 @@ class ResidualMeta:
     created_unix: float = 0.0
 
     def to_dict(self) -> dict[str, Any]:
-        """The JSON document."""
-        return {"format": CHECKPOINT_FORMAT, "format_version": FORMAT_VERSION, "model_kind": MODEL_KIND,
+        """The JSON document, with the ``checksum`` of all the rest (``checkpoint_meta.stamped_meta``)."""
+        return stamped_meta({"format": CHECKPOINT_FORMAT, "format_version": FORMAT_VERSION, "model_kind": MODEL_KIND,
                 "residual": self.config.to_dict(), "dataset_kind": self.dataset_kind,
                 "manifest_hash": self.manifest_hash, "epoch": self.epoch, "metrics": self.metrics, "ood": self.ood,
                 "weights_sha256": self.weights_sha256, "logpipe_version": self.logpipe_version,
                 "created_unix": self.created_unix,
-                **({"training_data": self.training_data.to_dict()} if self.training_data is not None else {})}
+                **({"training_data": self.training_data.to_dict()} if self.training_data is not None else {})})
 
 
 def model_kind(folder: Path) -> str | None:
@@ -74,7 +74,7 @@ def read_residual_meta(folder: Path) -> ResidualMeta:
     try:
         config = ResidualConfig.from_dict(dict(data["residual"]), str(path))
         training = data.get("training_data")
-        return ResidualMeta(config=config, dataset_kind=str(data["dataset_kind"]),
+        meta = ResidualMeta(config=config, dataset_kind=str(data["dataset_kind"]),
                             manifest_hash=str(data["manifest_hash"]), epoch=int(data["epoch"]),
                             metrics={str(k): float(v) for k, v in dict(data.get("metrics", {})).items()},
                             ood=dict(data.get("ood") or {}), weights_sha256=str(data["weights_sha256"]),
@@ -83,3 +83,7 @@ def read_residual_meta(folder: Path) -> ResidualMeta:
                             created_unix=float(data.get("created_unix", 0.0)))
     except (KeyError, TypeError, ValueError, ResidualConfigError) as exc:
         raise CheckpointError(f"{path}: malformed residual checkpoint metadata: {exc}") from None
+    problem = meta_checksum_problem(data)
+    if problem:
+        raise CheckpointError(f"{path}: {problem}")
+    return meta

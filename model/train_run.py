@@ -41,9 +41,9 @@ def run_folder(out_dir: Path) -> Iterator[None]:
         yield
     finally:
         if lock is not None:
-            lock.release()
-            if created and not any(out_dir.iterdir()):
-                out_dir.rmdir()  # a run that could not start leaves no folder
+            # Still under the lock, so another training that takes the folder next never loses it; removed
+            # only when empty: a run that could not start leaves no folder.
+            lock.release(remove_folder=created)
 
 
 class ChainedScenes:

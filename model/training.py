@@ -39,6 +39,7 @@ import numpy as np
 import torch
 
 from logpipe.progress import report_total
+from logpipe.storage.io import open_nofollow
 from logpipe.types import SceneSample
 
 from .batching import collate
@@ -107,7 +108,7 @@ class _Log:
     def write(self, event: str, **fields: Any) -> None:
         if not self.enabled:
             return
-        with self.path.open("a", encoding="utf-8") as fh:
+        with open_nofollow(self.path, "a") as fh:
             fh.write(json.dumps({"event": event, "time": time.time(), **fields}) + "\n")
 
 

@@ -115,6 +115,14 @@ def user_errors(as_json: bool = False) -> Iterator[None]:
         from logpipe.storage.artifact import os_error_message
 
         _fail(os_error_message(exc), as_json)
+    except Exception as exc:
+        if not type(exc).__module__.startswith("ray."):
+            raise
+        # A Ray system process killed or lost (LocalRayletDiedError, RaySystemError...): the run's committed
+        # shards stay; one line saying so, not Ray's traceback.
+        first = (str(exc).strip().splitlines() or [""])[0][:200]
+        _fail(f"the Ray backend failed ({type(exc).__name__}: {first}); committed work is kept, run the "
+              "command again (or use --backend local)", as_json)
 
 
 def _fail(message: str, as_json: bool) -> None:

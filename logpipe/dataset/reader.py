@@ -58,6 +58,8 @@ DATASET_OWNED = Ownership([f"{TRACKS_DIR}/", f"{LOGS_DIR}/", f"{SAMPLES_DIR}/", 
                            "part-?????.parquet", "logs.parquet", "samples.parquet"])
 """A dataset's own files: the table and MCAP folders, and the top-level files of the previous layout; never
 ``rasters/`` (raster runs are artifacts of their own)."""
+DATASET_LEGACY_KEYS = ("format", "shards", "tables")
+"""Keys of a dataset manifest written before manifests named their kind (``artifact``)."""
 
 
 def table_file(table: str, generation: int) -> str:

@@ -16,11 +16,20 @@ import pyarrow.compute as pc
 
 from logpipe import __version__
 from logpipe.contracts import arrow_schema, decode_dictionaries, encode_dictionaries, schema_version, value_schema
-from logpipe.dataset.reader import DATASET_ARTIFACT, DATASET_OWNED, MAPS_DIR, MCAP_DIR, SAMPLES_DIR, table_file
+from logpipe.dataset.reader import (
+    DATASET_ARTIFACT,
+    DATASET_LEGACY_KEYS,
+    DATASET_OWNED,
+    MAPS_DIR,
+    MCAP_DIR,
+    SAMPLES_DIR,
+    table_file,
+)
 from logpipe.errors import DatasetError
 from logpipe.storage.artifact import FileEntry, FolderWriter, file_entry
 from logpipe.storage.durability import crash_point
 from logpipe.storage.io import parquet_options, read_table, write_parquet
+from logpipe.storage.safe_paths import real_folder
 from logpipe.types import SampleProtocol, SourceFile
 
 SCHEMAS = ("tracks", "logs", "samples")
@@ -111,6 +120,7 @@ class DatasetWriter(FolderWriter):
 
     ownership = DATASET_OWNED
     kind = DATASET_ARTIFACT
+    legacy_keys = DATASET_LEGACY_KEYS
 
     @property
     def manifest(self) -> DatasetManifest | None:
@@ -166,14 +176,15 @@ class DatasetWriter(FolderWriter):
         files = dict(manifest["files"])
         for batch in batches:
             if batch.shard is not None:
-                (out / batch.shard["file"]).parent.mkdir(exist_ok=True)
+                if "/" in batch.shard["file"]:
+                    real_folder(out, batch.shard["file"].rpartition("/")[0])
                 crash_point(f"move {batch.shard['file']}")
                 (staging / batch.shard["file"]).replace(out / batch.shard["file"])
                 manifest["shards"].append(batch.shard)
             files.update(batch.files)
         for per_log in (MCAP_DIR, MAPS_DIR):
             if (staging / per_log).is_dir():
-                (out / per_log).mkdir(exist_ok=True)
+                real_folder(out, per_log)  # never moved through a link to outside the dataset
                 for folder in sorted((staging / per_log).iterdir()):  # one rename per shard, not per log
                     crash_point(f"move {per_log}/{folder.name}")
                     folder.replace(out / per_log / folder.name)

@@ -100,7 +100,8 @@ def _errors(table: pa.Table, batch: TextBatch, sources: Sequence[SourceFile]) ->
     if errors:
         return errors
     # Before any int64 conversion: frame x period must not wrap, ids must be exact integers in a float.
-    errors = check_range(table, {"frame_id": TIME_LIMIT_NS / FRAME_PERIOD_NS, "object_id": ID_LIMIT}, batch, sources)
+    errors = check_range(table, {"frame_id": TIME_LIMIT_NS / FRAME_PERIOD_NS, "object_id": ID_LIMIT}, batch, sources,
+                         non_negative=("frame_id",))
     if errors:
         return errors
     for name in ("frame_id", "object_id", "object_type"):

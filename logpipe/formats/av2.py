@@ -38,6 +38,7 @@ from logpipe.formats.base import (
     conform_tracks,
     empty_tracks,
     require_regular,
+    require_regular_tree,
 )
 from logpipe.geometry import quat_mul, quat_rotate, quat_yaw
 from logpipe.types import PROTOCOLS, LogMeta, NDArrayFloat, SampleProtocol, SourceFile
@@ -81,6 +82,10 @@ SCENARIO_COLUMNS = (
 POSE_COLUMNS = ("timestamp_ns", "qw", "qx", "qy", "qz", "tx_m", "ty_m", "tz_m")
 BOX_COLUMNS = ("timestamp_ns", "track_uuid", "category", "length_m", "width_m", *POSE_COLUMNS[1:])
 _CITY = re.compile(r"____(?P<city>[A-Z]{3})_city_\d+\.json$")
+
+
+QUAT_TOLERANCE = 1e-3
+"""Largest accepted | |q| - 1 | of a pose or box rotation."""
 
 
 def _require(table: pa.Table, columns: Sequence[str], rel: str) -> None:
@@ -235,7 +240,7 @@ class Av2Adapter:
         scenario_id = extra.get("scenario_id") or path.stem.removeprefix("scenario_")
         map_file = path.with_name(f"log_map_archive_{scenario_id}.json")
         attributes = {"kind": "scenario", **extra, "map_file": map_file.name if map_file.exists() else None}
-        if map_file.exists():
+        if map_file.is_file():  # a regular file only: a FIFO of that name would block the read forever
             # newer map archives may name the city; the scenario's own column is the fallback
             with contextlib.suppress(OSError, ValueError):
                 city = str(json.loads(map_file.read_text(encoding="utf-8")).get("city_name", city))
@@ -254,6 +259,7 @@ class Av2Adapter:
         ]
         if not ann_files:
             raise SourceError(rel, "sensor log has no annotations.feather or annotations_with_ego.feather")
+        require_regular_tree(folder, rel)  # a FIFO here (annotations, map JSON) would block a read forever
         try:
             ego = feather.read_table(folder / "city_SE3_egovehicle.feather")
             boxes = feather.read_table(ann_files[0])
@@ -358,11 +364,14 @@ def _check_poses(table: pa.Table, rel: str, *, increasing: bool) -> None:
         if not np.isfinite(values).all():
             row = int(np.flatnonzero(~np.isfinite(values))[0])
             raise SourceError(rel, f"not finite: {values[row]!r}", line=row + 1, field=name)
-    norms = np.linalg.norm(_quat(table), axis=1)
-    if (norms < 1e-6).any():
-        row = int(np.flatnonzero(norms < 1e-6)[0])
-        raise SourceError(rel, f"{int((norms < 1e-6).sum())} rows have a zero-length rotation quaternion",
-                          line=row + 1, field="qw")
+    # AV2 writes unit quaternions (float64): one off by more than the tolerance is damage (scaled by 1e-3, it
+    # would turn headings silently), not a rotation to normalise.
+    off = np.abs(np.linalg.norm(_quat(table), axis=1) - 1.0) > QUAT_TOLERANCE
+    if off.any():
+        row = int(np.flatnonzero(off)[0])
+        norm = float(np.linalg.norm(_quat(table)[row]))
+        raise SourceError(rel, f"{int(off.sum())} rows have a rotation quaternion that is not unit length (first: "
+                          f"norm {norm:.6g}, tolerance {QUAT_TOLERANCE})", line=row + 1, field="qw")
 
 
 def _pose_at(

@@ -86,6 +86,15 @@ def require_regular(path: str | Path, relpath: str, *, folder_ok: bool = False) 
     raise SourceError(relpath, f"not a regular file: {kind}; only regular files are read")
 
 
+def require_regular_tree(folder: str | Path, relpath: str) -> None:
+    """``require_regular`` on everything inside an input folder (a bag folder, an AV2 sensor log), each entry
+    checked: readers open the files they find there, and one FIFO among them would block forever."""
+    for here, dirs, names in os.walk(folder):
+        for name in [*names, *(d for d in dirs if os.path.islink(os.path.join(here, d)))]:
+            path = os.path.join(here, name)
+            require_regular(path, f"{relpath}/{os.path.relpath(path, folder)}", folder_ok=True)
+
+
 def check_log_id(log_id: object, relpath: str, field: str = "log_id") -> str:
     """``log_id`` when it is safe as one path component (ids become file names), else a ``SourceError``
     (the rule: ``logpipe.storage.artifact.unsafe_file_name``)."""
@@ -197,6 +206,7 @@ def read_each(sources: Sequence[SourceFile], read_one: ReadOne, *, keep_going: b
     failures: list[SourceError] = []
     for source in sources:
         try:
+            _refuse_escaping_link(source)
             require_regular(source.path, source.relpath, folder_ok=True)
             table, meta, problems = read_one(source)
             check_log_id(meta.log_id, source.relpath)
@@ -286,6 +296,7 @@ def regular_sources(
     refused: list[tuple[SourceFile, SourceError]] = []
     for source in sources:
         try:
+            _refuse_escaping_link(source)
             require_regular(source.path, source.relpath, folder_ok=True)
         except SourceError as err:
             if not keep_going:
@@ -294,6 +305,19 @@ def regular_sources(
             continue
         good.append(source)
     return good, refused
+
+
+def _refuse_escaping_link(source: SourceFile) -> None:
+    """Refuse an input that is a symbolic link to a file outside its input folder: in skip mode its parse
+    error (which quotes the offending line) would copy another file's first line into the manifest."""
+    path = str(source.path)
+    if not os.path.islink(path):
+        return
+    base = path[: -len(source.relpath)] if path.endswith(source.relpath) else os.path.dirname(path)
+    inside = os.path.realpath(base or ".")
+    if os.path.commonpath([os.path.realpath(path), inside]) != inside:
+        raise SourceError(source.relpath, "a symbolic link to a file outside its input folder; not read "
+                          "(pass the file itself)")
 
 
 def read_isolating(adapter: FormatAdapter, sources: list[SourceFile], keep_going: bool) -> ParsedLogs:
@@ -321,11 +345,22 @@ def read_isolating(adapter: FormatAdapter, sources: list[SourceFile], keep_going
 
 def refuse_unsafe_log_ids(parsed: ParsedLogs, keep_going: bool) -> ParsedLogs:
     """``parsed`` without the logs whose id is not one safe file name (ids become ``mcap/<log_id>.mcap`` and
-    prediction files): ``../../x`` from a data column must not write outside the dataset."""
+    prediction files): ``../../x`` from a data column must not write outside the dataset; nor those with a
+    negative time (no MCAP can hold it)."""
     bad: dict[str, SourceError] = {}
+    early = _earliest_times(parsed.tracks)
+    implausible = implausible_rows(parsed.tracks)
     for meta in parsed.logs:
         try:
             check_log_id(meta.log_id, meta.source_file)
+            # MCAP log times are unsigned: a negative frame or time (ETH/UCY frame -400) is this input's error,
+            # quarantined in skip mode, never a crash of the whole batch in the MCAP writer.
+            if early.get(meta.log_id, 0) < 0:
+                raise SourceError(meta.source_file, f"time {early[meta.log_id]} ns is negative (a negative frame "
+                                  "number or time stamp; log times start at 0)", field="timestamp_ns")
+            if meta.log_id in implausible:
+                field, reason = implausible[meta.log_id]
+                raise SourceError(meta.source_file, reason, field=field)
         except SourceError as err:
             if not keep_going:
                 raise
@@ -337,6 +372,39 @@ def refuse_unsafe_log_ids(parsed: ParsedLogs, keep_going: bool) -> ParsedLogs:
     return ParsedLogs(tracks=tracks, logs=[m for m in parsed.logs if m.log_id not in bad],
                       failures=[*parsed.failures, *bad.values()],  # codes dropped: rows were removed
                       maps={k: v for k, v in parsed.maps.items() if k not in bad})
+
+
+COORD_LIMIT_M = 1e7
+"""Largest |x| or |y| accepted, in metres (10,000 km): above any UTM northing or city frame; 1e12 m is damage."""
+
+
+def implausible_rows(tracks: pa.Table) -> dict[str, tuple[str, str]]:
+    """(field, reason) for each log of ``tracks`` holding a physically implausible row: a coordinate beyond
+    ``COORD_LIMIT_M``, or a track id with NUL or control characters (ids reach file names, MCAP and terminals).
+    One vectorised pass, the same for every format."""
+    if tracks.num_rows == 0:
+        return {}
+    logs = pc.cast(tracks.column("log_id"), pa.string())
+    found: dict[str, tuple[str, str]] = {}
+    for name in ("x", "y"):
+        far = pc.fill_null(pc.greater_equal(pc.abs(tracks.column(name)), COORD_LIMIT_M), False)
+        for log, value in zip(pc.filter(logs, far).to_pylist(), pc.filter(tracks.column(name), far).to_pylist(),
+                              strict=True):
+            found.setdefault(log, (name, f"{value!r} m is beyond the plausible {COORD_LIMIT_M:.0e} m"))
+    ids = pc.cast(tracks.column("track_id"), pa.string())
+    control = pc.fill_null(pc.match_substring_regex(ids, r"[\x00-\x1f\x7f]"), False)
+    for log, value in zip(pc.filter(logs, control).to_pylist(), pc.filter(ids, control).to_pylist(), strict=True):
+        found.setdefault(log, ("track_id", f"track id {value[:40]!r} holds NUL or control characters"))
+    return found
+
+
+def _earliest_times(tracks: pa.Table) -> dict[str, int]:
+    """The earliest ``timestamp_ns`` of each log of ``tracks``."""
+    if tracks.num_rows == 0:
+        return {}
+    table = pa.table({"log": pc.cast(tracks.column("log_id"), pa.string()), "t": tracks.column("timestamp_ns")})
+    earliest = table.group_by("log").aggregate([("t", "min")])
+    return dict(zip(earliest.column("log").to_pylist(), earliest.column("t_min").to_pylist(), strict=True))
 
 
 def source_of(file: str, by_path: dict[str, SourceFile]) -> SourceFile:

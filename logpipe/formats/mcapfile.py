@@ -60,10 +60,27 @@ def _check_chunk_sizes(stream: IO[bytes], size: int) -> None:
             if isinstance(record, Chunk) and record.uncompressed_size > chunk_limit:
                 raise LengthError(f"a chunk claims {record.uncompressed_size} bytes decompressed "
                                   f"(at most {chunk_limit} for a {size}-byte file)")
+            if isinstance(record, Chunk) and record.compression == "lz4":
+                _check_lz4_inflation(record)
     except LengthError:
         raise
     except Exception:  # other damage: reported by the reader that reads up to it
         pass
+
+
+def _check_lz4_inflation(chunk: Chunk) -> None:
+    """Refuse an lz4 chunk that inflates past its declared size, decompressing at most one byte more than
+    declared: the mcap reader decompresses lz4 without a bound (a chunk declaring 1 KiB reached 1.2 GB and a
+    MemoryError), zstd it bounds by the declared size itself."""
+    import lz4.frame
+
+    decompressor = lz4.frame.LZ4FrameDecompressor()
+    try:
+        out = decompressor.decompress(chunk.data, max_length=chunk.uncompressed_size + 1)
+    except RuntimeError:  # damaged lz4: the reader reports it where it reads the chunk
+        return
+    if len(out) > chunk.uncompressed_size:
+        raise LengthError(f"an lz4 chunk inflates past the {chunk.uncompressed_size} bytes it declares")
 
 
 def _factories() -> list[DecoderFactory]:
@@ -143,7 +160,7 @@ class McapFile:
         try:
             size = os.fstat(stream.fileno()).st_size
             record_limit, chunk_limit = _limits(size)
-            reader = SeekingReader(stream, record_size_limit=record_limit)
+            reader = SeekingReader(stream, validate_crcs=True, record_size_limit=record_limit)
             header = reader.get_header()
             out = cls(path=path, stream=stream, profile=header.profile, library=header.library)
             try:
@@ -156,6 +173,8 @@ class McapFile:
                     if index.uncompressed_size > chunk_limit or index.compressed_size > size:
                         raise LengthError(f"a chunk index claims {index.uncompressed_size} bytes decompressed, "
                                           f"{index.compressed_size} compressed (file: {size} bytes)")
+            if summary is not None and any(i.compression == "lz4" for i in summary.chunk_indexes):
+                _check_chunk_sizes(stream, size)  # the indexes' sizes are declared, lz4's inflation is not
             if summary is None or not summary.chunk_indexes:
                 _check_chunk_sizes(stream, size)
                 out.indexed = False
@@ -195,7 +214,8 @@ class McapFile:
     def _stream_records(self, topics: Collection[str] | None) -> Iterator[tuple[Channel, Any]]:
         """Messages in file order, read as a stream; stops at damage (recorded in ``self.damage``)."""
         self.stream.seek(0)
-        reader = NonSeekingReader(self.stream, record_size_limit=min(256 * 2**20, _limits(self._size())[0]))
+        reader = NonSeekingReader(self.stream, validate_crcs=True,
+                                  record_size_limit=min(256 * 2**20, _limits(self._size())[0]))
         try:
             for schema, channel, message in reader.iter_messages(topics, log_time_order=False):
                 if schema is not None:
@@ -222,7 +242,7 @@ class McapFile:
         """(channel, log_time, data) in log-time order."""
         if self.indexed:
             self.stream.seek(0)  # the reader checks the magic where the stream stands
-            reader = SeekingReader(self.stream, record_size_limit=_limits(self._size())[0])
+            reader = SeekingReader(self.stream, validate_crcs=True, record_size_limit=_limits(self._size())[0])
             for _schema, channel, message in reader.iter_messages(topics, log_time_order=True):
                 yield channel, message.log_time, message.data
             return

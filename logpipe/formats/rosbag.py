@@ -23,7 +23,8 @@ from rosbags.typesys import Stores, get_typestore
 from rosbags.typesys.store import Typestore
 
 from logpipe.errors import SourceError
-from logpipe.formats.base import ParsedLogs, empty_tracks, read_each, read_head
+from logpipe.formats.base import ParsedLogs, empty_tracks, read_each, read_head, require_regular_tree
+from logpipe.formats.inflation import InflationError, check_ros1_bags
 from logpipe.formats.mcapfile import McapAdapter
 from logpipe.formats.ros.extract import ROSBAG_PROTOCOL, ExtractOptions, ReadStopped, extract_log
 from logpipe.formats.ros.mapping import Mapping, TopicSummary
@@ -205,6 +206,12 @@ class RosbagAdapter:
         paths = storage_paths(path)
         if not paths:
             raise SourceError(rel, "folder holds no metadata.yaml and no .db3/.mcap storage file")
+        if path.is_dir():
+            require_regular_tree(path, rel)  # a FIFO among a bag's files would block the reader forever
+        try:
+            check_ros1_bags(paths)  # before rosbags decompresses any chunk, unbounded
+        except InflationError as err:
+            raise SourceError(rel, f"refused: {err}") from None
         try:
             reader = AnyReader(paths, default_typestore=_typestore(self.typestore_name))
             reader.open()

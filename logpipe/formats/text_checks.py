@@ -18,18 +18,21 @@ from logpipe.types import NDArrayBool, NDArrayInt, SourceFile
 
 
 def check_range(
-    table: pa.Table, limits: dict[str, float], batch: TextBatch, sources: Sequence[SourceFile]
+    table: pa.Table, limits: dict[str, float], batch: TextBatch, sources: Sequence[SourceFile],
+    non_negative: Sequence[str] = (),
 ) -> list[SourceError]:
-    """One error per file with a value of a column in ``limits`` whose magnitude is not below its limit: checked
-    on the floats, before they are converted to int64 (frames x period, ids) where they would wrap silently."""
+    """One error per file with a value of a column in ``limits`` whose magnitude is not below its limit (or, for
+    ``non_negative`` columns such as frame numbers, below 0): checked on the floats, before they are converted to
+    int64 (frames x period, ids) where they would wrap silently."""
     errors: dict[int, SourceError] = {}
     for name, limit in limits.items():
         values = as_numpy(table.column(name))
-        bad = ~(np.abs(values) < limit)
+        floor = 0.0 if name in non_negative else -limit
+        bad = ~((np.abs(values) < limit) & (values >= floor))
         for row in np.flatnonzero(bad)[:1000].tolist():
             f = int(batch.file_index[row])
-            errors.setdefault(f, row_error(batch, sources, row, f"{values[row]!r} is out of range "
-                                           f"(|value| must be below {limit:.4g})", name))
+            bound = f"must be in [0, {limit:.4g})" if name in non_negative else f"|value| must be below {limit:.4g}"
+            errors.setdefault(f, row_error(batch, sources, row, f"{values[row]!r} is out of range ({bound})", name))
     return [errors[f] for f in sorted(errors)]
 
 

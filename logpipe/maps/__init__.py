@@ -8,6 +8,7 @@ dataset and caches the loaded stores.
 
 from __future__ import annotations
 
+import re
 import zipfile
 from collections import OrderedDict
 from collections.abc import Callable, Iterable, Sequence
@@ -81,8 +82,23 @@ def _adapter_for(path: Path) -> MapAdapter:
     raise DatasetError(f"{path}: not a map format logpipe reads ({', '.join(a.name for a in ADAPTERS)})")
 
 
+_CITY_CODE = re.compile(r"^[A-Z]{3}$")
+
+
+def map_names(path: Path) -> set[str]:
+    """The names a map file answers to, lower-cased: its stem, an AV1 city code among its name's parts
+    (``MIA`` of ``MIA_lane_centerlines.npz``, of ``pruned_argoverse_MIA_10316_vector_map.xml``), and an AV2
+    archive's log id and city (``PIT_city_57819`` and ``PIT``). Matching is exact: a substring (``a``, ``.``,
+    ``lane``) used to pick the first map whose file name contained it."""
+    names = {path.stem, *(part for part in path.stem.split("_") if _CITY_CODE.match(part))}
+    log, city = av2.names_from_path(path)
+    names |= {n for n in (log, city, city.split("_")[0] if city else None) if n}
+    return {n.lower() for n in names}
+
+
 def find_map_files(name: str, roots: Iterable[Path]) -> list[Path]:
-    """Map files under ``roots`` whose file name contains ``name`` (case-insensitive), best match first.
+    """Map files under ``roots`` that answer to ``name`` (``map_names``, case-insensitive; "" lists all), best
+    match first.
 
     Preference: a canonical store, then AV1 vector-map XML, AV1 npz, Lanelet2, AV2 JSON; shorter names
     first within a format so ``MIA_lane_centerlines.npz`` wins over unrelated longer names.
@@ -92,11 +108,11 @@ def find_map_files(name: str, roots: Iterable[Path]) -> list[Path]:
     hits: set[Path] = set()
     for root in roots:
         if root.is_file():
-            if needle in root.name.lower():
+            if not needle or needle in map_names(root):
                 hits.add(root)
             continue
         for p in root.rglob("*"):
-            if p.suffix in _MAP_SUFFIXES and needle in p.name.lower() and p.is_file():
+            if p.suffix in _MAP_SUFFIXES and (not needle or needle in map_names(p)) and p.is_file():
                 hits.add(p)
     return sorted(hits, key=lambda p: (rank.get(p.suffix, 9), len(p.name), str(p)))
 
@@ -205,7 +221,7 @@ class MapSource:
         if self._listing is None:
             self._listing = find_map_files("", self.roots)  # already in preference order
         needle = name.lower()
-        return [p for p in self._listing if needle in p.name.lower()]
+        return [p for p in self._listing if needle in map_names(p)]
 
     def resolve(self, map_id: str | None, log_id: str | None = None) -> Path | None:
         """The map file for a log, or None when nothing matches."""

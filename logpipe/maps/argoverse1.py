@@ -23,7 +23,7 @@ import pyarrow as pa
 
 from logpipe.errors import SourceError
 from logpipe.maps.feature_kinds import FeatureKind
-from logpipe.maps.store import MapBuilder, MapStore, map_schema
+from logpipe.maps.store import MAP_COORD_LIMIT_M, MapBuilder, MapStore, map_schema
 
 NPZ_SOURCE = "argoverse1_npz"
 XML_SOURCE = "argoverse1_xml"
@@ -78,8 +78,8 @@ def load_npz(path: Path, map_id: str | None = None) -> MapStore:
         raise SourceError(name, "offsets do not cover points with one entry per lane + 1", field="offsets")
     if np.any(np.diff(offsets) < 2):
         raise SourceError(name, "a lane has fewer than 2 points", field="offsets")
-    if not np.isfinite(points).all():
-        raise SourceError(name, "non-finite coordinates", field="points")
+    if not (np.abs(points) < MAP_COORD_LIMIT_M).all():  # NaN, inf and 1e300 alike (the store's one rule)
+        raise SourceError(name, f"coordinates not finite or beyond {MAP_COORD_LIMIT_M:.0e} m", field="points")
     city = map_id or city_from_name(path) or path.stem
     # Build the Arrow table straight from the flat arrays: 12k lanes, no per-lane Python objects.
     n = len(lane_ids)

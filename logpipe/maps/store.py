@@ -42,6 +42,10 @@ ATTRIBUTE_COLUMNS: tuple[str, ...] = (
     "successors",
 )
 
+MAP_COORD_LIMIT_M = 1e7
+"""Largest |x| or |y| of a map vertex, in metres (10,000 km: above any UTM northing or city frame)."""
+
+
 def map_schema() -> pa.Schema:
     """Arrow schema of the map store (``schemas/map.json``)."""
     return arrow_schema("map")
@@ -82,8 +86,15 @@ class MapBuilder:
         if kind in POLYGON_KINDS and len(pts) > 3 and np.array_equal(pts[0], pts[-1]):
             pts = pts[:-1]  # store open rings; the renderer closes them
         need = 3 if kind in POLYGON_KINDS else 2
-        if len(pts) < need or not np.isfinite(pts).all():
-            return  # degenerate or broken geometry cannot be drawn; adapters count what they keep
+        # Every map format's one plausibility check: NaN, inf, 1e400 or 1e300 in a vertex is damage, an error
+        # naming the feature (not a feature silently dropped, nor an OverflowError in the grid index later).
+        bad = ~(np.abs(pts) < MAP_COORD_LIMIT_M)
+        if bad.any():
+            value = pts.reshape(-1)[int(np.flatnonzero(bad.reshape(-1))[0])]
+            raise ValueError(f"{kind} {str(feature_id)[:60]!r}: vertex coordinate {value!r} is not finite or beyond "
+                             f"{MAP_COORD_LIMIT_M:.0e} m")
+        if len(pts) < need:
+            return  # degenerate geometry cannot be drawn; adapters count what they keep
         unknown = set(attributes) - set(ATTRIBUTE_COLUMNS)
         if unknown:
             raise ValueError(f"unknown map attributes {sorted(unknown)}")

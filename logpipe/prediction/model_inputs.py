@@ -65,7 +65,9 @@ class SampleCutter:
             return self
         index = self.rasters.index
         index = index.filter(pc.is_in(index.column("sample_id"), value_set=sample_ids))
-        return replace(self, rasters=RasterShards(self.rasters.run_dir, self.rasters.spec, index),
+        shards = set(pc.unique(index.column("shard")).to_pylist())
+        files = {rel: entry for rel, entry in self.rasters.files.items() if rel in shards}
+        return replace(self, rasters=RasterShards(self.rasters.run_dir, self.rasters.spec, index, files),
                        raster_ids=self.raster_ids & frozenset(sample_ids.to_pylist()))
 
     def plan_batches(self, tracks: pa.Table, log_ids: Sequence[str], samples: SelectedSamples,

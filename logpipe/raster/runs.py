@@ -10,7 +10,7 @@ from __future__ import annotations
 import hashlib
 import json
 from pathlib import Path, PurePath
-from typing import Any, TypedDict
+from typing import Any, Self, TypedDict
 
 import numpy as np
 import pyarrow as pa
@@ -18,7 +18,8 @@ import pyarrow as pa
 from logpipe.errors import DatasetError
 from logpipe.raster.rasteriser import RasterSpec
 from logpipe.storage.artifact import EVERYTHING, FileEntry, FolderWriter, check_files, read_manifest
-from logpipe.storage.io import read_table
+from logpipe.storage.io import read_table, sha256_file
+from logpipe.storage.safe_paths import real_folder
 from logpipe.types import NDArrayByte, NDArrayFloat
 
 RASTER_DIR = "rasters"
@@ -154,8 +155,11 @@ class RasterShards:
         index: the concatenated ``index-*.parquet`` tables (``schemas/raster.json``).
     """
 
-    def __init__(self, run_dir: Path, spec: RasterSpec, index: pa.Table) -> None:
+    def __init__(self, run_dir: Path, spec: RasterSpec, index: pa.Table,
+                 files: dict[str, FileEntry] | None = None) -> None:
         self.run_dir = run_dir
+        self.files = files or {}
+        """The manifest's entries: each shard's sha256 is checked when a run first reads it."""
         self.spec = spec
         self.index = index
         ids = index.column("sample_id").to_pylist()
@@ -185,7 +189,7 @@ class RasterShards:
         if index.num_rows != manifest.get("samples", index.num_rows):
             raise DatasetError(f"{run_dir}: index holds {index.num_rows} rasters, the manifest says "
                                f"{manifest['samples']}; `logpipe verify` lists what is wrong")
-        return cls(run_dir, spec, index)
+        return cls(run_dir, spec, index, manifest.get("files", {}))
 
     def __len__(self) -> int:
         return int(self.index.num_rows)
@@ -196,6 +200,10 @@ class RasterShards:
         arr = self._mmaps.get(shard)
         if arr is None:
             try:
+                # Once per shard and reader: a changed byte would otherwise be a silently other raster.
+                expected = self.files.get(shard, {}).get("sha256")
+                if expected is not None and sha256_file(self.run_dir / shard) != expected:
+                    raise ValueError("sha256 differs from the manifest (content changed)")
                 arr = np.load(self.run_dir / shard, mmap_mode="r", allow_pickle=False)
             except (OSError, ValueError) as exc:
                 raise DatasetError(f"{self.run_dir / shard}: unreadable raster shard ({exc}); `logpipe verify` "
@@ -238,6 +246,11 @@ class RasterRunWriter(FolderWriter):
 
     ownership = EVERYTHING
     kind = RASTER_ARTIFACT
+
+    def __enter__(self) -> Self:
+        if self.root.parent.name == RASTER_DIR:  # a link as the dataset's rasters/ would put the run outside it
+            real_folder(self.root.parent.parent, RASTER_DIR)
+        return super().__enter__()
 
     def commit(self, manifest: RasterRunManifest) -> None:
         self._writer.commit(dict(manifest))

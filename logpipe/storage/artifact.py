@@ -39,6 +39,7 @@ from typing import Any, Self, TypedDict
 from logpipe.errors import DatasetError, LogpipeError, OutputError
 from logpipe.storage.durability import crash_point, fsync_dir, syncfs
 from logpipe.storage.folder_lock import LOCK_FILE, FolderLock
+from logpipe.storage.safe_paths import check_manifest_files, refuse_linked_folders
 
 MANIFEST = "manifest.json"
 STAGING_PREFIX = ".staging-"
@@ -96,7 +97,17 @@ def read_manifest(root: Path, *, required: bool = True) -> dict[str, Any] | None
     if "checksum" in manifest and manifest["checksum"] != manifest_checksum(manifest):
         raise DatasetError(f"{path}: damaged manifest (content differs from its checksum); "
                            "`logpipe verify` lists what is wrong")
+    if isinstance(manifest.get("files"), dict):  # every reader, writer and verify joins these paths to root
+        check_manifest_files(path, manifest["files"])
     return manifest
+
+
+def foreign_manifest(manifest: dict[str, Any] | None, legacy_keys: Sequence[str] = ()) -> bool:
+    """Whether ``manifest`` (of a folder a writer or ``verify --repair`` would clean) is none of logpipe's: no
+    artifact kind, and not the manifest of an older logpipe (which has every one of ``legacy_keys``)."""
+    if manifest is None or isinstance(manifest.get("artifact"), str):
+        return False
+    return not (legacy_keys and all(k in manifest for k in legacy_keys))
 
 
 def file_entry(path: Path, *, rows: int | None = None) -> FileEntry:
@@ -202,10 +213,11 @@ class ArtifactWriter:
         manifest: the committed manifest when entering (None for a new folder).
     """
 
-    def __init__(self, root: Path, owned: Ownership, kind: str) -> None:
+    def __init__(self, root: Path, owned: Ownership, kind: str, legacy_keys: Sequence[str] = ()) -> None:
         self.root = Path(root)
         self.owned = owned
         self.kind = kind
+        self.legacy_keys = tuple(legacy_keys)
         self.manifest: dict[str, Any] | None = None
         self._lock = FolderLock(self.root)
         self._created = False
@@ -213,27 +225,38 @@ class ArtifactWriter:
     def __enter__(self) -> ArtifactWriter:
         if self.root.exists() and not self.root.is_dir():
             raise DatasetError(f"{self.root}: exists and is not a folder")
-        self._created = not self.root.exists()
-        self.root.mkdir(parents=True, exist_ok=True)
+        self.root.parent.mkdir(parents=True, exist_ok=True)
+        try:  # one atomic step decides who created the folder (two runs may both find it missing)
+            self.root.mkdir()
+            self._created = True
+        except FileExistsError:
+            self._created = False
         self._lock.acquire()
         try:
             self.manifest = read_manifest(self.root, required=False)
+            if foreign_manifest(self.manifest, self.legacy_keys):
+                raise DatasetError(f"{self.root}: holds a {MANIFEST} that logpipe did not write (no artifact kind); "
+                                   "choose another folder")
             found = (self.manifest or {}).get("artifact", self.kind)
             if found != self.kind:
                 raise DatasetError(f"{self.root}: holds a {str(found).replace('_', ' ')}, not a "
                                    f"{self.kind.replace('_', ' ')}; choose another folder")
+            refuse_linked_folders(self.root, self.owned)
             self.clean()
         except BaseException:
-            self._lock.release()
+            self._lock.release(remove_folder=self._created)
             raise
         return self
 
     def __exit__(self, kind: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None) -> None:
-        committed = self.manifest is not None
-        self._lock.release()
-        if self._created and not committed:
-            # A failed first run leaves no trace: only the lock file and empty folders can be here.
-            shutil.rmtree(self.root, ignore_errors=True)
+        failed_first_run = self._created and self.manifest is None
+        try:
+            if failed_first_run:
+                # Leave no trace, and only under the lock: released first, another writer could take the folder
+                # and commit into it before it is gone. Only owned files this run wrote can be here.
+                self.clean(everything_owned=True)
+        finally:
+            self._lock.release(remove_folder=failed_first_run)
 
     def staging(self) -> Path:
         """A fresh staging folder inside the artifact (removed by ``clean`` if never committed)."""
@@ -246,14 +269,15 @@ class ArtifactWriter:
     def committed_files(self) -> set[str]:
         return set((self.manifest or {}).get("files", {}))
 
-    def clean(self) -> list[str]:
+    def clean(self, *, everything_owned: bool = False) -> list[str]:
         """Remove owned paths the committed manifest does not name (and any staging or temp file).
 
         In a folder without a manifest, owned paths are removed only when a killed writer left its lock file
-        there: otherwise they may be the user's own files (``--out`` pointed at a folder with PNGs in it).
+        there, or (``everything_owned``) this writer created the folder: otherwise they may be the user's own
+        files (``--out`` pointed at a folder with PNGs in it).
         """
         keep = self.committed_files()
-        ours = self.manifest is not None or self._lock.found_stale
+        ours = self.manifest is not None or self._lock.found_stale or everything_owned
         removed = []
         for rel, path in _walk(self.root):
             if rel in keep or rel in (MANIFEST, LOCK_FILE):
@@ -305,11 +329,12 @@ class ArtifactWriter:
         fsync_dir(self.root)
         superseded = sorted(self.committed_files() - set(files))
         self.manifest = manifest
-        # Only what the previous state named: workers may be writing the next commit's files right now.
+        # Only what the previous state named: workers may be writing the next commit's files right now, so
+        # only the folders these files leave empty go, never a sweep (it would take a worker's new folder).
         for rel in superseded:
             crash_point(f"remove {rel}")
             (self.root / rel).unlink(missing_ok=True)
-        _remove_empty_owned_dirs(self.root, self.owned)
+        _remove_emptied_dirs(self.root, self.owned, superseded)
 
 
 def _walk(root: Path) -> Iterable[tuple[str, Path]]:
@@ -328,6 +353,18 @@ def _walk(root: Path) -> Iterable[tuple[str, Path]]:
         dirs[:] = keep_dirs
         for name in sorted(names):
             yield prefix + name, here / name
+
+
+def _remove_emptied_dirs(root: Path, owned: Ownership, removed: Iterable[str]) -> None:
+    """Remove the owned folders (and their owned parents) that removing the files ``removed`` left empty."""
+    for rel in removed:
+        parts = rel.split("/")[:-1]
+        while parts and owned("/".join(parts) + "/"):
+            try:
+                (root / "/".join(parts)).rmdir()
+            except OSError:  # not empty (or gone): its other files, or a worker's new ones
+                break
+            parts.pop()
 
 
 def _remove_empty_owned_dirs(root: Path, owned: Ownership) -> None:
@@ -372,7 +409,7 @@ def verify_folder(root: Path, owned: Ownership | None = None, *,
     assert manifest is not None
     if "checksum" in manifest and manifest["checksum"] != manifest_checksum(manifest):
         return [Problem(str(root / MANIFEST), "content differs from its checksum (edited or damaged)")], []
-    owned = Ownership.of(manifest, owned or EVERYTHING)
+    owned = owned or Ownership.of(manifest, EVERYTHING)
     files = manifest.get("files")
     if not isinstance(files, dict):
         return [Problem(str(root / MANIFEST), "lists no files (written by logpipe < 0.2; re-create the folder)")], []
@@ -420,12 +457,17 @@ def owned_by(prefixes: Sequence[str], names: Sequence[str] = ()) -> Ownership:
 
 
 def os_error_message(exc: OSError) -> str:
-    """One line for an OS error on an output (disk full, read-only, permissions)."""
-    where = exc.filename or "output"
+    """One line for an OS error on an output (disk full, read-only, permissions): the file, the error in words
+    and its errno name, and what the folder holds now (true whether or not earlier commits of the run landed)."""
+    where = str(exc.filename) if exc.filename else "a file the operating system did not name"
+    if exc.filename2:
+        where += f" -> {exc.filename2}"
     hints = {errno.ENOSPC: "disk full", errno.EROFS: "read-only file system", errno.EACCES: "permission denied",
              errno.EDQUOT: "disk quota exceeded", errno.EPERM: "operation not permitted"}
     what = hints.get(exc.errno or 0, exc.strerror or type(exc).__name__)
-    return f"{where}: {what}; nothing was committed, the folder holds its previous state"
+    code = errno.errorcode.get(exc.errno or -1)
+    return (f"{where}: {what}{f' ({code})' if code else ''}; the folder holds its previous state (its last "
+            "commit), this run's uncommitted work was discarded")
 
 
 # ---- the base of the typed writers ---------------------------------------------------------------------
@@ -441,10 +483,12 @@ class FolderWriter:
 
     ownership: Ownership
     kind: str
+    legacy_keys: tuple[str, ...] = ()
+    """Keys every manifest of this kind written before manifests named their kind has (none: no such ones)."""
 
     def __init__(self, root: Path) -> None:
         self.root = Path(root)
-        self._writer = ArtifactWriter(self.root, self.ownership, self.kind)
+        self._writer = ArtifactWriter(self.root, self.ownership, self.kind, self.legacy_keys)
 
     def __enter__(self) -> Self:
         self._writer.__enter__()

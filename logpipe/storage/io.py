@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import errno
 import hashlib
 import json
 import os
@@ -14,7 +15,7 @@ from typing import IO, Any
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from logpipe.errors import DatasetError
+from logpipe.errors import DatasetError, OutputError
 from logpipe.storage.durability import crash_point
 
 _HASH_CHUNK = 1 << 20
@@ -120,8 +121,17 @@ def atomic_path(target: Path, *, durable: bool = False) -> Iterator[Path]:
     and ``target`` is untouched. ``durable``: the bytes reach the disk before the rename (a manifest: the
     commit point must never name a file the disk does not hold yet).
     """
-    target.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp_name = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
+    for attempt in range(3):
+        target.parent.mkdir(parents=True, exist_ok=True)
+        if target.parent.is_symlink():
+            raise OutputError(f"{target.parent}: is a symbolic link where logpipe writes a folder; logpipe never "
+                              "writes through links: remove it or choose another folder")
+        try:  # mkstemp: O_EXCL | O_NOFOLLOW, a new file of this process only
+            fd, tmp_name = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
+            break
+        except FileNotFoundError:  # the empty folder was just removed by a cleanup: make it again
+            if attempt == 2:
+                raise
     os.fchmod(fd, _FILE_MODE)
     os.close(fd)
     tmp = Path(tmp_name)
@@ -143,6 +153,19 @@ def atomic_open(target: Path, mode: str = "wb") -> Iterator[IO[Any]]:
     """Open a temporary file beside ``target`` for writing; it replaces ``target`` when the block succeeds."""
     with atomic_path(target) as tmp, tmp.open(mode) as fh:
         yield fh
+
+
+def open_nofollow(path: Path, mode: str = "a") -> IO[str]:
+    """A text file in an output folder opened for appending (``a``) or rewriting (``w``) without following a
+    link: a ``train_log.jsonl`` symlinked to someone's file must not receive the log (``ELOOP``, one line)."""
+    flags = os.O_WRONLY | os.O_CREAT | os.O_NOFOLLOW | os.O_CLOEXEC | (os.O_APPEND if mode == "a" else os.O_TRUNC)
+    try:
+        fd = os.open(path, flags, _FILE_MODE)
+    except OSError as exc:
+        if exc.errno == errno.ELOOP:
+            raise OutputError(f"{path}: is a symbolic link; logpipe never writes through links: remove it") from None
+        raise
+    return os.fdopen(fd, mode, encoding="utf-8")
 
 
 def write_parquet(table: pa.Table, target: Path, options: dict[str, Any] | None = None, *,

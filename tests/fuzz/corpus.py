@@ -267,6 +267,17 @@ def text_edits(fmt: str) -> dict[str, tuple[Callable[[Lines, TextLayout], Lines]
             f"duplicate-row{w}": (_duplicate(where), True),
             f"x-not-a-number{w}": (_set("x", lambda v: "abc", where), True),
         }
+        # Issue 56's hostile values: physically absurd, each one input's refusal (never stored as given).
+        edits |= {
+            f"x-1e12{w}": (_set("x", lambda v: "1e12", where), True),
+            f"y-neg-4e9{w}": (_set("y", lambda v: "-4e9", where), True),
+            f"x-1e300{w}": (_set("x", lambda v: "1e300", where), True),
+            f"y-1e400{w}": (_set("y", lambda v: "1e400", where), True),
+        }
+        if fmt == "argoverse1":
+            edits[f"track-control{w}"] = (_set("track", lambda v: v[:4] + "\x01" + v[4:], where), True)
+        else:
+            edits[f"frame-negative{w}"] = (_set("time", lambda v: "-400", where), True)
     edits["time-backwards"] = (_backwards, True)
     edits["extra-column"] = (_set("y", lambda v: v + ("," if fmt == "argoverse1" else "\t" if fmt == "ethucy"
                                                       else " ") + "1", 0.5), True)
@@ -389,12 +400,27 @@ def samples() -> list[Sample]:
         Sample("maps", None, BUNDLED / "maps" / "log_map_archive_0a1e6f0a-1817-4a98-b02e-db8c9327d151.json",
                "av2json"),
         Sample("maps", None, BUNDLED / "maps" / "lanelet2_fixture.osm", "osm"),
+        # More real files of the text formats (issue 56 grew the corpus past 1,000 damaged inputs).
+        Sample("argoverse1", BUNDLED / "argoverse1" / "2645.csv", BUNDLED / "argoverse1" / "3700.csv", "av1b"),
+        Sample("argoverse1", BUNDLED / "argoverse1" / "2645.csv", BUNDLED / "argoverse1" / "4791.csv", "av1c"),
+        Sample("ethucy", BUNDLED / "ethucy" / "eth" / "test" / "biwi_eth.txt",
+               BUNDLED / "ethucy" / "hotel" / "test" / "biwi_hotel.txt", "hotel"),
+        Sample("apolloscape", BUNDLED / "apolloscape" / "result_9049_4_frame.txt",
+               BUNDLED / "apolloscape" / "result_9048_1_frame.txt", "apollo2"),
     ]
     s = SHARED
     av2 = s / "av2"
     sensor = av2 / "sensor_logs"
     out += [
         Sample("argoverse1", None, s / "argoverse1" / "data" / "1.csv", "av1s", shared=True),
+        Sample("argoverse1", BUNDLED / "argoverse1" / "2645.csv", s / "argoverse1" / "data" / "10.csv", "av1s10",
+               shared=True),
+        Sample("ethucy", BUNDLED / "ethucy" / "hotel" / "test" / "biwi_hotel.txt",
+               s / "ethucy" / "zara1" / "val" / "uni_examples_val.txt", "univval", shared=True),
+        Sample("ethucy", BUNDLED / "ethucy" / "hotel" / "test" / "biwi_hotel.txt",
+               s / "ethucy" / "zara1" / "val" / "crowds_zara03_val.txt", "zara3val", shared=True),
+        Sample("apolloscape", BUNDLED / "apolloscape" / "result_9048_1_frame.txt",
+               s / "apolloscape" / "prediction_train" / "result_9050_2_frame.txt", "apollos", shared=True),
         Sample("rosbag", None, s / "rosbags" / "evo" / "tf_example.bag", "ros1tf", shared=True),
         Sample("rosbag", None, s / "rosbags" / "webviz" / "example-bz2.bag", "ros1bz2", shared=True),
         Sample("rosbag", None, s / "rosbags" / "evo" / "tf_example" / "tf_example.db3", "ros2db3",
@@ -526,6 +552,8 @@ FAST = {
     "rosbag-datmo-trunc0.5", "rosbag-datmo-flip0.001", "rosbag-datmo-huge-header", "rosbag-datmo-empty",
     "rosbag-datmo-dangling-link",
     "maps-npz-flip0.5", "maps-npz-trunc0.5", "maps-av2json-trunc0.5", "maps-osm-trunc0.5",
+    "argoverse1-av1-x-1e12@0.5", "argoverse1-av1-track-control@0.5", "ethucy-eth-frame-negative@0.5",
+    "apolloscape-apollo-frame-negative@0", "ethucy-hotel-y-1e400@0.999", "argoverse1-av1b-x-1e300@0",
 }
 
 

@@ -230,3 +230,25 @@ def test_a_new_output_folder_keeps_the_users_own_files(artifacts: dict[str, Path
     assert (out / "report.json").is_file()
     _cli("score", str(artifacts["prediction_run"]), "--truth", str(artifacts["dataset"]), "--out", str(out))
     assert (out / "holiday.png").read_bytes() == b"not ours"  # still not a leftover once the folder is ours
+
+
+def test_a_changed_raster_shard_is_an_error_when_a_run_reads_it(artifacts: dict[str, Path], tmp_path: Path) -> None:
+    """Issue 56 item 8: predict used raster .npy files without a check (a flipped byte is a silently other raster;
+    .npy has no CRC of its own). Each shard's sha256 is checked against the manifest when a reader first opens it."""
+    from logpipe.errors import DatasetError
+    from logpipe.raster.runs import find_raster_run
+
+    copy = tmp_path / "ds"
+    shutil.copytree(artifacts["dataset"], copy)
+    rasters = find_raster_run(copy, None, None)
+    assert rasters is not None
+    first = rasters.index.column("sample_id")[0].as_py()
+    assert rasters.get(first)[0].dtype.name == "uint8"  # intact: reads
+    shard = rasters.run_dir / rasters.index.column("shard")[0].as_py()
+    data = bytearray(shard.read_bytes())
+    data[-1] ^= 0x01
+    shard.write_bytes(bytes(data))
+    damaged = find_raster_run(copy, None, None)
+    assert damaged is not None
+    with pytest.raises(DatasetError, match=f"{shard}: unreadable raster shard \\(sha256 differs"):
+        damaged.get(first)

@@ -153,7 +153,8 @@ def testsplit_polyline_limits_width_and_turn() -> None:
 def test_builder_drops_degenerate_and_closes_rings() -> None:
     b = MapBuilder("m", "test")
     b.add(FeatureKind.LANE_CENTERLINE, "one-point", [[0, 0]])
-    b.add(FeatureKind.LANE_CENTERLINE, "nan", [[0, 0], [np.nan, 1]])
+    with pytest.raises(ValueError, match="not finite"):  # issue 56: damage is an error, not a feature dropped
+        b.add(FeatureKind.LANE_CENTERLINE, "nan", [[0, 0], [np.nan, 1]])
     b.add(FeatureKind.DRIVABLE_AREA, "sq", [[0, 0], [1, 0], [1, 1], [0, 1], [0, 0]])
     store = b.build()
     assert store.counts() == {"lane_centerline": 0, "lane_boundary": 0, "drivable_area": 1, "crossing": 0}

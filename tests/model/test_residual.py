@@ -131,6 +131,12 @@ def test_checkpoints_round_trip_and_refuse_damage(tmp_path: Path) -> None:
     (broken / "meta.json").write_text(json.dumps(absurd))
     with pytest.raises(CheckpointError, match="4096"):
         load_residual(broken)
+    edited = json.loads((folder / "meta.json").read_text())  # issue 56: all of meta.json is under its checksum
+    edited["ood"] = {}
+    (broken / "meta.json").write_text(json.dumps(edited))
+    shutil.copy(folder / "weights.safetensors", broken / "weights.safetensors")
+    with pytest.raises(CheckpointError, match="differs from its checksum"):
+        load_residual(broken)
 
 
 def test_config_files_refuse_typos(tmp_path: Path) -> None:

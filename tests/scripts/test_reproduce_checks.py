@@ -81,6 +81,7 @@ def test_results_files_say_when_there_are_no_seed_checkpoints(tmp_path: Path) ->
 def test_a_seed_trained_with_another_recipe_is_left_out(tmp_path: Path) -> None:
     """Seed N counts only while each of its checkpoints has the config of the shipped one beside it, seed and
     step budget aside: a seed trained before a config change is no repeat of the shipped runs."""
+    from logpipe.model.checkpoint_meta import stamped_meta
     from scripts.seeds import stale_seeds, training_seeds
 
     shipped = json.loads((REPO / "model/checkpoints/ethucy/eth/meta.json").read_text(encoding="utf-8"))
@@ -91,7 +92,7 @@ def test_a_seed_trained_with_another_recipe_is_left_out(tmp_path: Path) -> None:
             block = meta["config"]["model"] if key == "mode_gate" else meta["config"]
             block[key] = value
         (tmp_path / folder).mkdir(parents=True)
-        (tmp_path / folder / "meta.json").write_text(json.dumps(meta), encoding="utf-8")
+        (tmp_path / folder / "meta.json").write_text(json.dumps(stamped_meta(meta)), encoding="utf-8")
 
     gate = bool(shipped["config"]["model"].get("mode_gate", False))
     place("ethucy/eth")
@@ -105,6 +106,7 @@ def test_a_seed_trained_with_another_recipe_is_left_out(tmp_path: Path) -> None:
 def test_settings_a_network_cannot_feel_make_no_other_recipe(tmp_path: Path) -> None:
     """A Noise-LSTM trained before ``context_radius_m`` existed and one trained with it collate the same windows
     (no pools read other agents), so they are one recipe; for the paper's method the radius is another recipe."""
+    from logpipe.model.checkpoint_meta import stamped_meta
     from scripts.seeds import stale_seeds
 
     for method in ("noise_lstm", ""):
@@ -112,7 +114,7 @@ def test_settings_a_network_cannot_feel_make_no_other_recipe(tmp_path: Path) -> 
         for folder, radius in ((f"ethucy/univ/{method}", None), (f"seed1/ethucy/univ/{method}", 3.0)):
             meta["config"]["model"]["context_radius_m"] = radius
             (tmp_path / folder).mkdir(parents=True, exist_ok=True)
-            (tmp_path / folder / "meta.json").write_text(json.dumps(meta), encoding="utf-8")
+            (tmp_path / folder / "meta.json").write_text(json.dumps(stamped_meta(meta)), encoding="utf-8")
     assert stale_seeds("ethucy", tmp_path, tmp_path) == {1: ["ethucy/univ: model.context_radius_m"]}
 
 
