@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import hashlib
+import os
 from collections.abc import Callable
 from pathlib import Path
 
@@ -58,10 +59,16 @@ def folder_digests() -> Callable[[Path], dict[str, str]]:
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
     """Start the README run (``tests/test_readme.py``) in the background when its test is selected: it takes
-    about 1.5 minutes of one mostly idle core, which then overlaps the rest of the suite."""
+    about 1.5 minutes of one mostly idle core, which then overlaps the rest of the suite.
+
+    Under pytest-xdist (``make test`` runs two workers) every worker collects every test but only one runs it:
+    there the test goes first instead, and starts the run itself, so one worker waits on it while the other works;
+    the other ``slow`` tests follow it, so no minute-long test starts last and leaves a core idle at the end."""
     from tests.test_readme import RUN_TEST, start_readme_run
 
-    if any(item.name == RUN_TEST for item in items):
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        items.sort(key=lambda item: (item.name != RUN_TEST, item.get_closest_marker("slow") is None))  # stable
+    elif any(item.name == RUN_TEST for item in items):
         config.readme_run = start_readme_run()  # type: ignore[attr-defined]
 
 

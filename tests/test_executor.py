@@ -21,6 +21,7 @@ def test_local_results_come_back_in_order(workers: int) -> None:
     assert list(run_ordered(square, list(range(9)), workers=workers)) == [x * x for x in range(9)]
 
 
+@pytest.mark.slow
 def test_ray_backend_writes_the_same_shards_as_local(bundled: Path, tmp_path: Path) -> None:
     ray = pytest.importorskip("ray", reason="Ray is a dev dependency; install logpipe[dev]")
     ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)

@@ -55,6 +55,7 @@ def test_a_second_writer_is_refused_at_once_naming_the_holder(tmp_path: Path) ->
     assert not (out / ".logpipe.lock").exists()
 
 
+@pytest.mark.slow
 def test_two_concurrent_ingests_never_corrupt_the_dataset(tmp_path: Path) -> None:
     """The user trial's race: two ingests of different inputs into one folder at once. Whatever the timing,
     each run either lands whole or is refused, and the dataset verifies with exactly the landed inputs."""

@@ -25,6 +25,8 @@ import pytest
 from logpipe.dataset.reader import Dataset
 from logpipe.storage.artifact import MANIFEST, verify_folder
 
+pytestmark = pytest.mark.slow  # minutes: scheduled first under pytest-xdist (tests/conftest.py)
+
 REPO = Path(__file__).resolve().parents[2]
 DATA = REPO / "tests" / "data"
 LOGPIPE = [sys.executable, "-m", "logpipe.cli"]

@@ -144,6 +144,7 @@ def test_across_seeds_table_means_ranges_and_standing() -> None:
     assert not any(line.startswith("| LSTM") for line in lines)  # no seeds of a method: no row
 
 
+@pytest.mark.slow
 def test_seed_run_scores_the_sampler_like_a_direct_computation(bundled: Path, tmp_path: Path) -> None:
     from logpipe.model.baselines import ConstantVelocitySampler
     from logpipe.stages.train import scene_samples

@@ -149,6 +149,7 @@ def test_bad_file_exits_2_with_one_line_or_is_quarantined(tmp_path: Path) -> Non
     assert report["quarantined"][0]["error"]["field"] == "type"
 
 
+@pytest.mark.slow
 @pytest.mark.shared
 def test_real_ngsim_scenarios(shared: Path, tmp_path: Path) -> None:
     ngsim = shared / "commonroad" / "ngsim"

@@ -12,6 +12,8 @@ import pytest
 
 from logpipe.stages.ingest import IngestOptions, ingest
 
+pytestmark = pytest.mark.slow  # minutes: scheduled first under pytest-xdist (tests/conftest.py)
+
 ray = pytest.importorskip("ray", reason="Ray is a dev dependency; install logpipe[dev]")
 pytest.importorskip("ray.data", reason="--backend ray needs Ray Data (logpipe[ray])")
 
