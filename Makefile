@@ -64,7 +64,7 @@ demo: setup
 # The full suite; its last line says how long it took on this machine (make setup aside).
 # pytest-xdist: most tests are single-threaded Python and many wait on subprocesses (crash injection, Ray, the
 # README run), so 3 workers keep 2 cores busy (measured on 2 cores: 1 process ~1,000 s of CPU; -n 2 632-647 s;
-# -n 3 with work stealing 596-641 s). Override with make test TEST_WORKERS=N.
+# -n 3 with work stealing 596-641 s; ordering the slow tests first did not help). Override with make test TEST_WORKERS=N.
 TEST_WORKERS ?= 3
 test: setup
 	@echo "test: the full suite on $(TEST_WORKERS) workers (about 10 minutes on 2 cores; its last line says how long it took); progress dots below, failures at the end"

@@ -78,7 +78,6 @@ class ResidualNet(nn.Module):
         t, k = self.config.pred_len, self.config.modes
         return self.mean(z).view(-1, t, 2), self.modes(z).view(-1, k, t, 2), self.logits(z)
 
-
     def _environment(self, crops: Tensor) -> Tensor:
         assert self.environment is not None
         if torch.is_grad_enabled() or not len(crops):

@@ -61,13 +61,12 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
     """Start the README run (``tests/test_readme.py``) in the background when its test is selected: it takes
     about 1.5 minutes of one mostly idle core, which then overlaps the rest of the suite.
 
-    Under pytest-xdist (``make test`` runs two workers) every worker collects every test but only one runs it:
-    there the test goes first instead, and starts the run itself, so one worker waits on it while the other works;
-    the other ``slow`` tests follow it, so no minute-long test starts last and leaves a core idle at the end."""
+    Under pytest-xdist (``make test``) every worker collects every test but only one runs it: there the test goes
+    first instead and starts the run itself, so one worker waits on it while the others work."""
     from tests.test_readme import RUN_TEST, start_readme_run
 
     if os.environ.get("PYTEST_XDIST_WORKER"):
-        items.sort(key=lambda item: (item.name != RUN_TEST, item.get_closest_marker("slow") is None))  # stable
+        items.sort(key=lambda item: item.name != RUN_TEST)  # stable: the rest keep their order
     elif any(item.name == RUN_TEST for item in items):
         config.readme_run = start_readme_run()  # type: ignore[attr-defined]
 

@@ -113,7 +113,7 @@ def index_file(i: int, tag: str) -> str:
     return f"index-{tag}-{i:05d}.parquet"
 
 
-def _by_content(identity: dict[str, Any]) -> dict[str, Any]:
+def _comparable(identity: dict[str, Any]) -> dict[str, Any]:
     """``identity`` with its maps keyed by file name, not path: the same map files reached by another path
     (``../data`` against ``/work/data``, a moved folder) are the same inputs, while two files that swapped their
     contents are not."""
@@ -123,7 +123,7 @@ def _by_content(identity: dict[str, Any]) -> dict[str, Any]:
 
 def inputs_tag(identity: RasterRunIdentity) -> str:
     """Short hash of a run's input identity (sample index, map files by content, shard size)."""
-    return hashlib.sha256(json.dumps(_by_content(dict(identity)), sort_keys=True).encode()).hexdigest()[:8]
+    return hashlib.sha256(json.dumps(_comparable(dict(identity)), sort_keys=True).encode()).hexdigest()[:8]
 
 
 def run_settings(spec: RasterSpec, centre: str) -> RasterRunSettings:
@@ -276,12 +276,13 @@ class RasterRunWriter(FolderWriter):
         manifest, out = self._writer.manifest, self.root
         if manifest is None:
             return {}
-        old = _by_content(manifest.get("identity") or {})
-        if old != _by_content(json.loads(json.dumps(identity))):
+        old = _comparable(manifest.get("identity") or {})
+        new = _comparable(json.loads(json.dumps(identity)))
+        if old != new:
             if force:
                 return {}
-            changed = sorted(k for k, v in _by_content(dict(identity)).items() if old.get(k) != v)
-            was = f" (shard size was {(old or {}).get('shard_size')})" if "shard_size" in changed else ""
+            changed = sorted(k for k, v in new.items() if old.get(k) != v)
+            was = f" (shard size was {old.get('shard_size')})" if "shard_size" in changed else ""
             raise DatasetError(f"{out} holds rasters made with other {', '.join(changed) or 'inputs'}{was}; "
                                "rerun with --force to replace them")
         # Read from disk as committed by ``manifest_of`` (the checksum vouches for it), hence typed as written.

@@ -25,7 +25,7 @@ import pytest
 from logpipe.dataset.reader import Dataset
 from logpipe.storage.artifact import MANIFEST, verify_folder
 
-pytestmark = pytest.mark.slow  # minutes: scheduled first under pytest-xdist (tests/conftest.py)
+pytestmark = pytest.mark.slow  # minutes of end-to-end work
 
 REPO = Path(__file__).resolve().parents[2]
 DATA = REPO / "tests" / "data"

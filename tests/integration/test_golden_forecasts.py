@@ -32,7 +32,7 @@ from logpipe.model.registry import RESIDUAL_KIND
 from logpipe.model.residual_meta import model_kind
 from logpipe.prediction.runs import PredictionRun
 
-pytestmark = pytest.mark.slow  # minutes: scheduled first under pytest-xdist (tests/conftest.py)
+pytestmark = pytest.mark.slow  # minutes of end-to-end work
 
 REPO = Path(__file__).resolve().parents[2]
 DATA = REPO / "tests" / "data"

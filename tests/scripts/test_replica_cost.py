@@ -9,7 +9,7 @@ import pytest
 
 from scripts.replica_cost import FULL_SETS, main, make_replica
 
-pytestmark = pytest.mark.slow  # minutes: scheduled first under pytest-xdist (tests/conftest.py)
+pytestmark = pytest.mark.slow  # minutes of end-to-end work
 
 
 def test_replicas_differ_in_content_but_keep_the_real_rows(tmp_path: Path) -> None:

@@ -12,7 +12,7 @@ import pytest
 
 from logpipe.stages.ingest import IngestOptions, ingest
 
-pytestmark = pytest.mark.slow  # minutes: scheduled first under pytest-xdist (tests/conftest.py)
+pytestmark = pytest.mark.slow  # minutes of end-to-end work
 
 ray = pytest.importorskip("ray", reason="Ray is a dev dependency; install logpipe[dev]")
 pytest.importorskip("ray.data", reason="--backend ray needs Ray Data (logpipe[ray])")
