@@ -5,7 +5,7 @@ over the bundled ETH ``eth/test`` scene, the bundled ApolloScape files, or the t
 their lane rasters. ``tests/data/golden/forecasts.npz`` pins, per checkpoint, the sha256 of the dense (agents, K, T, 2)
 float32 forecasts, the first 8 agents' forecasts and every agent's mean forecast point (small enough for git). Across
 machines the CPU's vector units may change the last bits of float32 maths, so the test compares those arrays to
-1e-4 m; ``LOGPIPE_GOLDEN_EXACT=1`` demands the same sha256 (the before/after check of a restructuring on one machine);
+1e-4 m plus 4 float32 ulps; ``LOGPIPE_GOLDEN_EXACT=1`` demands the same sha256 (the before/after check of a restructuring on one machine);
 
 ``LOGPIPE_GOLDEN_WRITE=1`` writes this machine's pins into the file (only when a change is meant to move forecasts;
 say why in the commit).
@@ -40,6 +40,9 @@ GOLDEN = DATA / "golden" / "forecasts.npz"
 SHIPPED = REPO / "model" / "checkpoints"
 CHECKPOINTS = sorted(p for p in (m.parent.relative_to(SHIPPED) for m in SHIPPED.glob("**/meta.json"))
                      if p.parts[0] in ("ethucy", "apolloscape", "argoverse"))
+# Forecasts are world coordinates: at ~2,500 m one float32 ulp is 2.4e-4 m, so a CPU with other vector units may
+# move a point by a few ulps (seen: 1 ulp at 2,523 m between an AVX-512 and an AVX2-only machine).
+FLOAT32_ULPS = 4 * float(np.finfo(np.float32).eps)
 runner = CliRunner()
 
 
@@ -89,12 +92,14 @@ def test_shipped_checkpoints_predict_the_pinned_forecasts(datasets: dict[str, tu
     unpinned = sorted(set(pins) - set(pinned.files))
     assert not unpinned, f"no pins for this machine's arithmetic: {unpinned}"
     exact = os.environ.get("LOGPIPE_GOLDEN_EXACT") == "1"
+    moved = []
     for key, value in pins.items():
         if key.endswith(":sha256"):
-            if exact:
-                assert str(pinned[key]) == str(value), key
-        else:
-            np.testing.assert_allclose(value, pinned[key], rtol=0, atol=1e-4, err_msg=key)
+            if exact and str(pinned[key]) != str(value):
+                moved.append(f"{key}: another sha256")
+        elif not np.allclose(value, pinned[key], rtol=FLOAT32_ULPS, atol=1e-4):
+            moved.append(f"{key}: moved by up to {np.abs(value - pinned[key]).max():.3g} m")
+    assert not moved, moved
 
 
 def _arithmetic(checkpoint: Path) -> str:

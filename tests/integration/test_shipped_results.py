@@ -70,6 +70,10 @@ def test_argoverse_checkpoints_give_their_results_rows_through_plain_predict_and
     _logpipe("ingest", str(av1 / "data"), "--out", str(dataset), "--no-mcap")
     _logpipe("rasterise", str(dataset), "--maps", str(av1 / "maps"), "--rotate")
     expected = json.loads((RESULTS / "argoverse.json").read_text())["hash_test"]
+    # The paper's network runs its map backbone in bf16 where the CPU has it natively (model.backbone), and bf16
+    # kernels differ between CPUs (AMX, AVX512-BF16) and from fp32: seen up to 3.8 mm (K=1 ADE) on an AMD EPYC with
+    # AVX512-BF16 against the machine that wrote the results. The residual model is fp32 throughout.
+    tolerance = {"residual": 1e-4, "zhu2020": 0.01}
     for method, choice in (("residual", []), ("zhu2020", ["--checkpoint", str(SHIPPED / "argoverse" / "paper")])):
         predictions = tmp_path / f"pred-{method}"
         summary = json.loads(_logpipe("predict", str(dataset), *choice, "--filter", "split=hash/test", "--out",
@@ -82,4 +86,5 @@ def test_argoverse_checkpoints_give_their_results_rows_through_plain_predict_and
         assert got["agents"] == expected[method]["agents"] == 7
         for k in ("k1", "k6"):
             for metric in ("ade", "fde"):
-                assert got[k][metric] == pytest.approx(expected[method][k][metric], abs=1e-4), (method, k, metric)
+                assert got[k][metric] == pytest.approx(expected[method][k][metric], abs=tolerance[method]), (
+                    method, k, metric)
