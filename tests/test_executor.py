@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import os
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -114,3 +116,27 @@ def _die_on_three(item: int) -> int:
 def test_a_worker_that_dies_is_one_clear_error() -> None:
     with pytest.raises(LogpipeError, match="a worker process running _die_on_three died"):
         list(run_ordered(_die_on_three, list(range(6)), workers=2))
+
+
+def test_the_command_runs_without_pandas_yet_pandas_apis_still_work(bundled: Path, tmp_path: Path) -> None:
+    """``logpipe`` skips pyarrow's pandas probe (its largest start-up cost), an ingest and the Parquet reads after it
+    never load pandas, and an explicit pandas API of pyarrow still loads and uses it. In a fresh interpreter: this
+    one may hold pandas already."""
+    script = f"""
+import sys
+from logpipe.cli import main
+sys.argv = ["logpipe", "-q", "ingest", {str(bundled / "ethucy")!r}, "--out", {str(tmp_path / "ds")!r}, "--no-mcap"]
+try:
+    main()
+except SystemExit as stop:
+    assert stop.code in (0, None), stop.code
+from logpipe.dataset.reader import Dataset
+samples = Dataset.open({str(tmp_path / "ds")!r}).samples()
+assert samples.num_rows > 0 and "pandas" not in sys.modules, "pandas was loaded"
+frame = samples.slice(0, 3).to_pandas()
+assert "pandas" in sys.modules and len(frame) == 3
+import pyarrow as pa
+assert pa.Table.from_pandas(frame).num_rows == 3
+"""
+    run = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=300, check=False)
+    assert run.returncode == 0, run.stderr[-2000:]
