@@ -2,10 +2,11 @@
 
 ``logpipe predict`` (its defaults: the checkpoint's stored inference settings, seed 0) runs every shipped checkpoint
 over the first 59 samples of the bundled ETH ``eth/test`` scene, the bundled ApolloScape files, or the two held-out
-Argoverse 1 sequences over their lane rasters. ``tests/data/golden/forecasts.npz`` pins, per checkpoint, the sha256 of the dense (agents, K, T, 2)
-float32 forecasts, the first 8 agents' forecasts and every agent's mean forecast point (small enough for git). Across
-machines the CPU's vector units may change the last bits of float32 maths, so the test compares those arrays to
-1e-4 m plus 4 float32 ulps; ``LOGPIPE_GOLDEN_EXACT=1`` demands the same sha256 (the before/after check of a restructuring on one machine);
+Argoverse 1 sequences over their lane rasters. ``tests/data/golden/forecasts.npz`` pins, per checkpoint, the sha256
+of the dense (agents, K, T, 2) float32 forecasts, the first 8 agents' forecasts and every agent's mean forecast point
+(small enough for git). Across machines the CPU's vector units may change the last bits of float32 maths, so the
+test compares those arrays to 1e-4 m plus 4 float32 ulps; ``LOGPIPE_GOLDEN_EXACT=1`` demands the same sha256 (the
+before/after check of a restructuring on one machine);
 
 ``LOGPIPE_GOLDEN_WRITE=1`` writes this machine's pins into the file (only when a change is meant to move forecasts;
 say why in the commit).
