@@ -93,7 +93,7 @@ class _NoPandas(importlib.abc.MetaPathFinder):
 def skip_pyarrow_pandas_probe() -> None:
     """Answer pyarrow's "is this a pandas object?" probe with no in this process, without loading pandas.
 
-    For the ``logpipe`` command (~0.4 s of CPU per run here, ~1 s on slower machines, more than the rest of its
+    For the ``logpipe`` command (~0.4 s of CPU per run here, ~1 s on slower machines, a large part of its
     start-up): pyarrow remembers the failed probe and no longer asks, while its explicit pandas APIs
     (``to_pandas``, ``from_pandas``, which Ray Data uses) try the import again once the refusal is lifted.
     """
