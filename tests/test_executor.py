@@ -119,7 +119,7 @@ def test_a_worker_that_dies_is_one_clear_error() -> None:
 
 
 def test_the_command_runs_without_pandas_yet_pandas_apis_still_work(bundled: Path, tmp_path: Path) -> None:
-    """``logpipe`` skips pyarrow's pandas probe (its largest start-up cost), an ingest and the Parquet reads after it
+    """``logpipe`` skips pyarrow's pandas probe (a large part of its start-up), an ingest and the Parquet reads after it
     never load pandas, and an explicit pandas API of pyarrow still loads and uses it. In a fresh interpreter: this
     one may hold pandas already."""
     script = f"""

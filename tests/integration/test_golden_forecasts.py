@@ -42,7 +42,8 @@ SHIPPED = REPO / "model" / "checkpoints"
 CHECKPOINTS = sorted(p for p in (m.parent.relative_to(SHIPPED) for m in SHIPPED.glob("**/meta.json"))
                      if p.parts[0] in ("ethucy", "apolloscape", "argoverse"))
 # Forecasts are world coordinates: at ~2,500 m one float32 ulp is 2.4e-4 m, so a CPU with other vector units may
-# move a point by a few ulps (seen: 1 ulp at 2,523 m between an AVX-512 and an AVX2-only machine).
+# move a point by a few ulps (seen: 1 ulp at 2,523 m between the machine that wrote the pins and an AMD EPYC
+# with AVX-512).
 FLOAT32_ULPS = 4 * float(np.finfo(np.float32).eps)
 runner = CliRunner()
 
