@@ -8,7 +8,8 @@ Measures, each as the median of repeats:
 * inference scenes/s (batch 32, K = 20 modes), the same two settings;
 * the cost of the environment net in training, per core, on Argoverse-shaped scenes (20 + 30 steps, 5-15 agents,
   ego, 7 x 224 x 224 raster): v4 (no EN) against the full model with the backbone trained, frozen, and frozen with
-  its feature maps cached (``model.feature_cache``, timed in the second epoch: every map a hit), as ratios to v4;
+  its feature maps cached (``model.zhu2020.feature_cache``, timed in the second epoch: every map a hit), as ratios
+  to v4;
 * the ResNet18 stages 1-2 backbone alone (224 x 224, C = 4, batch 8, forward) in fp32 and in bf16
   autocast with channels_last, plus the bf16 accuracy cost (relative L2 error of the feature map and of
   the pooled environment feature v against fp32, same weights).
@@ -31,13 +32,13 @@ from typing import Any
 import numpy as np
 import torch
 
-from logpipe.model.backbone import native_bf16
-from logpipe.model.batching import Batch, collate
-from logpipe.model.config import PRESETS, Features, ModelConfig
-from logpipe.model.feature_cache import BackboneFeatureCache, scene_keys
-from logpipe.model.nets import TrajectoryNet
-from logpipe.model.step_loss import best_of_h_step_loss
 from logpipe.model.synthetic import make_scenes
+from logpipe.model.zhu2020.backbone import native_bf16
+from logpipe.model.zhu2020.batching import Batch, collate
+from logpipe.model.zhu2020.config import PRESETS, Features, ModelConfig
+from logpipe.model.zhu2020.feature_cache import BackboneFeatureCache, scene_keys
+from logpipe.model.zhu2020.network import TrajectoryNet
+from logpipe.model.zhu2020.step_loss import best_of_h_step_loss
 from logpipe.types import SceneSample
 
 # Which clock _median_rate uses: "cpu" = CPU time of this process (robust on a shared machine when
@@ -159,7 +160,8 @@ def _backbone(repeats: int) -> dict[str, float]:
         env.backbone.use_bf16 = True
         low = env.feature_map(raster)
         out["backbone_bf16_images_per_s"] = _median_rate(lambda: env.feature_map(raster).shape[0], repeats)
-        # Without native bf16 the model runs its backbone in fp32 whatever the config says (logpipe.model.backbone).
+        # Without native bf16 the model runs its backbone in fp32 whatever the config says
+        # (logpipe.model.zhu2020.backbone).
         out["cpu_has_native_bf16"] = native_bf16()
         v_low = env(env.project(low), pos, batch, rows)
     out["bf16_feature_map_rel_l2_error"] = float((low - ref).norm() / ref.norm())

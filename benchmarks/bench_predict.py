@@ -82,7 +82,7 @@ def _sample_counts(dataset: Path, checkpoint: Path, env_calls: EnvCalls | None =
     are recorded into it."""
     from torch.nn import functional as F  # noqa: N812
 
-    from logpipe.model.environment import EnvironmentNet
+    from logpipe.model.zhu2020.environment import EnvironmentNet
     from logpipe.prediction import sample_shards
     from logpipe.stages.predict import predict_dataset
 
@@ -160,7 +160,7 @@ def _recurrent_cells_rate(cfg: Any, batches: Counts, modes: int, repeats: int) -
     import torch
     from torch import nn
 
-    from logpipe.model.nets import TrajectoryNet
+    from logpipe.model.zhu2020.network import TrajectoryNet
 
     torch.manual_seed(0)
     net = TrajectoryNet(cfg, load_backbone=False)
@@ -243,8 +243,8 @@ def _backbone_rate(dataset: Path, spec: Any, repeats: int) -> float:
     """Images/s of the backbone alone (same config, batch 32) on the dataset's rasters."""
     import torch
 
-    from logpipe.model.config import ModelConfig
-    from logpipe.model.nets import TrajectoryNet
+    from logpipe.model.zhu2020.config import ModelConfig
+    from logpipe.model.zhu2020.network import TrajectoryNet
     from logpipe.raster.runs import RasterShards
 
     shards = RasterShards.open(dataset, spec, "ego")
@@ -271,10 +271,10 @@ def run(quick: bool = False) -> dict[str, Any]:
     from logpipe.dataset.sample_filter import parse_filter
     from logpipe.executor import default_workers
     from logpipe.maps import MapSource
-    from logpipe.model.checkpoint_meta import read_meta
-    from logpipe.model.checkpoints import save_checkpoint
-    from logpipe.model.config import ModelConfig, TrainConfig
-    from logpipe.model.nets import TrajectoryNet
+    from logpipe.model.zhu2020.checkpoint import save_checkpoint
+    from logpipe.model.zhu2020.config import ModelConfig, TrainConfig
+    from logpipe.model.zhu2020.meta import read_meta
+    from logpipe.model.zhu2020.network import TrajectoryNet
     from logpipe.raster.rasteriser import RasterSpec
     from logpipe.stages.ingest import IngestOptions, ingest
     from logpipe.stages.rasterise import rasterise_dataset

@@ -5,7 +5,7 @@ Rows: one training step (forward, eq. 23's best-of-H loss with select-then-backp
 steps, 8-30 agents) and the driving model with it (all features, 20 + 30 steps, 5-15 agents with ego, 7 x 224 x
 224 rasters, backbone trained). Floor: forward + backward of the heavy kernels that step runs, each as torch's own
 op alone, replaying the same rows batch by batch: ``nn.LSTMCell`` for LSTM_E and LSTM_D (the H modes without
-autograd, then the picked mode with it, as ``model.step_loss`` decodes), ``nn.GRUCell`` for the AIN GRU, and for
+autograd, then the picked mode with it, as ``model.zhu2020.step_loss`` decodes), ``nn.GRUCell`` for the AIN GRU, and for
 the driving model the backbone on the batch's rasters and the environment net's gathers (``F.embedding_bag``) and
 W_v projection recorded from the step itself. Nothing else: embeddings, pooling, attention, the loss, the
 optimizer, collation. Model and floor alternate in each round (medians of rounds, wall time), on the threads torch
@@ -34,13 +34,13 @@ import numpy as np
 import torch
 from torch.nn import functional as F  # noqa: N812
 
-from logpipe.model.backbone import native_bf16
-from logpipe.model.batching import Batch, collate
-from logpipe.model.config import ModelConfig
-from logpipe.model.environment import EnvironmentNet
-from logpipe.model.nets import TrajectoryNet
-from logpipe.model.step_loss import best_of_h_step_loss
 from logpipe.model.synthetic import make_scenes
+from logpipe.model.zhu2020.backbone import native_bf16
+from logpipe.model.zhu2020.batching import Batch, collate
+from logpipe.model.zhu2020.config import ModelConfig
+from logpipe.model.zhu2020.environment import EnvironmentNet
+from logpipe.model.zhu2020.network import TrajectoryNet
+from logpipe.model.zhu2020.step_loss import best_of_h_step_loss
 from logpipe.types import SceneSample
 
 MODES_H = 20

@@ -49,7 +49,7 @@ def machine_line() -> str:
     """Cores, load average and the vector features the kernels use (torch's own detection), read now."""
     import torch
 
-    from logpipe.model.backbone import native_bf16
+    from logpipe.model.zhu2020.backbone import native_bf16
 
     return (f"{os.cpu_count()} cores, 1-min load average {os.getloadavg()[0]:.1f} at the end, torch CPU capability "
             f"{torch.backends.cpu.get_cpu_capability()}, native bf16: {'yes' if native_bf16() else 'no'}")

@@ -133,7 +133,7 @@ class TrainSummary(TypedDict):
     With several datasets ``dataset`` and ``raster_run`` are lists (one per dataset, in the order given) and
     ``per_dataset`` says what each gave. ``train_samples`` is ``"streamed"`` with ``--loader-workers``.
     ``best_val_ade``/``best_val_fde`` are metres (NaN without validation), ``train_samples_per_s`` scenes per
-    second of optimiser steps, ``seconds`` this call's wall time. The residual driving model (``model.residual_run``)
+    second of optimiser steps, ``seconds`` this call's wall time. The residual driving model (``model.residual.run``)
     reports its K = 1 errors there (and its best-of-K FDE as an extra key, ``best_val_min_fde``).
     """
 

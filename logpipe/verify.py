@@ -47,7 +47,7 @@ def _kind_and_owned(folder: Path) -> tuple[str, Ownership | None, int]:
 
 
 CHECKPOINT_META = "meta.json"
-"""A checkpoint folder's metadata (``logpipe.model.checkpoints``): it names the weights' sha256."""
+"""A checkpoint folder's metadata (``logpipe.model.zhu2020.checkpoint``): it names the weights' sha256."""
 
 
 def _verify_checkpoint(folder: Path) -> list[str]:

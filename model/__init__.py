@@ -1,13 +1,22 @@
-"""logpipe.model: the Zhu et al. (IJCAI 2020) multi-agent trajectory predictor and its baselines.
+"""logpipe.model: the predictors, one package per family, and how a run picks one.
 
-Entry points for the stages:
+Packages (each ``__init__`` says what it holds and what it may import; ``docs/architecture.md`` §1 draws them and
+``tests/test_architecture.py`` holds the rules):
 
-* ``config``: ``ModelConfig`` / ``TrainConfig`` (every hyper-parameter, JSON/TOML files, Table 4 presets);
-* ``training.fit(train, val, config, out_dir, resume=..., progress=..., dataset_kind=..., manifest_hash=...)``;
-* ``checkpoints.load_checkpoint(path, expect_kind=..., expect_config=...)``;
-* ``predictor.Predictor`` (``predict(samples, num_modes, seed)``), implemented by ``predictor.NetPredictor``
-  (the paper's network, LSTM and Noise-LSTM presets) and the classical ``baselines``.
+* ``training``: what every family trains and runs with: devices, per-sample seeds, batch-invariant arithmetic
+  (``row_blocks``), the best-of-H loss (eq. 23), DDP helpers, streaming scenes, the run folder's lock;
+* ``checkpoint``: what every family's checkpoint shares: format, errors, dataset kinds, ``TrainingData``, inference
+  settings, the ``meta.json`` checksum (the weights ship in ``model/checkpoints/``);
+* ``kinematic``: constant velocity, least-squares CV, Kalman, the CV sampler, the adaptive prior;
+* ``zhu2020``: the paper's network (Zhu et al., IJCAI 2020; also its LSTM and Noise-LSTM presets), one module per
+  part, its training loop and checkpoints;
+* ``residual``: our driving model, corrections to the adaptive kinematic prior (issue 57).
 
-Submodules are imported on demand (``from logpipe.model.training import fit``) so that importing the
-package stays cheap.
+Modules at the top: ``predictor`` (the ``Predictor`` interface every method implements), ``registry`` (which
+predictor a run uses: shipped checkpoints, baselines, inference settings), ``ray_predict`` (forecasts on Ray or in
+worker processes) and ``synthetic`` (synthetic scenes for tests and benchmarks).
+
+Layers inside ``model/``: ``training`` < ``checkpoint``, ``kinematic`` < the families < the top modules. A family
+imports ``training``, ``checkpoint`` and ``kinematic``, never another family; ``training``, ``checkpoint`` and
+``kinematic`` import no family. Submodules are imported on demand so that importing the package stays cheap.
 """

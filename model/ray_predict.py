@@ -32,13 +32,14 @@ from logpipe.dataset.reader import Dataset
 from logpipe.dataset.sample_filter import SelectedSamples
 from logpipe.errors import LogpipeError
 from logpipe.executor import run_ordered
-from logpipe.model.device import resolve_device
-from logpipe.model.registry import ChosenPredictor, load_net
 from logpipe.prediction.model_inputs import SampleCutter, ShardWindows, WorkItem, work_items
 from logpipe.prediction.sample_shards import SampleShardRun, predict_sample_shard
 from logpipe.prediction.shard_jobs import ShardDone, ShardJob
 from logpipe.storage.io import read_table
 from logpipe.types import SceneSample
+
+from .registry import ChosenPredictor, load_net
+from .training.device import resolve_device
 
 Forecast = Callable[[Any], Any]
 """A work item (unpickled) → its picklable result; built once per actor by the ``setup`` callable."""

@@ -20,9 +20,10 @@ from logpipe.errors import LogpipeError
 from logpipe.raster.rasteriser import DEFAULT_CHANNELS
 from logpipe.storage.io import read_json, read_table
 
-from .checkpoint_meta import InferenceSettings, TrainingData, kind_accepts, read_meta
-from .residual_config import MODEL_KIND as RESIDUAL_KIND
-from .residual_meta import model_kind, read_residual_meta
+from .checkpoint.format import InferenceSettings, TrainingData, kind_accepts
+from .residual.config import MODEL_KIND as RESIDUAL_KIND
+from .residual.meta import model_kind, read_residual_meta
+from .zhu2020.meta import read_meta
 
 if TYPE_CHECKING:  # the network's modules load torch: imported where a checkpoint is used, so baselines never do
     import torch
@@ -31,7 +32,7 @@ if TYPE_CHECKING:  # the network's modules load torch: imported where a checkpoi
 
 BASELINES = {"cv": "constant_velocity", "linear": "linear", "kalman": "kalman_cv", "cv_sampler": "cv_sampler",
              "adaptive_cv": "adaptive_cv"}
-"""``--predictor`` names -> ``model.baselines.CLASSICAL`` keys."""
+"""``--predictor`` names -> ``model.kinematic.CLASSICAL`` keys."""
 
 # Shipped baselines and ablations live in folders named after their method (``ethucy/eth/lstm``,
 # ``apolloscape/noise_lstm``, ``ethucy/eth/no_position``); they are there for the reproduction tables, never the
@@ -141,7 +142,7 @@ def choose_predictor(
     if predictor is not None:
         if predictor not in BASELINES:
             raise LogpipeError(f"unknown --predictor {predictor!r}; baselines: {', '.join(BASELINES)}")
-        from .baselines import CLASSICAL
+        from .kinematic import CLASSICAL
 
         model = CLASSICAL[BASELINES[predictor]](pred_len=pred_len)
         params = {k: v for k, v in dataclasses.asdict(model).items() if k != "name"}
@@ -262,11 +263,11 @@ def load_net(chosen: ChosenPredictor, dataset: Dataset, batch_size: int, device:
     if chosen.model is not None or chosen.checkpoint is None:
         return
     if chosen.name == "residual":
-        from .residual_predictor import ResidualPredictor
+        from .residual.predictor import ResidualPredictor
 
         chosen.model = ResidualPredictor.from_checkpoint(chosen.checkpoint)
         return
-    from .predictor import NetPredictor
+    from .zhu2020.predictor import NetPredictor
 
     settings = chosen.inference
     chosen.model = NetPredictor.from_checkpoint(chosen.checkpoint, expect_kind=dataset.kind, batch_size=batch_size,

@@ -29,9 +29,9 @@ from typing import Any
 
 import numpy as np
 
-from logpipe.model.residual_checkpoint import load_residual
-from logpipe.model.residual_config import ResidualConfig, load_residual_config
-from logpipe.model.residual_fit import fit_residual, forecast
+from logpipe.model.residual.checkpoint import load_residual
+from logpipe.model.residual.config import ResidualConfig, load_residual_config
+from logpipe.model.residual.fit import fit_residual, forecast
 from scripts.driving_lolo import CONFIG, K, choose, errors, targets_and_baselines
 from scripts.driving_targets import Targets
 from scripts.locations import REPO

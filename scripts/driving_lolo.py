@@ -30,11 +30,12 @@ from typing import Any
 
 import numpy as np
 
-from logpipe.model.baselines import ConstantVelocity, ConstantVelocitySampler, KalmanCV, LinearFit
-from logpipe.model.kinematic_prior import AdaptiveConstantVelocity
-from logpipe.model.residual_checkpoint import load_residual
-from logpipe.model.residual_config import ResidualConfig, load_residual_config
-from logpipe.model.residual_fit import fit_residual, forecast
+from logpipe.model.kinematic.adaptive_prior import AdaptiveConstantVelocity
+from logpipe.model.kinematic.constant_velocity import ConstantVelocity, ConstantVelocitySampler, LinearFit
+from logpipe.model.kinematic.kalman import KalmanCV
+from logpipe.model.residual.checkpoint import load_residual
+from logpipe.model.residual.config import ResidualConfig, load_residual_config
+from logpipe.model.residual.fit import fit_residual, forecast
 from logpipe.types import NDArrayFloat
 from scripts.driving_targets import (
     LOCATIONS,

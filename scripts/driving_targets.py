@@ -27,9 +27,9 @@ import numpy as np
 
 from logpipe.api import ingest, rasterise
 from logpipe.dataset.reader import Dataset, hash_fraction
-from logpipe.model.residual_config import ResidualConfig
-from logpipe.model.residual_fit import collect
-from logpipe.model.residual_inputs import INPUTS_VERSION, TargetInputs, concat
+from logpipe.model.residual.config import ResidualConfig
+from logpipe.model.residual.fit import collect
+from logpipe.model.residual.inputs import INPUTS_VERSION, TargetInputs, concat
 from logpipe.raster.runs import find_raster_run
 from logpipe.stages.train import scene_samples
 from logpipe.types import NDArrayFloat, SceneSample

@@ -14,7 +14,8 @@ import numpy as np
 from logpipe.dataset.reader import Dataset
 from logpipe.dataset.resample import ResampleSpec, resample_track
 from logpipe.formats.ethucy import FRAME_PERIOD_NS
-from logpipe.model.predictor import NetPredictor, Predictor
+from logpipe.model.predictor import Predictor
+from logpipe.model.zhu2020.predictor import NetPredictor
 from logpipe.scoring import metrics
 from logpipe.storage.io import atomic_open
 from logpipe.types import NDArrayBool, NDArrayFloat, NDArrayInt, SceneSample

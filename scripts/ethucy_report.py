@@ -392,7 +392,7 @@ def _closing(results: dict[str, Any], seconds: float) -> list[str]:
               "best-of-20 of Social-GAN's `evaluate_model.py` (one sample for the whole window); both are shown for "
               "the sampler. Best-of-20 rewards spread: a noise-only sampler is a strong floor.",
               "- Linear is a least-squares line through the 8 observed positions; Kalman a constant-velocity KF "
-              "(accel std 0.1 m/step², measurement std 0.05 m) — see `model/baselines.py`.",
+              "(accel std 0.1 m/step², measurement std 0.05 m) — see `model/kinematic/`.",
               "- Per-scene reports (report.json / report.md / horizon.png / scenes_*.png): `docs/results/ethucy/"
               "<scene>/`; every-window reports in `<scene>/min1/`.", "",
               "## Time", "", machine_note(seconds) + " Per scene: " + ", ".join(

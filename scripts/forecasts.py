@@ -10,9 +10,12 @@ from typing import Any
 
 import numpy as np
 
-from logpipe.model.baselines import ConstantVelocity, ConstantVelocitySampler, KalmanCV, LinearFit
-from logpipe.model.checkpoint_meta import InferenceSettings, amend_meta, read_meta
-from logpipe.model.predictor import NetPredictor, Predictor, inference_id
+from logpipe.model.checkpoint.format import InferenceSettings
+from logpipe.model.kinematic.constant_velocity import ConstantVelocity, ConstantVelocitySampler, LinearFit
+from logpipe.model.kinematic.kalman import KalmanCV
+from logpipe.model.predictor import Predictor, inference_id
+from logpipe.model.zhu2020.meta import amend_meta, read_meta
+from logpipe.model.zhu2020.predictor import NetPredictor
 from logpipe.prediction.runs import PredictionMeta
 from logpipe.prediction.table import samples_table
 from logpipe.scoring.method_forecasts import load_method

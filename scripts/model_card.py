@@ -111,7 +111,7 @@ Each folder holds `weights.safetensors` (safetensors, no pickle), `meta.json` (f
 manifest hash, logpipe version, the splits and recordings (sha256) it was trained and validated on, and, once
 `make reproduce-*` has chosen them on validation, the inference settings K, constant-velocity modes, noise scale and
 neighbour cap that `logpipe predict` uses by default), `train_summary.json` and `train_log.jsonl`. Load with
-`logpipe.model.checkpoints.load_checkpoint(path, expect_kind="{kind}")`.
+`logpipe.model.zhu2020.checkpoint.load_checkpoint(path, expect_kind="{kind}")`.
 
 | {label} | train / val samples | steps run | best step | val ADE / FDE (m) | train samples/s | minutes |
 |---|---|---|---|---|---|---|

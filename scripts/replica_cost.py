@@ -65,7 +65,7 @@ def flops_per_sample(checkpoint: Path, dataset: Path, count: int = 8) -> dict[st
     from torch.utils.flop_counter import FlopCounterMode
 
     from logpipe.dataset.reader import Dataset
-    from logpipe.model.predictor import NetPredictor
+    from logpipe.model.zhu2020.predictor import NetPredictor
     from logpipe.raster.runs import find_raster_run
     from logpipe.stages.train import scene_samples
 

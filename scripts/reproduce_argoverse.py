@@ -23,11 +23,12 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from logpipe.model.checkpoint_meta import CheckpointMeta, read_meta
-from logpipe.model.predictor import NetPredictor, Predictor
+from logpipe.model.predictor import Predictor
 from logpipe.model.registry import RESIDUAL_KIND
-from logpipe.model.residual_meta import ResidualMeta, model_kind, read_residual_meta
-from logpipe.model.residual_predictor import ResidualPredictor
+from logpipe.model.residual.meta import ResidualMeta, model_kind, read_residual_meta
+from logpipe.model.residual.predictor import ResidualPredictor
+from logpipe.model.zhu2020.meta import CheckpointMeta, read_meta
+from logpipe.model.zhu2020.predictor import NetPredictor
 from logpipe.raster.runs import find_raster_run
 from logpipe.stages.score import score
 from logpipe.stages.train import scene_samples

@@ -29,8 +29,10 @@ import numpy as np
 from logpipe.api import ingest, rasterise, train
 from logpipe.dataset.reader import Dataset
 from logpipe.errors import DatasetError
-from logpipe.model.baselines import ConstantVelocity, ConstantVelocitySampler, KalmanCV
-from logpipe.model.predictor import NetPredictor, Predictor
+from logpipe.model.kinematic.constant_velocity import ConstantVelocity, ConstantVelocitySampler
+from logpipe.model.kinematic.kalman import KalmanCV
+from logpipe.model.predictor import Predictor
+from logpipe.model.zhu2020.predictor import NetPredictor
 from logpipe.raster.runs import find_raster_run
 from logpipe.scoring import metrics
 from logpipe.stages.train import scene_samples

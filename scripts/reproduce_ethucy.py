@@ -27,7 +27,7 @@ from pathlib import Path
 from typing import Any
 
 from logpipe.dataset.reader import Dataset
-from logpipe.model.baselines import ConstantVelocitySampler
+from logpipe.model.kinematic.constant_velocity import ConstantVelocitySampler
 from logpipe.stages.score import score
 from logpipe.stages.train import scene_samples
 from scripts.ethucy_checks import (

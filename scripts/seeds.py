@@ -12,8 +12,8 @@ from typing import Any
 import numpy as np
 
 from logpipe.dataset.reader import Dataset
-from logpipe.model.baselines import ConstantVelocitySampler
-from logpipe.model.checkpoint_meta import read_meta
+from logpipe.model.kinematic.constant_velocity import ConstantVelocitySampler
+from logpipe.model.zhu2020.meta import read_meta
 from logpipe.stages.score import score
 from logpipe.types import SceneSample
 from scripts.forecasts import write_learned, write_predictions

@@ -23,8 +23,9 @@ from pathlib import Path
 
 import numpy as np
 
-from logpipe.model.baselines import ConstantVelocitySampler
-from logpipe.model.predictor import NetPredictor, Predictor
+from logpipe.model.kinematic.constant_velocity import ConstantVelocitySampler
+from logpipe.model.predictor import Predictor
+from logpipe.model.zhu2020.predictor import NetPredictor
 from logpipe.stages.train import scene_samples
 from logpipe.types import NDArrayFloat, NDArrayInt, SceneSample
 from scripts.ethucy_report import SCENES

@@ -125,8 +125,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--note", default="", help="a line on how the checkpoints were trained")
     args = ap.parse_args(argv)
     t0 = time.perf_counter()
-    from logpipe.model.checkpoint_meta import read_meta
-    from logpipe.model.predictor import NetPredictor
+    from logpipe.model.zhu2020.meta import read_meta
+    from logpipe.model.zhu2020.predictor import NetPredictor
 
     ds = Dataset.open(args.test)
     rasters = find_raster_run(ds.root, None, None)

@@ -11,9 +11,10 @@ from typing import Any
 
 import numpy as np
 
-from logpipe.model.baselines import ConstantVelocitySampler
-from logpipe.model.batching import neighbour_counts
-from logpipe.model.predictor import NetPredictor, Predictor
+from logpipe.model.kinematic.constant_velocity import ConstantVelocitySampler
+from logpipe.model.predictor import Predictor
+from logpipe.model.zhu2020.batching import neighbour_counts
+from logpipe.model.zhu2020.predictor import NetPredictor
 from logpipe.scoring import metrics
 from logpipe.types import NDArrayFloat, SceneSample
 

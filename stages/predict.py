@@ -34,16 +34,10 @@ from logpipe.dataset.sample_filter import SampleFilter, SelectedLogs, SelectedSa
 from logpipe.dataset.sample_filter import selected_logs as _selected_logs
 from logpipe.errors import LogpipeError
 from logpipe.executor import Backend, default_workers, run_ordered
-from logpipe.model.device import check_device_name, resolve_device
 from logpipe.model.ray_predict import ForecastJob, process_forecasts, ray_forecasts, shard_predictions
-from logpipe.model.registry import (
-    check_fit,
-    choose_predictor,
-    load_net,
-    resolve_inference,
-    seen_in_training,
-)
-from logpipe.model.residual_ood import OodCheck, ood_check_for
+from logpipe.model.registry import check_fit, choose_predictor, load_net, resolve_inference, seen_in_training
+from logpipe.model.residual.ood import OodCheck, ood_check_for
+from logpipe.model.training.device import check_device_name, resolve_device
 from logpipe.prediction.columnar import (
     ColumnarRun,
     TrackPredictor,

@@ -1,9 +1,9 @@
 """``logpipe train``: fit the predictor on a dataset's samples (or on several datasets' together).
 
-Reads top-down: open the dataset(s) → build the config (``model.train_config``) → pick the train/validation
+Reads top-down: open the dataset(s) → build the config (``model.zhu2020.train_config``) → pick the train/validation
 logs (a folder split such as ``eth/train``, or a ``hash/…`` split, applied in each dataset) → cut their samples
 into ``SceneSample``s (concatenated in the order the datasets are given, each with its own raster run) →
-``model.training.fit`` inside ``model.train_run.run_folder`` (the run folder's lock; ``fit`` writes the
+``model.zhu2020.fit.fit`` inside ``model.training.run_folder.run_folder`` (the run folder's lock; ``fit`` writes the
 checkpoints and the JSON-lines log, stops early, resumes) → a summary.
 """
 
@@ -27,8 +27,8 @@ from logpipe.summaries import TrainPerDataset, TrainResumed, TrainSummary
 from logpipe.types import SceneSample
 
 if TYPE_CHECKING:
-    from logpipe.model.config import TrainConfig
-    from logpipe.model.training import TrainResult
+    from logpipe.model.zhu2020.config import TrainConfig
+    from logpipe.model.zhu2020.fit import TrainResult
 
 
 def scene_samples(
@@ -97,21 +97,21 @@ def train(  # noqa: PLR0913  stage entry: keyword options mirror `logpipe train`
         resume: continue from ``out_dir/last``.
         progress: True: ``fit``'s progress bar (a terminal); a callable: ``logpipe.progress`` callback (steps).
         init_from: start a new run from this checkpoint folder (e.g. a Noise-LSTM checkpoint into the full
-            model; see ``logpipe.model.checkpoints.warm_start``).
+            model; see ``logpipe.model.zhu2020.checkpoint.warm_start``).
         device: ``auto`` (CUDA when torch can use a GPU, else the CPU), ``cpu`` or ``cuda`` (autocast there; see
-            ``logpipe.model.device``).
+            ``logpipe.model.training.device``).
     """
-    from logpipe.model.checkpoint_meta import TrainingData, combined_kind, combined_manifest_hash
-    from logpipe.model.residual_config import is_residual_config
-    from logpipe.model.train_config import train_config, with_protocol_lengths
-    from logpipe.model.train_run import run_folder, train_device
-    from logpipe.model.training import fit
+    from logpipe.model.checkpoint.format import TrainingData, combined_kind, combined_manifest_hash
+    from logpipe.model.residual.config import is_residual_config
+    from logpipe.model.training.run_folder import run_folder, train_device
+    from logpipe.model.zhu2020.fit import fit
+    from logpipe.model.zhu2020.train_config import train_config, with_protocol_lengths
 
     started = time.perf_counter()
     torch_device = train_device(device)  # a bad --device fails before any data is read
     datasets = _open_datasets([dataset_dir] if isinstance(dataset_dir, Path) else list(dataset_dir))
     if config_path is not None and is_residual_config(config_path):  # the residual driving model (our extension)
-        from logpipe.model.residual_run import train_residual
+        from logpipe.model.residual.run import train_residual
 
         _check_lengths(datasets)
         summary: TrainSummary = train_residual(datasets, out_dir, config_path, train_split=train_split,
@@ -163,8 +163,8 @@ def _resolve_inputs(datasets: list[Dataset], config: TrainConfig, train_split: s
     train_samples: Sequence[SceneSample] | Iterable[SceneSample]
     train_counts: list[int | str]
     if loader_workers > 0:
-        from logpipe.model.data import scene_loader
-        from logpipe.model.train_run import ChainedScenes
+        from logpipe.model.training.run_folder import ChainedScenes
+        from logpipe.model.training.scene_stream import scene_loader
 
         loaders = [scene_loader(ds.root, logs, workers=loader_workers,
                                 raster_run=run.run_dir.name if run is not None else None)

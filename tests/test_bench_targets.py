@@ -110,7 +110,7 @@ def test_the_recurrent_cells_floor_does_no_more_matmul_work_than_the_network() -
     from torch.utils.flop_counter import FlopCounterMode
 
     from benchmarks.bench_predict import _macs_per_sample, _recurrent_cells_rate
-    from logpipe.model.config import ModelConfig
+    from logpipe.model.zhu2020.config import ModelConfig
 
     batches = [[(4, 3), (1, 1), (6, 2)], [(2, 2)]]
     for cfg, modes in ((ModelConfig(obs_len=20, pred_len=30, raster_channels=3), 6),
@@ -150,8 +150,8 @@ def test_the_training_floor_replays_the_steps_kernels_with_and_without_autograd(
     from dataclasses import replace
 
     from benchmarks.bench_train import _batches, _floor_step, _record
-    from logpipe.model.config import ModelConfig
     from logpipe.model.synthetic import make_scenes
+    from logpipe.model.zhu2020.config import ModelConfig
 
     cfg = ModelConfig(obs_len=4, pred_len=3, raster_channels=3, backbone_bf16=False)
     scenes = make_scenes(8, seed=1, min_agents=3, max_agents=5, obs_len=4, pred_len=3, with_ego=True,

@@ -171,7 +171,7 @@ def test_train_a_few_steps_writes_a_loadable_checkpoint(bundled: Path, tmp_path:
     summary = json.loads(result.stdout)
     assert summary["steps"] == 4 and summary["train_samples"] > 0
     assert np.isfinite(summary["best_val_ade"])
-    from logpipe.model.checkpoints import load_checkpoint
+    from logpipe.model.zhu2020.checkpoint import load_checkpoint
 
     loaded = load_checkpoint(Path(summary["best_checkpoint"]), expect_kind="ethucy")
     assert loaded.net.config.obs_len == 8
@@ -201,7 +201,7 @@ def test_train_preset_trains_a_baseline_with_the_same_schedule(bundled: Path, tm
                                  "hotel/test", "--config", str(config), "--preset", preset, "--out",
                                  str(tmp_path / "run"), "--json"])
     assert result.exit_code == 0, result.output
-    from logpipe.model.checkpoint_meta import read_meta
+    from logpipe.model.zhu2020.meta import read_meta
 
     meta = read_meta(Path(json.loads(result.stdout)["best_checkpoint"]))
     assert not any(dataclasses.asdict(meta.config.model.features).values())  # no AIN, no environment net
@@ -225,7 +225,7 @@ def test_train_uses_the_raster_run_for_the_environment_net(bundled: Path, tmp_pa
     assert result.exit_code == 0, result.output
     summary = json.loads(result.stdout)
     assert summary["environment_net"] is True and summary["raster_run"]
-    from logpipe.model.checkpoints import load_checkpoint
+    from logpipe.model.zhu2020.checkpoint import load_checkpoint
 
     net = load_checkpoint(Path(summary["best_checkpoint"]), expect_kind="argoverse1").net
     assert net.config.features.environment and net.config.raster_channels == 7

@@ -59,7 +59,8 @@ class PredictOptions:
         batch_size: samples per forward pass.
         threads: torch intra-op threads (0 = the cores this process may use).
         device: where a checkpoint's network runs: ``auto`` (CUDA when torch can use a GPU, else the CPU), ``cpu``
-            or ``cuda`` (autocast there; see ``logpipe.model.device``). Baselines run on the CPU whatever it says.
+            or ``cuda`` (autocast there; see ``logpipe.model.training.device``). Baselines run on the CPU whatever it
+            says.
         backend: ``local`` (this process) or ``ray``: forecasts on Ray actors (``logpipe.model.ray_predict``;
             the dataset must be on a file system every node shares), outputs written here, the same bytes.
         workers: Ray actors (0: one per GPU of the cluster, else one per CPU); locally, the constant-velocity

@@ -42,7 +42,7 @@ class SampleShardRun:
         batch_size: samples per forecast batch; ``meta``: the table metadata; ``out_dir``: the run folder.
         cut_rasters: whether samples are cut with their rasters (the forecast or the MCAPs use them).
         ood_check: scores each batch's targets against the predictor's training data and applies
-            ``--out-of-distribution`` to the forecasts (``model.residual_ood.OodCheck``); None: no check.
+            ``--out-of-distribution`` to the forecasts (``model.residual.ood.OodCheck``); None: no check.
     """
 
     cutter: SampleCutter
@@ -110,7 +110,7 @@ def run_batch(job: ShardJob[SampleShardRun], batch: list[tuple[LogOutput, dict[s
     samples = [s for _, _, s in batch]
     t0 = time.perf_counter()
     # Each sample's noise comes from (--seed, sample id) and a network's arithmetic from batch-shape invariant
-    # kernels (logpipe.model.row_blocks): batching and resuming change no bit of a forecast.
+    # kernels (logpipe.model.training.row_blocks): batching and resuming change no bit of a forecast.
     futures = forecast(samples)
     summary.model_seconds += time.perf_counter() - t0
     oods: list[OodRows | None] = [None] * len(samples)

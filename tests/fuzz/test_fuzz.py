@@ -303,8 +303,8 @@ def test_cli_never_prints_a_traceback(case_id: str, tmp_path: Path) -> None:
 def test_damaged_safetensors_is_one_line(blob: bytes, tmp_path: Path) -> None:
     from types import SimpleNamespace
 
-    from logpipe.model.checkpoint_meta import CheckpointError
-    from logpipe.model.checkpoints import _sha256, _verified_weights
+    from logpipe.model.checkpoint.format import CheckpointError
+    from logpipe.model.zhu2020.checkpoint import _sha256, _verified_weights
 
     weights = tmp_path / "weights.safetensors"
     weights.write_bytes(blob)

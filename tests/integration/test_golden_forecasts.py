@@ -11,9 +11,10 @@ before/after check of a restructuring on one machine);
 ``LOGPIPE_GOLDEN_WRITE=1`` writes this machine's pins into the file (only when a change is meant to move forecasts;
 say why in the commit).
 
-A checkpoint with the environment net runs its backbone in bf16 on a CPU with native bf16 (``model.backbone``): its
-forecasts there move by up to ~1 cm, far past the fp32 tolerance, so they are pinned apart, under ``NAME@bf16``. Each
-machine checks the pins of the arithmetic it runs; writing keeps the other arithmetic's pins.
+A checkpoint with the environment net runs its backbone in bf16 on a CPU with native bf16
+(``model.zhu2020.backbone``): its forecasts there move by up to ~1 cm, far past the fp32 tolerance, so they are
+pinned apart, under ``NAME@bf16``. Each machine checks the pins of the arithmetic it runs; writing keeps the other
+arithmetic's pins.
 """
 
 from __future__ import annotations
@@ -27,10 +28,10 @@ import pytest
 from typer.testing import CliRunner
 
 from logpipe.cli import app
-from logpipe.model.backbone import backbone_runs_bf16
-from logpipe.model.checkpoint_meta import read_meta
 from logpipe.model.registry import RESIDUAL_KIND
-from logpipe.model.residual_meta import model_kind
+from logpipe.model.residual.meta import model_kind
+from logpipe.model.zhu2020.backbone import backbone_runs_bf16
+from logpipe.model.zhu2020.meta import read_meta
 from logpipe.prediction.runs import PredictionRun
 
 pytestmark = pytest.mark.slow  # minutes of end-to-end work

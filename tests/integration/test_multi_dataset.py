@@ -19,15 +19,10 @@ import logpipe
 from logpipe.cli import app
 from logpipe.dataset.reader import Dataset
 from logpipe.errors import DatasetError, LogpipeError
-from logpipe.model.checkpoint_meta import (
-    CheckpointMismatchError,
-    TrainingData,
-    combined_manifest_hash,
-    kind_accepts,
-    read_meta,
-)
-from logpipe.model.checkpoints import load_checkpoint
+from logpipe.model.checkpoint.format import CheckpointMismatchError, TrainingData, combined_manifest_hash, kind_accepts
 from logpipe.model.registry import check_fit, choose_predictor
+from logpipe.model.zhu2020.checkpoint import load_checkpoint
+from logpipe.model.zhu2020.meta import read_meta
 
 runner = CliRunner()
 CONFIG = "[train]\nsteps = 2\neval_every = 2\nbatch_size = 2\nnum_modes = 2\nval_modes = 2\nval_max_samples = 8\n" \
@@ -180,7 +175,7 @@ def test_train_on_two_datasets_records_both(two_formats: tuple[Path, Path, Path]
 
 def test_train_streams_several_datasets_one_after_the_other(two_formats: tuple[Path, Path, Path],
                                                             tmp_path: Path) -> None:
-    from logpipe.model.train_run import ChainedScenes
+    from logpipe.model.training.run_folder import ChainedScenes
 
     eth, apo, _ = two_formats
     chained = ChainedScenes([[1, 2], [], [3]])

@@ -15,10 +15,10 @@ from typer.testing import CliRunner
 
 from logpipe.cli import app
 from logpipe.dataset.reader import Dataset
-from logpipe.model.predictor import NetPredictor
 from logpipe.model.registry import default_checkpoint
-from logpipe.model.residual_meta import read_residual_meta
-from logpipe.model.residual_predictor import ResidualPredictor
+from logpipe.model.residual.meta import read_residual_meta
+from logpipe.model.residual.predictor import ResidualPredictor
+from logpipe.model.zhu2020.predictor import NetPredictor
 from logpipe.raster.runs import find_raster_run
 from logpipe.stages.train import scene_samples
 

@@ -12,13 +12,13 @@ import pytest
 import torch
 from torch import Tensor
 
-from logpipe.model.backbone import ResNet18Stages12
-from logpipe.model.batching import collate
-from logpipe.model.config import ConfigError, ModelConfig, TrainConfig, load_config
-from logpipe.model.feature_cache import BackboneFeatureCache, scene_keys
-from logpipe.model.nets import TrajectoryNet
 from logpipe.model.synthetic import make_scenes
-from logpipe.model.training import fit
+from logpipe.model.zhu2020.backbone import ResNet18Stages12
+from logpipe.model.zhu2020.batching import collate
+from logpipe.model.zhu2020.config import ConfigError, ModelConfig, TrainConfig, load_config
+from logpipe.model.zhu2020.feature_cache import BackboneFeatureCache, scene_keys
+from logpipe.model.zhu2020.fit import fit
+from logpipe.model.zhu2020.network import TrajectoryNet
 from logpipe.types import SceneSample
 
 # The full model (ego + raster), small: 3-channel 64 x 64 rasters give 128 x 8 x 8 maps.

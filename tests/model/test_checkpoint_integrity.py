@@ -11,8 +11,9 @@ from pathlib import Path
 import pytest
 from safetensors.torch import load_file, save_file
 
-from logpipe.model.checkpoint_meta import CheckpointError, read_meta, stamped_meta
-from logpipe.model.checkpoints import load_checkpoint
+from logpipe.model.checkpoint.format import CheckpointError, stamped_meta
+from logpipe.model.zhu2020.checkpoint import load_checkpoint
+from logpipe.model.zhu2020.meta import read_meta
 from logpipe.storage.io import sha256_file
 from logpipe.verify import verify_tree
 

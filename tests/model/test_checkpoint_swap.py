@@ -12,9 +12,9 @@ from pathlib import Path
 import pytest
 import torch
 
-from logpipe.model.checkpoints import load_checkpoint, save_checkpoint
-from logpipe.model.config import Features, ModelConfig, TrainConfig
-from logpipe.model.nets import TrajectoryNet
+from logpipe.model.zhu2020.checkpoint import load_checkpoint, save_checkpoint
+from logpipe.model.zhu2020.config import Features, ModelConfig, TrainConfig
+from logpipe.model.zhu2020.network import TrajectoryNet
 from logpipe.storage import folder_swap
 
 CONFIG = TrainConfig(model=ModelConfig(features=Features(False, False, False, False, False), embed_dim=8, gru_dim=8,

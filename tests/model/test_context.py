@@ -11,12 +11,12 @@ import torch
 
 from logpipe.dataset.reader import Dataset
 from logpipe.errors import LogpipeError
-from logpipe.model.batching import Batch, collate, context_scenes, neighbour_counts
-from logpipe.model.config import ConfigError, Features, ModelConfig, TrainConfig
-from logpipe.model.nets import TrajectoryNet
-from logpipe.model.predictor import NetPredictor
 from logpipe.model.synthetic import make_scene, make_scenes
-from logpipe.model.training import fit
+from logpipe.model.zhu2020.batching import Batch, collate, context_scenes, neighbour_counts
+from logpipe.model.zhu2020.config import ConfigError, Features, ModelConfig, TrainConfig
+from logpipe.model.zhu2020.fit import fit
+from logpipe.model.zhu2020.network import TrajectoryNet
+from logpipe.model.zhu2020.predictor import NetPredictor
 from logpipe.stages.ingest import IngestOptions, ingest
 from logpipe.stages.train import scene_samples
 

@@ -14,12 +14,12 @@ import torch
 from typer.testing import CliRunner
 
 from logpipe.cli import app
-from logpipe.model.batching import collate
-from logpipe.model.config import ConfigError, Features, ModelConfig, TrainConfig
-from logpipe.model.device import autocast, autocast_dtype, grad_scaler, resolve_device
-from logpipe.model.predictor import NetPredictor
 from logpipe.model.synthetic import make_scenes
-from logpipe.model.training import fit
+from logpipe.model.training.device import DeviceError, autocast, autocast_dtype, grad_scaler, resolve_device
+from logpipe.model.zhu2020.batching import collate
+from logpipe.model.zhu2020.config import Features, ModelConfig, TrainConfig
+from logpipe.model.zhu2020.fit import fit
+from logpipe.model.zhu2020.predictor import NetPredictor
 from logpipe.types import SceneSample
 
 runner = CliRunner()
@@ -44,13 +44,13 @@ def _without_gpu(monkeypatch: pytest.MonkeyPatch) -> None:
 def test_resolve_device_choices_and_errors(monkeypatch: pytest.MonkeyPatch) -> None:
     assert resolve_device("cpu") == torch.device("cpu")
     assert resolve_device(torch.device("cpu")) == torch.device("cpu")
-    with pytest.raises(ConfigError, match=r"--device must be one of auto, cpu, cuda, got 'gpu'"):
+    with pytest.raises(DeviceError, match=r"--device must be one of auto, cpu, cuda, got 'gpu'"):
         resolve_device("gpu")
     _without_gpu(monkeypatch)
     assert resolve_device("auto") == torch.device("cpu")
     # what torch reports: this venv's CPU-only build, or a CUDA build that sees no GPU
     reason = "CPU-only build" if torch.version.cuda is None else "usable GPUs"
-    with pytest.raises(ConfigError, match=rf"--device cuda: torch cannot use a GPU here \(torch .*{reason}\)"):
+    with pytest.raises(DeviceError, match=rf"--device cuda: torch cannot use a GPU here \(torch .*{reason}\)"):
         resolve_device("cuda")
     monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
     assert resolve_device("auto") == torch.device("cuda")

@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from logpipe.model.kinematic_prior import WINDOWS, AdaptiveConstantVelocity, adaptive_fit
+from logpipe.model.kinematic.adaptive_prior import WINDOWS, AdaptiveConstantVelocity, adaptive_fit
 from logpipe.stages.ingest import IngestOptions, ingest
 from logpipe.stages.train import scene_samples
 

@@ -9,11 +9,12 @@ import pytest
 import torch
 from safetensors.torch import save_file
 
-from logpipe.model.backbone import BackboneWeightsError, ResNet18Stages12, read_state_dict, roi_align
-from logpipe.model.batching import collate
-from logpipe.model.config import Features, ModelConfig
-from logpipe.model.encoder import attention_q
-from logpipe.model.interaction import (
+from logpipe.model.synthetic import make_scene
+from logpipe.model.zhu2020.backbone import BackboneWeightsError, ResNet18Stages12, read_state_dict, roi_align
+from logpipe.model.zhu2020.batching import collate
+from logpipe.model.zhu2020.config import Features, ModelConfig
+from logpipe.model.zhu2020.encoder import attention_q
+from logpipe.model.zhu2020.interaction import (
     AgentInteractionNet,
     EgoMotionFeature,
     EgoTrajectoryFeature,
@@ -21,8 +22,7 @@ from logpipe.model.interaction import (
     TrackingFeature,
     scene_max,
 )
-from logpipe.model.nets import TrajectoryNet
-from logpipe.model.synthetic import make_scene
+from logpipe.model.zhu2020.network import TrajectoryNet
 
 SMALL = {"embed_dim": 8, "gru_dim": 12, "lstm_dim": 8, "noise_dim": 3, "obs_len": 4, "pred_len": 3}
 
@@ -232,7 +232,7 @@ def test_backbone_bf16_stays_close_to_fp32() -> None:
 
 
 def test_backbone_uses_bf16_only_where_the_cpu_has_it() -> None:
-    from logpipe.model.backbone import native_bf16
+    from logpipe.model.zhu2020.backbone import native_bf16
 
     assert ResNet18Stages12(4, use_bf16=True).use_bf16 is native_bf16()
     assert ResNet18Stages12(4, use_bf16=False).use_bf16 is False
@@ -242,7 +242,7 @@ def test_backbone_uses_bf16_only_where_the_cpu_has_it() -> None:
 
 
 def test_fused_lstm_step_matches_lstm_cell_eqs_16_18() -> None:
-    from logpipe.model.encoder import lstm_step, lstm_weights
+    from logpipe.model.zhu2020.encoder import lstm_step, lstm_weights
 
     torch.manual_seed(0)
     cell = torch.nn.LSTMCell(5, 4)

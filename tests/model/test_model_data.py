@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 
 from logpipe.dataset.reader import Dataset
-from logpipe.model.data import scene_loader
+from logpipe.model.training.scene_stream import scene_loader
 from logpipe.stages.ingest import IngestOptions, ingest
 from logpipe.stages.train import scene_samples
 

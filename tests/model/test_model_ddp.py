@@ -11,9 +11,9 @@ from pathlib import Path
 SCRIPT = """
 import json, os, sys
 from pathlib import Path
-from logpipe.model.config import TrainConfig
+from logpipe.model.zhu2020.config import TrainConfig
 from logpipe.model.synthetic import make_scenes
-from logpipe.model.training import fit
+from logpipe.model.zhu2020.fit import fit
 
 out = Path(sys.argv[1])
 scenes = make_scenes(16, seed=1, min_agents=3, max_agents=6)

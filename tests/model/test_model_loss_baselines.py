@@ -5,10 +5,11 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from logpipe.model.baselines import ConstantVelocity, ConstantVelocitySampler, KalmanCV, LinearFit
-from logpipe.model.loss import DisplacementErrors, best_of_h_loss
+from logpipe.model.kinematic.constant_velocity import ConstantVelocity, ConstantVelocitySampler, LinearFit
+from logpipe.model.kinematic.kalman import KalmanCV
 from logpipe.model.predictor import Predictor
 from logpipe.model.synthetic import make_scene
+from logpipe.model.training.loss import DisplacementErrors, best_of_h_loss
 from logpipe.types import SceneSample
 
 

@@ -6,11 +6,11 @@ import numpy as np
 import pytest
 import torch
 
-from logpipe.model.batching import collate
-from logpipe.model.config import Features, ModelConfig, preset
-from logpipe.model.nets import TrajectoryNet
-from logpipe.model.predictor import NetPredictor
 from logpipe.model.synthetic import make_scene
+from logpipe.model.zhu2020.batching import collate
+from logpipe.model.zhu2020.config import Features, ModelConfig, preset
+from logpipe.model.zhu2020.network import TrajectoryNet
+from logpipe.model.zhu2020.predictor import NetPredictor
 from logpipe.types import SceneSample
 
 SMALL = {"embed_dim": 8, "gru_dim": 12, "lstm_dim": 8, "obs_len": 4, "pred_len": 3, "raster_channels": 2}
@@ -167,7 +167,7 @@ def test_speed_unit_frame_sees_a_faster_scene_at_a_smaller_size(step_output: str
     pointing at the same pixels. With the per-agent output its speed floor is in model units, so it holds too."""
     from dataclasses import replace
 
-    from logpipe.model.batching import _speed_scale
+    from logpipe.model.zhu2020.batching import _speed_scale
 
     cfg = ModelConfig(speed_unit_m=0.5, step_output=step_output, **SMALL)  # type: ignore[arg-type]
     s = _scene(21, 4, with_raster=True)
@@ -184,7 +184,7 @@ def test_speed_unit_frame_sees_a_faster_scene_at_a_smaller_size(step_output: str
     net = TrajectoryNet(replace(cfg, features=Features(True, True, False, False, False))).eval()
     out, out_big = _predict(net, [s])[0], _predict(net, [big])[0]
     np.testing.assert_allclose(out_big, 2 * out, rtol=1e-4, atol=1e-4)
-    from logpipe.model.evaluation import evaluate
+    from logpipe.model.zhu2020.evaluation import evaluate
 
     errors, errors_big = (evaluate(net, [scene], num_modes=1) for scene in (s, big))
     assert errors.count == errors_big.count > 0
@@ -195,7 +195,7 @@ def test_speed_unit_frame_sees_a_faster_scene_at_a_smaller_size(step_output: str
 
 
 def test_speed_unit_must_be_positive() -> None:
-    from logpipe.model.config import ConfigError
+    from logpipe.model.zhu2020.config import ConfigError
 
     with pytest.raises(ConfigError, match="speed_unit_m"):
         ModelConfig(speed_unit_m=0.0)

@@ -12,13 +12,13 @@ import torch
 from safetensors.torch import load_file
 
 from logpipe.errors import LogpipeError
-from logpipe.model.checkpoint_meta import CheckpointError, CheckpointMismatchError
-from logpipe.model.checkpoints import load_checkpoint
-from logpipe.model.config import ConfigError, Features, ModelConfig, TrainConfig, load_config, save_config
-from logpipe.model.predictor import NetPredictor
+from logpipe.model.checkpoint.format import CheckpointError, CheckpointMismatchError
 from logpipe.model.synthetic import make_scenes
-from logpipe.model.train_inputs import TrainingError
-from logpipe.model.training import fit
+from logpipe.model.zhu2020.checkpoint import load_checkpoint
+from logpipe.model.zhu2020.config import ConfigError, Features, ModelConfig, TrainConfig, load_config, save_config
+from logpipe.model.zhu2020.fit import fit
+from logpipe.model.zhu2020.predictor import NetPredictor
+from logpipe.model.zhu2020.train_inputs import TrainingError
 
 MODEL = ModelConfig(
     features=Features(True, True, False, False, False),
@@ -190,9 +190,9 @@ def test_fit_streams_an_iterable(tmp_path: Path) -> None:
 
 @pytest.mark.parametrize("reduce", ["scene", "agent"])
 def test_select_then_backprop_gives_the_eq_23_gradient(reduce: str) -> None:
-    from logpipe.model.batching import collate
-    from logpipe.model.nets import TrajectoryNet
-    from logpipe.model.step_loss import best_of_h_step_loss
+    from logpipe.model.zhu2020.batching import collate
+    from logpipe.model.zhu2020.network import TrajectoryNet
+    from logpipe.model.zhu2020.step_loss import best_of_h_step_loss
 
     cfg = replace(MODEL, features=Features(True, True, False, False, False))
     torch.manual_seed(0)
@@ -223,10 +223,10 @@ def test_early_stop_waits_for_min_steps(tmp_path: Path) -> None:
 
 
 def test_warm_start_from_noise_lstm_starts_at_its_predictions(tmp_path: Path) -> None:
-    from logpipe.model.batching import collate
-    from logpipe.model.checkpoints import warm_start
-    from logpipe.model.config import ALL_OFF
-    from logpipe.model.nets import TrajectoryNet
+    from logpipe.model.zhu2020.batching import collate
+    from logpipe.model.zhu2020.checkpoint import warm_start
+    from logpipe.model.zhu2020.config import ALL_OFF
+    from logpipe.model.zhu2020.network import TrajectoryNet
 
     train, val = _data(8, 21), _data(3, 22)
     noise_lstm = fit(train, val, _cfg(model=replace(MODEL, features=ALL_OFF)), tmp_path / "nl", progress=False)
@@ -283,7 +283,7 @@ def test_weight_average_is_validated_kept_as_best_and_resumes(tmp_path: Path) ->
     at_best = load_file(str(runs[best_step].last_checkpoint / "averaged.safetensors"))
     assert all(torch.equal(best[k], at_best[f"module.{k}"]) for k in best)
     averaged_net = load_checkpoint(runs[4].best_checkpoint).net  # type: ignore[arg-type]
-    from logpipe.model.evaluation import evaluate
+    from logpipe.model.zhu2020.evaluation import evaluate
 
     err = evaluate(averaged_net, val, num_modes=3, seed=0)
     logged = next(x["val_ade"] for x in log if x["event"] == "val" and x["step"] == best_step)

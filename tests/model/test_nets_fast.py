@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 import torch
 
-from logpipe.model.batching import collate
-from logpipe.model.config import ConfigError, Features, ModelConfig
-from logpipe.model.nets import TrajectoryNet
 from logpipe.model.synthetic import make_scene
+from logpipe.model.zhu2020.batching import collate
+from logpipe.model.zhu2020.config import ConfigError, Features, ModelConfig
+from logpipe.model.zhu2020.network import TrajectoryNet
 from logpipe.types import SceneSample
 
 SMALL = {"embed_dim": 8, "gru_dim": 12, "lstm_dim": 8, "obs_len": 4, "pred_len": 5, "raster_channels": 2}
@@ -202,7 +202,7 @@ def test_agent_velocity_change_reads_the_output_in_each_agents_frame(fast: bool)
 
 
 def test_decode_fast_row_blocks_do_not_change_results(monkeypatch: pytest.MonkeyPatch) -> None:
-    from logpipe.model import fast_decoder
+    from logpipe.model.zhu2020 import fast_decoder
 
     torch.manual_seed(0)
     cfg = ModelConfig(noise_dim=3, **SMALL)  # type: ignore[arg-type]

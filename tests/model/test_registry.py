@@ -10,16 +10,7 @@ import pyarrow as pa
 import pytest
 
 from logpipe.errors import LogpipeError
-from logpipe.model.checkpoint_meta import (
-    CheckpointError,
-    InferenceSettings,
-    TrainingData,
-    amend_meta,
-    read_meta,
-)
-from logpipe.model.checkpoints import load_checkpoint, save_checkpoint
-from logpipe.model.config import Features, ModelConfig, TrainConfig
-from logpipe.model.nets import TrajectoryNet
+from logpipe.model.checkpoint.format import CheckpointError, InferenceSettings, TrainingData
 from logpipe.model.registry import (
     COMPARISON_FOLDERS,
     ChosenPredictor,
@@ -28,6 +19,10 @@ from logpipe.model.registry import (
     seen_in_training,
     shipped_checkpoints,
 )
+from logpipe.model.zhu2020.checkpoint import load_checkpoint, save_checkpoint
+from logpipe.model.zhu2020.config import Features, ModelConfig, TrainConfig
+from logpipe.model.zhu2020.meta import amend_meta, read_meta
+from logpipe.model.zhu2020.network import TrajectoryNet
 
 STORED = InferenceSettings(num_modes=20, noise_scale=0.75, constant_velocity_modes=1, context_max_neighbours=13,
                            chosen_on="eth/val")

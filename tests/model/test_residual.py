@@ -15,17 +15,17 @@ import torch
 from logpipe.dataset.reader import Dataset
 from logpipe.errors import LogpipeError
 from logpipe.maps import MapSource
-from logpipe.model.baselines import KalmanCV
-from logpipe.model.checkpoint_meta import CheckpointError
-from logpipe.model.kinematic_prior import adaptive_fit
-from logpipe.model.residual_checkpoint import load_residual, save_residual
-from logpipe.model.residual_config import ResidualConfig, ResidualConfigError, load_residual_config
-from logpipe.model.residual_fit import collect, evaluate, fit_residual, forecast
-from logpipe.model.residual_inputs import CROP_CHANNELS, CROP_UNIT, target_inputs
-from logpipe.model.residual_meta import ResidualMeta
-from logpipe.model.residual_net import ResidualNet
-from logpipe.model.residual_ood import OodCheck, ood_scores, training_distribution, tune_fallback
-from logpipe.model.residual_predictor import ResidualPredictor
+from logpipe.model.checkpoint.format import CheckpointError
+from logpipe.model.kinematic.adaptive_prior import adaptive_fit
+from logpipe.model.kinematic.kalman import KalmanCV
+from logpipe.model.residual.checkpoint import load_residual, save_residual
+from logpipe.model.residual.config import ResidualConfig, ResidualConfigError, load_residual_config
+from logpipe.model.residual.fit import collect, evaluate, fit_residual, forecast
+from logpipe.model.residual.inputs import CROP_CHANNELS, CROP_UNIT, target_inputs
+from logpipe.model.residual.meta import ResidualMeta
+from logpipe.model.residual.net import ResidualNet
+from logpipe.model.residual.ood import OodCheck, ood_scores, training_distribution, tune_fallback
+from logpipe.model.residual.predictor import ResidualPredictor
 from logpipe.raster.runs import find_raster_run
 from logpipe.stages.ingest import IngestOptions, ingest
 from logpipe.stages.rasterise import rasterise_dataset

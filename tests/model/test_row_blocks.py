@@ -6,7 +6,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from logpipe.model.row_blocks import ROW_BLOCK, row_mm
+from logpipe.model.training.row_blocks import ROW_BLOCK, row_mm
 
 
 @pytest.mark.parametrize("width", [2, 67, 131, 195])

@@ -1,4 +1,4 @@
-"""The config a ``logpipe train`` run trains with (``logpipe.model.train_config``): file, overrides, preset and
+"""The config a ``logpipe train`` run trains with (``logpipe.model.zhu2020.train_config``): file, overrides, preset and
 the protocol's steps, applied in that order."""
 
 from __future__ import annotations
@@ -8,8 +8,8 @@ from pathlib import Path
 
 import pytest
 
-from logpipe.model.config import PRESETS, ConfigError, ModelConfig, TrainConfig, load_config
-from logpipe.model.train_config import train_config, with_preset, with_protocol_lengths
+from logpipe.model.zhu2020.config import PRESETS, ConfigError, ModelConfig, TrainConfig, load_config
+from logpipe.model.zhu2020.train_config import train_config, with_preset, with_protocol_lengths
 from logpipe.types import SampleProtocol
 
 REPO = Path(__file__).resolve().parents[2]

@@ -81,7 +81,7 @@ def test_results_files_say_when_there_are_no_seed_checkpoints(tmp_path: Path) ->
 def test_a_seed_trained_with_another_recipe_is_left_out(tmp_path: Path) -> None:
     """Seed N counts only while each of its checkpoints has the config of the shipped one beside it, seed and
     step budget aside: a seed trained before a config change is no repeat of the shipped runs."""
-    from logpipe.model.checkpoint_meta import stamped_meta
+    from logpipe.model.checkpoint.format import stamped_meta
     from scripts.seeds import stale_seeds, training_seeds
 
     shipped = json.loads((REPO / "model/checkpoints/ethucy/eth/meta.json").read_text(encoding="utf-8"))
@@ -106,7 +106,7 @@ def test_a_seed_trained_with_another_recipe_is_left_out(tmp_path: Path) -> None:
 def test_settings_a_network_cannot_feel_make_no_other_recipe(tmp_path: Path) -> None:
     """A Noise-LSTM trained before ``context_radius_m`` existed and one trained with it collate the same windows
     (no pools read other agents), so they are one recipe; for the paper's method the radius is another recipe."""
-    from logpipe.model.checkpoint_meta import stamped_meta
+    from logpipe.model.checkpoint.format import stamped_meta
     from scripts.seeds import stale_seeds
 
     for method in ("noise_lstm", ""):
@@ -146,7 +146,7 @@ def test_across_seeds_table_means_ranges_and_standing() -> None:
 
 @pytest.mark.slow
 def test_seed_run_scores_the_sampler_like_a_direct_computation(bundled: Path, tmp_path: Path) -> None:
-    from logpipe.model.baselines import ConstantVelocitySampler
+    from logpipe.model.kinematic.constant_velocity import ConstantVelocitySampler
     from logpipe.stages.train import scene_samples
     from scripts.locations import ensure_dataset
     from scripts.seeds import seed_run
@@ -169,7 +169,7 @@ def test_seed_run_scores_the_sampler_like_a_direct_computation(bundled: Path, tm
 
 
 def test_motion_breakdown_splits_the_scored_agents(bundled: Path, tmp_path: Path) -> None:
-    from logpipe.model.baselines import ConstantVelocitySampler
+    from logpipe.model.kinematic.constant_velocity import ConstantVelocitySampler
     from logpipe.stages.score import score
     from logpipe.stages.train import scene_samples
     from scripts.ethucy_checks import STAY_RADIUS_M, STILL_STEP_M, motion_breakdown
@@ -206,7 +206,7 @@ def test_motion_breakdown_splits_the_scored_agents(bundled: Path, tmp_path: Path
 def test_inference_settings_are_the_val_argmin_over_the_joint_grid(bundled: Path, tmp_path: Path) -> None:
     """tune_inference tries every (constant-velocity modes, noise scale) pair, picks the lowest val best-of-20
     ADE, and ``tuned`` reproduces the chosen row; holding a mode at constant velocity changes the forecasts."""
-    from logpipe.model.predictor import NetPredictor
+    from logpipe.model.zhu2020.predictor import NetPredictor
     from logpipe.stages.train import scene_samples
     from scripts.locations import ensure_dataset
     from scripts.validation import (
@@ -266,8 +266,8 @@ def test_paired_differences_agree_with_the_report(bundled: Path, tmp_path: Path)
 
 
 def test_the_neighbour_cap_is_the_training_percentile_and_only_for_pooling_nets(bundled: Path, tmp_path: Path) -> None:
-    from logpipe.model.batching import neighbour_counts
-    from logpipe.model.predictor import NetPredictor
+    from logpipe.model.zhu2020.batching import neighbour_counts
+    from logpipe.model.zhu2020.predictor import NetPredictor
     from logpipe.stages.train import scene_samples
     from scripts.forecasts import write_learned
     from scripts.locations import ensure_dataset

@@ -1,6 +1,6 @@
 """A forecast depends only on (checkpoint, settings, seed, sample): ``logpipe predict`` writes the same predictions,
-bit for bit, at any ``--batch-size`` (issue 35 item 2; how: ``logpipe.model.row_blocks``), with the shipped networks
-on real data: ETH/UCY without maps, and the driving model over AV1 lane rasters with its environment net."""
+bit for bit, at any ``--batch-size`` (issue 35 item 2; how: ``logpipe.model.training.row_blocks``), with the shipped
+networks on real data: ETH/UCY without maps, and the driving model over AV1 lane rasters with its environment net."""
 
 from __future__ import annotations
 
@@ -13,7 +13,7 @@ import pytest
 
 from logpipe.dataset.reader import Dataset
 from logpipe.dataset.sample_filter import parse_filter
-from logpipe.model.predictor import NetPredictor
+from logpipe.model.zhu2020.predictor import NetPredictor
 from logpipe.stages.ingest import IngestOptions, ingest
 from logpipe.stages.predict import predict_dataset
 

@@ -20,9 +20,9 @@ from logpipe.dataset.sample_filter import parse_filter
 from logpipe.errors import LogpipeError
 from logpipe.maps import MapSource
 from logpipe.mcap.foxglove import MESSAGE_CLASSES
-from logpipe.model.checkpoints import save_checkpoint
-from logpipe.model.config import Features, ModelConfig, TrainConfig
-from logpipe.model.nets import TrajectoryNet
+from logpipe.model.zhu2020.checkpoint import save_checkpoint
+from logpipe.model.zhu2020.config import Features, ModelConfig, TrainConfig
+from logpipe.model.zhu2020.network import TrajectoryNet
 from logpipe.prediction.runs import PredictionRun
 from logpipe.raster.rasteriser import RasterSpec
 from logpipe.stages.ingest import IngestOptions, ingest

@@ -15,9 +15,9 @@ import pytest
 from logpipe.contracts import arrow_schema
 from logpipe.dataset.sample_filter import SampleFilter, parse_filter
 from logpipe.errors import LogpipeError
-from logpipe.model.checkpoints import save_checkpoint
-from logpipe.model.config import Features, ModelConfig, TrainConfig
-from logpipe.model.nets import TrajectoryNet
+from logpipe.model.zhu2020.checkpoint import save_checkpoint
+from logpipe.model.zhu2020.config import Features, ModelConfig, TrainConfig
+from logpipe.model.zhu2020.network import TrajectoryNet
 from logpipe.prediction.runs import PredictionRun
 from logpipe.stages.ingest import IngestOptions, ingest
 from logpipe.stages.predict import predict_dataset
@@ -278,8 +278,8 @@ def test_noise_scale_widens_the_modes_and_is_recorded(lines_dataset: Path, tmp_p
     import torch
 
     from logpipe.dataset.reader import Dataset
-    from logpipe.model.batching import collate
-    from logpipe.model.predictor import NetPredictor
+    from logpipe.model.zhu2020.batching import collate
+    from logpipe.model.zhu2020.predictor import NetPredictor
     from logpipe.stages.train import scene_samples
 
     good = _checkpoint(tmp_path / "good", _small_net_config(), "ethucy")
@@ -328,7 +328,8 @@ def test_context_max_neighbours_is_recorded_and_refused_where_it_cannot_apply(li
 def test_checkpoint_settings_are_predicts_defaults_and_training_logs_warn(lines_dataset: Path,
                                                                          tmp_path: Path) -> None:
     from logpipe.dataset.reader import Dataset
-    from logpipe.model.checkpoint_meta import InferenceSettings, TrainingData, amend_meta
+    from logpipe.model.checkpoint.format import InferenceSettings, TrainingData
+    from logpipe.model.zhu2020.meta import amend_meta
 
     folder = _checkpoint(tmp_path / "ck", _small_net_config(step_output="velocity_change"), "ethucy")
     amend_meta(folder, inference=InferenceSettings(num_modes=4, noise_scale=0.5, constant_velocity_modes=1,

@@ -13,7 +13,7 @@ import pytest
 
 from logpipe import api
 from logpipe.errors import LogpipeError
-from logpipe.model.residual_meta import read_residual_meta
+from logpipe.model.residual.meta import read_residual_meta
 
 DATA = Path(__file__).resolve().parents[1] / "data" / "commonroad"
 SCENARIO = DATA / "USA_Peach-4_8_T-1.xml"

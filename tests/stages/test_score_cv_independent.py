@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 
 from logpipe.dataset.reader import Dataset
-from logpipe.model.baselines import ConstantVelocity
+from logpipe.model.kinematic.constant_velocity import ConstantVelocity
 from logpipe.prediction.runs import PredictionMeta
 from logpipe.prediction.table import samples_table
 from logpipe.stages.ingest import IngestOptions, ingest

@@ -12,7 +12,7 @@ import pytest
 
 from logpipe.dataset.reader import Dataset
 from logpipe.errors import LogpipeError, ScoreError
-from logpipe.model.baselines import ConstantVelocity, ConstantVelocitySampler
+from logpipe.model.kinematic.constant_velocity import ConstantVelocity, ConstantVelocitySampler
 from logpipe.prediction.runs import PredictionMeta
 from logpipe.prediction.table import samples_table
 from logpipe.scoring.method_forecasts import load_method

@@ -225,7 +225,7 @@ def test_a_commit_never_removes_a_workers_new_empty_folder(tmp_path: Path) -> No
 
 def test_a_symlinked_training_log_receives_nothing(tmp_path: Path) -> None:
     """A training run folder is locked but not a committed artifact: its append-only log is opened O_NOFOLLOW."""
-    from logpipe.model.training import _Log
+    from logpipe.model.zhu2020.fit import _Log
     from logpipe.storage.io import open_nofollow
 
     victim = tmp_path / "victim"

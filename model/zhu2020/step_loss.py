@@ -7,9 +7,9 @@ from __future__ import annotations
 
 import torch
 
+from ..training.loss import best_of_h_loss
 from .batching import Batch
-from .loss import best_of_h_loss
-from .nets import TrajectoryNet
+from .network import TrajectoryNet
 
 
 def targets_with_future(batch_target: torch.Tensor, valid: torch.Tensor, obs_len: int) -> torch.Tensor:

@@ -11,10 +11,10 @@ import torch
 
 from logpipe.types import SceneSample
 
+from ..training.device import autocast
+from ..training.loss import DisplacementErrors
 from .batching import collate
-from .device import autocast
-from .loss import DisplacementErrors
-from .nets import TrajectoryNet
+from .network import TrajectoryNet
 from .step_loss import targets_with_future
 
 

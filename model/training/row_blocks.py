@@ -85,7 +85,6 @@ def gru_cell(cell: nn.GRUCell, x: Tensor, h: Tensor | None) -> Tensor:
     return (1 - z) * n + z * h
 
 
-
 def scale_down(x: Tensor, scale: float) -> Tensor:
     """``x / scale`` for a Python-number ``scale``; at inference as ``x * (1 / scale)``: torch divides by a scalar
     with a reciprocal multiply in its vectorised body but a true division in the scalar tail, so an element's bits

@@ -27,9 +27,9 @@ import numpy as np
 from logpipe.errors import LogpipeError
 from logpipe.types import OBJECT_TYPES, NDArrayBool, NDArrayFloat, SceneSample
 
-from .baselines import KalmanCV
-from .residual_config import ResidualConfig
-from .residual_inputs import TargetInputs, target_inputs
+from ..kinematic.kalman import KalmanCV
+from .config import ResidualConfig
+from .inputs import TargetInputs, target_inputs
 
 QUANTILES = (0.001, 0.999)
 """The range each numeric descriptor is checked against."""
@@ -150,7 +150,7 @@ class OodCheck:
 
 def ood_check_for(checkpoint: Path, action: str) -> OodCheck:
     """The check of a residual checkpoint folder with ``--out-of-distribution`` ``action``."""
-    from .residual_meta import read_residual_meta  # here: the check is built only for residual checkpoints
+    from .meta import read_residual_meta  # here: the check is built only for residual checkpoints
 
     meta = read_residual_meta(checkpoint)
     return OodCheck(meta.ood, meta.config, action)

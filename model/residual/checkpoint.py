@@ -1,13 +1,12 @@
 """Checkpoints of the residual driving model: ``weights.safetensors`` and ``meta.json`` in one folder, never a
 pickle, replaced whole (``logpipe.storage.folder_swap``) so a crash leaves the old folder or the new one.
 
-``meta.json`` (``model.residual_meta``) names the weights' sha256; weights load only when their sha256 is that one,
+``meta.json`` (``model.residual.meta``) names the weights' sha256; weights load only when their sha256 is that one,
 and only finite weights are accepted.
 """
 
 from __future__ import annotations
 
-import hashlib
 import json
 import os
 import shutil
@@ -19,18 +18,11 @@ from safetensors import SafetensorError
 from safetensors.torch import load_file, save_file
 
 from logpipe.storage.folder_swap import recover_folder, replace_folder, staging_folder_for
+from logpipe.storage.io import sha256_file
 
-from .checkpoint_meta import CheckpointError, logpipe_version
-from .residual_meta import META, WEIGHTS, ResidualMeta, read_residual_meta
-from .residual_net import ResidualNet
-
-
-def _sha256(path: Path) -> str:
-    digest = hashlib.sha256()
-    with path.open("rb") as fh:
-        for block in iter(lambda: fh.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
+from ..checkpoint.format import CheckpointError, logpipe_version
+from .meta import META, WEIGHTS, ResidualMeta, read_residual_meta
+from .net import ResidualNet
 
 
 def save_residual(folder: Path, net: ResidualNet, meta: ResidualMeta) -> Path:
@@ -41,7 +33,7 @@ def save_residual(folder: Path, net: ResidualNet, meta: ResidualMeta) -> Path:
         staging.mkdir(parents=True, exist_ok=True)
         weights = staging / WEIGHTS
         save_file({k: v.detach().cpu().contiguous().clone() for k, v in net.state_dict().items()}, str(weights))
-        meta.weights_sha256 = _sha256(weights)
+        meta.weights_sha256 = sha256_file(weights)
         meta.logpipe_version, meta.created_unix = logpipe_version(), time.time()
         tmp = staging / (META + ".tmp")
         tmp.write_text(json.dumps(meta.to_dict(), indent=2, sort_keys=True) + "\n", encoding="utf-8")
@@ -61,7 +53,7 @@ def load_residual(folder: Path) -> tuple[ResidualNet, ResidualMeta]:
     """
     meta = read_residual_meta(folder)
     weights = folder / WEIGHTS
-    if not weights.is_file() or _sha256(weights) != meta.weights_sha256:
+    if not weights.is_file() or sha256_file(weights) != meta.weights_sha256:
         raise CheckpointError(f"{weights}: missing or does not match the sha256 in meta.json")
     try:
         state = load_file(str(weights))

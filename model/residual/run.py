@@ -26,10 +26,10 @@ from logpipe.storage.io import sha256_file
 from logpipe.summaries import TrainSummary
 from logpipe.types import SceneSample
 
-from .checkpoint_meta import TrainingData, combined_kind, combined_manifest_hash
-from .residual_config import load_residual_config
-from .residual_fit import collect, fit_residual
-from .train_run import run_folder
+from ..checkpoint.format import TrainingData, combined_kind, combined_manifest_hash
+from ..training.run_folder import run_folder
+from .config import load_residual_config
+from .fit import collect, fit_residual
 
 
 def _split_samples(datasets: Sequence[Dataset], split: str, raster_run: str | None, environment: bool

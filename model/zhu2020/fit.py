@@ -42,15 +42,16 @@ from logpipe.progress import report_total
 from logpipe.storage.io import open_nofollow
 from logpipe.types import SceneSample
 
+from ..checkpoint.format import CheckpointMismatchError, TrainingData
+from ..training.data_parallel import Ranks, leaves_process_group
+from ..training.device import autocast, grad_scaler, resolve_device
 from .batching import collate
-from .checkpoint_meta import CheckpointMismatchError, TrainingData, check_meta, read_meta
-from .checkpoints import load_averaged, load_training_state, save_checkpoint, warm_start
+from .checkpoint import load_averaged, load_training_state, save_checkpoint, warm_start
 from .config import ConfigError, ModelConfig, TrainConfig, config_to_dict, save_config
-from .data_parallel import Ranks, leaves_process_group
-from .device import autocast, grad_scaler, resolve_device
 from .evaluation import evaluate
 from .feature_cache import BackboneFeatureCache, scene_keys
-from .nets import TrajectoryNet
+from .meta import check_meta, read_meta
+from .network import TrajectoryNet
 from .step_loss import best_of_h_step_loss
 from .train_inputs import TrainingError, resolve_config, training_batches
 
@@ -415,7 +416,7 @@ def fit(  # noqa: PLR0913  public entry: keyword options mirror `logpipe train`'
             weights come from ``last/``. Logged in the ``start`` event.
         training_data: the splits and recordings of ``train`` / ``val``, stored in every checkpoint so predicting
             over them can be flagged.
-        device: where the network trains and validates (``model.device.resolve_device``: ``cpu``, ``cuda`` or
+        device: where the network trains and validates (``model.training.device.resolve_device``: ``cpu``, ``cuda`` or
             ``auto``). On CUDA the forward passes run under autocast (bf16, else fp16 with a gradient scaler whose
             scale is not checkpointed, so a resumed fp16 run re-learns it); batches, shuffling, augmentation and
             noise are drawn on the CPU as before, and checkpoints hold the same CPU tensors on every device.

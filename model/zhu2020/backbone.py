@@ -97,7 +97,8 @@ class ResNet18Stages12(nn.Module):
         # channels_last in both precisions: fp32 ran 1.28x the images/s of NCHW on an AVX2 EPYC (32.7 against
         # 25.5 on 2 threads), bf16 autocast ~3x fp32 on AMX CPUs.
         x = x.contiguous(memory_format=torch.channels_last)
-        if not self.use_bf16 or x.device.type != "cpu":  # on a GPU the caller's autocast (``model.device``) rules
+        # On a GPU the caller's autocast (``model.training.device``) rules.
+        if not self.use_bf16 or x.device.type != "cpu":
             return self._features(x).contiguous()
         with torch.autocast("cpu", dtype=torch.bfloat16):
             out = self._features(x)

@@ -15,13 +15,12 @@ Layout of a checkpoint folder::
 detected on load instead of silently mixing old and new files.
 
 This module writes and loads the folder (``save_checkpoint``, ``load_checkpoint``, the resumable state) and
-warm-starts a wider network from one (``warm_start``); ``checkpoint_meta`` owns what ``meta.json`` holds.
+warm-starts a wider network from one (``warm_start``); ``meta`` owns what ``meta.json`` holds.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import hashlib
 import json
 import os
 import shutil
@@ -34,18 +33,12 @@ import torch
 from safetensors.torch import load_file, save_file
 
 from logpipe.storage.folder_swap import recover_folder, replace_folder, staging_folder_for
+from logpipe.storage.io import sha256_file
 
-from .checkpoint_meta import (
-    CheckpointError,
-    CheckpointMeta,
-    TrainingData,
-    check_meta,
-    config_differences,
-    logpipe_version,
-    read_meta,
-)
+from ..checkpoint.format import CheckpointError, TrainingData, config_differences, logpipe_version
 from .config import ModelConfig, TrainConfig, config_to_dict
-from .nets import TrajectoryNet
+from .meta import CheckpointMeta, check_meta, read_meta
+from .network import TrajectoryNet
 
 
 class TrainState(TypedDict):
@@ -69,13 +62,6 @@ class LoadedCheckpoint:
     meta: CheckpointMeta
     path: Path
 
-
-def _sha256(path: Path) -> str:
-    digest = hashlib.sha256()
-    with path.open("rb") as fh:
-        for block in iter(lambda: fh.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
 
 
 def _atomic_json(path: Path, data: dict[str, Any]) -> None:
@@ -144,14 +130,14 @@ def _write_checkpoint_files(folder: Path, net: TrajectoryNet, meta: CheckpointMe
                 tensors[f"state.{idx}.{key}"] = torch.as_tensor(value)
         _atomic_tensors(folder / "optimizer.safetensors", tensors)
         _atomic_json(folder / "train_state.json", {"param_groups": state["param_groups"], **(train_state or {})})
-    meta = dataclasses.replace(meta, weights_sha256=_sha256(weights))
+    meta = dataclasses.replace(meta, weights_sha256=sha256_file(weights))
     _atomic_json(folder / "meta.json", meta.to_dict())
 
 
 def _verified_weights(folder: Path, meta: CheckpointMeta) -> dict[str, torch.Tensor]:
     """The tensors of ``folder/weights.safetensors`` once its sha256 matches the one ``meta.json`` names."""
     weights = folder / "weights.safetensors"
-    if not weights.is_file() or _sha256(weights) != meta.weights_sha256:
+    if not weights.is_file() or sha256_file(weights) != meta.weights_sha256:
         raise CheckpointError(f"{weights}: missing or does not match the sha256 in meta.json")
     try:
         tensors = load_file(str(weights))

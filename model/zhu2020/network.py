@@ -1,8 +1,9 @@
 """The paper's network, Zhu et al. (IJCAI 2020): ``TrajectoryNet`` puts together the Agent Interaction Network
 (eqs. 1-10, ``interaction``), the Environment Network (eqs. 11-12, ``environment``) and the Trajectory Prediction
 Network's LSTM encoder (eqs. 13-16, ``encoder``) and noise-initialised decoder (eqs. 17-22, ``decoder``; for
-inference ``fast_decoder``). This module owns the parameters (their names are the checkpoints' state_dict keys)
-and draws the noise z of eq. 21.
+inference ``fast_decoder``). The parameters are ``layers.TrajectoryLayers`` (their names are the
+checkpoints' state_dict keys); this module draws the noise z of eq. 21 and picks the decoder: both decoders are
+``decoder.Decoder`` functions of the layers, so training and inference share one interface.
 
 Tensor layout: agents are flattened rows (see ``batching.Batch``); per-agent tensors are ``(L, N, ...)`` with a
 leading axis L for modes (decoder samples) or time steps (vectorised encoder inputs); per-scene tensors are
@@ -16,44 +17,20 @@ on the predicted ones). Only agents observed at the current step are decoded.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from pathlib import Path
 
 import numpy as np
 import torch
-from torch import Tensor, nn
+from torch import Tensor
 
-from .backbone import read_state_dict
 from .batching import Batch
-from .config import ModelConfig
-from .decoder import Prediction, decode
+from .decoder import Decoder, Prediction, decode
 from .encoder import Encoded, encode
-from .environment import EnvironmentNet
 from .fast_decoder import decode_fast
-from .interaction import AgentInteractionNet
-from .row_blocks import RowLinear
+from .layers import TrajectoryLayers
 
 
-class TrajectoryNet(nn.Module):
+class TrajectoryNet(TrajectoryLayers):
     """The full predictor: AIN + EN + prediction network (eqs. 1-22). Outputs model-frame positions."""
-
-    def __init__(self, config: ModelConfig, *, load_backbone: bool = True) -> None:
-        super().__init__()
-        # Built in this order: it fixes the initial weights drawn from torch's RNG and the parameters' order.
-        self.config = config
-        feats, d, hid = config.features, config.embed_dim, config.lstm_dim
-        self.ain = AgentInteractionNet(config)
-        self.env = EnvironmentNet(config) if feats.environment else None
-        if self.env is not None and config.backbone_weights and load_backbone:
-            self.env.backbone.load_torchvision_state_dict(read_state_dict(Path(config.backbone_weights)))
-        d_fst = self.ain.out_dim
-        self.attention = RowLinear(2, d_fst) if d_fst else None  # eq. 13, W_c, b_c
-        self.disp_embed = RowLinear(2, d)  # eqs. 15/17, W_p, b_p
-        lstm_in = d + (d if self.env is not None else 0) + d_fst
-        self.encoder = nn.LSTMCell(lstm_in, hid)  # eq. 16, LSTM_E
-        self.decoder = nn.LSTMCell(lstm_in, hid)  # eq. 18, LSTM_D
-        self.out = RowLinear(hid, 2)  # eq. 19, W_u, b_u
-        self.init_decoder = RowLinear(hid + config.noise_dim, hid)  # eqs. 21-22, W_phi, b_phi
-        self.mode_gate = RowLinear(hid, 1) if config.mode_gate else None  # see ModelConfig.mode_gate
 
     def encode(self, batch: Batch, feature_map: Tensor | None = None) -> Encoded:
         """LSTM_E and the AIN over the observed steps (eqs. 1-16; ``encoder.encode``); ``feature_map``: the
@@ -108,5 +85,5 @@ class TrajectoryNet(nn.Module):
         if noise_scale != 1.0:
             noise = noise * noise_scale
         enc = self.encode(batch)
-        decode = self.decode_fast if fast else self.decode
-        return decode(batch, enc, noise, constant_velocity_modes)
+        decoder: Decoder = decode_fast if fast else decode
+        return decoder(self, batch, enc, noise, constant_velocity_modes)

@@ -2,7 +2,7 @@
 never loads it): the format and ``model_kind`` (``prior_residual``), the full ``ResidualConfig``, the dataset kind
 and manifest hash, ``TrainingData`` (what it was trained and validated on), the validation metrics, the
 distribution of its training inputs (``ood``: what ``logpipe predict`` scores targets against), the weights'
-sha256 and the logpipe version. ``model.residual_checkpoint`` writes and loads the folder.
+sha256 and the logpipe version. ``model.residual.checkpoint`` writes and loads the folder.
 """
 
 from __future__ import annotations
@@ -12,8 +12,14 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from .checkpoint_meta import CHECKPOINT_FORMAT, CheckpointError, TrainingData, meta_checksum_problem, stamped_meta
-from .residual_config import MODEL_KIND, ResidualConfig, ResidualConfigError
+from ..checkpoint.format import (
+    CHECKPOINT_FORMAT,
+    CheckpointError,
+    TrainingData,
+    meta_checksum_problem,
+    stamped_meta,
+)
+from .config import MODEL_KIND, ResidualConfig, ResidualConfigError
 
 WEIGHTS = "weights.safetensors"
 META = "meta.json"
@@ -36,7 +42,7 @@ class ResidualMeta:
     created_unix: float = 0.0
 
     def to_dict(self) -> dict[str, Any]:
-        """The JSON document, with the ``checksum`` of all the rest (``checkpoint_meta.stamped_meta``)."""
+        """The JSON document, with the ``checksum`` of all the rest (``model.checkpoint.format.stamped_meta``)."""
         return stamped_meta({"format": CHECKPOINT_FORMAT, "format_version": FORMAT_VERSION, "model_kind": MODEL_KIND,
                 "residual": self.config.to_dict(), "dataset_kind": self.dataset_kind,
                 "manifest_hash": self.manifest_hash, "epoch": self.epoch, "metrics": self.metrics, "ood": self.ood,

@@ -1,8 +1,8 @@
 """What the residual driving model reads of a scene, per target, in the target's own frame.
 
-Each target gets a frame: origin at its prior's fitted current position (``model.kinematic_prior``), x along the
-prior's velocity (standing still: along its observed displacement, else the lane it stands on, else the raster's
-up), and a length scale L = max(speed x ``horizon_scale_s``, ``min_scale_m``). In that frame:
+Each target gets a frame: origin at its prior's fitted current position (``model.kinematic.adaptive_prior``), x
+along the prior's velocity (standing still: along its observed displacement, else the lane it stands on, else the
+raster's up), and a length scale L = max(speed x ``horizon_scale_s``, ``min_scale_m``). In that frame:
 
 * ``features``: its observed track (in units of L), the track minus the prior's line (how it turned and sped up),
   log(1 + speed in m/s), the prior's window and the track's jitter (how noisy the sensor is);
@@ -29,8 +29,8 @@ import numpy as np
 from logpipe.raster.rasteriser import DEFAULT_CHANNELS
 from logpipe.types import NDArrayBool, NDArrayFloat, NDArrayFloat32, SceneSample
 
-from .kinematic_prior import adaptive_fit
-from .residual_config import ResidualConfig
+from ..kinematic.adaptive_prior import adaptive_fit
+from .config import ResidualConfig
 
 CROP_CHANNELS = ("drivable_area", "lane_centerline", "lane_boundary", "crossing", "lane_forward", "lane_left")
 """The crop's channels (the last two: the lanes' travel direction in the target's frame, x forward, y left)."""

@@ -12,13 +12,18 @@ from __future__ import annotations
 import contextlib
 from typing import TYPE_CHECKING, Any
 
-from .config import ConfigError
+from logpipe.errors import LogpipeError
 
 if TYPE_CHECKING:
     import torch
 
 # torch is imported where a function needs it: ``logpipe predict`` with a baseline checks --device here and never
 # loads torch (~1 s of a small run's start).
+
+
+class DeviceError(LogpipeError):
+    """A ``--device`` value that is unknown, or names a device torch cannot use here."""
+
 
 DEVICE_CHOICES = ("auto", "cpu", "cuda")
 """``--device`` values: ``auto`` is CUDA when torch can use a GPU, else the CPU."""
@@ -28,7 +33,7 @@ def resolve_device(name: str | torch.device) -> torch.device:
     """The torch device for a ``--device`` value (a ``torch.device`` is taken as it is).
 
     Raises:
-        ConfigError: a value not in ``DEVICE_CHOICES``, or ``cuda`` when torch cannot use a GPU (the message
+        DeviceError: a value not in ``DEVICE_CHOICES``, or ``cuda`` when torch cannot use a GPU (the message
             says what torch reports: a CPU-only build, or no visible GPU).
     """
     import torch
@@ -41,15 +46,15 @@ def resolve_device(name: str | torch.device) -> torch.device:
     if not torch.cuda.is_available():
         if name == "auto":
             return torch.device("cpu")
-        raise ConfigError(f"--device cuda: torch cannot use a GPU here ({_cuda_report()}); use --device cpu or auto")
+        raise DeviceError(f"--device cuda: torch cannot use a GPU here ({_cuda_report()}); use --device cpu or auto")
     return torch.device("cuda")
 
 
 def check_device_name(name: str) -> None:
-    """Raise ``ConfigError`` unless ``name`` is one of ``DEVICE_CHOICES`` (for runs that use no device, such as
+    """Raise ``DeviceError`` unless ``name`` is one of ``DEVICE_CHOICES`` (for runs that use no device, such as
     the classical baselines, where a typo should still be reported)."""
     if name not in DEVICE_CHOICES:
-        raise ConfigError(f"--device must be one of {', '.join(DEVICE_CHOICES)}, got {name!r}")
+        raise DeviceError(f"--device must be one of {', '.join(DEVICE_CHOICES)}, got {name!r}")
 
 
 def _cuda_report() -> str:

@@ -13,9 +13,9 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
+from ..training.row_blocks import RowLinear, gru_cell
 from .batching import Batch
 from .config import ModelConfig
-from .row_blocks import RowLinear, gru_cell
 
 
 def masked_max(x: Tensor, mask: Tensor) -> Tensor:

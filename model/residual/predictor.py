@@ -15,11 +15,11 @@ import numpy as np
 
 from logpipe.types import NDArrayFloat, SceneSample
 
-from .residual_checkpoint import load_residual
-from .residual_fit import forecast
-from .residual_inputs import concat, target_inputs
-from .residual_meta import ResidualMeta
-from .residual_net import ResidualNet
+from .checkpoint import load_residual
+from .fit import forecast
+from .inputs import concat, target_inputs
+from .meta import ResidualMeta
+from .net import ResidualNet
 
 
 class ResidualPredictor:

@@ -23,13 +23,13 @@ import torch
 from logpipe.storage.io import open_nofollow
 from logpipe.types import NDArrayFloat, SceneSample
 
-from .checkpoint_meta import TrainingData
-from .residual_checkpoint import load_residual, save_residual
-from .residual_config import ResidualConfig
-from .residual_inputs import CROP_UNIT, TargetInputs, concat, target_inputs
-from .residual_meta import ResidualMeta
-from .residual_net import ResidualNet, training_loss
-from .residual_ood import training_distribution, tune_fallback
+from ..checkpoint.format import TrainingData
+from .checkpoint import load_residual, save_residual
+from .config import ResidualConfig
+from .inputs import CROP_UNIT, TargetInputs, concat, target_inputs
+from .meta import ResidualMeta
+from .net import ResidualNet, training_loss
+from .ood import training_distribution, tune_fallback
 
 LOG = "train_log.jsonl"
 
@@ -83,7 +83,7 @@ def forecast(net: ResidualNet, inputs: TargetInputs, num_modes: int, batch: int 
         if picked.shape[1] < num_modes:
             picked = np.concatenate([picked, np.repeat(mean[:, None], num_modes - picked.shape[1], axis=1)], 1)
         out.append(picked)
-    from .residual_inputs import to_world
+    from .inputs import to_world
 
     residual = np.concatenate(out) if out else np.zeros((0, num_modes, net.config.pred_len, 2))
     return to_world(residual.astype(np.float64), inputs)

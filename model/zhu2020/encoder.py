@@ -14,16 +14,13 @@ step t's update: h_e^(t-1) while encoding (zeros at t = 1) and h_d^(t-1) while d
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 import torch
 from torch import Tensor, nn
 
+from ..training.row_blocks import row_mm, scale_down
 from .batching import Batch
-from .row_blocks import row_mm, scale_down
-
-if TYPE_CHECKING:
-    from .nets import TrajectoryNet
+from .layers import TrajectoryLayers
 
 
 def lstm_weights(cell: nn.LSTMCell) -> tuple[Tensor, Tensor]:
@@ -68,14 +65,14 @@ class Encoded:
     f_all: Tensor | None
 
 
-def attention_q(net: TrajectoryNet, fst: Tensor | None, scene: Tensor, pos_scaled: Tensor) -> Tensor | None:
+def attention_q(net: TrajectoryLayers, fst: Tensor | None, scene: Tensor, pos_scaled: Tensor) -> Tensor | None:
     """Eqs. 13-14: q_i = fst ⊙ σ(W_c p_i + b_c); fst (L, B, d_fst), pos (L, R, 2) -> (L, R, d_fst)."""
     if fst is None or net.attention is None:
         return None
     return fst[:, scene] * torch.sigmoid(net.attention(pos_scaled))
 
 
-def map_features(net: TrajectoryNet, proj: Tensor | None, pos: Tensor, batch: Batch, rows: Tensor) -> Tensor:
+def map_features(net: TrajectoryLayers, proj: Tensor | None, pos: Tensor, batch: Batch, rows: Tensor) -> Tensor:
     """v (L, R, d_v): eqs. 11-12 at pos (L, R, 2); zero for scenes without a raster."""
     if proj is None or net.env is None:
         return pos.new_zeros(*pos.shape[:2], net.config.embed_dim)
@@ -84,7 +81,7 @@ def map_features(net: TrajectoryNet, proj: Tensor | None, pos: Tensor, batch: Ba
     return torch.where(batch.has_raster[batch.scene[rows]][None, :, None], v, torch.zeros_like(v))
 
 
-def encode(net: TrajectoryNet, batch: Batch, feature_map: Tensor | None = None) -> Encoded:
+def encode(net: TrajectoryLayers, batch: Batch, feature_map: Tensor | None = None) -> Encoded:
     """Run ``net``'s LSTM_E (eq. 16) and the AIN GRU over the observed steps t = 1 .. T_obs; ``feature_map``: the
     backbone's maps of ``batch.raster`` when the caller has them (``feature_cache``), else computed here."""
     cfg = net.config

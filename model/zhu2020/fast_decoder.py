@@ -15,18 +15,15 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 import torch
 from torch import Tensor
 
+from ..training.row_blocks import row_mm, scale_down
 from .batching import Batch
 from .decoder import Prediction, agent_output_basis, carried_first_step, mode_open
 from .encoder import Encoded, lstm_weights
-from .row_blocks import row_mm, scale_down
-
-if TYPE_CHECKING:
-    from .nets import TrajectoryNet
+from .layers import TrajectoryLayers
 
 _LSTM_CHUNK_ROWS = 2048
 """Rows per block of ``decode_fast``'s LSTM step: its gates stay in L2 (~2x the matmul rate of one big block here)."""
@@ -53,7 +50,7 @@ class _InputBuffer:
                    buf[:, 2 + n_env : 2 + n_env + n_q].view(r, mm, n_q), buf[:, width - 1 - hid : width - 1])
 
 
-def _fused_input_weights(net: TrajectoryNet) -> Tensor:
+def _fused_input_weights(net: TrajectoryLayers) -> Tensor:
     """LSTM_D's weights over ``_InputBuffer.rows``: gates (i, f, g, o) reordered to (i, f, o, g), eq. 17's W_p folded
     into the displacement rows, and the bias as the weight row of the constant-1 column."""
     hid = net.config.lstm_dim
@@ -91,7 +88,7 @@ def _lstm_d_step(buf: _InputBuffer, w_in: Tensor, c: Tensor, hid: int) -> None:
         torch.mul(sig[:, 2 * hid :], torch.tanh(c_blk), out=buf.h[lo:hi])
 
 
-def _interaction(net: TrajectoryNet, enc: Encoded, pos_scaled: Tensor, h: Tensor, h_gru: Tensor | None, t: int,
+def _interaction(net: TrajectoryLayers, enc: Encoded, pos_scaled: Tensor, h: Tensor, h_gru: Tensor | None, t: int,
                  pool: Callable[[Tensor], Tensor]) -> tuple[Tensor | None, Tensor | None]:
     """fst^(t) (B * M, d_fst) and the new GRU state at predicted step t (eqs. 1-10 on the predicted positions
     ``pos_scaled`` (R, M, 2) and the decoder states ``h`` (R * M, H)); the AIN as at T_obs without
@@ -111,7 +108,7 @@ def _interaction(net: TrajectoryNet, enc: Encoded, pos_scaled: Tensor, h: Tensor
     return net.ain.step(parts, f_t, h_gru)
 
 
-def _map_features(net: TrajectoryNet, proj: Tensor | None, pos: Tensor, batch: Batch, rows: Tensor) -> Tensor:
+def _map_features(net: TrajectoryLayers, proj: Tensor | None, pos: Tensor, batch: Batch, rows: Tensor) -> Tensor:
     """v (R, M, d_v) at agent-major positions pos (R, M, 2); zero without maps."""
     if proj is None or net.env is None:
         return pos.new_zeros(*pos.shape[:2], net.config.embed_dim)
@@ -120,7 +117,7 @@ def _map_features(net: TrajectoryNet, proj: Tensor | None, pos: Tensor, batch: B
 
 
 @torch.no_grad()
-def decode_fast(net: TrajectoryNet, batch: Batch, enc: Encoded, noise: Tensor,
+def decode_fast(net: TrajectoryLayers, batch: Batch, enc: Encoded, noise: Tensor,
                 constant_velocity_modes: int | None = None) -> Prediction:
     """``decoder.decode`` for inference (no autograd), restructured for speed (see the module docstring).
 

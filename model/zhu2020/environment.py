@@ -12,10 +12,16 @@ import torch
 from torch import Tensor, nn
 from torch.nn import functional as F  # noqa: N812
 
-from .backbone import BACKBONE_CHANNELS, BACKBONE_STRIDE, ResNet18Stages12, backbone_runs_bf16, roi_align
+from ..training.row_blocks import RowLinear
+from .backbone import (
+    BACKBONE_CHANNELS,
+    BACKBONE_STRIDE,
+    ResNet18Stages12,
+    backbone_runs_bf16,
+    roi_align,
+)
 from .batching import Batch
 from .config import ModelConfig
-from .row_blocks import RowLinear
 
 
 def _bag_picks(k: int, s: int, device: torch.device) -> tuple[Tensor, Tensor]:

@@ -18,18 +18,16 @@ frame and speed (``agent_output_basis``); ``mode_open`` gates each mode's o_t. P
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import Protocol
 
 import torch
 from torch import Tensor
 
+from ..training.row_blocks import sigmoid
 from .batching import Batch
 from .config import ConfigError, ModelConfig
 from .encoder import Encoded, attention_q, lstm_step, lstm_weights, map_features
-from .row_blocks import sigmoid
-
-if TYPE_CHECKING:
-    from .nets import TrajectoryNet
+from .layers import TrajectoryLayers
 
 
 @dataclass
@@ -43,6 +41,17 @@ class Prediction:
 
     positions: Tensor
     rows: Tensor
+
+
+class Decoder(Protocol):
+    """The one decoder interface (eqs. 17-22): ``decode`` (training, with autograd) and
+    ``fast_decoder.decode_fast`` (inference) both take the layers, the encoded batch and the (M, R, noise_dim) z of
+    the rows observed at the current step, and return the same ``Prediction`` (equal up to float rounding)."""
+
+    def __call__(self, net: TrajectoryLayers, batch: Batch, enc: Encoded, noise: Tensor,
+                 constant_velocity_modes: int | None = None, /) -> Prediction:
+        """Decode M modes of ``batch``'s current rows."""
+        ...
 
 
 def carried_first_step(config: ModelConfig, batch: Batch, rows: Tensor) -> Tensor | None:
@@ -72,7 +81,7 @@ def agent_output_basis(config: ModelConfig, carried: Tensor | None) -> Tensor | 
     return torch.stack((along, across), dim=-1)
 
 
-def mode_open(net: TrajectoryNet, h0: Tensor, constant_velocity_modes: int | None, mode_dim: int) -> Tensor | None:
+def mode_open(net: TrajectoryLayers, h0: Tensor, constant_velocity_modes: int | None, mode_dim: int) -> Tensor | None:
     """The factor (..., 1) on each mode's step outputs o_t, from the decoder's initial state ``h0`` whose
     modes run along ``mode_dim``: the mode gate (``ModelConfig.mode_gate``), times 0 for the first
     ``constant_velocity_modes`` modes. With a velocity-change output such a mode is exactly the
@@ -97,7 +106,7 @@ def mode_open(net: TrajectoryNet, h0: Tensor, constant_velocity_modes: int | Non
     return keep if gate is None else gate * keep
 
 
-def decode(net: TrajectoryNet, batch: Batch, enc: Encoded, noise: Tensor,
+def decode(net: TrajectoryLayers, batch: Batch, enc: Encoded, noise: Tensor,
            constant_velocity_modes: int | None = None) -> Prediction:
     """``net``'s eqs. 17-22 for M modes of the rows observed at the current step.
 

@@ -1,5 +1,5 @@
 """The residual driving network (our extension of the paper, issue 57): corrections to a kinematic prior, read in
-each target's own frame (``model.residual_inputs``).
+each target's own frame (``model.residual.inputs``).
 
 Parts, named after the paper's where they play the same role:
 
@@ -27,9 +27,9 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
-from .residual_config import ResidualConfig
-from .residual_inputs import CROP_CHANNELS, feature_width, neighbour_width
-from .row_blocks import RowLinear
+from ..training.row_blocks import RowLinear
+from .config import ResidualConfig
+from .inputs import CROP_CHANNELS, feature_width, neighbour_width
 
 CONV_BLOCK = 32
 """Crops per environment-net call at inference: oneDNN picks a convolution's algorithm by the batch size, so

@@ -1,9 +1,6 @@
-"""Classical baselines behind the ``Predictor`` interface (the paper's Linear and KF rows, constant
-velocity, a constant-velocity sampler used as a best-of-K floor, and the driving model's adaptive kinematic prior,
-``model.kinematic_prior``).
-
-All work in world metres per step (the protocols sample at a fixed rate), vectorised over targets. The
-LSTM and Noise-LSTM rows are ``TrajectoryNet`` presets (``config.preset("lstm")`` / ``"baseline"``).
+"""Constant velocity from the last observed displacement (``ConstantVelocity``), fitted by least squares over the
+observed steps (``LinearFit``, the paper's Linear row), and the constant-velocity sampler used as a best-of-K floor
+(``ConstantVelocitySampler``). World metres per step (the protocols sample at a fixed rate), vectorised over targets.
 """
 
 from __future__ import annotations
@@ -15,18 +12,17 @@ import numpy as np
 
 from logpipe.types import NDArrayBool, NDArrayFloat, SceneSample
 
-from .kinematic_prior import AdaptiveConstantVelocity
-from .seeding import sample_seed
+from ..training.seeding import sample_seed
 
 
-def _observed(sample: SceneSample) -> tuple[NDArrayFloat, NDArrayBool]:
+def observed_targets(sample: SceneSample) -> tuple[NDArrayFloat, NDArrayBool]:
     """Observed target tracks (N_t, T_obs, 2) world metres and their validity (N_t, T_obs)."""
     obs = np.asarray(sample.positions, np.float64)[np.asarray(sample.target_mask, bool), : sample.obs_len]
     ok: NDArrayBool = np.all(np.isfinite(obs), axis=-1)
     return obs, ok
 
 
-def _last_velocity(obs: NDArrayFloat, ok: NDArrayBool) -> tuple[NDArrayFloat, NDArrayFloat]:
+def last_velocity(obs: NDArrayFloat, ok: NDArrayBool) -> tuple[NDArrayFloat, NDArrayFloat]:
     """(current position, velocity per step) from the last two observations of each track.
 
     The velocity uses the latest earlier observation (divided by the step gap); 0 with only one.
@@ -52,13 +48,13 @@ class ConstantVelocity:
     def predict(self, samples: Sequence[SceneSample], num_modes: int, seed: int) -> list[NDArrayFloat]:
         """Deterministic: the forecast repeated ``num_modes`` times."""
         del seed
-        return [self.predict_tracks(_observed(s)[0], num_modes) for s in samples]
+        return [self.predict_tracks(observed_targets(s)[0], num_modes) for s in samples]
 
     def predict_tracks(self, observed: NDArrayFloat, num_modes: int) -> NDArrayFloat:
         """(N, K, pred_len, 2) forecasts of N targets from their own (N, T_obs, 2) observed tracks (world
         metres, NaN where unobserved) alone: the columnar path (``logpipe.dataset.target_tracks``)."""
         ok = np.all(np.isfinite(observed), axis=-1)
-        cur, vel = _last_velocity(observed, ok)
+        cur, vel = last_velocity(observed, ok)
         steps = np.arange(1, self.pred_len + 1, dtype=np.float64)[None, :, None]
         fut = cur[:, None] + vel[:, None] * steps
         # A read-only view of the K equal modes: whoever lays them out copies them once.
@@ -83,7 +79,7 @@ class LinearFit:
         del seed
         out = []
         for s in samples:
-            obs, ok = _observed(s)
+            obs, ok = observed_targets(s)
             t_obs = obs.shape[1]
             t = np.arange(t_obs, dtype=np.float64)
             if self.history is not None:
@@ -101,68 +97,6 @@ class LinearFit:
             fut = p_mean[:, None] + slope[:, None] * (t_fut[None, :, None] - t_mean[:, None, None])
             out.append(np.repeat(fut[:, None], num_modes, axis=1))
         return out
-
-
-@dataclass
-class KalmanCV:
-    """The paper's KF row: a constant-velocity Kalman filter (state x, y, vx, vy per step) run over the
-    observed steps, then propagated without updates.
-
-    Attributes:
-        accel_std: process noise, white acceleration std (m / step^2).
-        meas_std: measurement noise std (m).
-        init_vel_std: prior std of the initial velocity (m / step).
-    """
-
-    pred_len: int = 12
-    accel_std: float = 0.1
-    meas_std: float = 0.05
-    init_vel_std: float = 2.0
-    name: str = "kalman_cv"
-
-    def predict(self, samples: Sequence[SceneSample], num_modes: int, seed: int) -> list[NDArrayFloat]:
-        """Deterministic: the filter's mean forecast repeated ``num_modes`` times."""
-        del seed
-        return [np.repeat(self.filter_tracks(_observed(s)[0])[:, None], num_modes, axis=1) for s in samples]
-
-    def predict_tracks(self, observed: NDArrayFloat, num_modes: int) -> NDArrayFloat:
-        """(N, K, pred_len, 2): ``filter_tracks`` repeated as K equal modes (a read-only view), the columnar path
-        (``logpipe.prediction.columnar.TrackPredictor``)."""
-        fut = self.filter_tracks(observed)
-        modes: NDArrayFloat = np.broadcast_to(fut[:, None], (len(fut), num_modes, *fut.shape[1:]))
-        return modes
-
-    def filter_tracks(self, observed: NDArrayFloat) -> NDArrayFloat:
-        """(N, pred_len, 2) forecasts of N tracks (N, T_obs, 2) world metres, NaN where unobserved."""
-        obs = np.asarray(observed, np.float64)
-        ok: NDArrayBool = np.all(np.isfinite(obs), axis=-1)
-        f = np.array([[1, 0, 1, 0], [0, 1, 0, 1], [0, 0, 1, 0], [0, 0, 0, 1]], np.float64)
-        g = np.array([[0.5, 0], [0, 0.5], [1, 0], [0, 1]])
-        q = self.accel_std**2 * g @ g.T
-        h = np.eye(2, 4)
-        r = self.meas_std**2 * np.eye(2)
-        n, t_obs = ok.shape
-        first = np.argmax(ok, axis=1)
-        x = np.zeros((n, 4))
-        x[:, :2] = np.nan_to_num(obs[np.arange(n), first])
-        p = np.tile(np.diag([self.meas_std**2] * 2 + [self.init_vel_std**2] * 2), (n, 1, 1))
-        for t in range(t_obs):
-            upd = ok[:, t] & (t > first)
-            pred_x = x @ f.T
-            pred_p = f @ p @ f.T + q
-            started = (t > first)[:, None]
-            x = np.where(started, pred_x, x)
-            p = np.where(started[..., None], pred_p, p)
-            innov = np.nan_to_num(obs[:, t]) - x[:, :2]
-            s_mat = h @ p @ h.T + r
-            gain = p @ h.T @ np.linalg.inv(s_mat)
-            x = np.where(upd[:, None], x + np.einsum("nij,nj->ni", gain, innov), x)
-            p = np.where(upd[:, None, None], (np.eye(4) - gain @ h) @ p, p)
-        fut = np.empty((n, self.pred_len, 2))
-        for k in range(self.pred_len):
-            x = x @ f.T
-            fut[:, k] = x[:, :2]
-        return fut
 
 
 @dataclass
@@ -189,7 +123,7 @@ class ConstantVelocitySampler:
         out = []
         for s in samples:
             rng = np.random.default_rng(sample_seed(seed, s.sample_id))
-            cur, vel = _last_velocity(*_observed(s))
+            cur, vel = last_velocity(*observed_targets(s))
             n = len(cur)
             dtheta = rng.normal(0.0, self.heading_std_rad, size=(n, num_modes))
             scale = np.maximum(1.0 + rng.normal(0.0, self.speed_std_frac, size=(n, num_modes)), 0.0)
@@ -201,14 +135,3 @@ class ConstantVelocitySampler:
             v = np.stack((vx, vy), axis=-1)[:, :, None, :]  # (N, K, 1, 2)
             out.append(cur[:, None, None, :] + v * steps)
         return out
-
-
-CLASSICAL: dict[str, type[ConstantVelocity | LinearFit | KalmanCV | ConstantVelocitySampler
-                          | AdaptiveConstantVelocity]] = {
-    "constant_velocity": ConstantVelocity,
-    "linear": LinearFit,
-    "kalman_cv": KalmanCV,
-    "cv_sampler": ConstantVelocitySampler,
-    "adaptive_cv": AdaptiveConstantVelocity,
-}
-"""Non-learned predictors by name; construct with ``CLASSICAL[name](pred_len=...)``."""

@@ -1,0 +1,12 @@
+"""The residual driving model, our extension (issue 57): learned corrections to the adaptive kinematic prior
+(``model.kinematic.adaptive_prior``), read in each target's own frame; ``logpipe predict``'s default on driving data.
+
+* ``config`` (``ResidualConfig``, the ``[residual]`` TOML table), ``inputs`` (each target in its own frame: track,
+  neighbours, map crop), ``net`` (``ResidualNet``: mean head for K = 1, scored mode heads), ``fit`` (training),
+  ``run`` (``logpipe train`` with a ``[residual]`` config), ``meta`` and ``checkpoint`` (its folder), ``ood`` (the
+  training distribution and out-of-distribution scores), ``predictor`` (``ResidualPredictor``).
+
+What it shares with the paper's network (``model.zhu2020``) is the role of its parts, not code: the target encoder
+plays LSTM_E's role, the neighbour max-pool the AIN's position feature (eqs. 1-2), the map-crop CNN the EN's
+(eqs. 11-12). Imports: core, ``model.training``, ``model.checkpoint``, ``model.kinematic``; never another family.
+"""
