@@ -304,11 +304,12 @@ def test_damaged_safetensors_is_one_line(blob: bytes, tmp_path: Path) -> None:
     from types import SimpleNamespace
 
     from logpipe.model.checkpoint.format import CheckpointError
-    from logpipe.model.zhu2020.checkpoint import _sha256, _verified_weights
+    from logpipe.model.zhu2020.checkpoint import _verified_weights
+    from logpipe.storage.io import sha256_file
 
     weights = tmp_path / "weights.safetensors"
     weights.write_bytes(blob)
-    meta = SimpleNamespace(weights_sha256=_sha256(weights))  # as if meta.json was written for these bytes
+    meta = SimpleNamespace(weights_sha256=sha256_file(weights))  # as if meta.json was written for these bytes
     with pytest.raises(CheckpointError) as caught:
         _verified_weights(tmp_path, meta)  # type: ignore[arg-type]
     assert "\n" not in str(caught.value) and "weights.safetensors" in str(caught.value)
