@@ -163,7 +163,7 @@ class TrainSummary(TypedDict):
 
 class ExportedFile(TypedDict):
     """One file ``export`` wrote: the MCAP it read, the recording it wrote and what that draws, by kind
-    (``boxes``, ``history``, ``truth``, ``modes``, ``current``, ``lines``, ``lane_points``, ``images``)."""
+    (``boxes``, ``history``, ``truth``, ``modes``, ``current``, ``lines``, ``lane_strips``, ``images``)."""
 
     mcap: str
     rrd: str

@@ -2,13 +2,17 @@
 
 Rerun's own MCAP importer maps transforms, poses and images but not ``foxglove.SceneUpdate`` or ``foxglove.Grid``,
 so agents, forecasts and lanes would stay opaque there. This module reads those messages and logs what they draw
-as Rerun archetypes, on the ``log_time`` timeline (the MCAP's log times), every position in the log's world frame:
+as Rerun archetypes on the ``log_clock`` timeline: the MCAP's log times, i.e. the log's own clock at its sensor rate
+(Rerun owns ``log_time`` and stamps it with the wall clock of the export, so that name would lose them; Rerun's own
+``log_time``/``log_tick`` are switched off). Every position is in the log's world frame:
 
 ==========================  ==========================================================================
 entity                      from
 ==========================  ==========================================================================
 ``/legend``                 a ``TextDocument``: what each colour means
-``/agents``                 ``/logpipe/scene`` cubes: ``Boxes3D`` (labels = track ids), one batch per step
+``/agents``                 ``/logpipe/scene`` cubes: ``Boxes3D``, one batch per step; labels are short (ids up to
+                            10 characters as they are, longer ones by their last 6), the full
+                            ``track_id`` rides along as a component
 ``/forecasts/history``      ``/logpipe/predictions/scene`` lines in the history colour: ``LineStrips3D``
 ``/forecasts/truth``        ... in the truth colour (the true future)
 ``/forecasts/modes``        ... in the modes' colour (the K forecasts)
@@ -18,7 +22,8 @@ entity                      from
 ``/raster``                 ``/logpipe/raster``: the raster PNG, ``EncodedImage``
 ==========================  ==========================================================================
 
-Other channels (a ROS bag's own) are left out: the prediction MCAP of a ROS log carries its agents on
+A default blueprint opens the 3D view with the raster and the legend beside it, on the ``log_clock``
+timeline. Other channels (a ROS bag's own) are left out: the prediction MCAP of a ROS log carries its agents on
 ``/logpipe/scene`` too (``logpipe.prediction.mcap_logs``).
 """
 
@@ -44,14 +49,18 @@ from logpipe.summaries import ExportedFile, ExportSummary
 
 LEGEND = (
     "# logpipe scene\n\n"
-    "* **agents**: boxes coloured by object type, labelled with their track id\n"
+    "* **agents**: boxes coloured by object type, labelled with the end of their track id\n"
     "* **history**: grey line, the observed past of each forecast target\n"
     "* **truth**: orange line, the true future\n"
     "* **forecasts**: blue lines, the K modes (more opaque = higher score)\n"
     "* **current**: a sphere at each target's position when forecast\n"
-    "* **lanes**: green points (lane centrelines), blue points (boundaries, crossings) from the raster\n"
+    "* **lanes**: green lines (lane centrelines), blue lines (boundaries, crossings) traced from the raster\n"
 )
-TIMELINE = "log_time"
+TIMELINE = "log_clock"
+"""The recording's timeline: the log's own times (``log_time`` is Rerun's own, stamped at export)."""
+SHORT_LABEL = 10
+"""Agent ids up to this many characters label their box as they are; longer ones (AV1's 36-character UUIDs) by
+their end."""
 
 
 def _u8(rgba: tuple[float, ...]) -> tuple[int, int, int, int]:
@@ -108,9 +117,29 @@ class _Recorder:
         self.rec = rec
         self.drawn = Drawn()
         self.raster_tf: dict[str, FrameTransform] = {}  # child frame -> its latest transform
+        self.labels: dict[str, str] = {}  # track id -> its short label
+        self.first_ns: int | None = None
 
     def at(self, log_time_ns: int) -> None:
+        if self.first_ns is None:  # the recording starts when the log does, not at the export
+            self.first_ns = log_time_ns
+            self.rec.send_recording_start_time_nanos(log_time_ns)
         self.rec.set_time(TIMELINE, timestamp=np.datetime64(log_time_ns, "ns"))
+
+    def label(self, track_id: str) -> str:
+        """A short label for ``track_id``, unique in this recording: the id itself when short, else its last
+        6 characters (more when another id of the recording already ends so)."""
+        short = self.labels.get(track_id)
+        if short is not None:
+            return short
+        taken = set(self.labels.values())
+        n = 6
+        short = track_id if len(track_id) <= SHORT_LABEL else track_id[-n:]
+        while short in taken and n < len(track_id):
+            n += 1
+            short = track_id[-n:]
+        self.labels[track_id] = short
+        return short
 
     def scene(self, msg: SceneUpdate) -> None:
         """A scene update: cubes → agent boxes, lines by colour, spheres → current positions."""
@@ -139,7 +168,8 @@ class _Recorder:
                 point_colours.append(_u8((sphere.color.r, sphere.color.g, sphere.color.b, sphere.color.a)))
         if centres:
             self.rec.log("agents", rr.Boxes3D(centers=centres, sizes=sizes, quaternions=quats, colors=box_colours,
-                                              labels=labels, fill_mode="solid"))
+                                              labels=[self.label(i) for i in labels], fill_mode="solid"),
+                         rr.AnyValues(track_id=labels))
             self.drawn.add("boxes", len(centres))
         for kind, (strips, colours) in lines.items():
             radius = 0.12 if kind == "forecasts/truth" else 0.06
@@ -157,26 +187,45 @@ class _Recorder:
         self.drawn.add("images", 1)
 
     def grid(self, msg: Grid) -> None:
-        """The raster grid's lane and boundary cells as points in the world frame (through the grid's pose and
-        the transform that places its frame)."""
+        """The raster grid's lane cells (green) and boundary cells (blue) traced into line strips in the world
+        frame (through the grid's pose and the transform that places its frame)."""
         names = [f.name for f in msg.fields]
         if not {"red", "green", "blue"} <= set(names) or not msg.column_count:
             return
         cells = np.frombuffer(msg.data, np.uint8).reshape(-1, msg.column_count, msg.cell_stride)
         rgb = cells[..., [next(f.offset for f in msg.fields if f.name == c) for c in ("red", "green", "blue")]]
-        rows, cols = np.nonzero((rgb[..., 1] > 0) | (rgb[..., 2] > 0))
-        if not len(rows):
-            return
-        local = np.stack([(cols + 0.5) * msg.cell_size.x, (rows + 0.5) * msg.cell_size.y, np.zeros(len(rows))], 1)
-        pos = msg.pose.position
-        placed = _rotate(msg.pose.orientation, local) + _vec(pos)
-        tf = self.raster_tf.get(msg.frame_id)
-        if tf is not None:
-            t = tf.translation
-            placed = _rotate(tf.rotation, placed) + _vec(t)
-        colours = np.concatenate([rgb[rows, cols], np.full((len(rows), 1), 255, np.uint8)], axis=1)
-        self.rec.log("lanes", self.rr.Points3D(placed, colors=colours, radii=0.5 * msg.cell_size.x))
-        self.drawn.add("lane_points", len(rows))
+        strips, colours = [], []
+        for channel, colour in ((1, LANE_RGBA), (2, BOUNDARY_RGBA)):
+            for cols_rows in _outlines(rgb[..., channel] > 0):
+                local = np.column_stack([(cols_rows + 0.5) * (msg.cell_size.x, msg.cell_size.y),
+                                         np.zeros(len(cols_rows))])
+                placed = _rotate(msg.pose.orientation, local) + _vec(msg.pose.position)
+                tf = self.raster_tf.get(msg.frame_id)
+                if tf is not None:
+                    placed = _rotate(tf.rotation, placed) + _vec(tf.translation)
+                strips.append(placed)
+                colours.append(colour)
+        if strips:
+            self.rec.log("lanes", self.rr.LineStrips3D(strips, colors=colours, radii=0.25 * msg.cell_size.x))
+            self.drawn.add("lane_strips", len(strips))
+
+
+LANE_RGBA = (0, 200, 0, 255)
+BOUNDARY_RGBA = (60, 120, 255, 255)
+
+
+def _outlines(mask: np.ndarray) -> list[np.ndarray]:
+    """The outlines of ``mask``'s cells as (N, 2) column/row polylines (closed, corners only): a lane a cell or
+    two wide becomes one strip along it, where its cells would be hundreds of points."""
+    import cv2  # here: only an export with rasters loads OpenCV
+
+    contours, _ = cv2.findContours(mask.astype(np.uint8), cv2.RETR_LIST, cv2.CHAIN_APPROX_SIMPLE)
+    out = []
+    for contour in contours:
+        pts = contour.reshape(-1, 2).astype(np.float64)
+        if len(pts) > 1:  # a lone cell traces to one point, which a strip cannot draw
+            out.append(np.vstack([pts, pts[:1]]))
+    return out
 
 
 _DECODERS: dict[str, tuple[type[Any], str]] = {
@@ -200,13 +249,14 @@ def _messages(path: Path) -> Iterator[tuple[str, int, Any]]:
 def mcap_to_rrd(mcap_path: Path, target: Path, recording_id: str) -> dict[str, int]:
     """Write ``target`` (atomically): the Rerun recording of what ``mcap_path``'s Foxglove channels draw; returns
     the counts of what it draws (``boxes``, ``history``, ``truth``, ``modes``, ``current``, ``lines``,
-    ``lane_points``, ``images``)."""
+    ``lane_strips``, ``images``)."""
     import rerun as rr
 
-    rec = rr.RecordingStream("logpipe", recording_id=recording_id)
+    rec = rr.RecordingStream("logpipe", recording_id=recording_id, send_properties=False)
+    rec.set_log_time_enabled(False)  # Rerun's own log_time / log_tick: the export's wall clock, not the log's
     recorder = _Recorder(rec)
     with atomic_path(target) as tmp:
-        rec.save(tmp)
+        rec.save(tmp, default_blueprint=blueprint())
         rec.log("legend", rr.TextDocument(LEGEND, media_type=rr.MediaType.MARKDOWN), static=True)
         try:
             for handler, log_time, msg in _messages(mcap_path):
@@ -218,6 +268,21 @@ def mcap_to_rrd(mcap_path: Path, target: Path, recording_id: str) -> dict[str, i
             rec.flush()
             rec.disconnect()
     return dict(recorder.drawn.counts)
+
+
+def blueprint() -> Any:
+    """The layout a recording opens with: the 3D scene (without the raster image and the legend) beside the
+    raster and the legend, the time panel on the log's own clock."""
+    import rerun.blueprint as rrb
+
+    return rrb.Blueprint(
+        rrb.Horizontal(
+            rrb.Spatial3DView(name="scene", origin="/", contents=["+ /**", "- /raster", "- /legend"]),
+            rrb.Vertical(rrb.Spatial2DView(name="raster", origin="/raster"),
+                         rrb.TextDocumentView(name="legend", origin="/legend"), row_shares=[2, 1]),
+            column_shares=[3, 1]),
+        rrb.TimePanel(timeline=TIMELINE),
+    )
 
 
 def find_mcaps(paths: list[Path]) -> list[Path]:

@@ -1,7 +1,9 @@
 """``logpipe export --format rrd``: every viewer draws the scene. Prediction runs over an Argoverse 1 log (with its
 lane raster), an ETH/UCY log and a ROS bag are exported, each ``.rrd`` is read back with ``rerun-sdk`` and what it
 draws is counted per entity: agent boxes, history / truth / forecast line strips, current-position points, lane
-points and the raster image; the Foxglove side (the prediction MCAP's own channels) is checked on the same runs."""
+strips and the raster image; its timeline is checked against the log's own clock (the dataset's track times and
+frame rate), its blueprint and labels are read back; the Foxglove side (the prediction MCAP's own channels) is
+checked on the same runs."""
 
 from __future__ import annotations
 
@@ -15,8 +17,10 @@ from mcap.reader import make_reader
 from typer.testing import CliRunner
 
 from logpipe.cli import app
+from logpipe.dataset.reader import Dataset
 from logpipe.mcap.forecast_scene import TRUTH_RGBA
 from logpipe.mcap.raster_image import raster_rgb
+from logpipe.mcap.rerun_export import TIMELINE
 
 rerun_chunk = pytest.importorskip("rerun.chunk")  # in the dev extra: CI runs this test
 runner = CliRunner()
@@ -78,7 +82,9 @@ def test_rerun_draws_agents_forecasts_truth_and_lanes_of_an_av1_log(runs: dict[s
     assert counts["/agents"] >= 50 * 10  # boxes of every agent at each of the log's 50 steps
     assert counts["/forecasts/history"] == counts["/forecasts/truth"] == counts["/forecasts/current"] == samples
     assert counts["/forecasts/modes"] == 6 * samples
-    assert counts["/lanes"] > 1000  # lane-centreline cells of the raster, placed in the world frame
+    cells = _lane_cells(next((runs["av1"][1] / "mcap").rglob("20.mcap")))
+    assert cells > 1000  # lane and boundary cells of the raster ...
+    assert 0 < counts["/lanes"] < cells / 20  # ... drawn as strips along them, not a point per cell
     assert counts["/raster"] == samples and counts["/legend"] == 1
 
 
@@ -110,6 +116,81 @@ def test_rerun_and_foxglove_draw_the_agents_of_a_ros_bag(runs: dict[str, tuple[P
     assert legend == ["history", "truth", "forecasts", "lanes"]
 
 
+def _column(rrd: Path, entity: str, name: str) -> list[object]:
+    """Every value of column ``name`` of ``entity``'s chunks in the recording store of ``rrd``."""
+    values: list[object] = []
+    for chunk in rerun_chunk.RrdReader(rrd).store().stream():
+        batch = chunk.to_record_batch()
+        if chunk.entity_path == entity and name in batch.schema.names:
+            values += batch.column(name).to_pylist()
+    return values
+
+
+@pytest.mark.parametrize("name,log_id", [("av1", "20"), ("ros", "intersection")])
+def test_rerun_timeline_keeps_the_logs_own_clock_and_rate(runs: dict[str, tuple[Path, Path]], tmp_path: Path,
+                                                         name: str, log_id: str) -> None:
+    """The boxes' times read back from the .rrd are the log's own track times, every step of it, so
+    its sensor rate too (AV1's uneven ~0.1 s steps, the bag resampled to 10 Hz); Rerun's ``log_time`` would hold the
+    export's wall clock."""
+    dataset, run = runs[name]
+    rrd = _export(run, tmp_path)[log_id]
+    times = sorted({int(t.value) for t in _column(rrd, "/agents", TIMELINE)})  # type: ignore[attr-defined]
+    ds = Dataset.open(dataset)
+    stamps = [t for shard in ds.shard_paths
+              for t, log in zip(*_track_times(shard), strict=True) if log == log_id]
+    assert times == sorted(set(stamps))
+    assert times[-1] - times[0] > 4e9  # seconds of log, where the wall clock of an export spans ~0.02 s
+    assert not _column(rrd, "/agents", "log_time")
+
+
+def test_rerun_labels_are_short_and_opens_a_3d_view_beside_the_raster(runs: dict[str, tuple[Path, Path]],
+                                                                     tmp_path: Path) -> None:
+    rrd = _export(runs["av1"][1], tmp_path)["20"]
+    labels = _column(rrd, "/agents", "Boxes3D:labels")
+    ids = _column(rrd, "/agents", "track_id")
+    assert labels and len(labels) == len(ids)
+    for step_labels, step_ids in zip(labels, ids, strict=True):
+        assert isinstance(step_labels, list) and isinstance(step_ids, list)
+        assert max(len(x) for x in step_ids) == 36  # AV1's UUID-shaped track ids ...
+        assert max(len(x) for x in step_labels) <= 10  # ... labelled by their end
+        assert len(set(step_labels)) == len(step_labels)
+        assert all(i.endswith(short) for i, short in zip(step_ids, step_labels, strict=True))
+    reader = rerun_chunk.RrdReader(rrd)
+    views: dict[str, str] = {}
+    timeline: list[str] = []
+    for chunk in reader.store(store=reader.blueprints()[0]).stream():
+        row = chunk.to_record_batch().to_pylist()[0]
+        if "ViewBlueprint:class_identifier" in row:
+            views[row["ViewBlueprint:class_identifier"][0]] = row["ViewBlueprint:space_origin"][0]
+        timeline += row.get("TimePanelBlueprint:timeline") or []
+    assert views == {"3D": "/", "2D": "/raster", "TextDocument": "/legend"}
+    assert timeline == [TIMELINE]
+
+
+def _track_times(shard: Path) -> tuple[list[int], list[str]]:
+    import pyarrow.compute as pc
+    import pyarrow.parquet as pq
+
+    table = pq.read_table(shard, columns=["timestamp_ns", "log_id"])
+    return table.column("timestamp_ns").to_pylist(), pc.cast(table.column("log_id"), "string").to_pylist()
+
+
+def _lane_cells(mcap: Path) -> int:
+    """Cells with a lane or boundary drawn in the raster grids of a prediction MCAP."""
+    import numpy as np
+    from foxglove_schemas_protobuf.Grid_pb2 import Grid
+
+    cells = 0
+    with mcap.open("rb") as fh:
+        for _schema, channel, message in make_reader(fh).iter_messages():
+            if channel.topic == "/logpipe/raster/grid":
+                grid = Grid.FromString(message.data)
+                data = np.frombuffer(grid.data, np.uint8).reshape(-1, grid.column_count, grid.cell_stride)
+                offsets = {f.name: f.offset for f in grid.fields}
+                cells += int(((data[..., offsets["green"]] > 0) | (data[..., offsets["blue"]] > 0)).sum())
+    return cells
+
+
 def test_truth_is_drawn_apart_from_the_lanes_colour() -> None:
     import numpy as np
 
@@ -119,7 +200,5 @@ def test_truth_is_drawn_apart_from_the_lanes_colour() -> None:
 
 
 def _targets(dataset: Path, log_id: str) -> list[list[str]]:
-    from logpipe.dataset.reader import Dataset
-
     samples = Dataset.open(dataset).samples().to_pylist()
     return [s["target_track_ids"] for s in samples if s["log_id"] == log_id]
