@@ -29,7 +29,7 @@ from __future__ import annotations
 from collections.abc import Callable, Mapping, Sequence
 from typing import TYPE_CHECKING, Any, cast
 
-from logpipe.errors import LogpipeError
+from logpipe.errors import LogpipeError, QuarantineLimitError
 from logpipe.options import (
     StrPath,
     adapter_options,
@@ -81,6 +81,7 @@ def ingest(  # noqa: PLR0913  public API: keyword options mirror `logpipe ingest
     hz: float | None = None,
     allow_empty: bool = False,
     retry_quarantined: bool = False,
+    max_quarantined: int | None = None,
     progress: Progress | None = None,
 ) -> IngestSummary:
     """``logpipe ingest``: input logs → the dataset folder ``out`` (track shards, logs and samples tables,
@@ -96,6 +97,8 @@ def ingest(  # noqa: PLR0913  public API: keyword options mirror `logpipe ingest
         on_error: ``fail`` (the first bad input stops the run, nothing is written) or ``skip`` (quarantine).
         retry_quarantined: read again the inputs an earlier run quarantined (after fixing them or the mapping),
             with this call's options; otherwise a rerun skips them like inputs already ingested.
+        max_quarantined: with ``on_error="skip"``, fail (after the commit) when more inputs than this are
+            quarantined; a run that quarantines every new input fails whatever it is.
         mcap: also write each log as an MCAP file.
         workers: processes (0 = all cores); ``backend``: ``local`` or ``ray``; ``batch_files``: inputs per shard.
         mapping: bags/MCAP: TOML or YAML mapping file (``logpipe inspect --format toml`` writes one);
@@ -106,6 +109,8 @@ def ingest(  # noqa: PLR0913  public API: keyword options mirror `logpipe ingest
 
     Raises:
         SourceError: a bad input (with ``on_error="fail"``), naming file, line and field.
+        QuarantineLimitError: ``on_error="skip"`` quarantined every new input, or more than ``max_quarantined``
+            (what was ingested is committed; the error's ``summary`` is the run's).
         LogpipeError: a bad option, no inputs found; ``DatasetError`` when ``out`` holds another dataset.
 
     Example::
@@ -114,7 +119,7 @@ def ingest(  # noqa: PLR0913  public API: keyword options mirror `logpipe ingest
         s["inputs_found"], s["duplicates"]          # (3, 1): hotel/train holds a copy of an eth/train file
         s["duplicate_inputs"][0]["same_as"]         # 'eth/train/crowds_zara01_train.txt'
     """
-    from logpipe.stages.ingest import IngestOptions
+    from logpipe.stages.ingest import IngestOptions, quarantine_failure
     from logpipe.stages.ingest import ingest as run_ingest
 
     roots = as_paths(inputs)
@@ -135,7 +140,13 @@ def ingest(  # noqa: PLR0913  public API: keyword options mirror `logpipe ingest
         backend="ray" if backend == "ray" else "local", batch_files=batch_files,
         adapter_options=adapter_options(mapping, overrides, hz, allow_empty), retry_quarantined=retry_quarantined,
     )
-    return cast(IngestSummary, run_ingest(roots, options, progress=progress))
+    if max_quarantined is not None and max_quarantined < 0:
+        raise LogpipeError(f"--max-quarantined must be >= 0, got {max_quarantined}")
+    summary = run_ingest(roots, options, progress=progress)
+    failure = quarantine_failure(summary, max_quarantined)
+    if failure is not None:
+        raise QuarantineLimitError(failure, summary)
+    return cast(IngestSummary, summary)
 
 
 def index(  # noqa: PLR0913  public API: keyword options mirror `logpipe index` one to one

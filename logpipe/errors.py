@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 
 class LogpipeError(Exception):
     """Base class of every error logpipe reports to a user (the CLI prints these without a traceback)."""
@@ -47,6 +49,15 @@ def _rebuild_source_error(file: str, reason: str, line: int | None, field: str |
 
 class DatasetError(LogpipeError):
     """A dataset folder is missing, incomplete or was written with incompatible settings."""
+
+
+class QuarantineLimitError(LogpipeError):
+    """An ``--on-error skip`` ingest committed, but quarantined every new input or more than
+    ``--max-quarantined``: a job that relies on its dataset must not pass. ``summary`` is the run's summary."""
+
+    def __init__(self, message: str, summary: dict[str, Any]) -> None:
+        super().__init__(message)
+        self.summary = summary
 
 
 class ArtifactBusyError(LogpipeError):

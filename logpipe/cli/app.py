@@ -125,6 +125,13 @@ def user_errors(as_json: bool = False) -> Iterator[None]:
               "command again (or use --backend local)", as_json)
 
 
+def fail_after_summary(message: str) -> None:
+    """Exit 2 with ``message`` as the error line, after ``emit`` printed the run's summary (with ``--json`` the
+    summary's own ``error`` and ``exit_code`` say it: stdout keeps one JSON object)."""
+    err.print(f"[bold red]error:[/] {escape(message)}", highlight=False, soft_wrap=True)
+    raise typer.Exit(code=2)
+
+
 def _fail(message: str, as_json: bool) -> None:
     err.print(f"[bold red]error:[/] {escape(message)}", highlight=False, soft_wrap=True)
     if as_json:

@@ -22,6 +22,7 @@ from logpipe.cli.app import (
     WindowOpt,
     counting_warnings,
     emit,
+    fail_after_summary,
     next_step,
     stage_progress,
     user_errors,
@@ -65,6 +66,9 @@ def ingest(  # noqa: PLR0913  typer command: one parameter per CLI option
     retry_quarantined: Annotated[bool, typer.Option(
         "--retry-quarantined", help="Read again the inputs an earlier --on-error skip run quarantined, with this "
         "run's options (after fixing them or their --mapping); without it a rerun skips them.")] = False,
+    max_quarantined: Annotated[int | None, typer.Option(
+        "--max-quarantined", help="With --on-error skip: exit 2 (after committing what was read) when more inputs "
+        "than this are quarantined. Quarantining every new input exits 2 whatever the limit.")] = None,
     as_json: JsonOpt = False,
 ) -> None:
     """Turn logs (Argoverse 1 CSV, ETH/UCY, ApolloScape, ...) into canonical Parquet shards, a sample index
@@ -74,16 +78,24 @@ def ingest(  # noqa: PLR0913  typer command: one parameter per CLI option
     Example: logpipe ingest run.bag --out out/run --set ego=/odom --set agent=/red_pose --hz 10
     """
     from logpipe import api
+    from logpipe.errors import QuarantineLimitError
 
-    with user_errors(as_json), counting_warnings() as logged, stage_progress("ingest", "inputs") as advance:
-        summary = api.ingest(
-            inputs, out=out, format=fmt, protocol=protocol, obs=obs, pred=pred, stride=stride,
-            min_targets=min_targets, targets=targets, target_types=target_types, window=window, on_error=on_error,
-            mcap=mcap,
-            workers=workers, backend=backend, batch_files=batch_files, mapping=mapping, overrides=overrides or (),
-            hz=hz, allow_empty=allow_empty, retry_quarantined=retry_quarantined, progress=advance,
-        )
-    emit(dict(summary), as_json, ingest_lines, logged)
+    failure = None
+    with user_errors(as_json), counting_warnings() as logged:
+        try:
+            with stage_progress("ingest", "inputs") as advance:
+                summary: dict[str, Any] = dict(api.ingest(
+                    inputs, out=out, format=fmt, protocol=protocol, obs=obs, pred=pred, stride=stride,
+                    min_targets=min_targets, targets=targets, target_types=target_types, window=window,
+                    on_error=on_error, mcap=mcap, workers=workers, backend=backend, batch_files=batch_files,
+                    mapping=mapping, overrides=overrides or (), hz=hz, allow_empty=allow_empty,
+                    retry_quarantined=retry_quarantined, max_quarantined=max_quarantined, progress=advance,
+                ))
+        except QuarantineLimitError as exc:  # committed, yet the run fails: its summary first, then the error
+            failure, summary = str(exc), {**exc.summary, "error": str(exc), "exit_code": 2}
+    emit(summary, as_json, ingest_lines, logged)
+    if failure is not None:
+        fail_after_summary(failure)
 
 
 def ingest_lines(s: dict[str, Any]) -> list[str]:
