@@ -49,6 +49,7 @@ from logpipe.summaries import (
     RasteriseSummary,
     TrainSummary,
     VerifyReport,
+    quarantine_failure,
 )
 
 if TYPE_CHECKING:  # its module loads the storage layer; the API imports it only in score (cheap `import logpipe`)
@@ -119,7 +120,7 @@ def ingest(  # noqa: PLR0913  public API: keyword options mirror `logpipe ingest
         s["inputs_found"], s["duplicates"]          # (3, 1): hotel/train holds a copy of an eth/train file
         s["duplicate_inputs"][0]["same_as"]         # 'eth/train/crowds_zara01_train.txt'
     """
-    from logpipe.stages.ingest import IngestOptions, quarantine_failure
+    from logpipe.stages.ingest import IngestOptions
     from logpipe.stages.ingest import ingest as run_ingest
 
     roots = as_paths(inputs)

@@ -177,3 +177,20 @@ class ExportSummary(TypedDict):
     out: str
     files: list[ExportedFile]
     seconds: float
+
+
+def quarantine_failure(summary: dict[str, Any], max_quarantined: int | None) -> str | None:
+    """Why a committed ``--on-error skip`` run must still fail, or None: it quarantined every new input (nothing
+    ingested), the dataset still holds no log but quarantined inputs, or this run quarantined more inputs than
+    ``max_quarantined``."""
+    quarantined, totals = len(summary["quarantined"]), summary["totals"]
+    if quarantined and not summary["inputs_ingested"]:
+        return (f"nothing ingested: all {quarantined} new inputs were quarantined "
+                f"(e.g. {summary['quarantined'][0]['path']}); the dataset {summary['dataset']} gained no log")
+    if not totals.get("logs") and totals.get("quarantined"):  # a rerun over the same bad inputs
+        return (f"the dataset {summary['dataset']} holds no log: its {totals['quarantined']} inputs are "
+                "quarantined (--retry-quarantined reads them again)")
+    if max_quarantined is not None and quarantined > max_quarantined:
+        return (f"{quarantined} inputs quarantined, more than --max-quarantined {max_quarantined} "
+                f"({summary['inputs_ingested']} ingested and committed)")
+    return None

@@ -17,6 +17,7 @@ import pyarrow.compute as pc
 
 from logpipe.dataset.reader import Dataset
 from logpipe.errors import LogpipeError
+from logpipe.prediction.default_choice import checkpoint_reason, kinematic_reason
 from logpipe.raster.rasteriser import DEFAULT_CHANNELS
 from logpipe.storage.io import read_json, read_table
 
@@ -33,6 +34,10 @@ if TYPE_CHECKING:  # the network's modules load torch: imported where a checkpoi
 BASELINES = {"cv": "constant_velocity", "linear": "linear", "kalman": "kalman_cv", "cv_sampler": "cv_sampler",
              "adaptive_cv": "adaptive_cv"}
 """``--predictor`` names -> ``model.kinematic.CLASSICAL`` keys."""
+DEFAULT_BASELINE = "kalman"
+"""The default of a dataset kind no shipped model serves (ROS bags, MCAP): Kalman CV has the lowest K=1 FDE of the
+kinematic baselines in every table of docs/results (Argoverse 1: 6.90 m, CV 7.57, linear 7.95; ApolloScape: 2.91,
+3.01, 3.52; ETH/UCY: 1.13, 1.14, 1.23)."""
 
 # Shipped baselines and ablations live in folders named after their method (``ethucy/eth/lstm``,
 # ``apolloscape/noise_lstm``, ``ethucy/eth/no_position``); they are there for the reproduction tables, never the
@@ -84,6 +89,7 @@ class ChosenPredictor:
         stored_settings: the inference settings the checkpoint stores (None: none, or a baseline).
         training_data: what the checkpoint was trained and validated on (None: not recorded, or a baseline).
         inference: the settings in effect (``resolve_inference``).
+        why: why this predictor (the option that named it, or why it is the dataset's default).
     """
 
     model: Predictor | None
@@ -96,6 +102,7 @@ class ChosenPredictor:
     stored_settings: InferenceSettings | None = None
     training_data: TrainingData | None = None
     inference: Inference = Inference()
+    why: str = ""
 
 
 def shipped_checkpoints(kind: str) -> list[Path]:
@@ -132,7 +139,8 @@ def default_checkpoint(kind: str, split: str | None) -> Path:
 def choose_predictor(
     dataset: Dataset, checkpoint: Path | None, predictor: str | None, *, split: str | None = None
 ) -> ChosenPredictor:
-    """Resolve ``--checkpoint`` / ``--predictor`` (default: the shipped checkpoint for the dataset kind).
+    """Resolve ``--checkpoint`` / ``--predictor``; the default is the shipped checkpoint for the dataset kind, or
+    ``DEFAULT_BASELINE`` for a kind none serves. ``why`` says which applied.
 
     Only reads the checkpoint's metadata; ``check_fit`` compares it with the dataset before weights load.
     """
@@ -146,18 +154,25 @@ def choose_predictor(
 
         model = CLASSICAL[BASELINES[predictor]](pred_len=pred_len)
         params = {k: v for k, v in dataclasses.asdict(model).items() if k != "name"}
-        return ChosenPredictor(model, predictor, f"{predictor}:{json.dumps(params, sort_keys=True)}")
+        return ChosenPredictor(model, predictor, f"{predictor}:{json.dumps(params, sort_keys=True)}",
+                               why=f"--predictor {predictor}")
+    why = f"--checkpoint {checkpoint}"
+    if checkpoint is None and not shipped_checkpoints(dataset.kind):
+        chosen = choose_predictor(dataset, None, DEFAULT_BASELINE)
+        chosen.why = kinematic_reason(dataset)
+        return chosen
     if checkpoint is None:
         checkpoint = default_checkpoint(dataset.kind, split)
+        why = checkpoint_reason(dataset, checkpoint, driving=dataset.kind in KIND_FOLDERS)
     folder = checkpoint.parent if checkpoint.name == "meta.json" else checkpoint
     if model_kind(folder) == RESIDUAL_KIND:
         residual = read_residual_meta(folder)
         return ChosenPredictor(None, "residual", residual.weights_sha256, folder, residual.config.environment,
-                               len(DEFAULT_CHANNELS), residual.weights_sha256, None, residual.training_data)
+                               len(DEFAULT_CHANNELS), residual.weights_sha256, None, residual.training_data, why=why)
     meta = read_meta(folder)
     model_cfg = meta.config.model
     return ChosenPredictor(None, "zhu2020", meta.weights_sha256, folder, model_cfg.features.environment,
-                           model_cfg.raster_channels, meta.weights_sha256, meta.inference, meta.training_data)
+                           model_cfg.raster_channels, meta.weights_sha256, meta.inference, meta.training_data, why=why)
 
 
 def resolve_inference(chosen: ChosenPredictor, *, num_modes: int, noise_scale: float | None = None,

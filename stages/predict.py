@@ -116,6 +116,9 @@ def predict_dataset(dataset_dir: Path, out_dir: Path, options: PredictOptions | 
                                 f"{opts.out_of_distribution}: {summary.targets_fallback} got the Kalman fallback)")
     summary.shards = len(shards)
     summary.rows_total = sum(int(s["rows"]) for s in shards)
+    summary.samples_total = sum(int(s["samples"]) for s in shards)
+    summary.targets_total = summary.rows_total // run.job.modes
+    summary.already_done = not pending
     summary.seconds = time.perf_counter() - started
     return summary.to_dict()
 
@@ -197,6 +200,7 @@ def _prepare(dataset_dir: Path, out_dir: Path, opts: PredictOptions) -> tuple[_R
         inference=inference.summary() if chosen.checkpoint is not None else None, warnings=warnings,
         protocol=protocol.to_dict(), logs_selected=len(logs), samples_selected=len(samples),
         device=None if torch_device is None else str(torch_device), backend=opts.backend,
+        predictor_reason=chosen.why,
     )
     raster_ids = frozenset(rasters.index.column("sample_id").to_pylist()) if rasters is not None else frozenset()
     cutter = SampleCutter(protocol.obs_len, sample_filter.object_types, rasters, raster_ids)

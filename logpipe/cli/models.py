@@ -96,7 +96,8 @@ def predict(  # noqa: PLR0913  typer command: one parameter per CLI option
     dataset: DatasetArg,
     out: Annotated[Path, typer.Option("--out", "-o", help="Output folder; rerunning resumes.")],
     checkpoint: Annotated[Path | None, typer.Option(
-        "--checkpoint", help="Checkpoint folder (default: the shipped one for the dataset kind).")] = None,
+        "--checkpoint", help="Checkpoint folder (default: the shipped one for the dataset kind, else the Kalman "
+        "baseline; the summary says which and why).")] = None,
     predictor: Annotated[str | None, typer.Option(
         "--predictor",
         help="Baseline instead of a checkpoint: cv | linear | kalman | cv_sampler | adaptive_cv.")] = None,
@@ -173,10 +174,18 @@ def predict_lines(s: dict[str, Any]) -> list[str]:
     """The human summary of ``predict``: what was forecast by what, where the table and MCAPs are, what next."""
     out, ds = s["out"], s["dataset"]
     by = s["checkpoint"] or s["predictor"]
-    lines = [f"predict: {s['samples']:,} samples, {s['targets']:,} agents x {s['num_modes']} modes by {by} in "
-             f"{s['seconds']} s" + (f" ({s['shards_skipped_done']} shards already done)" if s["shards_skipped_done"]
-                                   else ""),
-             f"  predictions: {out}/predictions/*.parquet ({s['rows_total']:,} rows; manifest.json)"]
+    if s.get("already_done"):  # a rerun of a finished run: its totals, not this invocation's zeros
+        head = (f"predict: already done: {s['samples_total']:,} samples, {s['targets_total']:,} agents x "
+                f"{s['num_modes']} modes by {by} (all {s['shards']} shards committed earlier; checked in "
+                f"{s['seconds']} s)")
+    else:
+        head = (f"predict: {s['samples']:,} samples, {s['targets']:,} agents x {s['num_modes']} modes by {by} in "
+                f"{s['seconds']} s" + (f" ({s['shards_skipped_done']} shards already done)"
+                                      if s["shards_skipped_done"] else ""))
+    lines = [head]
+    if s.get("predictor_reason") and not s["predictor_reason"].startswith("--"):  # a default: say why
+        lines.append(f"  predictor {s['predictor']}: {s['predictor_reason']}")
+    lines.append(f"  predictions: {out}/predictions/*.parquet ({s['rows_total']:,} rows; manifest.json)")
     if s["mcap_files"]:
         lines.append(f"  MCAPs: {out}/mcap/part-*/<log>.mcap ({s['mcap_files']} files; Foxglove: File > Open, "
                      f"3D panel; Rerun: logpipe export {out} --format rrd --out {out}-rrd)")

@@ -130,7 +130,9 @@ class PredictSummary:
     """The run summary; ``to_dict()`` is the ``--json`` output (keys in this order, seconds rounded to ms).
 
     Counts cover this invocation (shards skipped as already committed are not counted again), except
-    ``shards`` and ``rows_total``: the whole committed run.
+    ``shards``, ``rows_total``, ``samples_total`` and ``targets_total``: the whole committed run.
+    ``already_done``: every shard was committed by an earlier invocation (nothing left to do).
+    ``predictor_reason``: why this predictor (the option that named it, or why it is the dataset's default).
     """
 
     dataset: str
@@ -164,6 +166,10 @@ class PredictSummary:
     backend: str = "local"
     shards: int = 0
     rows_total: int = 0
+    samples_total: int = 0
+    targets_total: int = 0
+    already_done: bool = False
+    predictor_reason: str = ""
     seconds: float = 0.0
 
     def zeroed(self) -> PredictSummary:

@@ -28,7 +28,8 @@ SUMMARY_KEYS = [
     "warnings", "protocol", "logs_selected", "samples_selected", "shards_skipped_done", "samples", "targets", "rows",
     "targets_unobserved", "samples_without_targets", "targets_out_of_distribution", "targets_fallback", "mcap_files",
     "original_messages", "model_seconds", "io_seconds", "io_wait_seconds", "io_busy_seconds", "device", "backend",
-    "shards", "rows_total", "seconds", "samples_per_s",
+    "shards", "rows_total", "samples_total", "targets_total", "already_done", "predictor_reason", "seconds",
+    "samples_per_s",
 ]
 
 
@@ -157,8 +158,9 @@ def test_checkpoint_runs_and_mismatches_fail_before_any_output(lines_dataset: Pa
     shipped: list[Path] = []
     with pytest.MonkeyPatch.context() as mp:
         mp.setattr(registry, "shipped_checkpoints", lambda kind: shipped)
-        with pytest.raises(LogpipeError, match=r"no shipped checkpoint.*--predictor"):
-            predict_dataset(lines_dataset, tmp_path / "never")
+        fallback = predict_dataset(lines_dataset, tmp_path / "fallback", write_mcap=False)  # none shipped: Kalman
+        assert fallback["predictor"] == "kalman" and fallback["samples"] > 0
+        assert "no shipped model serves dataset kind 'ethucy'" in fallback["predictor_reason"]
         shipped += [tmp_path / "eth", good.rename(tmp_path / "lines")]
         with pytest.raises(LogpipeError, match="several shipped checkpoints"):
             predict_dataset(lines_dataset, tmp_path / "never")
