@@ -57,3 +57,17 @@ def test_a_driving_dataset_gets_the_driving_model_and_says_so(driving_rasterised
     assert str(summary["predictor_reason"]).startswith("the driving model, shipped for dataset kind")
     named = _ok("predict", str(driving_rasterised), "--predictor", "cv", "--out", str(tmp_path / "cv"))
     assert named["predictor_reason"] == "--predictor cv"
+
+
+def test_rerunning_a_finished_run_reports_its_totals_and_already_done(bag_dataset: Path) -> None:
+    out = str(bag_dataset.parent / "twice")
+    first = _ok("predict", str(bag_dataset), "--out", out)
+    assert first["already_done"] is False and first["samples_total"] == first["samples"]
+    again = _ok("predict", str(bag_dataset), "--out", out)
+    assert again["already_done"] is True and again["samples"] == 0  # this invocation did nothing ...
+    assert again["samples_total"] == first["samples"] and again["targets_total"] == first["targets"]  # ... the run
+    human = runner.invoke(app, ["predict", str(bag_dataset), "--out", out])
+    assert human.exit_code == 0
+    heads = [line for line in human.stderr.splitlines() if line.startswith("predict: already done:")]
+    assert len(heads) == 1 and heads[0].startswith(
+        f"predict: already done: {first['samples']} samples, {first['targets']} agents")
