@@ -63,12 +63,17 @@ def score(  # noqa: PLR0913  typer command: one parameter per CLI option
 
 def score_lines(report: dict[str, Any], out: Path) -> list[str]:
     """The human summary of ``score``: ADE/FDE per method, where the report and plots are, what to open next."""
+    from logpipe.scoring.reports import cv_modes, cv_note
+
     lines = []
     for name, e in report["methods"].items():
         o = e["overall"]
-        cells = ", ".join(f"K={kk} {o[f'k{kk}']['ade']:.3f}/{o[f'k{kk}']['fde']:.3f}" for kk in e["ks"]
-                          if o.get(f"k{kk}"))
+        cv = cv_modes(e) if cv_note(name, e) else 0
+        cells = ", ".join(f"K={kk}{' (constant velocity)' if kk <= cv else ''} "
+                          f"{o[f'k{kk}']['ade']:.3f}/{o[f'k{kk}']['fde']:.3f}" for kk in e["ks"] if o.get(f"k{kk}"))
         lines.append(f"score: {name}: {o['samples']} samples, {o['agents']} agents, ADE/FDE (m) {cells}")
+        if note := cv_note(name, e):
+            lines.append(f"  {note}")
     pngs = sorted(p.name for p in out.glob("*.png"))
     lines.append(f"  report: {out / 'report.md'} (report.json" + (f", {', '.join(pngs)})" if pngs else ")"))
     lines.append(next_step(f"open {out / 'report.md'}", "the table in the paper's layout and the plots"))

@@ -5,6 +5,7 @@ and its Markdown form (``render_markdown``). The plots are drawn by ``logpipe.sc
 from __future__ import annotations
 
 import json
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any, TypedDict
 
@@ -178,10 +179,44 @@ def read_report(out_dir: Path) -> ScoreReport:
     return report
 
 
+def cv_modes(entry: Mapping[str, Any]) -> int:
+    """How many leading modes of a method are the constant-velocity forecast (a checkpoint run with
+    ``constant_velocity_modes`` C: its K <= C rows are constant velocity's, not the network's); 0 otherwise."""
+    return int((entry.get("metadata") or {}).get("constant_velocity_modes") or 0)
+
+
+def cv_note(name: str, entry: Mapping[str, Any]) -> str | None:
+    """One sentence saying that ``name``'s first modes are constant velocity, or None when they are not."""
+    c = cv_modes(entry)
+    if not c or entry.get("predictor") == "cv":
+        return None
+    first = "mode 0 is" if c == 1 else f"modes 0-{c - 1} are"
+    return (f"{name}: {first} the constant-velocity forecast (constant_velocity_modes: {c}), so its K<={c} "
+            f"row{'s are' if c > 1 else ' is'} constant velocity, not the network")
+
+
 def _pair(block: dict[str, Any] | None, a: str = "ade", f: str = "fde") -> str:
     if not block:
         return "—"
     return f"{block[a]:.2f}/{block[f]:.2f}"
+
+
+def _overall_table(methods: dict[str, Any]) -> list[str]:
+    """``report.md``'s overall table, rows of a method's constant-velocity modes marked, with a note saying so."""
+    lines = ["## Overall", "", "| method | K | samples | agents | ADE/FDE (per-agent best-of-K) | joint best-of-K "
+             "| Argoverse minADE/minFDE | miss rate |", "|---|---|---|---|---|---|---|---|"]
+    for name, e in methods.items():
+        o = e["overall"]
+        for k in e["ks"]:
+            b = o.get(f"k{k}")
+            mr = f"{b['miss_rate']:.3f}" if b else "—"
+            cv = " (constant velocity)" if cv_note(name, e) and k <= cv_modes(e) else ""
+            lines.append(f"| {name} | {k}{cv} | {o['samples']} | {o['agents']} | {_pair(b)} | "
+                         f"{_pair(b, 'ade_joint', 'fde_joint')} | {_pair(b, 'argo_ade', 'argo_fde')} | {mr} |")
+    notes = [note for name, e in methods.items() if (note := cv_note(name, e))]
+    if notes:
+        lines += [""] + [f"Note: {note}." for note in notes]
+    return lines
 
 
 def render_markdown(report: ScoreReport, title: str | None = None) -> str:
@@ -195,15 +230,7 @@ def render_markdown(report: ScoreReport, title: str | None = None) -> str:
         "ADE/FDE in metres; ADE is the mean Euclidean distance (not a squared error).", "",
     ]
     methods = report["methods"]
-    lines += ["## Overall", "", "| method | K | samples | agents | ADE/FDE (per-agent best-of-K) | joint best-of-K "
-              "| Argoverse minADE/minFDE | miss rate |", "|---|---|---|---|---|---|---|---|"]
-    for name, e in methods.items():
-        o = e["overall"]
-        for k in e["ks"]:
-            b = o.get(f"k{k}")
-            mr = f"{b['miss_rate']:.3f}" if b else "—"
-            lines.append(f"| {name} | {k} | {o['samples']} | {o['agents']} | {_pair(b)} | "
-                         f"{_pair(b, 'ade_joint', 'fde_joint')} | {_pair(b, 'argo_ade', 'argo_fde')} | {mr} |")
+    lines += _overall_table(methods)
     # Each grouping's blocks by method, so the loop below reads them without naming the key.
     groupings = (("Per object type", {name: e["by_type"] for name, e in methods.items()}),
                  ("Per log", {name: e["by_log"] for name, e in methods.items()}))
