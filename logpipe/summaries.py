@@ -13,7 +13,8 @@ class IngestSummary(TypedDict):
     (listed in ``duplicate_inputs`` as ``{"path", "same_as"}``, relative paths) and were ingested once, as
     that input (their folders are added to its memberships). ``logs_without_samples`` counts the logs that
     give no prediction sample, by reason (e.g. ``"too short for 8+12 steps"``). ``inputs_retried`` counts the
-    quarantined inputs read again (``retry_quarantined``).
+    quarantined inputs read again (``retry_quarantined``). ``skipped_inputs`` names the files under the input
+    folders that another format recognises (``{"path", "format", "why"}``): a dataset holds one format.
     """
 
     dataset: str
@@ -32,6 +33,7 @@ class IngestSummary(TypedDict):
     shards_written: list[str]
     mcap_messages: NotRequired[int]
     inputs_retried: NotRequired[int]
+    skipped_inputs: list[dict[str, str]]
     seconds: float
     totals: dict[str, int]
 

@@ -41,7 +41,7 @@ from logpipe.dataset.writer import (
 )
 from logpipe.errors import SourceError
 from logpipe.executor import Backend, default_workers, run_ordered, warm_up
-from logpipe.formats import detect, get_adapter
+from logpipe.formats import choose_format, get_adapter, other_format_inputs
 from logpipe.formats.base import FormatAdapter
 from logpipe.formats.input_copies import duplicate_inputs
 from logpipe.formats.inputs import complete_hashes, find_inputs, fingerprint_inputs, read_ahead, unhashed_inputs
@@ -125,7 +125,8 @@ def ingest(roots: Sequence[Path], options: IngestOptions,
         # A folder usually means several batches: start the workers' imports (~0.5 s of a core, once per process)
         # now, to overlap detection, discovery and hashing instead of delaying the first batch; no-op with 1 worker.
         warm_up(_ingest_batch, workers=options.workers, backend=options.backend)
-    fmt = options.format or detect(roots[0])
+    fmt, added = choose_format(roots, options.format)  # a folder of bags and MCAP files: one ROS dataset
+    options = replace(options, adapter_options={**options.adapter_options, **added})
     adapter = get_adapter(fmt, **options.adapter_options)
     protocol = options.protocol or adapter.default_protocol
     with output_errors(), DatasetWriter(options.out) as writer:
@@ -151,7 +152,7 @@ def _ingest_locked(writer: DatasetWriter, roots: Sequence[Path], options: Ingest
         "dataset": str(options.out), "format": fmt, "protocol": protocol.to_dict(), "inputs_found": len(sources),
         "inputs_skipped_already_ingested": len(sources) - len(new), "inputs_ingested": 0, "quarantined": [],
         "logs": 0, "rows": 0, "samples": 0, "shards_written": [], "logs_without_samples": {},
-        "inputs_retried": retried}
+        "inputs_retried": retried, "skipped_inputs": other_format_inputs(roots, [p for p, _ in found], fmt)}
     if new and not _ingest_new(writer, new, manifest, fmt, default_batch, protocol, options, summary, progress,
                                reject_twins=optimistic is not None):
         new = sources = fingerprint_inputs(found, known_sizes, threads=default_workers())  # merges the twins found

@@ -10,7 +10,9 @@ from __future__ import annotations
 import heapq
 import importlib
 import inspect
+import logging
 import os
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -76,6 +78,52 @@ def detect(path: Path) -> str:
     raise LogpipeError(f"{path}: no known format recognised; pass --format ({', '.join(sorted(FORMATS))})")
 
 
+logger = logging.getLogger(__name__)
+ROS_FORMATS = ("rosbag", "mcap")
+"""Formats read by the same extraction, options and protocol: one dataset can hold both (``choose_format``)."""
+
+
+def choose_format(roots: Sequence[Path], given: str | None) -> tuple[str, dict[str, Any]]:
+    """The format ``ingest`` reads ``roots`` with, and the adapter options that adds: ``given`` as it is, else
+    ``detect``'s, except that ROS bags and standalone MCAP files found together (in one folder or across the
+    roots) are one ``rosbag`` dataset whose adapter reads the MCAP files too (``with_mcap``)."""
+    fmt = given or detect(roots[0])
+    if given is None and fmt in ROS_FORMATS:
+        bags = any(adapter_class("rosbag")().discover(r) for r in roots)
+        mcaps = any(adapter_class("mcap")().discover(r) for r in roots)
+        if bags and mcaps:
+            return "rosbag", {"with_mcap": True}
+    return fmt, {}
+
+
+def other_format_inputs(roots: Sequence[Path], found: Sequence[Path], fmt: str) -> list[dict[str, str]]:
+    """Files under the folders of ``roots`` that no input of ``found`` covers but another format recognises:
+    ``{"path", "format", "why"}`` each (and a logged warning), so an ingest names what it leaves out.
+    Text formats judge only ``.csv``/``.txt`` files (a map or a README is no log)."""
+    covered = {str(p) for p in found}
+    folders = tuple(str(p) + os.sep for p in found if p.is_dir())
+    skipped = []
+    for root in (r for r in roots if r.is_dir()):
+        for folder, _, files in sorted(os.walk(root)):
+            for name in sorted(files):
+                path = os.path.join(folder, name)
+                if path in covered or path.startswith(folders):
+                    continue
+                other = _recognised(Path(path), fmt)
+                if other is not None:
+                    skipped.append({"path": os.path.relpath(path, root), "format": other,
+                                    "why": f"a {other} input; this dataset is {fmt} (ingest it with its own --out)"})
+                    logger.warning("%s: skipped: %s", path, skipped[-1]["why"])  # named, not dropped in silence
+    return skipped
+
+
+def _recognised(path: Path, fmt: str) -> str | None:
+    """The format other than ``fmt`` that claims ``path``, if exactly one does."""
+    names = [n for n in FORMATS if n != fmt and (n not in TEXT_FORMATS or path.suffix in (".csv", ".txt"))]
+    claims = [n for n in names if adapter_class(n)().sniff(path)]
+    return claims[0] if len(claims) == 1 else None
+
+
 def _first_files(root: Path, limit: int) -> list[Path]:
     """The first ``limit`` files under ``root`` in path order, from one ``os.walk``: no ``Path`` and no stat per
     file of the whole tree (a sorted ``rglob`` cost ~0.4 s per 10,000 files)."""
@@ -84,4 +132,5 @@ def _first_files(root: Path, limit: int) -> list[Path]:
     return [Path(name) for name in first if os.path.isfile(name)]
 
 
-__all__ = ["FORMATS", "TEXT_FORMATS", "FormatAdapter", "ParsedLogs", "adapter_class", "detect", "get_adapter"]
+__all__ = ["FORMATS", "ROS_FORMATS", "TEXT_FORMATS", "FormatAdapter", "ParsedLogs", "adapter_class", "choose_format",
+           "detect", "get_adapter", "other_format_inputs"]

@@ -136,6 +136,8 @@ class RosbagAdapter:
         gap_periods: source gaps longer than this many output periods are not interpolated across.
         typestore: rosbags store for bags without embedded definitions (``ros2_humble``, ``ros1_noetic``...).
         mapping_overrides: CLI ``key=value`` overrides merged over the mapping file (see ``mapping.py``).
+        with_mcap: also find and read standalone ``.mcap`` files (through ``McapAdapter``, same options): what
+            ``logpipe.formats.choose_format`` asks for a folder holding both bags and MCAP files, one dataset.
     """
 
     name: ClassVar[str] = "rosbag"
@@ -151,8 +153,10 @@ class RosbagAdapter:
         gap_periods: float = 2.0,
         typestore: str = "ros2_humble",
         mapping_overrides: Sequence[str] = (),
+        with_mcap: bool = False,
     ) -> None:
         self.options = ExtractOptions.from_settings(mapping, mapping_overrides, hz, gap_periods, allow_empty)
+        self.with_mcap = with_mcap
         if typestore.upper() not in Stores.__members__:
             raise ValueError(f"unknown typestore {typestore!r}; one of {[s.name.lower() for s in Stores]}")
         self.typestore_name = typestore  # built on first read: detect() constructs adapters just to sniff
@@ -175,7 +179,15 @@ class RosbagAdapter:
 
     def discover(self, root: Path) -> list[Path]:
         """Bags under ``root``: ``.bag`` files, rosbag2 folders (with metadata.yaml, or split parts), bare
-        ``.db3`` files. Standalone ``.mcap`` files are left to the MCAP adapter."""
+        ``.db3`` files. Standalone ``.mcap`` files are left to the MCAP adapter, unless ``with_mcap``."""
+        bags = self._discover_bags(root)
+        if not self.with_mcap:
+            return bags
+        folders = [b for b in bags if b.is_dir()]
+        mcaps = [m for m in McapAdapter().discover(root) if not any(m.is_relative_to(f) for f in folders)]
+        return sorted([*bags, *mcaps])
+
+    def _discover_bags(self, root: Path) -> list[Path]:
         if root.is_file():
             if root.suffix in (*_STORAGE_SUFFIXES, ".yaml") and (root.parent / "metadata.yaml").exists():
                 return [root.parent]  # a file of a rosbag2 folder stands for the folder
@@ -187,7 +199,7 @@ class RosbagAdapter:
         found: list[Path] = []
         for child in sorted(root.iterdir()):
             if child.is_dir():
-                found += self.discover(child)
+                found += self._discover_bags(child)
             elif child.suffix in (".bag", ".db3") and self.sniff(child):
                 found.append(child)
         return sorted(found)
@@ -202,6 +214,10 @@ class RosbagAdapter:
     def read_one(self, src: SourceFile, *, keep_going: bool) -> tuple[pa.Table, LogMeta, list[SourceError]]:
         """One bag → (rows, LogMeta, per-topic problems kept when ``keep_going``)."""
         path = Path(src.path)
+        if self.with_mcap and path.is_file() and path.suffix == ".mcap" and McapAdapter().sniff(path):
+            opts = self.options  # a standalone MCAP of a folder mixing formats: the MCAP adapter reads it
+            return McapAdapter(mapping=opts.mapping, hz=opts.hz, allow_empty=opts.allow_empty,
+                               gap_periods=opts.gap_periods).read_one(src, keep_going=keep_going)
         rel = src.relpath
         paths = storage_paths(path)
         if not paths:
