@@ -7,12 +7,14 @@ callback the CLI hands them:
 
 * ``mode="bar"`` (stderr is a terminal): a rich bar with done/total, percentage, rate and ETA, redrawn at
   most ten times a second from the caller's thread (no refresh thread, so worker pools may still fork);
-* ``mode="lines"`` (a CI log, a pipe): one line every ``interval_s`` seconds (default 5, environment
-  variable ``LOGPIPE_PROGRESS_INTERVAL``), e.g. ``predict: 1,200/5,000 samples (24%) 310/s ETA 0:00:12``,
-  plus a final line; lines go to stderr only, never wrapped, since stdout carries ``--json``. A heartbeat
-  thread writes the line when it is due even while the stage is inside one long batch (a network's forward
-  pass, a worker's shard), so the gaps are the interval whatever the batch size; it writes only under the
-  reporter's lock, which a fork waits for (``os.register_at_fork``), so worker pools may still fork;
+* ``mode="lines"`` (a CI log, a pipe): a time heartbeat, one line every ``interval_s`` seconds (default 5,
+  environment variable ``LOGPIPE_PROGRESS_INTERVAL``) led by the time it has run, e.g. ``predict: 0:00:05
+  1,200/5,000 samples (24%) 310/s ETA 0:00:12``, plus a final line (none when there was nothing to do); no line
+  when the total is announced, so a run shorter than the interval writes only its final line; lines go to stderr
+  only, never wrapped, since stdout carries ``--json``. A heartbeat thread writes the line when it is due even
+  while the stage is inside one long batch (a network's forward pass, a worker's shard), so the gaps are the
+  interval whatever the batch size; it writes only under the reporter's lock, which a fork waits for
+  (``os.register_at_fork``), so worker pools may still fork;
 * ``mode="off"``: nothing (``-q``).
 
 Times are seconds of a monotonic clock (injectable for tests). This module imports only the standard
@@ -169,10 +171,7 @@ class ProgressReporter:
             now = self._clock()
             self._samples = deque([(now, 0)])
             self._last_line = now
-        if self.mode == "lines" and units > 0:
-            with self._lock:
-                self._write(self.line())
-        elif self.mode == "bar":
+        if self.mode == "bar":  # lines mode waits for the heartbeat: a "0/N" line at every start says nothing
             self._show_bar(force=True)
 
     def advance(self, units: int = 1) -> None:
@@ -206,11 +205,12 @@ class ProgressReporter:
         return max(0, self.expected - self.done) / rate
 
     def line(self) -> str:
-        """The current state as one line: ``predict: 1,200/5,000 samples (24%) 310/s ETA 0:00:12``; before the
-        total and the first unit, the time it has been running (``score: running 0:00:10``)."""
+        """The current state as one line, led by the time it has run: ``predict: 0:00:05 1,200/5,000 samples
+        (24%) 310/s ETA 0:00:12``; before the total and the first unit, ``score: running 0:00:10``."""
+        elapsed = format_duration(self._clock() - self._started)
         if self.expected is None and not self.done:
-            return f"{self.label}: running {format_duration(self._clock() - self._started)}"
-        parts = [f"{self.label}: {self._count()}"]
+            return f"{self.label}: running {elapsed}"
+        parts = [f"{self.label}: {elapsed} {self._count()}"]
         rate = self.rate()
         if rate is not None and self.done:
             parts.append(f"{format_rate(rate)}/s")
@@ -267,7 +267,7 @@ class ProgressReporter:
             _LIVE.discard(self)
         if self._bar is not None:
             self._bar.stop()
-        if self.mode == "lines" and (self.done or self.expected is not None):
+        if self.mode == "lines" and (self.done or self.expected):  # nothing to do: nothing to say
             self._write(self.final_line(failed))
 
     def __enter__(self) -> ProgressReporter:

@@ -51,8 +51,8 @@ def test_heartbeat_writes_the_due_line_while_a_batch_runs() -> None:
         time.sleep(1.1)  # one "batch" of about five intervals, no unit finished
         reporter(10)
     lines = out.getvalue().splitlines()
-    beats = [line for line in lines if line == "predict: 0/10 samples (0%)"]
-    assert len(beats) >= 3  # the total's line and a heartbeat about every 0.2 s (4-5 when the machine is idle)
+    beats = [line for line in lines if re.fullmatch(r"predict: 0:00:0\d 0/10 samples \(0%\)", line)]
+    assert len(beats) >= 3  # a heartbeat about every 0.2 s, led by the time run (4-5 when the machine is idle)
     assert lines[-1].startswith("predict: 10/10 samples (100%)") and " done in " in lines[-1]
     assert not any(t.name == "logpipe-progress-heartbeat" for t in threading.enumerate())  # stopped with the run
 
@@ -66,22 +66,22 @@ def test_a_stage_without_units_shows_how_long_it_runs() -> None:
 def test_lines_come_every_interval_with_count_rate_and_eta() -> None:
     reporter, clock, out = _reporter()
     reporter.total(5000)
-    assert out.getvalue().splitlines() == ["predict: 0/5,000 samples (0%)"]
+    assert out.getvalue() == ""  # no "0/5,000" line: the first comes with the heartbeat
     clock.now = 4.0
     reporter(1240)
-    assert len(out.getvalue().splitlines()) == 1  # 4 s < the 5 s interval
+    assert out.getvalue() == ""  # 4 s < the 5 s interval
     clock.now = 5.0
     reporter(310)
     # 1,550 in 5 s = 310/s; 3,450 left at 310/s = 11.1 s, shown rounded up
-    assert out.getvalue().splitlines()[-1] == "predict: 1,550/5,000 samples (31%) 310/s ETA 0:00:12"
+    assert out.getvalue().splitlines() == ["predict: 0:00:05 1,550/5,000 samples (31%) 310/s ETA 0:00:12"]
     clock.now = 6.0
     reporter(100)
-    assert len(out.getvalue().splitlines()) == 2  # next line 5 s after the last one
+    assert len(out.getvalue().splitlines()) == 1  # next line 5 s after the last one
     clock.now = 20.0
     reporter(3350)
     reporter.close()
     lines = out.getvalue().splitlines()
-    assert lines[-2] == "predict: 5,000/5,000 samples (100%) 250/s ETA 0:00:00"
+    assert lines[-2] == "predict: 0:00:20 5,000/5,000 samples (100%) 250/s ETA 0:00:00"
     assert lines[-1] == "predict: 5,000/5,000 samples (100%) 250/s done in 0:00:20"
 
 
@@ -113,7 +113,7 @@ def test_unknown_total_shows_the_count_and_rate_only() -> None:
     reporter, clock, out = _reporter(interval=0)
     clock.now = 4.0
     reporter(12)
-    assert out.getvalue() == "predict: 12 samples 3.0/s\n"
+    assert out.getvalue() == "predict: 0:00:04 12 samples 3.0/s\n"
 
 
 def test_a_failed_run_says_where_it_stopped() -> None:
@@ -166,7 +166,7 @@ def test_formatting_helpers(monkeypatch: pytest.MonkeyPatch) -> None:
 
 # -- the CLI as CI runs it ---------------------------------------------------------------------------------
 
-LINE = re.compile(r"^(\w+): ([\d,]+)/([\d,]+) (\w+)")
+LINE = re.compile(r"^(\w+): (?:\d+:\d\d:\d\d )?([\d,]+)/([\d,]+) (\w+)")
 
 
 def _logpipe(*args: str, interval: str = "0", columns: str | None = None) -> subprocess.CompletedProcess[str]:
@@ -197,7 +197,7 @@ def test_ingest_off_a_terminal_prints_progress_lines_to_stderr_only(
     _, run = apollo
     summary = json.loads(run.stdout)  # stdout is exactly the one JSON object
     lines = _progress_lines(run.stderr, "ingest")
-    assert [(done, total) for done, total, _ in lines] == [(0, 2), (1, 2), (2, 2), (2, 2)]
+    assert [(done, total) for done, total, _ in lines] == [(1, 2), (2, 2), (2, 2)]  # no "0/2" line first
     assert summary["inputs_found"] == 2 == lines[0][1]
     assert re.fullmatch(r"ingest: 2/2 inputs \(100%\) [\d.,]+/s done in \d+:\d\d:\d\d", run.stderr.splitlines()[-1])
 
@@ -216,7 +216,7 @@ def test_predict_off_a_terminal_counts_every_selected_sample(
     assert len(lines) >= 3 and {total for _, total, _ in lines} == {samples} == {summary["samples_selected"]}
     dones = [done for done, _, _ in lines]
     assert dones == sorted(dones) and dones[-1] == samples
-    eta = re.compile(r"predict: [\d,]+/[\d,]+ samples \(\d+%\) [\d.,]+/s ETA \d+:\d\d:\d\d")
+    eta = re.compile(r"predict: \d+:\d\d:\d\d [\d,]+/[\d,]+ samples \(\d+%\) [\d.,]+/s ETA \d+:\d\d:\d\d")
     assert any(eta.fullmatch(line) for line in run.stderr.splitlines())
 
 
@@ -237,8 +237,8 @@ def test_verbose_logs_per_batch_timings(bundled: Path, tmp_path: Path) -> None:
     assert run.returncode == 0, run.stderr
     timings = [line for line in run.stderr.splitlines() if line.startswith("INFO logpipe.executor: _ingest_batch:")]
     assert [t.split(":")[2].split()[0] for t in timings] == ["1/2", "2/2"]
-    # with a 60 s interval only the first and the last progress lines come
-    assert [done for done, _, _ in _progress_lines(run.stderr, "ingest")] == [0, 2]
+    # with a 60 s interval only the final progress line comes
+    assert [done for done, _, _ in _progress_lines(run.stderr, "ingest")] == [2]
 
 
 def test_train_off_a_terminal_counts_optimiser_steps(bundled: Path, tmp_path: Path) -> None:
@@ -253,3 +253,12 @@ def test_train_off_a_terminal_counts_optimiser_steps(bundled: Path, tmp_path: Pa
     assert json.loads(run.stdout)["steps"] == 3
     lines = _progress_lines(run.stderr, "train")
     assert [(done, total) for done, total, _ in lines][-1] == (3, 3) and {t for _, t, _ in lines} == {3}
+
+
+def test_a_run_with_nothing_to_do_writes_no_progress_line() -> None:
+    """A rerun whose work is all done (a finished predict run) announces a total of 0: no "0/0 ... done" line."""
+    reporter, clock, out = _reporter()
+    reporter.total(0)
+    clock.now = 2.0
+    reporter.close()
+    assert out.getvalue() == ""

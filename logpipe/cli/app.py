@@ -64,8 +64,8 @@ def main(
 ) -> None:
     """Offline pipeline for multi-agent trajectory forecasting.
 
-    Progress goes to stderr: a bar on a terminal, elsewhere one line every 5 s (LOGPIPE_PROGRESS_INTERVAL
-    seconds). stdout carries only --json output.
+    Progress goes to stderr: a bar on a terminal, elsewhere a time heartbeat, one line every 5 s
+    (LOGPIPE_PROGRESS_INTERVAL seconds), and nothing with -q. stdout carries only --json output.
     """
     if quiet and verbose:
         raise typer.BadParameter("--quiet and --verbose exclude each other")

@@ -123,6 +123,9 @@ def ingest_lines(s: dict[str, Any]) -> list[str]:
     if s["quarantined"] or earlier > 0:
         lines.append(next_step(f"logpipe ingest INPUTS --out {ds} --retry-quarantined",
                                "after fixing the inputs or the options, e.g. --mapping"))
+    elif not s["logs"] and any((Path(ds) / "rasters").glob("*/manifest.json")):
+        # nothing new since the rasters were drawn: they cover every log, so rasterise has nothing to do
+        lines.append(next_step(f"logpipe predict {ds} --out {ds}-pred", "no new log; its rasters are current"))
     elif s["format"] in OWN_MAP_FORMATS:
         lines.append(next_step(f"logpipe rasterise {ds} --rotate", "each log's own map; then logpipe predict"))
     elif s["format"] in MAP_FORMATS:
