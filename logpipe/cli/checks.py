@@ -132,7 +132,8 @@ def inspect(
     into tracks with which mapping (like `ros2 bag info` / `mcap info`). Exit code 2 if any input is unreadable
     (with --format toml: if no mapping is detected).
 
-    Example: logpipe inspect ../shared/data/rosbags/datmo/intersection.bag
+    Example: logpipe inspect tests/data/rosbags/datmo/intersection.bag
+
     Example: logpipe inspect run.bag --format toml > map.toml && logpipe ingest run.bag --mapping map.toml -o out/run
     """
     from logpipe import api

@@ -54,7 +54,8 @@ def ingest(  # noqa: PLR0913  typer command: one parameter per CLI option
     backend: Annotated[str, typer.Option("--backend", help="local | ray")] = "local",
     batch_files: Annotated[int | None, typer.Option("--batch-files", help="Inputs per shard.")] = None,
     mapping: Annotated[Path | None, typer.Option(
-        "--mapping", help="Bags/MCAP: TOML or YAML file naming the ego and agent topics (see README).")] = None,
+        "--mapping", help="Bags/MCAP: TOML or YAML file naming the ego and agent topics (docs/guide.md, 'Bags and "
+        "MCAP: the mapping'; logpipe inspect BAG --format toml writes one).")] = None,
     overrides: Annotated[list[str] | None, typer.Option(
         "--set", help="Bags/MCAP: mapping override KEY=VALUE, repeatable (ego=/odom, agent=/red_pose, map=lab).")
     ] = None,
@@ -74,8 +75,9 @@ def ingest(  # noqa: PLR0913  typer command: one parameter per CLI option
     """Turn logs (Argoverse 1 CSV, ETH/UCY, ApolloScape, ...) into canonical Parquet shards, a sample index
     and one MCAP per log. Re-running skips inputs already ingested (by content hash).
 
-    Example: logpipe ingest ../shared/data/argoverse1/data --out out/av1
-    Example: logpipe ingest run.bag --out out/run --set ego=/odom --set agent=/red_pose --hz 10
+    Example: logpipe ingest tests/data/driving --out out/av1
+
+    Example: logpipe ingest tests/data/rosbags/datmo --out out/ros --set ego=/ego_pose --set agent=/red_pose --hz 10
     """
     from logpipe import api
     from logpipe.errors import QuarantineLimitError
@@ -229,7 +231,7 @@ def rasterise(  # noqa: PLR0913  typer command: one parameter per CLI option
     """Draw one ego-centred map raster per prediction sample (224x224 over 100 m by default) into
     DATASET/rasters/<run>/, with the settings in the run manifest. Re-running skips finished shards.
 
-    Example: logpipe rasterise out/av1 --maps ../shared/data/argoverse1/maps --rotate --preview 4
+    Example: logpipe rasterise out/av1 --maps tests/data/driving --rotate --preview 4
     """
     from logpipe import api
 

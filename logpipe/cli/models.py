@@ -61,9 +61,11 @@ def train(  # noqa: PLR0913  typer command: one parameter per CLI option
     device: DeviceOpt = "auto",
     as_json: JsonOpt = False,
 ) -> None:
-    """Train the Zhu et al. predictor (or a Table 4 ablation / LSTM baseline via the config) on a dataset.
+    """Train the paper's predictor (Zhu et al., IJCAI 2020), or via the config a Table 4 ablation or LSTM
+    baseline, on a dataset.
 
     Example: logpipe train out/ethucy --scene eth --out runs/eth --config configs/ethucy.toml
+
     Example: logpipe train out/av1 out/av2 --out runs/av --config configs/argoverse.toml
     """
     from logpipe import api
