@@ -283,10 +283,11 @@ def test_retry_quarantined_reads_a_fixed_input_again(bundled: Path, tmp_path: Pa
     bag, ds = bundled / "rosbags" / "datmo" / "intersection.bag", tmp_path / "ds"
     wrong = runner.invoke(app, ["ingest", str(bag), "--out", str(ds), "--on-error", "skip", "--set", "ego=/nope",
                                 "--json"])
-    assert wrong.exit_code == 0, wrong.output
+    assert wrong.exit_code == 2, wrong.output  # committed, but nothing was ingested: a job must not pass
     assert "/nope" in json.loads(wrong.stdout)["quarantined"][0]["error"]["reason"]
     again = runner.invoke(app, ["ingest", str(bag), "--out", str(ds)])  # a plain rerun skips it, and says why
-    assert again.exit_code == 0 and "1 inputs quarantined by an earlier run are skipped" in again.output
+    assert again.exit_code == 2 and "1 inputs quarantined by an earlier run are skipped" in again.output
+    assert "error: the dataset" in again.output and "holds no log" in again.output
     fixed = runner.invoke(app, ["ingest", str(bag), "--out", str(ds), "--retry-quarantined", "--json"])
     assert fixed.exit_code == 0, fixed.output
     summary = json.loads(fixed.stdout)
