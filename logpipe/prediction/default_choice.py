@@ -34,8 +34,8 @@ def kinematic_reason(dataset: Dataset) -> str:
     types = track_types(dataset)
     vehicles = bool(types) and set(types) <= ROAD_VEHICLES
     mapped = any(m for m in dataset.logs().column("map_id").to_pylist())
-    what = (f"{'road vehicles' if vehicles else ', '.join(types) or 'no tracks'} "
-            f"{'on a map' if mapped else 'with no map'}")
+    kinds = "road vehicles" if vehicles else f"{' and '.join(types)} agents" if types else "none"
+    what = f"{kinds}, {'on a map' if mapped else 'no map'}"
     return (f"the kinematic baseline with the lowest K=1 FDE in docs/results, as no shipped model serves dataset "
             f"kind {dataset.kind!r} (its tracks: {what}; the driving model reads Argoverse and CommonRoad datasets)")
 

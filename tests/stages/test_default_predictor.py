@@ -38,7 +38,7 @@ def test_predict_on_a_bag_dataset_runs_with_no_flags_and_says_why(bag_dataset: P
     assert result.exit_code == 0, result.output
     why = next(line for line in result.stderr.splitlines() if line.startswith("  predictor "))
     assert why.startswith(f"  predictor {DEFAULT_BASELINE}: the kinematic baseline with the lowest K=1 FDE")
-    assert "dataset kind 'rosbag'" in why and "with no map" in why
+    assert "dataset kind 'rosbag' (its tracks: unknown and vehicle agents, no map;" in why  # the bag's two poses
     summary = _ok("predict", str(bag_dataset), "--out", str(bag_dataset.parent / "pred-json"))
     assert summary["predictor"] == DEFAULT_BASELINE and summary["samples"] == summary["samples_selected"]
     assert isinstance(summary["samples"], int) and summary["samples"] > 0
