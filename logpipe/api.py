@@ -271,6 +271,8 @@ def train(  # noqa: PLR0913  public API: keyword options mirror `logpipe train` 
     folders = as_paths(dataset)
     if not folders:
         raise LogpipeError("give at least one dataset")
+    # Driving data without a config picks its own validation data (stages.train): no split given, none chosen here.
+    auto = config is None and preset is None and scene is None and train_split is None and val_split is None
     chosen_train = train_split or (f"{scene}/train" if scene else "hash/train")
     if val_split is None and is_split_expression(chosen_train):
         raise LogpipeError(f"--train-split {chosen_train!r} has no matching /val split: give --val-split "
@@ -282,8 +284,8 @@ def train(  # noqa: PLR0913  public API: keyword options mirror `logpipe train` 
     if seed is not None:
         overrides["seed"] = seed
     summary: TrainSummary = run_train(
-        folders[0] if len(folders) == 1 else folders, as_path(out), train_split=chosen_train,
-        val_split=None if chosen_val == "none" else chosen_val,
+        folders[0] if len(folders) == 1 else folders, as_path(out), train_split=None if auto else chosen_train,
+        val_split=None if auto or chosen_val == "none" else chosen_val,
         config_path=optional_path(config), overrides=overrides, preset=preset,
         resume=resume, raster_run=raster_run, loader_workers=loader_workers,
         init_from=optional_path(init_from), progress=progress, device=device,

@@ -38,7 +38,10 @@ def train(  # noqa: PLR0913  typer command: one parameter per CLI option
         "--val-split", help="Validation logs, same syntax (default: the matching /val split; needed when "
                             "--train-split has + or -); 'none' disables.")] = None,
     config: Annotated[Path | None, typer.Option(
-        "--config", help="TOML/JSON with every hyper-parameter (tables model and train); defaults: the paper's.")
+        "--config", help="TOML/JSON with every hyper-parameter (tables model and train, or residual). Default on "
+        "driving data (Argoverse 1/2, CommonRoad, ROS/MCAP vehicles): the shipped driving model's recipe, validated "
+        "on data it picks itself (no split given) and compared with CV, Kalman and the adaptive prior; elsewhere the "
+        "paper's.")
     ] = None,
     steps: Annotated[int | None, typer.Option("--steps", help="Override train.steps.")] = None,
     seed: Annotated[int | None, typer.Option("--seed", help="Override train.seed.")] = None,
@@ -61,8 +64,14 @@ def train(  # noqa: PLR0913  typer command: one parameter per CLI option
     device: DeviceOpt = "auto",
     as_json: JsonOpt = False,
 ) -> None:
-    """Train the Zhu et al. predictor (or a Table 4 ablation / LSTM baseline via the config) on a dataset.
+    """Train a predictor on a dataset: on driving data the shipped residual model's recipe, elsewhere Zhu et al.
 
+    Driving data without --config: the residual driving model, trained from scratch and fine-tuned from the shipped
+    one, the better on validation kept; the summary, --json and RUN/MODEL_CARD.md compare it with CV, Kalman, the
+    adaptive prior and a CV sampler on the validation data. A config (or --preset) trains the paper's network (or a
+    Table 4 ablation / LSTM baseline).
+
+    Example: logpipe train out/fleet --out runs/fleet
     Example: logpipe train out/ethucy --scene eth --out runs/eth --config configs/ethucy.toml
     Example: logpipe train out/av1 out/av2 --out runs/av --config configs/argoverse.toml
     """
@@ -88,6 +97,7 @@ def train_lines(s: dict[str, Any]) -> list[str]:
              f"best validation ADE/FDE {s['best_val_ade']:.3f}/{s['best_val_fde']:.3f} m at step {s['best_step']}"
              + (" (stopped early)" if s["stopped_early"] else ""),
              f"  run: {s['run']} (checkpoints best/ and last/, train_log.jsonl)",
+             *s.get("report", []),
              next_step(f"logpipe predict {datasets[0]} --checkpoint {best} --out {s['run']}-pred")]
     return lines
 
