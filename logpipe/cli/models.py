@@ -154,8 +154,9 @@ def predict(  # noqa: PLR0913  typer command: one parameter per CLI option
         "(no map for their log, or the centre off it); refused by default.")] = False,
     out_of_distribution: Annotated[str, typer.Option(
         "--out-of-distribution", help="For a checkpoint that records its training data (the residual driving "
-        "model): targets outside it are flagged (warn, the default), get the Kalman filter's forecast, marked in "
-        "the fallback column (fallback), or stop the run (refuse).")] = "warn",
+        "model): targets outside it are flagged (warn, the default), get the Kalman filter's forecast as mode 0 and "
+        "a spread of it as the other modes, marked in the fallback column (fallback), or stop the run (refuse).")
+    ] = "warn",
     as_json: JsonOpt = False,
 ) -> None:
     """Run a checkpoint (or a baseline) on every sample and write predictions as Parquet and, per log, an MCAP

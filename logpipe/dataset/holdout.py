@@ -45,6 +45,7 @@ class Holdout:
         val_logs: per dataset, the logs that validate (whole, or their later part).
         groups: how many groups of logs there were (logs joined by shared tracks).
         straddling: windows used for neither side (they overlap the cut).
+        cut_steps: ``later_part``: per log cut, its first validation step.
     """
 
     how: str
@@ -70,7 +71,7 @@ class Holdout:
         """The summary's ``validation`` record."""
         return {"how": self.how, "groups": self.groups, "train_windows": sum(map(len, self.train_ids)),
                 "val_windows": sum(map(len, self.val_ids)), "val_logs": [sorted(v) for v in self.val_logs],
-                "straddling_windows": self.straddling, "description": self.describe()}
+                "straddling_windows": self.straddling, "cut_steps": self.cut_steps, "description": self.describe()}
 
 
 def log_groups(logs: Sequence[pa.Table]) -> list[list[tuple[int, str]]]:
