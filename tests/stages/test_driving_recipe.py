@@ -67,7 +67,7 @@ def test_no_config_trains_the_driving_recipe_and_compares_on_held_out_windows(fl
     samples = Dataset.open(work / "ds").samples()
     validation = summary["validation"]
     assert validation["how"] == "later_part"  # one recording: its later part validates
-    (log,) = validation["val_logs"]
+    ((log,),) = validation["val_logs"]  # one dataset, one log
     rows = samples.filter(pc.equal(samples.column("log_id"), log))
     start, end = rows.column("start_step").to_numpy(), rows.column("end_step").to_numpy()
     cut = validation["cut_steps"][log]
