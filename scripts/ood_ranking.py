@@ -22,7 +22,7 @@ import numpy as np
 
 def per_target(model: Path, prior: Path, truth: Path) -> dict[str, np.ndarray]:
     """Per target (mode 0 of each run): model FDE, prior FDE, ood_score, ood_flag."""
-    rows = duckdb.sql(f"""
+    relation = duckdb.sql(f"""
         WITH m AS (SELECT log_id, sample_id, track_id, x[-1] AS x, y[-1] AS y, timestamp_ns[-1] AS t, ood_score,
                           ood_flag FROM read_parquet('{model}/predictions/*.parquet') WHERE mode = 0),
              p AS (SELECT sample_id, track_id, x[-1] AS x, y[-1] AS y
@@ -31,7 +31,8 @@ def per_target(model: Path, prior: Path, truth: Path) -> dict[str, np.ndarray]:
         SELECT sqrt((m.x - g.x) ** 2 + (m.y - g.y) ** 2), sqrt((p.x - g.x) ** 2 + (p.y - g.y) ** 2),
                m.ood_score, m.ood_flag
         FROM m JOIN p USING (sample_id, track_id)
-        JOIN g ON g.log_id = m.log_id AND g.track_id = m.track_id AND g.timestamp_ns = m.t""").fetchall()
+        JOIN g ON g.log_id = m.log_id AND g.track_id = m.track_id AND g.timestamp_ns = m.t""")
+    rows = relation.fetchall() if relation is not None else []
     if not rows:
         raise SystemExit("no target is in both runs and the truth")
     a = np.asarray(rows, dtype=object)
@@ -57,7 +58,7 @@ def summary(t: dict[str, np.ndarray]) -> dict[str, Any]:
     def mean(v: np.ndarray, rows: np.ndarray) -> float | None:
         return round(float(v[rows].mean()), 3) if rows.any() else None
 
-    return {"targets": int(len(loses)), "model_fde": mean(t["model_fde"], ~np.zeros_like(flag)),
+    return {"targets": len(loses), "model_fde": mean(t["model_fde"], ~np.zeros_like(flag)),
             "prior_fde": mean(t["prior_fde"], ~np.zeros_like(flag)), "model_loses_share": round(float(loses.mean()), 3),
             "flagged": int(flag.sum()), "roc_auc_ood_score_for_loss": round(roc_auc(t["score"], loses), 3),
             "flagged_model_fde": mean(t["model_fde"], flag), "flagged_prior_fde": mean(t["prior_fde"], flag),
