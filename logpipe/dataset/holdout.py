@@ -106,7 +106,7 @@ def choose_holdout(logs: Sequence[pa.Table], samples: Sequence[pa.Table]) -> Hol
     """The validation split of datasets with these logs tables and sample indexes (see the module docstring).
 
     Raises:
-        DatasetError: nothing to validate on (one recording of one window).
+        DatasetError: nothing to validate on (one recording, too short to cut).
     """
     groups = log_groups(logs)
     windows = {(n, str(log_id)) for n, table in enumerate(samples) for log_id in table.column("log_id").to_pylist()}
@@ -118,8 +118,10 @@ def choose_holdout(logs: Sequence[pa.Table], samples: Sequence[pa.Table]) -> Hol
         return cut
     if len(groups) >= 2:  # recordings of a single window each cannot be cut in time; hold out whole ones
         return _by_recordings(groups, samples)
-    raise DatasetError("one recording of one window: nothing to validate on; give more recordings or longer ones "
-                       "(or --train-split/--val-split)")
+    windows_of = sum(t.num_rows for t in samples)
+    raise DatasetError(f"one recording of {windows_of} window(s), too short to hold out its later part without "
+                       "overlapping the training windows: nothing to validate on; give more recordings or longer ones "
+                       "(or --train-split and --val-split)")
 
 
 def _by_recordings(groups: list[list[tuple[int, str]]], samples: Sequence[pa.Table]) -> Holdout:

@@ -102,3 +102,15 @@ def test_predict_uses_the_trained_run(fleet_run: tuple[Path, dict], tmp_path: Pa
     table = pq.read_table(tmp_path / "pred" / "predictions")
     assert table.num_rows > 0 and "ood_flag" in table.column_names  # the residual model scored each target
     assert run["checkpoint"] == str(work / "run" / "best")
+
+
+def test_ros_vehicles_get_the_recipe_and_a_too_short_recording_is_one_clear_error(tmp_path: Path) -> None:
+    bag = Path(__file__).resolve().parents[1] / "data" / "rosbags" / "datmo" / "intersection.bag"
+    api.ingest(bag, out=tmp_path / "ros", mcap=False)
+    assert Dataset.open(tmp_path / "ros").kind == "rosbag"
+    short = runner.invoke(app, ["train", str(tmp_path / "ros"), "--out", str(tmp_path / "run")])
+    assert short.exit_code == 2
+    assert "one recording of 2 window(s), too short to hold out its later part" in short.output
+    assert "Traceback" not in short.output and not (tmp_path / "run").exists()
+    paper = runner.invoke(app, ["train", str(tmp_path / "ros"), "--out", str(tmp_path / "run"), "--steps", "3"])
+    assert paper.exit_code == 2 and "--steps: only for the paper's network" in paper.output
