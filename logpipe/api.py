@@ -252,7 +252,9 @@ def train(  # noqa: PLR0913  public API: keyword options mirror `logpipe train` 
         scene: ETH/UCY leave-one-scene-out: train on ``SCENE/train``, validate on ``SCENE/val``.
         train_split: training logs (default ``hash/train``); ``val_split``: validation logs (default: the
             matching ``/val`` split; ``"none"`` disables it).
-        config: TOML/JSON hyper-parameters; ``steps`` and ``seed`` override ``[train]``; ``preset``: a row of
+        config: TOML/JSON hyper-parameters (none on driving data: the shipped driving model's recipe, validated
+            on data it picks itself when no split is given, compared with the kinematic baselines; see
+            ``model.residual.fleet``); ``steps`` and ``seed`` override ``[train]``; ``preset``: a row of
             the paper's tables (``full``, ``v1``..``v4``, ``baseline``, ``lstm``, ``no_position``).
         device: ``auto`` (CUDA when torch sees a GPU, else the CPU), ``cpu`` or ``cuda`` (autocast on CUDA).
         progress: True: the training loop's own bar (a terminal); a callback: called with the steps done.

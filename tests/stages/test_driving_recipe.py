@@ -114,3 +114,6 @@ def test_ros_vehicles_get_the_recipe_and_a_too_short_recording_is_one_clear_erro
     assert "Traceback" not in short.output and not (tmp_path / "run").exists()
     paper = runner.invoke(app, ["train", str(tmp_path / "ros"), "--out", str(tmp_path / "run"), "--steps", "3"])
     assert paper.exit_code == 2 and "--steps: only for the paper's network" in paper.output
+    unvalidated = runner.invoke(app, ["train", str(tmp_path / "ros"), "--out", str(tmp_path / "run"),
+                                      "--train-split", "all"])
+    assert unvalidated.exit_code == 2 and "give --val-split too" in unvalidated.output
