@@ -59,6 +59,13 @@ def _samples(datasets: Sequence[Dataset], runs: Sequence[RasterShards | None], i
     for ds, run, wanted in zip(datasets, runs, ids, strict=True):
         if not wanted:
             continue
+        if run is not None:
+            have = set(run.index.column("sample_id").to_pylist())
+            missing = [s for s in wanted if s not in have]
+            if missing:
+                raise LogpipeError(f"{run.run_dir}: raster run lacks {len(missing)} of the dataset's samples (e.g. "
+                                   f"{missing[0]}; re-indexed since?); re-run `logpipe rasterise {ds.root} --rotate "
+                                   "--force`")
         for sample in ds.iter_scene_samples(pc.is_in(pc.field("sample_id"), value_set=pa.array(list(wanted)))):
             if run is not None:
                 sample.raster, sample.world_to_raster = run.get(sample.sample_id)

@@ -32,8 +32,9 @@ def comparison_lines(s: dict[str, Any]) -> list[str]:
              f"{c['model_fde_to_best_kinematic']}x",
              f"  verdict: {c['verdict']}"]
     if c.get("shipped_model_saw_validation_logs"):
-        lines.append(f"  note: the shipped model was trained on {c['shipped_model_saw_validation_logs']} of the "
-                     "validation recordings: its figures here are not held out")
+        seen = c["shipped_model_saw_validation_logs"]
+        lines.append(f"  note: the shipped model was trained or validated on {seen} of the validation recordings: "
+                     "its figures here are not held out")
     return lines + [f"  note: {n}" for n in s.get("notes", [])]
 
 
@@ -73,8 +74,8 @@ def model_card(s: dict[str, Any]) -> str:
               + ("; the choice lies on the grid's edge, so a better one may lie beyond it" if sampler["on_grid_edge"]
                  else " (an interior point of the grid)"),
               f"- Kalman filter noise (chosen on the training targets): {c['kalman']}",
-              *([f"- the shipped model was trained on {c['shipped_model_saw_validation_logs']} of the validation "
-                 "recordings: its rows are not held-out figures"] if c.get("shipped_model_saw_validation_logs")
-                else []),
+              *([f"- the shipped model was trained or validated on {c['shipped_model_saw_validation_logs']} of the "
+                 "validation recordings: its rows are not held-out figures"]
+                if c.get("shipped_model_saw_validation_logs") else []),
               "", "Use it: `logpipe predict DATASET --checkpoint " + s["best_checkpoint"] + " --out PRED`.", ""]
     return "\n".join(lines)
