@@ -19,6 +19,7 @@ from logpipe.model.checkpoint.format import CheckpointError
 from logpipe.model.kinematic.adaptive_prior import adaptive_fit
 from logpipe.model.kinematic.kalman import KalmanCV
 from logpipe.model.residual.checkpoint import load_residual, save_residual
+from logpipe.model.residual.compare import compare
 from logpipe.model.residual.config import ResidualConfig, ResidualConfigError, load_residual_config
 from logpipe.model.residual.fit import collect, evaluate, fit_residual, forecast
 from logpipe.model.residual.inputs import CROP_CHANNELS, CROP_UNIT, target_inputs
@@ -94,6 +95,17 @@ def test_an_untrained_net_is_the_prior(scenes: list[SceneSample]) -> None:
     prior = adaptive_fit(observed).forecast(30)
     for mode in range(4):
         np.testing.assert_allclose(world[:, mode], prior, atol=1e-9)
+
+
+def test_the_comparison_says_plainly_when_the_model_does_not_beat_the_baselines(scenes: list[SceneSample]) -> None:
+    inputs, _ = collect(scenes, SMALL)
+    # Untrained, the mean head is the adaptive prior (above): it cannot beat it, and the verdict must say so.
+    result = compare(ResidualNet(SMALL).eval(), inputs, inputs, tune_fallback(inputs))
+    assert result["targets"] == len(inputs) and result["k1"]["model"] == result["k1"]["adaptive_prior"]
+    assert not result["beats"]["adaptive_prior"] and "does NOT beat" in result["verdict"]
+    assert "adaptive_prior (FDE" in result["verdict"]
+    assert result["min_fde_6"]["cv_sampler"] <= result["k1"]["cv"]["fde"]  # plain CV is one of the sampler's modes
+    assert result["cv_sampler"]["chosen_on"] == "training targets" and result["best_kinematic"] in result["k1"]
 
 
 def test_training_beats_the_prior_on_what_it_trained_on(scenes: list[SceneSample], tmp_path: Path) -> None:
