@@ -264,7 +264,9 @@ def train(  # noqa: PLR0913  public API: keyword options mirror `logpipe train` 
         scene: ETH/UCY leave-one-scene-out: train on ``SCENE/train``, validate on ``SCENE/val``.
         train_split: training logs (default ``hash/train``); ``val_split``: validation logs (default: the
             matching ``/val`` split; ``"none"`` disables it).
-        config: TOML/JSON hyper-parameters; ``steps`` and ``seed`` override ``[train]``; ``preset``: a row of
+        config: TOML/JSON hyper-parameters (none on driving data: the shipped driving model's recipe, validated
+            on data it picks itself when no split is given, compared with the kinematic baselines; see
+            ``model.residual.fleet``); ``steps`` and ``seed`` override ``[train]``; ``preset``: a row of
             the paper's tables (``full``, ``v1``..``v4``, ``baseline``, ``lstm``, ``no_position``).
         device: ``auto`` (CUDA when torch sees a GPU, else the CPU), ``cpu`` or ``cuda`` (autocast on CUDA).
         progress: True: the training loop's own bar (a terminal); a callback: called with the steps done.
@@ -283,6 +285,8 @@ def train(  # noqa: PLR0913  public API: keyword options mirror `logpipe train` 
     folders = as_paths(dataset)
     if not folders:
         raise LogpipeError("give at least one dataset")
+    # Driving data without a config picks its own validation data (stages.train): no split given, none chosen here.
+    auto = config is None and preset is None and scene is None and train_split is None and val_split is None
     chosen_train = train_split or (f"{scene}/train" if scene else "hash/train")
     if val_split is None and is_split_expression(chosen_train):
         raise LogpipeError(f"--train-split {chosen_train!r} has no matching /val split: give --val-split "
@@ -294,8 +298,8 @@ def train(  # noqa: PLR0913  public API: keyword options mirror `logpipe train` 
     if seed is not None:
         overrides["seed"] = seed
     summary: TrainSummary = run_train(
-        folders[0] if len(folders) == 1 else folders, as_path(out), train_split=chosen_train,
-        val_split=None if chosen_val == "none" else chosen_val,
+        folders[0] if len(folders) == 1 else folders, as_path(out), train_split=None if auto else chosen_train,
+        val_split=None if auto or chosen_val == "none" else chosen_val,
         config_path=optional_path(config), overrides=overrides, preset=preset,
         resume=resume, raster_run=raster_run, loader_workers=loader_workers,
         init_from=optional_path(init_from), progress=progress, device=device,

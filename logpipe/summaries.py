@@ -163,6 +163,24 @@ class TrainSummary(TypedDict):
     seconds_total: NotRequired[float | None]
 
 
+class DrivingTrainSummary(TrainSummary):
+    """``train`` on driving data without a config (the driving recipe, ``model.residual.fleet``): also the
+    residual model's best-of-K FDE, the recipe, how validation was chosen (``validation``), the start (fine-tuned or
+    from scratch, ``start``), the comparison with the kinematic baselines on the validation targets
+    (``comparison``), the report lines the command prints and the model card's path."""
+
+    best_val_min_fde: float
+    recipe: str
+    validation: dict[str, Any]
+    start: dict[str, Any]
+    comparison: dict[str, Any]
+    notes: list[str]
+    train_targets: int
+    val_targets: int
+    report: list[str]
+    model_card: str
+
+
 class ExportedFile(TypedDict):
     """One file ``export`` wrote: the MCAP it read, the recording it wrote and what that draws, by kind
     (``boxes``, ``history``, ``truth``, ``modes``, ``current``, ``lines``, ``lane_strips``, ``images``)."""

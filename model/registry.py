@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -111,6 +112,27 @@ def shipped_checkpoints(kind: str) -> list[Path]:
     root = Path(__file__).parent / "checkpoints" / KIND_FOLDERS.get(kind, kind)
     found = sorted(p.parent for p in root.glob("**/meta.json")) if root.is_dir() else []
     return [p for p in found if p.name not in COMPARISON_FOLDERS]
+
+
+VEHICLE_TYPES = frozenset({"vehicle", "bus_truck"})
+"""Object types that make a ROS/MCAP dataset driving data (its tracks mostly of them)."""
+
+
+def driving_recipe(datasets: Sequence[Dataset]) -> Path | None:
+    """The shipped driving default (the residual model's checkpoint, whose config is the driving recipe) when every
+    dataset is driving data: a format the driving model serves (``KIND_FOLDERS``), or ROS/MCAP logs whose track
+    rows are mostly vehicles; None otherwise (``logpipe train`` then trains the paper's network)."""
+    for ds in datasets:
+        if ds.kind in KIND_FOLDERS:
+            continue
+        if ds.kind not in ("rosbag", "mcap"):
+            return None
+        types = ds.tracks(["object_type"]).column("object_type").to_pylist()
+        if not types or sum(t in VEHICLE_TYPES for t in types) * 2 < len(types):
+            return None
+    found = [p for p in shipped_checkpoints(datasets[0].kind if datasets[0].kind in KIND_FOLDERS else "argoverse1")
+             if model_kind(p) == RESIDUAL_KIND]
+    return found[0] if found else None
 
 
 def default_checkpoint(kind: str, split: str | None) -> Path:

@@ -113,7 +113,8 @@ def predict_dataset(dataset_dir: Path, out_dir: Path, options: PredictOptions | 
     if summary.targets_out_of_distribution:
         summary.warnings.append(f"{summary.targets_out_of_distribution} of {summary.targets} targets are outside the "
                                 f"checkpoint's training data (column ood_flag; --out-of-distribution "
-                                f"{opts.out_of_distribution}: {summary.targets_fallback} got the Kalman fallback)")
+                                f"{opts.out_of_distribution}: {summary.targets_fallback} got the Kalman fallback "
+                                "as mode 0 and a spread of it as the others)")
     summary.shards = len(shards)
     summary.rows_total = sum(int(s["rows"]) for s in shards)
     summary.samples_total = sum(int(s["samples"]) for s in shards)
@@ -180,7 +181,8 @@ def _prepare(dataset_dir: Path, out_dir: Path, opts: PredictOptions) -> tuple[_R
         "protocol": dataset.protocol.to_dict(), "write_mcap": opts.write_mcap,
         "raster_run": rasters.run_dir.name if rasters is not None and raster_images else None,
     }
-    ood_check = ood_check_for(chosen.checkpoint, opts.out_of_distribution) if chosen.name == "residual" else None
+    ood_check = (ood_check_for(chosen.checkpoint, opts.out_of_distribution, logs_table) if chosen.name == "residual"
+                 else None)
     if ood_check is not None:
         settings["out_of_distribution"] = opts.out_of_distribution
     protocol = dataset.protocol

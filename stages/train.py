@@ -1,10 +1,10 @@
 """``logpipe train``: fit the predictor on a dataset's samples (or on several datasets' together).
 
-Reads top-down: open the dataset(s) → build the config (``model.zhu2020.train_config``) → pick the train/validation
-logs (a folder split such as ``eth/train``, or a ``hash/…`` split, applied in each dataset) → cut their samples
-into ``SceneSample``s (concatenated in the order the datasets are given, each with its own raster run) →
-``model.zhu2020.fit.fit`` inside ``model.training.run_folder.run_folder`` (the run folder's lock; ``fit`` writes the
-checkpoints and the JSON-lines log, stops early, resumes) → a summary.
+Driving data without ``--config`` trains the shipped driving default's recipe (``model.residual.fleet``); a
+``[residual]`` config the residual model (``model.residual.run``). Otherwise: open the dataset(s) → the config
+(``model.zhu2020.train_config``) → the train/validation logs (``eth/train``, ``hash/…``, in each dataset) → their
+``SceneSample``s (in dataset order, each with its raster run) → ``model.zhu2020.fit.fit`` in the run folder's
+lock (checkpoints, JSON-lines log, early stop, resume) → a summary.
 """
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ import time
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, cast
 
 import pyarrow as pa
 import pyarrow.compute as pc
@@ -63,7 +63,7 @@ def train(  # noqa: PLR0913  stage entry: keyword options mirror `logpipe train`
     dataset_dir: Path | Sequence[Path],
     out_dir: Path,
     *,
-    train_split: str,
+    train_split: str | None,
     val_split: str | None,
     config_path: Path | None = None,
     overrides: dict[str, Any] | None = None,
@@ -78,48 +78,52 @@ def train(  # noqa: PLR0913  stage entry: keyword options mirror `logpipe train`
     """Train on ``train_split`` of ``dataset_dir``, validating on ``val_split``; returns the run summary.
 
     Args:
-        dataset_dir: an ingested dataset, or several trained on together: the splits apply in each (a dataset
-            where a split selects no log adds none), the samples are concatenated in the order given, each
-            dataset with its own raster run; the checkpoints record every format (``combined_kind``), one hash
-            of the manifests in order and the union of the recordings.
+        dataset_dir: an ingested dataset, or several trained on together (splits apply in each; samples in the
+            order given, each with its own raster run; the checkpoints record every format and recording).
         out_dir: the run folder (checkpoints ``best/`` and ``last/``, ``train_log.jsonl``, ``config.toml``).
-        train_split: e.g. ``eth/train`` (ETH/UCY leave-one-scene-out) or ``hash/train``.
+        train_split: e.g. ``eth/train`` (ETH/UCY leave-one-scene-out) or ``hash/train``; None: driving data
+            without a config picks its own validation data (``model.residual.fleet``), other data ``hash/train``.
         val_split: e.g. ``eth/val``; None trains without validation (no early stopping).
-        config_path: TOML/JSON with every hyper-parameter (defaults: the paper's).
-        overrides: ``TrainConfig`` fields to replace (e.g. ``{"steps": 50}``).
-        preset: a row of the paper's tables applied over the config's model (``full``, ``v1``..``v4``,
-            ``baseline`` = Noise-LSTM, ``lstm``); ``lstm`` has no noise, so it trains and validates with one mode.
-        raster_run: the raster run under ``DATASET/rasters/`` to train the environment net on (default: the only
-            one; none: the environment net is off); with several datasets, in each of them.
+        config_path: TOML/JSON with every hyper-parameter (defaults: on driving data, the shipped driving
+            default's recipe, ``model.residual.fleet``; elsewhere the paper's).
+        overrides: ``TrainConfig`` fields to replace (``{"steps": 50}``); preset: a row of the paper's tables.
+        raster_run: the raster run under ``DATASET/rasters/`` (default: the only one; none: environment net off).
         loader_workers: 0 cuts every training sample into memory first (exact resume); N > 0 streams them from
-            the shards through a torch DataLoader with N worker processes (memory bounded by a shard per worker,
-            shuffled through a buffer).
+            the shards through a DataLoader of N workers (memory bounded by a shard per worker).
         resume: continue from ``out_dir/last``.
         progress: True: ``fit``'s progress bar (a terminal); a callable: ``logpipe.progress`` callback (steps).
-        init_from: start a new run from this checkpoint folder (e.g. a Noise-LSTM checkpoint into the full
-            model; see ``logpipe.model.zhu2020.checkpoint.warm_start``).
-        device: ``auto`` (CUDA when torch can use a GPU, else the CPU), ``cpu`` or ``cuda`` (autocast there; see
-            ``logpipe.model.training.device``).
+        init_from: start a new run from this checkpoint folder (``model.zhu2020.checkpoint.warm_start``).
+        device: ``auto`` (CUDA when torch can use a GPU, else the CPU), ``cpu`` or ``cuda`` (autocast there).
     """
     from logpipe.model.checkpoint.format import TrainingData, combined_kind, combined_manifest_hash
+    from logpipe.model.registry import driving_recipe
     from logpipe.model.residual.config import is_residual_config
     from logpipe.model.training.run_folder import run_folder, train_device
     from logpipe.model.zhu2020.fit import fit
     from logpipe.model.zhu2020.train_config import train_config, with_protocol_lengths
 
-    started = time.perf_counter()
+    started, callback = time.perf_counter(), progress if callable(progress) else None
     torch_device = train_device(device)  # a bad --device fails before any data is read
     datasets = _open_datasets([dataset_dir] if isinstance(dataset_dir, Path) else list(dataset_dir))
+    _check_lengths(datasets)  # one model: every dataset's windows of the same steps, which the config takes
+    recipe = driving_recipe(datasets) if config_path is None and preset is None else None
+    if recipe is not None:  # driving data without a config: the shipped driving default's recipe
+        from logpipe.model.residual.fleet import train_fleet
+
+        paper_only = [name for name, given in (("--steps", "steps" in (overrides or {})), ("--resume", resume), (
+            "--loader-workers", loader_workers > 0), ("--init-from", init_from is not None)) if given]
+        return cast(TrainSummary, train_fleet(
+            datasets, out_dir, shipped=recipe, train_split=train_split, val_split=val_split, raster_run=raster_run,
+            paper_only=paper_only, seed=(overrides or {}).get("seed"), progress=callback))
+    train_split, val_split = train_split or "hash/train", val_split if train_split else "hash/val"
     if config_path is not None and is_residual_config(config_path):  # the residual driving model (our extension)
         from logpipe.model.residual.run import train_residual
 
-        _check_lengths(datasets)
         summary: TrainSummary = train_residual(datasets, out_dir, config_path, train_split=train_split,
                                                val_split=val_split, overrides=overrides, raster_run=raster_run,
-                                               init_from=init_from, progress=progress if callable(progress) else None)
+                                               init_from=init_from, progress=callback)
         return summary
     config = train_config(config_path, overrides, preset)
-    _check_lengths(datasets)  # one model: every dataset's windows of the same steps, which the config takes
     config = with_protocol_lengths(config, datasets[0].protocol)
     inputs = _resolve_inputs(datasets, config, train_split, val_split, raster_run, loader_workers)
     with run_folder(out_dir):
@@ -154,8 +158,8 @@ class _Inputs:
 
 def _resolve_inputs(datasets: list[Dataset], config: TrainConfig, train_split: str, val_split: str | None,
                     raster_run: str | None, loader_workers: int) -> _Inputs:
-    """Each dataset's raster run (checked against the config's environment net), train/val logs and samples:
-    in memory, or streamed from the shards with ``loader_workers`` > 0."""
+    """Each dataset's raster run (checked against the environment net), train/val logs and samples (in memory, or
+    streamed from the shards with ``loader_workers`` > 0)."""
     runs = [find_raster_run(ds.root, raster_run, None) for ds in datasets]  # several unnamed runs: an error
     _check_rasters(datasets, runs, needed=config.model.features.environment)
     train_logs = _split_logs(datasets, train_split)
@@ -183,14 +187,12 @@ def _summary(dataset_dir: Path | Sequence[Path], out_dir: Path, inputs: _Inputs,
     """The run summary ``train`` returns (and ``logpipe train --json`` prints)."""
     datasets, runs, val_counts, val_samples = inputs.datasets, inputs.runs, inputs.val_counts, inputs.val_samples
     several = len(datasets) > 1
-    # The optional keys as records of their own, unpacked where they have always stood in the summary.
     per_dataset: TrainPerDataset = (
         {"per_dataset": [{"dataset": str(ds.root), "format": ds.kind, "train_samples": n,
                           "val_samples": val_counts[i] if val_counts else 0}
                          for i, (ds, n) in enumerate(zip(datasets, inputs.train_counts, strict=True))]}
         if several else {})
-    # A resumed run: where this part started, and the training wall time of all parts (None for a run whose
-    # earlier part predates the training state's clock).
+    # A resumed run: where this part started, and the wall time of all parts (None: an earlier part had no clock).
     resumed: TrainResumed = (
         {"resumed_at_step": result.resumed_at_step,
          "seconds_total": round(result.total_elapsed_s, 1) if math.isfinite(result.total_elapsed_s) else None}
@@ -223,7 +225,7 @@ def _summary(dataset_dir: Path | Sequence[Path], out_dir: Path, inputs: _Inputs,
 
 
 def _open_datasets(folders: Sequence[Path]) -> list[Dataset]:
-    """The datasets to train on, in the order given; one given twice would count its samples twice."""
+    """The datasets to train on, in the order given (one given twice would count its samples twice)."""
     if not folders:
         raise LogpipeError("give at least one dataset")
     seen: set[Path] = set()
@@ -246,8 +248,7 @@ def _check_lengths(datasets: Sequence[Dataset]) -> None:
 
 
 def _check_rasters(datasets: Sequence[Dataset], runs: Sequence[RasterShards | None], *, needed: bool) -> None:
-    """With the environment net on, either no dataset has rasters (it is then switched off, as for one dataset)
-    or every one has a run made with the same settings (one raster size and channel set for the network)."""
+    """With the environment net on, no dataset has rasters (it is then off) or every one has a run of one setting."""
     if not needed or len(datasets) < 2:
         return
     have = [str(ds.root) for ds, run in zip(datasets, runs, strict=True) if run is not None]
@@ -266,8 +267,7 @@ def _check_rasters(datasets: Sequence[Dataset], runs: Sequence[RasterShards | No
 
 
 def _split_logs(datasets: Sequence[Dataset], split: str) -> list[list[str]]:
-    """The logs of ``split`` in each dataset. With several datasets a dataset where the split selects no log
-    adds none (a hash split of a few logs can be empty); a split that selects none in any of them is an error."""
+    """The logs of ``split`` in each dataset; with several, one where it selects none adds none (an error in all)."""
     if len(datasets) == 1:
         return [datasets[0].logs_in_split(split)]
     found: list[list[str]] = []

@@ -29,7 +29,7 @@ from .config import ResidualConfig
 from .inputs import CROP_UNIT, TargetInputs, concat, target_inputs
 from .meta import ResidualMeta
 from .net import ResidualNet, training_loss
-from .ood import training_distribution, tune_fallback
+from .ood import training_distribution, tune_fallback, tune_spread
 
 LOG = "train_log.jsonl"
 
@@ -143,7 +143,9 @@ def fit_residual(  # noqa: PLR0913  the run's data, config and where it goes
         net.load_state_dict(load_residual(init_from)[0].state_dict())
     opt = torch.optim.Adam(net.parameters(), lr=config.lr, weight_decay=config.weight_decay)
     truth, scale = torch.from_numpy(train.truth), torch.from_numpy(train.scale.astype(np.float32))
-    ood = training_distribution(train) | {"fallback_kalman": tune_fallback(train, seed=config.seed)}
+    kalman = tune_fallback(train, seed=config.seed)
+    ood = training_distribution(train) | {"fallback_kalman": kalman,
+                                          "fallback_spread": tune_spread(train, kalman, seed=config.seed)}
     meta = ResidualMeta(config, dataset_kind, manifest_hash, 0, {}, ood, training_data=training_data)
     best_score, best_epoch, best_metrics, bad, seen, clock = math.inf, 0, {}, 0, 0, 0.0
     steps = best_step = 0

@@ -19,6 +19,7 @@ from logpipe.model.checkpoint.format import CheckpointError
 from logpipe.model.kinematic.adaptive_prior import adaptive_fit
 from logpipe.model.kinematic.kalman import KalmanCV
 from logpipe.model.residual.checkpoint import load_residual, save_residual
+from logpipe.model.residual.compare import compare
 from logpipe.model.residual.config import ResidualConfig, ResidualConfigError, load_residual_config
 from logpipe.model.residual.fit import collect, evaluate, fit_residual, forecast
 from logpipe.model.residual.inputs import CROP_CHANNELS, CROP_UNIT, target_inputs
@@ -96,6 +97,17 @@ def test_an_untrained_net_is_the_prior(scenes: list[SceneSample]) -> None:
         np.testing.assert_allclose(world[:, mode], prior, atol=1e-9)
 
 
+def test_the_comparison_says_plainly_when_the_model_does_not_beat_the_baselines(scenes: list[SceneSample]) -> None:
+    inputs, _ = collect(scenes, SMALL)
+    # Untrained, the mean head is the adaptive prior (above): it cannot beat it, and the verdict must say so.
+    result = compare(ResidualNet(SMALL).eval(), inputs, inputs, tune_fallback(inputs))
+    assert result["targets"] == len(inputs) and result["k1"]["model"] == result["k1"]["adaptive_prior"]
+    assert not result["beats"]["adaptive_prior"] and "does NOT beat" in result["verdict"]
+    assert "adaptive_prior (FDE" in result["verdict"]
+    assert result["min_fde_6"]["cv_sampler"] <= result["k1"]["cv"]["fde"]  # plain CV is one of the sampler's modes
+    assert result["cv_sampler"]["chosen_on"] == "training targets" and result["best_kinematic"] in result["k1"]
+
+
 def test_training_beats_the_prior_on_what_it_trained_on(scenes: list[SceneSample], tmp_path: Path) -> None:
     config = ResidualConfig(epochs=40, hidden=64, head_hidden=64, modes=3, lr=3e-3)
     inputs, windows = collect(scenes, config)
@@ -163,14 +175,34 @@ def test_out_of_distribution_targets_are_flagged_and_handled(scenes: list[SceneS
     checked, rows = OodCheck(ood, SMALL, "fallback")([fast, scenes[0]], forecasts)
     kalman = KalmanCV(pred_len=30, **ood["fallback_kalman"]).predict([fast], 1, 0)[0]
     assert rows[0][2].all() and not rows[1][2].any()
-    for mode in range(3):
-        np.testing.assert_allclose(checked[0][:, mode], kalman[:, 0])
+    np.testing.assert_allclose(checked[0][:, 0], kalman[:, 0])  # K = 1: the Kalman forecast
+    assert checked[0].shape[1] == 3  # fallback keeps the K modes: the prior plus a spread, never one mode
+    ends = checked[0][:, :, -1]
+    assert (np.linalg.norm(ends[:, 1:] - ends[:, :1], axis=-1) > 0.1).all()
+    assert (np.linalg.norm(ends[:, 1] - ends[:, 2], axis=-1) > 0.1).all()
     np.testing.assert_array_equal(checked[1], forecasts[1])  # inside: the network's forecast, untouched
     warned, rows = OodCheck(ood, SMALL, "warn")([fast], forecasts[:1])
     assert rows[0][1].all() and not rows[0][2].any()
     np.testing.assert_array_equal(warned[0], forecasts[0])
     with pytest.raises(LogpipeError, match="outside the checkpoint's training data"):
         OodCheck(ood, SMALL, "refuse")([fast], forecasts[:1])
+
+
+def test_unlabelled_types_and_resampled_input_are_flagged(scenes: list[SceneSample]) -> None:
+    inputs, _ = collect(scenes, SMALL)
+    ood = training_distribution(inputs)
+    assert ood["rates_hz"] == [10.0]
+    _, flags, _ = ood_scores(inputs, ood, np.full(len(inputs), np.nan))
+    assert flags.mean() < 0.02  # recorded at the training rate, not resampled: inside
+    _, flags, reasons = ood_scores(inputs, ood, np.full(len(inputs), 5.0))  # read as 10 Hz, recorded at 5
+    assert flags.all() and "recorded at 5 Hz and resampled to 10 Hz" in reasons[0]
+    _, flags, _ = ood_scores(inputs, ood, np.full(len(inputs), 10.0))  # resampled from a training rate: inside
+    assert flags.mean() < 0.02
+    unknown = dataclasses.replace(inputs, object_type=np.full(len(inputs), OBJECT_TYPES.index("unknown")))
+    ood_unknown = training_distribution(unknown)
+    assert "unknown" in ood_unknown["object_types"]  # trained on it, still no evidence of what it is
+    _, flags, reasons = ood_scores(unknown, ood_unknown)
+    assert flags.all() and "its format does not label it" in reasons[0]
 
 
 def test_a_target_off_the_map_is_flagged_only_where_training_never_had_one(scenes: list[SceneSample]) -> None:

@@ -12,12 +12,14 @@ import pyarrow.parquet as pq
 import pytest
 
 from logpipe import api
+from logpipe.dataset.reader import Dataset
 from logpipe.errors import LogpipeError
 from logpipe.model.residual.meta import read_residual_meta
 
 DATA = Path(__file__).resolve().parents[1] / "data" / "commonroad"
 SCENARIO = DATA / "USA_Peach-4_8_T-1.xml"
 FAST = "USA_Peach-9_9_T-1"
+SLOW = "USA_Peach-9_8_T-1"
 
 
 def _faster_copy(target: Path, factor: float = 3.0) -> None:
@@ -38,6 +40,15 @@ def _faster_copy(target: Path, factor: float = 3.0) -> None:
     tree.write(target)
 
 
+def _five_hz_copy(target: Path) -> None:
+    """The scenario's states as if recorded every 0.2 s: ingest resamples it to 10 Hz (``resampled_from_hz`` 5)."""
+    tree = ET.parse(SCENARIO)
+    root = tree.getroot()
+    root.set("benchmarkID", SLOW)
+    root.set("timeStepSize", "0.2")
+    tree.write(target)
+
+
 @pytest.fixture(scope="module")
 def trained(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
     work = tmp_path_factory.mktemp("residual_predict")
@@ -45,6 +56,7 @@ def trained(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
     inputs.mkdir()
     (inputs / SCENARIO.name).write_bytes(SCENARIO.read_bytes())
     _faster_copy(inputs / "fast.xml")
+    _five_hz_copy(inputs / "slow.xml")
     api.ingest(inputs, out=work / "ds", mcap=False)
     api.rasterise(work / "ds", rotate=True)
     config = work / "residual.toml"
@@ -67,9 +79,12 @@ def test_fast_targets_get_the_kalman_fallback_and_say_so(trained: tuple[Path, Pa
     assert any("outside the checkpoint's training data" in w for w in summary["warnings"])
     assert set(read_residual_meta(checkpoint).ood["fallback_kalman"]) == {"accel_std", "meas_std"}
     fell = table[table.fallback]
+    assert set(read_residual_meta(checkpoint).ood["fallback_spread"]) == {"heading_step_rad", "speed_step_frac"}
     for _, rows in fell.groupby(["sample_id", "track_id"]):
-        modes = np.stack(rows.sort_values("mode").x.to_list())
-        assert np.allclose(modes, modes[0])  # every mode is the one Kalman forecast
+        ordered = rows.sort_values("mode")
+        ends = np.stack([np.stack(ordered.x.to_list())[:, -1], np.stack(ordered.y.to_list())[:, -1]], -1)
+        assert len(ends) == 4  # the K modes kept: the Kalman forecast (mode 0) and a spread of it, never one mode
+        assert len({tuple(np.round(e, 3)) for e in ends}) == 4
     settings = json.loads((tmp_path / "pred" / "manifest.json").read_text())["settings"]
     assert settings["out_of_distribution"] == "fallback"
     with pytest.raises(LogpipeError, match="outside the checkpoint's training data"):
@@ -78,3 +93,18 @@ def test_fast_targets_get_the_kalman_fallback_and_say_so(trained: tuple[Path, Pa
     inside = api.predict(dataset, out=tmp_path / "inside", checkpoint=checkpoint,
                          filters=["log=USA_Peach-4_8_T-1"], mcap=False, out_of_distribution="refuse")
     assert inside["targets_out_of_distribution"] == 0 and inside["targets"] > 0
+
+
+def test_input_resampled_from_a_rate_training_never_had_is_flagged(trained: tuple[Path, Path], tmp_path: Path) -> None:
+    dataset, checkpoint = trained
+    logs = Dataset.open(dataset).logs().to_pylist()
+    assert [json.loads(r["attributes"])["resampled_from_hz"] for r in logs if r["log_id"] == SLOW] == [5.0]
+    summary = api.predict(dataset, out=tmp_path / "pred", checkpoint=checkpoint, filters=[f"log={SLOW}"],
+                          mcap=False, modes=4)
+    table = pq.read_table(tmp_path / "pred" / "predictions").to_pandas()
+    per_target = table.groupby(["sample_id", "track_id"]).ood_flag.first()
+    # Its windows read as 10 Hz, the training rate: only the recorded rate tells them apart.
+    assert summary["targets"] > 0 and per_target.all() and summary["targets_out_of_distribution"] == len(per_target)
+    same_rate = api.predict(dataset, out=tmp_path / "own", checkpoint=checkpoint,
+                            filters=["log=USA_Peach-4_8_T-1"], mcap=False)
+    assert same_rate["targets_out_of_distribution"] == 0
