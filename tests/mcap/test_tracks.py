@@ -86,17 +86,6 @@ def test_float_texts_equal_json_dumps_across_exponent_ranges() -> None:
     assert _json_floats(np.array([], dtype=np.float64)) == []
 
 
-def test_log_rows_slices_write_what_each_log_alone_writes(tmp_path: Path) -> None:
-    from logpipe.mcap.tracks import LogRows
-
-    two = pa.concat_tables([_log(True), _log(True)])
-    rows = LogRows.of(two)
-    assert len(rows) == 10
-    write_log_mcap("L", rows.slice(5, 10), tmp_path / "sliced.mcap", "MIA")
-    write_log_mcap("L", _log(True), tmp_path / "alone.mcap", "MIA")
-    assert _messages(tmp_path / "sliced.mcap") == _messages(tmp_path / "alone.mcap")
-
-
 def test_a_batch_of_logs_writes_one_file_per_log_as_each_log_alone(tmp_path: Path) -> None:
     from logpipe.mcap.tracks import write_log_mcaps
     from logpipe.types import LogMeta

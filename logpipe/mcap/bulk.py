@@ -1,0 +1,369 @@
+"""An MCAP file laid out whole from messages built in bulk: what ingest's per-log MCAPs and predict's are written with.
+
+Why not a record-by-record writer: a log's MCAP is a few hundred small messages whose bytes are already built
+(``logpipe.mcap.protobuf_splice``, per log); writing them through a writer's ``log`` call each (the Rust writer of
+``foxglove-sdk``, ``logpipe.mcap.native``) cost as much as building them. Here a channel's messages are handed over
+as one list, their 31-byte record headers are one numpy array, the chunk is one ``bytes.join``, and each chunk is
+compressed once (``COMPRESSION_LEVEL``). The framing records (header, schemas, channels, chunk and message indexes,
+statistics, metadata, summary offsets, footer) are the ``mcap`` library's own record classes, so the layout is the
+specification's as that library writes it: schemas and channels repeated in the summary, chunk and message indexes,
+statistics, a metadata index, summary offsets, the chunk, data-section and summary CRCs.
+
+What a file written here always has (as ``logpipe.mcap.native`` did, so readers see the same fields):
+
+* schema ids 1, 2, ... (identical schemas stored once) and channel ids in the order channels are added;
+* sequence numbers 1, 2, ... per channel in the order the messages were given, publish time = log time;
+* messages in log-time order (stable: ties keep channel order, then the given order), in chunks of at most
+  ``CHUNK_BYTES`` uncompressed (one chunk per ingest log); the first chunk carries the schema and channel records.
+
+``add_chunks`` copies another file's chunks and message indexes byte for byte (``logpipe.mcap.chunk_copy``).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import threading
+import zlib
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import zstandard
+from mcap.data_stream import RecordBuilder
+from mcap.opcode import Opcode
+from mcap.records import (
+    Channel,
+    Chunk,
+    ChunkIndex,
+    DataEnd,
+    Footer,
+    Header,
+    Metadata,
+    MetadataIndex,
+    Schema,
+    Statistics,
+    SummaryOffset,
+)
+from mcap.writer import LIBRARY_IDENTIFIER
+
+from logpipe import __version__
+
+MAGIC = b"\x89MCAP0\r\n"
+LIBRARY = f"logpipe {__version__} ({LIBRARY_IDENTIFIER})"
+COMPRESSION_LEVEL = 1
+"""zstd level of every chunk. Measured on the 69 real Argoverse 1 logs' MCAPs (``make bench``'s ``mcap_channels``):
+level 1 compresses them to 9.2% in ~0.6x the CPU of level 3 (8.9%, the writers' default); higher levels gain
+under 1% of size at 2-4x the CPU, negative levels lose a quarter of the size for little CPU."""
+CHUNK_BYTES = 8 << 20
+"""Largest uncompressed chunk: a prediction MCAP of a long log is several chunks, so a viewer seeking in it
+decompresses a few MB, not the file."""
+_HEADER = np.dtype([("op", "u1"), ("length", "<u8"), ("channel", "<u2"), ("sequence", "<u4"), ("log_time", "<u8"),
+                    ("publish_time", "<u8")])
+_compressors = threading.local()
+
+
+def _compress(data: bytes) -> bytes:
+    # A compressor per thread: zstandard's are not safe to share between threads, and one per chunk costs ~50 us.
+    compressor = getattr(_compressors, "zstd", None)
+    if compressor is None:
+        compressor = _compressors.zstd = zstandard.ZstdCompressor(level=COMPRESSION_LEVEL)
+    compressed: bytes = compressor.compress(data)
+    return compressed
+
+
+@dataclass(frozen=True)
+class Pieces:
+    """Messages as runs of byte strings: message i is the concatenation of ``objects[bounds[i]:bounds[i + 1]]``
+    (what ``logpipe.mcap.protobuf_splice`` builds: references to shared parts, joined only into the chunk).
+
+    Attributes:
+        objects: (pieces,) numpy object array of bytes; ``lengths``: (pieces,) their lengths.
+        bounds: (messages + 1,) int64, non-decreasing, from 0 to ``len(objects)``.
+    """
+
+    objects: np.ndarray
+    lengths: np.ndarray
+    bounds: np.ndarray
+
+    @classmethod
+    def of_messages(cls, messages: Sequence[bytes]) -> Pieces:
+        """One piece per message."""
+        objects = np.empty(len(messages), object)
+        objects[:] = list(messages)
+        return cls(objects, np.fromiter(map(len, messages), np.int64, len(messages)),
+                   np.arange(len(messages) + 1, dtype=np.int64))
+
+    def __len__(self) -> int:
+        return len(self.bounds) - 1
+
+    def part(self, first: int, stop: int) -> Pieces:
+        """Messages ``first`` .. ``stop - 1``."""
+        a, b = int(self.bounds[first]), int(self.bounds[stop])
+        return Pieces(self.objects[a:b], self.lengths[a:b], self.bounds[first : stop + 1] - a)
+
+    def sizes(self) -> np.ndarray:
+        """(messages,) bytes of each message."""
+        ends = np.concatenate([[0], np.cumsum(self.lengths)])
+        return np.asarray(ends[self.bounds[1:]] - ends[self.bounds[:-1]], np.int64)
+
+    def messages(self) -> list[bytes]:
+        """Each message's bytes."""
+        blob = b"".join(self.objects.tolist())
+        ends = np.concatenate([[0], np.cumsum(self.lengths)])[self.bounds].tolist()
+        return [blob[a:b] for a, b in zip(ends[:-1], ends[1:], strict=True)]
+
+
+@dataclass(frozen=True)
+class CopiedChunk:
+    """A chunk of another MCAP, copied unchanged: its record bytes (opcode to end) and message index records.
+
+    Attributes:
+        chunk: the Chunk record as read (``mcap.records.Chunk``), ``record``: its bytes in the file.
+        indexes: (channel id, MessageIndex record bytes) per channel with messages in it.
+        counts: messages per channel id in it.
+    """
+
+    chunk: Chunk
+    record: bytes
+    indexes: list[tuple[int, bytes]]
+    counts: dict[int, int]
+
+
+@dataclass
+class _Channel:
+    record: Channel
+    times: list[Any] = field(default_factory=list)
+    data: list[Pieces] = field(default_factory=list)
+
+
+class BulkMcap:
+    """One MCAP built in memory: add schemas and channels, then each channel's messages as lists, then ``write``."""
+
+    def __init__(self, profile: str = "") -> None:
+        self.profile = profile
+        self._schemas: dict[tuple[str, str, bytes], Schema] = {}
+        self._channels: list[_Channel] = []
+        self._metadata: list[Metadata] = []
+        self._copied: list[CopiedChunk] = []
+        self._copied_counts: dict[int, int] = {}
+        self._first_id = 1
+
+    def channel(self, topic: str, message_encoding: str, schema: tuple[str, str, bytes] | None,
+                metadata: dict[str, str] | None = None) -> int:
+        """A new channel's id; ``schema`` is (name, encoding, data), None for a schemaless channel."""
+        schema_id = 0
+        if schema is not None:
+            key = (schema[0], schema[1], bytes(schema[2]))
+            if key not in self._schemas:
+                self._schemas[key] = Schema(id=self._first_schema + len(self._schemas), name=key[0],
+                                            encoding=key[1], data=key[2])
+            schema_id = self._schemas[key].id
+        channel_id = self._first_id + len(self._channels)
+        self._channels.append(_Channel(Channel(id=channel_id, topic=topic, message_encoding=message_encoding,
+                                               metadata=dict(metadata or {}), schema_id=schema_id)))
+        return channel_id
+
+    def log(self, channel: int, log_times: Sequence[int] | np.ndarray, data: Sequence[bytes] | Pieces) -> None:
+        """Messages of ``channel`` (after any given before), message ``i`` of ``data`` at ``log_times[i]`` (ns)."""
+        pieces = data if isinstance(data, Pieces) else Pieces.of_messages(data)
+        if len(log_times) != len(pieces):
+            raise ValueError(f"{len(log_times)} times for {len(pieces)} messages")
+        target = self._channels[channel - self._first_id]
+        target.times.append(np.asarray(log_times, np.uint64))
+        target.data.append(pieces)
+
+    def metadata(self, name: str, values: dict[str, str]) -> None:
+        """A metadata record."""
+        self._metadata.append(Metadata(name=name, metadata=dict(values)))
+
+    def copy_chunks(self, schemas: Sequence[Schema], channels: Sequence[Channel], chunks: Sequence[CopiedChunk]) -> None:
+        """Carry another MCAP's schemas, channels and chunks unchanged (before any ``channel`` call): its ids
+        stay, and the channels added next are numbered after them."""
+        if self._channels or self._schemas:
+            raise RuntimeError("copy the original's chunks before adding channels")
+        self._copied_schemas = list(schemas)
+        self._copied_channels = list(channels)
+        self._copied = list(chunks)
+        for c in chunks:
+            for channel_id, count in c.counts.items():
+                self._copied_counts[channel_id] = self._copied_counts.get(channel_id, 0) + count
+        self._first_id = max((c.id for c in channels), default=0) + 1
+
+    @property
+    def _first_schema(self) -> int:
+        return max((s.id for s in getattr(self, "_copied_schemas", [])), default=0) + 1
+
+    def write(self, target: Path) -> tuple[int, str]:
+        """Write the file (``target`` in a folder nobody reads yet, or a temp path); its size and sha256."""
+        blob = self.to_bytes()
+        target.parent.mkdir(parents=True, exist_ok=True)
+        target.write_bytes(blob)
+        return len(blob), hashlib.sha256(blob).hexdigest()
+
+    def to_bytes(self) -> bytes:
+        """The whole file."""
+        out = RecordBuilder()
+        out.write(MAGIC)
+        Header(profile=self.profile, library=LIBRARY).write(out)
+        chunk_indexes: list[ChunkIndex] = []
+        for copied in self._copied:
+            chunk_indexes.append(_place(out, copied.chunk, copied.record, copied.indexes))
+        times, order, pieces, channel_of = self._ordered()
+        counts = dict(self._copied_counts)
+        for ch in self._channels:
+            n = sum(len(t) for t in ch.times)
+            if n:
+                counts[ch.record.id] = n
+        prefix = RecordBuilder()
+        for schema in self._schemas.values():
+            schema.write(prefix)
+        for ch in self._channels:
+            ch.record.write(prefix)
+        chunk_indexes += self._chunks(out, prefix.end(), times, order, pieces, channel_of)
+        metadata_indexes = []
+        for record in self._metadata:
+            start = out.count
+            record.write(out)
+            metadata_indexes.append(MetadataIndex(offset=start, length=out.count - start, name=record.name))
+        data = out.end()
+        data_end = RecordBuilder()
+        DataEnd(zlib.crc32(data)).write(data_end)
+        data += data_end.end()
+        return data + self._summary(len(data), chunk_indexes, metadata_indexes, counts)
+
+    def _ordered(self) -> tuple[np.ndarray, np.ndarray, Pieces, np.ndarray]:
+        """Every added message's time, the log-time order, the messages, and (channel id, sequence) per message."""
+        parts = [(ch.record.id, t, p) for ch in self._channels for t, p in zip(ch.times, ch.data, strict=True)]
+        if not parts:
+            empty = np.zeros(0, np.int64)
+            return empty.astype(np.uint64), empty, Pieces(np.empty(0, object), empty, np.zeros(1, np.int64)), \
+                np.zeros((2, 0), np.int64)
+        times = np.concatenate([t for _, t, _ in parts])
+        counts = [len(t) for _, t, _ in parts]
+        ids = np.repeat(np.array([i for i, _, _ in parts], np.int64), counts)
+        # Sequence numbers run on across a channel's calls: 1-based rank within the channel, in call order.
+        first = np.flatnonzero(np.concatenate([[True], ids[1:] != ids[:-1]]))
+        sequences = np.arange(len(ids)) - np.repeat(first, np.diff(np.append(first, len(ids)))) + 1
+        offsets = np.cumsum([0, *(len(p.objects) for _, _, p in parts)])
+        bounds = np.concatenate([p.bounds[:-1] + o for (_, _, p), o in zip(parts, offsets[:-1], strict=True)]
+                                + [offsets[-1:]])
+        pieces = Pieces(np.concatenate([p.objects for _, _, p in parts]),
+                        np.concatenate([p.lengths for _, _, p in parts]), bounds.astype(np.int64))
+        return times, np.argsort(times, kind="stable"), pieces, np.stack([ids, sequences])
+
+    def _chunks(self, out: RecordBuilder, prefix: bytes, times: np.ndarray, order: np.ndarray, pieces: Pieces,
+                channel_of: np.ndarray) -> list[ChunkIndex]:
+        """The added messages as chunks of at most ``CHUNK_BYTES`` (the first led by ``prefix``)."""
+        n = len(order)
+        if n == 0:
+            return []
+        sizes = pieces.sizes()[order]
+        headers = np.empty(n, _HEADER)
+        headers["op"] = int(Opcode.MESSAGE)
+        headers["length"] = sizes + 22
+        headers["channel"] = channel_of[0][order]
+        headers["sequence"] = channel_of[1][order]
+        headers["log_time"] = headers["publish_time"] = times[order]
+        raw = headers.tobytes()
+        heads = np.empty(n, object)
+        heads[:] = [raw[i : i + 31] for i in range(0, 31 * n, 31)]
+        # Each message's header, then its pieces, in log-time order: one index array, one join per chunk.
+        counts = np.diff(pieces.bounds)[order]
+        block = np.cumsum(counts + 1)
+        objects = np.concatenate([pieces.objects, heads])
+        index = np.empty(int(block[-1]), np.int64)
+        index[block - counts - 1] = len(pieces.objects) + np.arange(n)
+        is_piece = np.ones(len(index), bool)
+        is_piece[block - counts - 1] = False
+        index[is_piece] = np.arange(int(counts.sum())) + np.repeat(pieces.bounds[:-1][order] - (np.cumsum(counts)
+                                                                                                - counts), counts)
+        ends = np.cumsum(sizes + 31)
+        cut = np.searchsorted(ends, np.arange(1, int(ends[-1]) // CHUNK_BYTES + 1) * CHUNK_BYTES, side="right")
+        bounds = [0, *sorted({int(c) for c in cut if 0 < c < n}), n]
+        indexes = []
+        for lo, hi in zip(bounds[:-1], bounds[1:], strict=True):
+            lead = prefix if lo == 0 else b""
+            first_piece = int(block[lo - 1]) if lo else 0
+            body = lead + b"".join(objects[index[first_piece : int(block[hi - 1])]].tolist())
+            offsets = len(lead) + np.concatenate([[0], ends[lo : hi - 1] - (ends[lo - 1] if lo else 0)])
+            chunk = Chunk(compression="zstd", data=_compress(body), message_start_time=int(times[order[lo]]),
+                          message_end_time=int(times[order[hi - 1]]), uncompressed_crc=zlib.crc32(body),
+                          uncompressed_size=len(body))
+            indexes.append(_place(out, chunk, None, _message_indexes(headers[lo:hi], offsets)))
+        return indexes
+
+    def _summary(self, start: int, chunk_indexes: list[ChunkIndex], metadata_indexes: list[MetadataIndex],
+                 counts: dict[int, int]) -> bytes:
+        """Summary section and footer, for a summary starting at file offset ``start``."""
+        summary = RecordBuilder()
+        offsets = []
+        schemas = [*getattr(self, "_copied_schemas", []), *self._schemas.values()]
+        channels = [*getattr(self, "_copied_channels", []), *(c.record for c in self._channels)]
+        all_chunks = chunk_indexes
+        times = [(c.message_start_time, c.message_end_time) for c in all_chunks]
+        statistics = Statistics(
+            message_count=sum(counts.values()), schema_count=len(schemas), channel_count=len(channels),
+            attachment_count=0, metadata_count=len(self._metadata), chunk_count=len(all_chunks),
+            message_start_time=min((t[0] for t in times), default=0),
+            message_end_time=max((t[1] for t in times), default=0),
+            channel_message_counts={c.id: counts[c.id] for c in channels if c.id in counts})
+        groups: list[tuple[Opcode, Sequence[Any]]] = [
+            (Opcode.SCHEMA, schemas), (Opcode.CHANNEL, channels), (Opcode.STATISTICS, [statistics]),
+            (Opcode.CHUNK_INDEX, all_chunks), (Opcode.METADATA_INDEX, metadata_indexes)]
+        for opcode, records in groups:
+            if not records:
+                continue
+            group_start = summary.count
+            for record in records:
+                record.write(summary)
+            offsets.append(SummaryOffset(group_opcode=opcode, group_start=start + group_start,
+                                         group_length=summary.count - group_start))
+        offset_start = start + summary.count
+        for offset in offsets:
+            offset.write(summary)
+        footer = RecordBuilder()
+        Footer(summary_start=start, summary_offset_start=offset_start, summary_crc=0).write(footer)
+        head = footer.end()[:-4]  # the CRC covers the summary and the footer up to the CRC itself
+        body = summary.end()
+        crc = zlib.crc32(head, zlib.crc32(body))
+        return body + head + crc.to_bytes(4, "little") + MAGIC
+
+
+def _message_indexes(headers: np.ndarray, offsets: np.ndarray) -> list[tuple[int, bytes]]:
+    """(channel id, MessageIndex record) per channel of a chunk's messages (``headers``) at ``offsets``."""
+    out = []
+    channels = headers["channel"]
+    for channel in np.unique(channels).tolist():
+        rows = np.flatnonzero(channels == channel)
+        pairs = np.empty((len(rows), 2), "<u8")
+        pairs[:, 0], pairs[:, 1] = headers["log_time"][rows], offsets[rows]
+        body = pairs.tobytes()
+        record = RecordBuilder()
+        record.start_record(Opcode.MESSAGE_INDEX)
+        record.write2(channel)
+        record.write4(len(body))
+        record.write(body)
+        record.finish_record()
+        out.append((channel, record.end()))
+    return out
+
+
+def _place(out: RecordBuilder, chunk: Chunk, record: bytes | None, indexes: list[tuple[int, bytes]]) -> ChunkIndex:
+    """Write a chunk (its bytes as read when given) and its message indexes to ``out``; its chunk index."""
+    start = out.count
+    if record is None:
+        chunk.write(out)
+    else:
+        out.write(record)
+    length = out.count - start
+    index_start = out.count
+    offsets = {}
+    for channel, index in indexes:
+        offsets[channel] = out.count
+        out.write(index)
+    return ChunkIndex(message_start_time=chunk.message_start_time, message_end_time=chunk.message_end_time,
+                      chunk_start_offset=start, chunk_length=length, message_index_offsets=offsets,
+                      message_index_length=out.count - index_start, compression=chunk.compression,
+                      compressed_size=len(chunk.data), uncompressed_size=chunk.uncompressed_size)
