@@ -22,10 +22,12 @@ What a file written here always has (as ``logpipe.mcap.native`` did, so readers 
 from __future__ import annotations
 
 import hashlib
+import struct
 import threading
 import zlib
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from functools import lru_cache
 from pathlib import Path
 from typing import Any
 
@@ -62,6 +64,7 @@ decompresses a few MB, not the file."""
 _HEADER = np.dtype([("op", "u1"), ("length", "<u8"), ("channel", "<u2"), ("sequence", "<u4"), ("log_time", "<u8"),
                     ("publish_time", "<u8")])
 _compressors = threading.local()
+_INDEX_HEAD = struct.Struct("<BQHI")
 
 
 def _compress(data: bytes) -> bytes:
@@ -216,12 +219,8 @@ class BulkMcap:
             n = sum(len(t) for t in ch.times)
             if n:
                 counts[ch.record.id] = n
-        prefix = RecordBuilder()
-        for schema in self._schemas.values():
-            schema.write(prefix)
-        for ch in self._channels:
-            ch.record.write(prefix)
-        chunk_indexes += self._chunks(out, prefix.end(), times, order, pieces, channel_of)
+        prefix = b"".join([*map(_record_bytes, self._schemas.values()), *(_record_bytes(c.record) for c in self._channels)])
+        chunk_indexes += self._chunks(out, prefix, times, order, pieces, channel_of)
         metadata_indexes = []
         for record in self._metadata:
             start = out.count
@@ -317,7 +316,10 @@ class BulkMcap:
                 continue
             group_start = summary.count
             for record in records:
-                record.write(summary)
+                if isinstance(record, Schema | Channel):
+                    summary.write(_record_bytes(record))
+                else:
+                    record.write(summary)
             offsets.append(SummaryOffset(group_opcode=opcode, group_start=start + group_start,
                                          group_length=summary.count - group_start))
         offset_start = start + summary.count
@@ -331,22 +333,38 @@ class BulkMcap:
         return body + head + crc.to_bytes(4, "little") + MAGIC
 
 
+def _record_bytes(record: Schema | Channel) -> bytes:
+    """A schema or channel record's bytes: the same few recur in every file of a run, so each is encoded once."""
+    if isinstance(record, Schema):
+        return _encoded(record.id, record.name, record.encoding, record.data)
+    return _encoded(record.id, record.topic, record.message_encoding, record.schema_id,
+                    tuple(record.metadata.items()))
+
+
+@lru_cache(maxsize=256)
+def _encoded(*fields: Any) -> bytes:
+    if len(fields) == 4:
+        record: Schema | Channel = Schema(id=fields[0], name=fields[1], encoding=fields[2], data=fields[3])
+    else:
+        record = Channel(id=fields[0], topic=fields[1], message_encoding=fields[2], schema_id=fields[3],
+                         metadata=dict(fields[4]))
+    out = RecordBuilder()
+    record.write(out)
+    return bytes(out.end())
+
+
 def _message_indexes(headers: np.ndarray, offsets: np.ndarray) -> list[tuple[int, bytes]]:
     """(channel id, MessageIndex record) per channel of a chunk's messages (``headers``) at ``offsets``."""
-    out = []
     channels = headers["channel"]
-    for channel in np.unique(channels).tolist():
-        rows = np.flatnonzero(channels == channel)
-        pairs = np.empty((len(rows), 2), "<u8")
-        pairs[:, 0], pairs[:, 1] = headers["log_time"][rows], offsets[rows]
-        body = pairs.tobytes()
-        record = RecordBuilder()
-        record.start_record(Opcode.MESSAGE_INDEX)
-        record.write2(channel)
-        record.write4(len(body))
-        record.write(body)
-        record.finish_record()
-        out.append((channel, record.end()))
+    order = np.argsort(channels, kind="stable")
+    pairs = np.empty((len(order), 2), "<u8")
+    pairs[:, 0], pairs[:, 1] = headers["log_time"][order], offsets[order]
+    blob = pairs.tobytes()
+    ids, first, counts = np.unique(channels[order], return_index=True, return_counts=True)
+    out = []
+    for channel, at, count in zip(ids.tolist(), first.tolist(), counts.tolist(), strict=True):
+        body = blob[16 * at : 16 * (at + count)]
+        out.append((channel, _INDEX_HEAD.pack(int(Opcode.MESSAGE_INDEX), 6 + len(body), channel, len(body)) + body))
     return out
 
 

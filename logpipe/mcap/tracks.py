@@ -127,10 +127,6 @@ class JsonColumn:
         lengths = np.fromiter(map(len, texts), np.int64, len(texts))[codes]
         return cls(b"".join(table[codes].tolist()), np.concatenate([[0], np.cumsum(lengths)]))
 
-    def rows(self, lo: int, hi: int) -> bytes:
-        """The texts of rows ``lo:hi``, comma-separated."""
-        return self.text[self.offsets[lo] : self.offsets[hi] - 1] if hi > lo else b""
-
 
 @dataclass
 class LogRows:
@@ -237,7 +233,7 @@ def _write_logs(rows: LogRows, runs: list[tuple[str, int, int]], targets: dict[s
         writer = BulkMcap()
         writer.metadata("logpipe", {"log_id": log_id, "map_id": maps.get(log_id) or "", "frame_id": WORLD_FRAME,
                                     "root_frame_id": LOG_FRAME, "centre_x": repr(cx), "centre_y": repr(cy)})
-        writer.log(_register(writer, AGENTS_TOPIC, "logpipe.AgentStates"), step_ts, batch.agents[a:b])
+        writer.log(_register(writer, AGENTS_TOPIC, "logpipe.AgentStates"), step_ts, batch.agents.part(a, b))
         writer.log(_register_protobuf(writer, SCENE_TOPIC, SceneUpdate), step_ts, batch.scenes.part(a, b))
         tf = _register_protobuf(writer, TF_TOPIC, FrameTransform)
         t0 = step_ts[:1].tolist()
@@ -269,7 +265,7 @@ class _BatchMessages:
     """
 
     step_ts: np.ndarray
-    agents: list[bytes]
+    agents: Pieces
     scenes: Pieces
     log_steps: list[int]
     ego_ts: np.ndarray
@@ -308,19 +304,26 @@ class _BatchMessages:
             log_ego=np.searchsorted(ego, [lo for _, lo, _ in runs] + [n]).tolist())
 
 
-def _agent_json(rows: LogRows, starts: np.ndarray, log_ids: list[str], log_of_row: np.ndarray) -> list[bytes]:
+def _agent_json(rows: LogRows, starts: np.ndarray, log_ids: list[str], log_of_row: np.ndarray) -> Pieces:
     """The ``/logpipe/agents`` message of each step (rows ``starts[i]:starts[i + 1]``): the same bytes as
-    ``json.dumps`` of the documented dict (key order kept), each array one slice of its ``JsonColumn``."""
+    ``json.dumps`` of the documented dict (key order kept), as pieces: a head per step, then per array its key,
+    a view of the step's rows in its ``JsonColumn`` (no copy until the chunk is joined) and its bracket."""
     frame_text = json.dumps(WORLD_FRAME)
     log_texts = [json.dumps(i) for i in log_ids]
-    columns = [(f',"{name}":['.encode(), column) for name, column in rows.json.items()]
-    bounds = [*starts.tolist(), len(rows)]
-    out = []
-    for lo, hi, t, step, log in zip(bounds[:-1], bounds[1:], rows.ts[starts].tolist(), rows.steps[starts].tolist(),
-                                    log_of_row[starts].tolist(), strict=True):
-        parts = [f'{{"log_id":{log_texts[log]},"timestamp_ns":{t},"step":{step},"frame_id":{frame_text}'.encode()]
-        for key, column in columns:
-            parts += [key, column.rows(lo, hi), b"]"]
-        parts.append(b"}")
-        out.append(b"".join(parts))
-    return out
+    ends = np.append(starts[1:], len(rows))
+    heads = [f'{{"log_id":{log_texts[log]},"timestamp_ns":{t},"step":{step},"frame_id":{frame_text}'.encode()
+             for t, step, log in zip(rows.ts[starts].tolist(), rows.steps[starts].tolist(),
+                                     log_of_row[starts].tolist(), strict=True)]
+    width = 2 + 3 * len(rows.json)  # pieces per message
+    objects = np.empty(len(starts) * width, object)
+    lengths = np.empty(len(starts) * width, np.int64)
+    objects[0::width], lengths[0::width] = heads, np.fromiter(map(len, heads), np.int64, len(heads))
+    for j, (name, column) in enumerate(rows.json.items()):
+        key, view = f',"{name}":['.encode(), memoryview(column.text)
+        lo, hi = column.offsets[starts], column.offsets[ends] - 1
+        objects[1 + 3 * j :: width], lengths[1 + 3 * j :: width] = key, len(key)
+        objects[2 + 3 * j :: width] = [view[a:b] for a, b in zip(lo.tolist(), hi.tolist(), strict=True)]
+        lengths[2 + 3 * j :: width] = hi - lo
+        objects[3 + 3 * j :: width], lengths[3 + 3 * j :: width] = b"]", 1
+    objects[width - 1 :: width], lengths[width - 1 :: width] = b"}", 1
+    return Pieces(objects, lengths, np.arange(0, len(objects) + 1, width, dtype=np.int64))
