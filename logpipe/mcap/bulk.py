@@ -151,6 +151,9 @@ class BulkMcap:
         self._metadata: list[Metadata] = []
         self._copied: list[CopiedChunk] = []
         self._copied_counts: dict[int, int] = {}
+        self._copied_schemas: list[Schema] = []
+        self._copied_channels: list[Channel] = []
+        self._copied_schema_ids: dict[tuple[str, str, bytes], int] = {}
         self._first_id = 1
 
     def channel(self, topic: str, message_encoding: str, schema: tuple[str, str, bytes] | None,
@@ -159,10 +162,11 @@ class BulkMcap:
         schema_id = 0
         if schema is not None:
             key = (schema[0], schema[1], bytes(schema[2]))
-            if key not in self._schemas:
+            known = self._copied_schema_ids.get(key)
+            if known is None and key not in self._schemas:
                 self._schemas[key] = Schema(id=self._first_schema + len(self._schemas), name=key[0],
                                             encoding=key[1], data=key[2])
-            schema_id = self._schemas[key].id
+            schema_id = known if known is not None else self._schemas[key].id
         channel_id = self._first_id + len(self._channels)
         self._channels.append(_Channel(Channel(id=channel_id, topic=topic, message_encoding=message_encoding,
                                                metadata=dict(metadata or {}), schema_id=schema_id)))
@@ -188,6 +192,8 @@ class BulkMcap:
             raise RuntimeError("copy the original's chunks before adding channels")
         self._copied_schemas = list(schemas)
         self._copied_channels = list(channels)
+        # An appended channel whose schema the original has uses the original's (as a writer deduplicates).
+        self._copied_schema_ids = {(s.name, s.encoding, bytes(s.data)): s.id for s in reversed(schemas)}
         self._copied = list(chunks)
         for c in chunks:
             for channel_id, count in c.counts.items():
@@ -196,7 +202,7 @@ class BulkMcap:
 
     @property
     def _first_schema(self) -> int:
-        return max((s.id for s in getattr(self, "_copied_schemas", [])), default=0) + 1
+        return max((s.id for s in self._copied_schemas), default=0) + 1
 
     def write(self, target: Path) -> tuple[int, str]:
         """Write the file (``target`` in a folder nobody reads yet, or a temp path); its size and sha256."""
@@ -298,8 +304,8 @@ class BulkMcap:
         """Summary section and footer, for a summary starting at file offset ``start``."""
         summary = RecordBuilder()
         offsets = []
-        schemas = [*getattr(self, "_copied_schemas", []), *self._schemas.values()]
-        channels = [*getattr(self, "_copied_channels", []), *(c.record for c in self._channels)]
+        schemas = [*self._copied_schemas, *self._schemas.values()]
+        channels = [*self._copied_channels, *(c.record for c in self._channels)]
         all_chunks = chunk_indexes
         times = [(c.message_start_time, c.message_end_time) for c in all_chunks]
         statistics = Statistics(

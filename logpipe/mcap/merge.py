@@ -40,6 +40,8 @@ from mcap.writer import CompressionType, Writer
 
 from logpipe import __version__
 from logpipe.errors import SourceError
+from logpipe.mcap.bulk import BulkMcap
+from logpipe.mcap.chunk_copy import ChunkedOriginal, read_chunked
 from logpipe.mcap.native import NativeMcap
 from logpipe.storage.io import atomic_path
 
@@ -145,6 +147,9 @@ def write_merged(
     Raises:
         SourceError: a source cannot be read.
     """
+    chunked = _chunked_original(sources)
+    if chunked is not None:
+        return _write_chunked(target, chunked, channels, messages, metadata or {})
     records = _native_records(sources)
     if records is not None:
         return _write_native(target, records, channels, messages, metadata or {})
@@ -193,6 +198,39 @@ one chunk each, written at ``close``: nothing to overlap there."""
 
 NATIVE_MAX_BYTES = 64 << 20
 """Largest original read whole to check it for the native writer (ingest's MCAPs are a few hundred KB)."""
+
+
+def _chunked_original(sources: Sequence[Source]) -> ChunkedOriginal | None:
+    """The one MCAP source read for a chunk copy (``logpipe.mcap.chunk_copy``), None where that does not apply."""
+    if len(sources) != 1 or sources[0].kind != "mcap" or len(sources[0].paths) != 1:
+        return None
+    return read_chunked(sources[0].paths[0], sources[0].name)
+
+
+def _write_chunked(target: Path, original: ChunkedOriginal, channels: Sequence[NewChannel],
+                   messages: Iterable[NewMessage], metadata: dict[str, dict[str, str]]) -> MergeStats:
+    """``write_merged`` of an original copied by chunk, the appended messages laid out whole (``BulkMcap``)."""
+    writer = BulkMcap(original.profile)
+    writer.copy_chunks(original.schemas, original.channels, original.chunks)
+    for record in original.metadata:
+        writer.metadata(record.name, dict(record.metadata))
+    times: list[list[int]] = [[] for _ in channels]
+    data: list[list[bytes]] = [[] for _ in channels]
+    for m in messages:
+        if m.publish_time != m.log_time:
+            raise ValueError("appended messages are written with publish time = log time")
+        times[m.channel].append(m.log_time)
+        data[m.channel].append(m.data)
+    for c, channel_times, channel_data in zip(channels, times, data, strict=True):
+        if channel_times:  # as the native writer did: no record for a channel without messages
+            writer.log(writer.channel(c.topic, c.message_encoding, (c.schema_name, c.schema_encoding, c.schema_data),
+                                      dict(c.metadata)), channel_times, channel_data)
+    for name, values in metadata.items():
+        writer.metadata(name, values)
+    with atomic_path(target) as tmp:
+        writer.write(tmp)
+    return MergeStats(schemas=len(original.schemas), channels=len(original.channels), messages=original.messages,
+                      metadata=len(original.metadata), appended=sum(map(len, times)))
 
 
 def _native_records(sources: Sequence[Source]) -> list[Any] | None:
