@@ -168,7 +168,7 @@ def mcap_floor_cpu(folder: Path, n_files: int = 1000) -> float:
         part.mkdir()
         files = sorted(folder.glob("*.csv"))[:n_files]
         for f in files:
-            (part / f.name).symlink_to(f)
+            (part / f.name).write_bytes(f.read_bytes())  # links to outside are refused
         ingest([part], IngestOptions(out=Path(tmp) / "ds", write_mcap=True, workers=1))
         logs = [mcap_records(path) for path in sorted((Path(tmp) / "ds").rglob("*.mcap"))]
         start = time.process_time()

@@ -240,10 +240,8 @@ def _ingest_batch(job: _BatchJob) -> _BatchResult:
 
         folder = mcap_folder(job.shard_file)
         written = write_log_mcap_files(tracks, kept, staging / folder, parsed.maps)
-        messages = sum(n for n, _, _ in written.values())
-        # Sizes and digests of the bytes just written, not read back (a third of a small log's MCAP cost).
-        files |= {f"{folder}/{path.name}": {"bytes": size, "sha256": digest}
-                  for path, (_, size, digest) in sorted(written.items())}
+        messages = sum(n for n, _, _ in written.values())  # sizes and digests of the bytes written, not read back
+        files |= {f"{folder}/{p.name}": {"bytes": b, "sha256": d} for p, (_, b, d) in sorted(written.items())}
     if parsed.maps:  # inputs that carry their map (CommonRoad): the dataset keeps it for rasterise
         from logpipe.maps.store import write_stores
 

@@ -22,6 +22,7 @@ What a file written here always has (as ``logpipe.mcap.native`` did, so readers 
 from __future__ import annotations
 
 import hashlib
+import itertools
 import struct
 import threading
 import zlib
@@ -67,11 +68,12 @@ _compressors = threading.local()
 _INDEX_HEAD = struct.Struct("<BQHI")
 
 
-def _compress(data: bytes) -> bytes:
+def _compress(data: bytes, level: int) -> bytes:
     # A compressor per thread: zstandard's are not safe to share between threads, and one per chunk costs ~50 us.
-    compressor = getattr(_compressors, "zstd", None)
+    compressors = _compressors.__dict__.setdefault("zstd", {})
+    compressor = compressors.get(level)
     if compressor is None:
-        compressor = _compressors.zstd = zstandard.ZstdCompressor(level=COMPRESSION_LEVEL)
+        compressor = compressors[level] = zstandard.ZstdCompressor(level=level)
     compressed: bytes = compressor.compress(data)
     return compressed
 
@@ -115,7 +117,7 @@ class Pieces:
         """Each message's bytes."""
         blob = b"".join(self.objects.tolist())
         ends = np.concatenate([[0], np.cumsum(self.lengths)])[self.bounds].tolist()
-        return [blob[a:b] for a, b in zip(ends[:-1], ends[1:], strict=True)]
+        return [blob[a:b] for a, b in itertools.pairwise(ends)]
 
 
 @dataclass(frozen=True)
@@ -144,8 +146,9 @@ class _Channel:
 class BulkMcap:
     """One MCAP built in memory: add schemas and channels, then each channel's messages as lists, then ``write``."""
 
-    def __init__(self, profile: str = "") -> None:
+    def __init__(self, profile: str = "", compression_level: int = COMPRESSION_LEVEL) -> None:
         self.profile = profile
+        self.compression_level = compression_level
         self._schemas: dict[tuple[str, str, bytes], Schema] = {}
         self._channels: list[_Channel] = []
         self._metadata: list[Metadata] = []
@@ -185,7 +188,8 @@ class BulkMcap:
         """A metadata record."""
         self._metadata.append(Metadata(name=name, metadata=dict(values)))
 
-    def copy_chunks(self, schemas: Sequence[Schema], channels: Sequence[Channel], chunks: Sequence[CopiedChunk]) -> None:
+    def copy_chunks(self, schemas: Sequence[Schema], channels: Sequence[Channel],
+                    chunks: Sequence[CopiedChunk]) -> None:
         """Carry another MCAP's schemas, channels and chunks unchanged (before any ``channel`` call): its ids
         stay, and the channels added next are numbered after them."""
         if self._channels or self._schemas:
@@ -225,17 +229,18 @@ class BulkMcap:
             n = sum(len(t) for t in ch.times)
             if n:
                 counts[ch.record.id] = n
-        prefix = b"".join([*map(_record_bytes, self._schemas.values()), *(_record_bytes(c.record) for c in self._channels)])
+        prefix = b"".join([*map(_record_bytes, self._schemas.values()),
+                           *(_record_bytes(c.record) for c in self._channels)])
         chunk_indexes += self._chunks(out, prefix, times, order, pieces, channel_of)
         metadata_indexes = []
         for record in self._metadata:
             start = out.count
             record.write(out)
             metadata_indexes.append(MetadataIndex(offset=start, length=out.count - start, name=record.name))
-        data = out.end()
+        data = _end(out)
         data_end = RecordBuilder()
         DataEnd(zlib.crc32(data)).write(data_end)
-        data += data_end.end()
+        data += _end(data_end)
         return data + self._summary(len(data), chunk_indexes, metadata_indexes, counts)
 
     def _ordered(self) -> tuple[np.ndarray, np.ndarray, Pieces, np.ndarray]:
@@ -288,14 +293,14 @@ class BulkMcap:
         cut = np.searchsorted(ends, np.arange(1, int(ends[-1]) // CHUNK_BYTES + 1) * CHUNK_BYTES, side="right")
         bounds = [0, *sorted({int(c) for c in cut if 0 < c < n}), n]
         indexes = []
-        for lo, hi in zip(bounds[:-1], bounds[1:], strict=True):
+        for lo, hi in itertools.pairwise(bounds):
             lead = prefix if lo == 0 else b""
             first_piece = int(block[lo - 1]) if lo else 0
             body = lead + b"".join(objects[index[first_piece : int(block[hi - 1])]].tolist())
             offsets = len(lead) + np.concatenate([[0], ends[lo : hi - 1] - (ends[lo - 1] if lo else 0)])
-            chunk = Chunk(compression="zstd", data=_compress(body), message_start_time=int(times[order[lo]]),
-                          message_end_time=int(times[order[hi - 1]]), uncompressed_crc=zlib.crc32(body),
-                          uncompressed_size=len(body))
+            chunk = Chunk(compression="zstd", data=_compress(body, self.compression_level),
+                          message_start_time=int(times[order[lo]]), message_end_time=int(times[order[hi - 1]]),
+                          uncompressed_crc=zlib.crc32(body), uncompressed_size=len(body))
             indexes.append(_place(out, chunk, None, _message_indexes(headers[lo:hi], offsets)))
         return indexes
 
@@ -333,8 +338,8 @@ class BulkMcap:
             offset.write(summary)
         footer = RecordBuilder()
         Footer(summary_start=start, summary_offset_start=offset_start, summary_crc=0).write(footer)
-        head = footer.end()[:-4]  # the CRC covers the summary and the footer up to the CRC itself
-        body = summary.end()
+        head = _end(footer)[:-4]  # the CRC covers the summary and the footer up to the CRC itself
+        body = _end(summary)
         crc = zlib.crc32(head, zlib.crc32(body))
         return body + head + crc.to_bytes(4, "little") + MAGIC
 
@@ -356,7 +361,12 @@ def _encoded(*fields: Any) -> bytes:
                          metadata=dict(fields[4]))
     out = RecordBuilder()
     record.write(out)
-    return bytes(out.end())
+    return _end(out)
+
+
+def _end(builder: RecordBuilder) -> bytes:
+    """The bytes a ``RecordBuilder`` holds (the ``mcap`` package is untyped)."""
+    return bytes(builder.end())  # type: ignore[no-untyped-call]
 
 
 def _message_indexes(headers: np.ndarray, offsets: np.ndarray) -> list[tuple[int, bytes]]:

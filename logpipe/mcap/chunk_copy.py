@@ -14,8 +14,10 @@ none, each chunk is decompressed and checked against its own CRC.
 from __future__ import annotations
 
 import zlib
-from dataclasses import dataclass
+from collections.abc import Iterable
+from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 from mcap.data_stream import RecordBuilder
 from mcap.records import (
@@ -67,51 +69,63 @@ def read_chunked(path: Path, name: str) -> ChunkedOriginal | None:
         raise SourceError(name, f"cannot copy the original log: {exc}") from exc
 
 
-def _read(records: object) -> ChunkedOriginal | None:
-    profile, crc = "", 0
-    schemas: dict[int, Schema] = {}
-    channels: dict[int, Channel] = {}
-    chunks: list[tuple[Chunk, list[MessageIndex]]] = []
-    metadata: list[Metadata] = []
-    in_data = True
-    for r in records:  # type: ignore[attr-defined]
-        if isinstance(r, Header):
-            profile = r.profile
-        elif isinstance(r, Schema):
-            schemas.setdefault(r.id, r)
-        elif isinstance(r, Channel):
-            channels.setdefault(r.id, r)
-        elif isinstance(r, Message | Attachment):
+def _read(records: Iterable[Any]) -> ChunkedOriginal | None:
+    found = _Found()
+    for r in records:
+        if not found.add(r):
             return None
-        elif isinstance(r, Chunk) and in_data:
-            chunks.append((r, []))
-        elif isinstance(r, MessageIndex) and in_data:
-            if not chunks:
-                return None
-            chunks[-1][1].append(r)
-        elif isinstance(r, Metadata) and in_data:
-            metadata.append(r)
-        elif isinstance(r, DataEnd):
-            in_data, crc = False, r.data_section_crc
     copied = []
-    for chunk, indexes in chunks:
-        if not indexes or any(i.channel_id not in channels for i in indexes):
+    for chunk, indexes in found.chunks:
+        if not indexes or any(i.channel_id not in found.channels for i in indexes):
             return None
-        if crc == 0 and chunk.uncompressed_crc and not _chunk_intact(chunk):
+        if found.crc == 0 and chunk.uncompressed_crc and not _chunk_intact(chunk):
             raise CRCValidationError(chunk.uncompressed_crc, 0, chunk)
         copied.append(CopiedChunk(chunk, _record(chunk), [(i.channel_id, _record(i)) for i in indexes],
                                   {i.channel_id: len(i.records) for i in indexes if i.records}))
-    if any(c.schema_id and c.schema_id not in schemas for c in channels.values()):
+    if any(c.schema_id and c.schema_id not in found.schemas for c in found.channels.values()):
         return None
-    return ChunkedOriginal(profile, sorted(schemas.values(), key=lambda s: s.id),
-                           sorted(channels.values(), key=lambda c: c.id), copied, metadata)
+    return ChunkedOriginal(found.profile, sorted(found.schemas.values(), key=lambda s: s.id),
+                           sorted(found.channels.values(), key=lambda c: c.id), copied, found.metadata)
+
+
+@dataclass
+class _Found:
+    """The records of a file as a chunk copy needs them, gathered in file order."""
+
+    profile: str = ""
+    crc: int = 0
+    in_data: bool = True
+    schemas: dict[int, Schema] = field(default_factory=dict)
+    channels: dict[int, Channel] = field(default_factory=dict)
+    chunks: list[tuple[Chunk, list[MessageIndex]]] = field(default_factory=list)
+    metadata: list[Metadata] = field(default_factory=list)
+
+    def add(self, r: Any) -> bool:
+        """Take one record; False when the file holds what a chunk copy would not carry as read."""
+        if isinstance(r, Message | Attachment) or (isinstance(r, MessageIndex) and self.in_data and not self.chunks):
+            return False
+        if isinstance(r, Header):
+            self.profile = r.profile
+        elif isinstance(r, Schema):
+            self.schemas.setdefault(r.id, r)
+        elif isinstance(r, Channel):
+            self.channels.setdefault(r.id, r)
+        elif self.in_data and isinstance(r, Chunk):
+            self.chunks.append((r, []))
+        elif self.in_data and isinstance(r, MessageIndex):
+            self.chunks[-1][1].append(r)
+        elif self.in_data and isinstance(r, Metadata):
+            self.metadata.append(r)
+        elif isinstance(r, DataEnd):
+            self.in_data, self.crc = False, r.data_section_crc
+        return True
 
 
 def _record(record: Chunk | MessageIndex) -> bytes:
     """A record's bytes as the file holds them (the ``mcap`` classes write the fields back unchanged)."""
     out = RecordBuilder()
     record.write(out)
-    return bytes(out.end())
+    return bytes(out.end())  # type: ignore[no-untyped-call]
 
 
 def _chunk_intact(chunk: Chunk) -> bool:

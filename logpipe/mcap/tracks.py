@@ -289,9 +289,9 @@ class _BatchMessages:
         width = max(len(rows.track_names), 1)
         tracks_local, track_index = np.unique(log_of_row * width + rows.track_codes, return_inverse=True)
         yaw, has_heading = fx.display_headings(track_index, rows.ts, rows.x, rows.y, rows.heading_values)
+        names = [rows.track_names[c % width] for c in tracks_local.tolist()]
         agents = fx.LogAgents(steps=step, ts=rows.ts, x=rows.x, y=rows.y, yaw=yaw, has_heading=has_heading,
-                              track=track_index, track_names=[rows.track_names[c % width] for c in tracks_local.tolist()],
-                              kind=rows.kind_codes, kinds=rows.kinds)
+                              track=track_index, track_names=names, kind=rows.kind_codes, kinds=rows.kinds)
         scenes = fx.agent_scene_pieces(agents, WORLD_FRAME, np.asarray(log_steps[:-1], np.int64))
         ego = np.flatnonzero(rows.ego)
         heading = np.where(has_heading[ego], yaw[ego], np.nan)

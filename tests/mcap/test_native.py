@@ -101,7 +101,7 @@ def test_a_damaged_chunk_of_an_original_is_one_error_naming_it(tmp_path: Path) -
     at = data.index(chunk.data) + len(chunk.data) // 2
     data[at] ^= 0xFF
     src.write_bytes(bytes(data))
-    with pytest.raises(SourceError, match="src.mcap"):
+    with pytest.raises(SourceError, match=r"src\.mcap"):
         write_merged(tmp_path / "out.mcap", [Source((src,), "mcap", "src.mcap")], [], [])
     assert not (tmp_path / "out.mcap").exists()
 
