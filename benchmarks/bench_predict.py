@@ -491,5 +491,28 @@ def targets(result: dict[str, Any]) -> list[dict[str, Any]]:
     return rows
 
 
+def run_mcap_rows(quick: bool = False) -> dict[str, Any]:
+    """Only the constant-velocity rows (the MCAP writer's: AV1 with rasters, ETH/UCY with and without MCAP), as
+    ``run`` measures them: ``python -m benchmarks.bench_predict --mcap-rows``."""
+    from logpipe.maps import MapSource
+    from logpipe.raster.rasteriser import RasterSpec
+    from logpipe.stages.ingest import IngestOptions, ingest
+    from logpipe.stages.rasterise import rasterise_dataset
+
+    repeats = 1 if quick else 3
+    result: dict[str, Any] = {"load_avg_1m": round(os.getloadavg()[0], 2), "repeats": repeats}
+    with tempfile.TemporaryDirectory() as tmp_name:
+        tmp = Path(tmp_name)
+        av1, eth = tmp / "av1", tmp / "eth"
+        ingest([SHARED / "argoverse1" / "data"], IngestOptions(out=av1))
+        rasterise_dataset(av1, MapSource(roots=(SHARED / "argoverse1" / "maps",)), rotate=True,
+                          spec=RasterSpec(rotate=True))
+        result["cv_argoverse1"] = _cv_row(av1, tmp / "cv_av1", repeats)
+        ingest([SHARED / "ethucy"], IngestOptions(out=eth))
+        result.update(_cv_ethucy_rows(eth, tmp, ["split=eth/test"] if quick else ["split=hotel/test"], repeats))
+    result["targets"] = targets(result)
+    return result
+
+
 if __name__ == "__main__":
-    print(json.dumps(run(quick="--quick" in sys.argv), indent=2))
+    print(json.dumps((run_mcap_rows if "--mcap-rows" in sys.argv else run)(quick="--quick" in sys.argv), indent=2))

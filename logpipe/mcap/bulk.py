@@ -122,18 +122,24 @@ class Pieces:
 
 @dataclass(frozen=True)
 class CopiedChunk:
-    """A chunk of another MCAP, copied unchanged: its record bytes (opcode to end) and message index records.
+    """A chunk of another MCAP, copied unchanged: its record's bytes (opcode to end) and message index records,
+    with what its chunk index says of it.
 
     Attributes:
-        chunk: the Chunk record as read (``mcap.records.Chunk``), ``record``: its bytes in the file.
-        indexes: (channel id, MessageIndex record bytes) per channel with messages in it.
+        record: the Chunk record's bytes; ``indexes``: (channel id, MessageIndex record bytes) per channel in it;
         counts: messages per channel id in it.
+        start, end: its messages' first and last log time; ``compression``, ``compressed_size``,
+        ``uncompressed_size``: as its record has them.
     """
 
-    chunk: Chunk
     record: bytes
     indexes: list[tuple[int, bytes]]
     counts: dict[int, int]
+    start: int
+    end: int
+    compression: str
+    compressed_size: int
+    uncompressed_size: int
 
 
 @dataclass
@@ -221,8 +227,9 @@ class BulkMcap:
         out.write(MAGIC)
         Header(profile=self.profile, library=LIBRARY).write(out)
         chunk_indexes: list[ChunkIndex] = []
-        for copied in self._copied:
-            chunk_indexes.append(_place(out, copied.chunk, copied.record, copied.indexes))
+        for c in self._copied:
+            chunk_indexes.append(_place(out, c.record, c.indexes, (c.start, c.end, c.compression, c.compressed_size,
+                                                                  c.uncompressed_size)))
         times, order, pieces, channel_of = self._ordered()
         counts = dict(self._copied_counts)
         for ch in self._channels:
@@ -301,7 +308,11 @@ class BulkMcap:
             chunk = Chunk(compression="zstd", data=_compress(body, self.compression_level),
                           message_start_time=int(times[order[lo]]), message_end_time=int(times[order[hi - 1]]),
                           uncompressed_crc=zlib.crc32(body), uncompressed_size=len(body))
-            indexes.append(_place(out, chunk, None, _message_indexes(headers[lo:hi], offsets)))
+            record = RecordBuilder()
+            chunk.write(record)
+            indexes.append(_place(out, _end(record), _message_indexes(headers[lo:hi], offsets), (
+                chunk.message_start_time, chunk.message_end_time, chunk.compression, len(chunk.data),
+                chunk.uncompressed_size)))
         return indexes
 
     def _summary(self, start: int, chunk_indexes: list[ChunkIndex], metadata_indexes: list[MetadataIndex],
@@ -384,20 +395,18 @@ def _message_indexes(headers: np.ndarray, offsets: np.ndarray) -> list[tuple[int
     return out
 
 
-def _place(out: RecordBuilder, chunk: Chunk, record: bytes | None, indexes: list[tuple[int, bytes]]) -> ChunkIndex:
-    """Write a chunk (its bytes as read when given) and its message indexes to ``out``; its chunk index."""
+def _place(out: RecordBuilder, record: bytes, indexes: list[tuple[int, bytes]],
+           chunk: tuple[int, int, str, int, int]) -> ChunkIndex:
+    """Write a chunk's record and message indexes to ``out``; its chunk index (``chunk``: its first and last log
+    time, compression, compressed and uncompressed size)."""
     start = out.count
-    if record is None:
-        chunk.write(out)
-    else:
-        out.write(record)
-    length = out.count - start
+    out.write(record)
     index_start = out.count
     offsets = {}
     for channel, index in indexes:
         offsets[channel] = out.count
         out.write(index)
-    return ChunkIndex(message_start_time=chunk.message_start_time, message_end_time=chunk.message_end_time,
-                      chunk_start_offset=start, chunk_length=length, message_index_offsets=offsets,
-                      message_index_length=out.count - index_start, compression=chunk.compression,
-                      compressed_size=len(chunk.data), uncompressed_size=chunk.uncompressed_size)
+    return ChunkIndex(message_start_time=chunk[0], message_end_time=chunk[1], chunk_start_offset=start,
+                      chunk_length=len(record), message_index_offsets=offsets,
+                      message_index_length=out.count - index_start, compression=chunk[2], compressed_size=chunk[3],
+                      uncompressed_size=chunk[4])

@@ -3,38 +3,36 @@
 A chunk is its records compressed, and its message indexes point into it by offset: both stay valid wherever the
 chunk is put, so an original whose messages all sit in indexed chunks is copied without decompressing or decoding a
 message (every MCAP ingest writes is such a file). Its schema, channel and message records, sequence numbers,
-times and bytes are the original's because they are the original's bytes. Anything a chunk copy would not carry as
-read (messages outside chunks, attachments, a chunk without message indexes, channels or schemas the summary does
-not list) makes ``read_chunked`` answer None, and the record-by-record copy of ``logpipe.mcap.merge`` is used.
+times and bytes are the original's because they are the original's bytes.
 
-Damage: the stream reader checks the data section's CRC, which covers the compressed chunks; where a file has
-none, each chunk is decompressed and checked against its own CRC.
+What is read: the file once, its summary (schemas, channels, statistics, chunk indexes, metadata indexes: the
+``mcap`` reader's own parsing), and each chunk and message index record as the byte range its chunk index gives.
+Anything a chunk copy would not carry as read (no summary or chunk indexes, messages outside chunks, attachments,
+a chunk without message indexes) makes ``read_chunked`` answer None, and the record-by-record copy of
+``logpipe.mcap.merge`` is used.
+
+Damage: the data section's CRC (which covers the compressed chunks) and the summary's are checked; where a file
+has no data-section CRC, each chunk is decompressed and checked against its own.
 """
 
 from __future__ import annotations
 
+import io
+import struct
 import zlib
-from collections.abc import Iterable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
-from mcap.data_stream import RecordBuilder
-from mcap.records import (
-    Attachment,
-    Channel,
-    Chunk,
-    DataEnd,
-    Header,
-    Message,
-    MessageIndex,
-    Metadata,
-    Schema,
-)
-from mcap.stream_reader import CRCValidationError, StreamReader
+from mcap.data_stream import ReadDataStream
+from mcap.reader import make_reader
+from mcap.records import Channel, Chunk, Metadata, Schema
+from mcap.summary import Summary
 
 from logpipe.errors import SourceError
-from logpipe.mcap.bulk import CopiedChunk
+from logpipe.mcap.bulk import MAGIC, CopiedChunk
+
+_FOOTER = struct.Struct("<BQQQI")  # opcode, length, summary start, summary offset start, summary CRC
+_DATA_END = 1 + 8 + 4  # opcode, length, data-section CRC
 
 
 @dataclass(frozen=True)
@@ -59,84 +57,76 @@ def read_chunked(path: Path, name: str) -> ChunkedOriginal | None:
         SourceError: (naming ``name``) the file is damaged or not an MCAP.
     """
     try:
-        with path.open("rb") as fh:
-            return _read(StreamReader(fh, skip_magic=False, emit_chunks=True, validate_crcs=True).records)
-    except CRCValidationError as err:
-        raise SourceError(name, f"damaged MCAP: {err}") from None
+        data = path.read_bytes()
+        return _read(data, name)
     except SourceError:
         raise
     except Exception as exc:  # mcap raises many types for a damaged file
         raise SourceError(name, f"cannot copy the original log: {exc}") from exc
 
 
-def _read(records: Iterable[Any]) -> ChunkedOriginal | None:
-    found = _Found()
-    for r in records:
-        if not found.add(r):
-            return None
-    copied = []
-    for chunk, indexes in found.chunks:
-        if not indexes or any(i.channel_id not in found.channels for i in indexes):
-            return None
-        if found.crc == 0 and chunk.uncompressed_crc and not _chunk_intact(chunk):
-            raise CRCValidationError(chunk.uncompressed_crc, 0, chunk)
-        copied.append(CopiedChunk(chunk, _record(chunk), [(i.channel_id, _record(i)) for i in indexes],
-                                  {i.channel_id: len(i.records) for i in indexes if i.records}))
-    if any(c.schema_id and c.schema_id not in found.schemas for c in found.channels.values()):
+def _read(data: bytes, name: str) -> ChunkedOriginal | None:
+    if len(data) < 2 * len(MAGIC) + _FOOTER.size or data[-len(MAGIC):] != MAGIC:
+        raise SourceError(name, "damaged MCAP: it does not end with the MCAP magic")
+    opcode, _, summary_start, _, summary_crc = _FOOTER.unpack_from(data, len(data) - len(MAGIC) - _FOOTER.size)
+    if opcode != 0x02 or summary_start == 0:
+        return None  # no summary: nothing says where the chunks are without reading every record
+    if summary_crc and zlib.crc32(memoryview(data)[summary_start : len(data) - len(MAGIC) - 4]) != summary_crc:
+        raise SourceError(name, "damaged MCAP: its summary section fails its CRC")
+    data_end = summary_start - _DATA_END
+    if data[data_end] != 0x0F:
         return None
-    return ChunkedOriginal(found.profile, sorted(found.schemas.values(), key=lambda s: s.id),
-                           sorted(found.channels.values(), key=lambda c: c.id), copied, found.metadata)
+    (data_crc,) = struct.unpack_from("<I", data, summary_start - 4)
+    if data_crc and zlib.crc32(memoryview(data)[:data_end]) != data_crc:
+        raise SourceError(name, "damaged MCAP: its data section fails its CRC")
+    reader = make_reader(io.BytesIO(data))
+    summary = reader.get_summary()
+    if summary is None or summary.statistics is None or not summary.chunk_indexes:
+        return None
+    chunks = _chunks(data, summary, check=not data_crc, name=name)
+    metadata = list(reader.iter_metadata())
+    stats = summary.statistics
+    if chunks is None or stats.attachment_count or stats.metadata_count != len(metadata) or \
+            stats.message_count != sum(sum(c.counts.values()) for c in chunks):
+        return None  # attachments, metadata without an index, or messages outside the chunks
+    return ChunkedOriginal(reader.get_header().profile, sorted(summary.schemas.values(), key=lambda s: s.id),
+                           sorted(summary.channels.values(), key=lambda c: c.id), chunks, metadata)
 
 
-@dataclass
-class _Found:
-    """The records of a file as a chunk copy needs them, gathered in file order."""
+def _chunks(data: bytes, summary: Summary, check: bool, name: str) -> list[CopiedChunk] | None:
+    """Each chunk's record and message indexes as the file holds them, in file order."""
+    out = []
+    for ci in sorted(summary.chunk_indexes, key=lambda c: c.chunk_start_offset):
+        if not ci.message_index_offsets:
+            return None
+        indexes, counts = [], {}
+        for channel, at in sorted(ci.message_index_offsets.items(), key=lambda item: item[1]):
+            opcode, length, channel_id, size = struct.unpack_from("<BQHI", data, at)
+            if opcode != 0x07 or channel_id != channel or channel not in summary.channels:
+                return None
+            indexes.append((channel, data[at : at + 9 + length]))
+            if size:
+                counts[channel] = size // 16
+        record = data[ci.chunk_start_offset : ci.chunk_start_offset + ci.chunk_length]
+        if check and not _chunk_intact(record):
+            raise SourceError(name, "damaged MCAP: a chunk fails its CRC")
+        out.append(CopiedChunk(record, indexes, counts, ci.message_start_time, ci.message_end_time, ci.compression,
+                               ci.compressed_size, ci.uncompressed_size))
+    return out
 
-    profile: str = ""
-    crc: int = 0
-    in_data: bool = True
-    schemas: dict[int, Schema] = field(default_factory=dict)
-    channels: dict[int, Channel] = field(default_factory=dict)
-    chunks: list[tuple[Chunk, list[MessageIndex]]] = field(default_factory=list)
-    metadata: list[Metadata] = field(default_factory=list)
 
-    def add(self, r: Any) -> bool:
-        """Take one record; False when the file holds what a chunk copy would not carry as read."""
-        if isinstance(r, Message | Attachment) or (isinstance(r, MessageIndex) and self.in_data and not self.chunks):
-            return False
-        if isinstance(r, Header):
-            self.profile = r.profile
-        elif isinstance(r, Schema):
-            self.schemas.setdefault(r.id, r)
-        elif isinstance(r, Channel):
-            self.channels.setdefault(r.id, r)
-        elif self.in_data and isinstance(r, Chunk):
-            self.chunks.append((r, []))
-        elif self.in_data and isinstance(r, MessageIndex):
-            self.chunks[-1][1].append(r)
-        elif self.in_data and isinstance(r, Metadata):
-            self.metadata.append(r)
-        elif isinstance(r, DataEnd):
-            self.in_data, self.crc = False, r.data_section_crc
+def _chunk_intact(record: bytes) -> bool:
+    chunk = Chunk.read(ReadDataStream(io.BytesIO(record[9:])))
+    if not chunk.uncompressed_crc:
         return True
-
-
-def _record(record: Chunk | MessageIndex) -> bytes:
-    """A record's bytes as the file holds them (the ``mcap`` classes write the fields back unchanged)."""
-    out = RecordBuilder()
-    record.write(out)
-    return bytes(out.end())  # type: ignore[no-untyped-call]
-
-
-def _chunk_intact(chunk: Chunk) -> bool:
     if chunk.compression == "zstd":
         import zstandard
 
-        data = zstandard.ZstdDecompressor().decompress(chunk.data, max_output_size=chunk.uncompressed_size)
+        raw = zstandard.ZstdDecompressor().decompress(chunk.data, max_output_size=chunk.uncompressed_size)
     elif chunk.compression == "lz4":
         import lz4.frame
 
-        data = lz4.frame.decompress(chunk.data)
+        raw = lz4.frame.decompress(chunk.data)
     else:
-        data = chunk.data
-    return zlib.crc32(data) == chunk.uncompressed_crc
+        raw = chunk.data
+    return bool(zlib.crc32(raw) == chunk.uncompressed_crc)

@@ -120,7 +120,7 @@ def forecast_scene_updates(forecasts: TargetForecasts, frames: Sequence[str], no
     spheres = _spheres(f.object_types, snap(current, POSITION_QUANTUM))
     observed = _observed_lines(f.history, f.truth, current)
     modes = _mode_lines(current, f.futures, f.scores)
-    width = len(modes) // n if n else 0
+    width, mode_view = (len(modes) // n if n else 0), memoryview(modes)
     updates = []
     for s, sample_id in enumerate(f.sample_ids):
         life = max(lifetimes_ns[s], 0)
@@ -128,14 +128,17 @@ def forecast_scene_updates(forecasts: TargetForecasts, frames: Sequence[str], no
         stamp_frame = serialize(SceneEntity(timestamp=timestamp(now_ns[s]), frame_id=frames[s]))
         lifetime = serialize(SceneEntity(lifetime=Duration(seconds=life // 1_000_000_000, nanos=life % 1_000_000_000)))
         sample_pair = serialize(SceneEntity(metadata=[KeyValuePair(key="sample_id", value=sample_id)]))
-        entities = []
+        shared = len(stamp_frame) + len(lifetime) + len(sample_pair) + width
+        pieces: list[bytes | memoryview] = []
         for j in range(f.bounds[s], f.bounds[s + 1]):
+            # One join per sample: each entity's key and length, then its parts (the modes a view, not a copy).
             name = f.track_ids[j]
-            entity = b"".join((stamp_frame, _string_field(SceneEntity.ID_FIELD_NUMBER, name), lifetime, sample_pair,
-                               _pair("track_id", name), _pair("object_type", f.object_types[j]), spheres[j],
-                               observed[j], modes[j * width : (j + 1) * width]))
-            entities.append(_ENTITIES_KEY + _varint(len(entity)) + entity)
-        updates.append(b"".join(entities))
+            parts = (_string_field(SceneEntity.ID_FIELD_NUMBER, name), _pair("track_id", name),
+                     _pair("object_type", f.object_types[j]), spheres[j], observed[j])
+            size = shared + sum(map(len, parts))
+            pieces += [_ENTITIES_KEY + _varint(size), stamp_frame, parts[0], lifetime, sample_pair, *parts[1:],
+                       mode_view[j * width : (j + 1) * width]]
+        updates.append(b"".join(pieces))
     return updates
 
 
@@ -151,6 +154,7 @@ def legend_scene(frame: str, now_ns: int, at: tuple[float, float]) -> bytes:
                                                        texts=texts)]))
 
 
+@lru_cache(maxsize=1 << 16)  # track ids recur in the samples of a log's sliding windows
 def _string_field(number: int, text: str) -> bytes:
     """A proto3 string field (left out when empty, as the classes do)."""
     data = text.encode()
