@@ -8,7 +8,7 @@ log's clock. ``legend_scene`` is the legend entity naming these colours.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import cache, lru_cache
 
 import numpy as np
@@ -85,6 +85,22 @@ class TargetForecasts:
     truth: NDArrayFloat
     futures: NDArrayFloat
     scores: NDArrayFloat
+    columns: dict[str, NDArrayFloat] | None = None
+    """The ``logpipe.Predictions`` arrays (``current_x``, ``current_y``, ``score``, ``x``, ``y``) made C-contiguous
+    once for all the samples (``with_columns``), so a sample's are row slices orjson takes as they are."""
+
+    def with_columns(self) -> TargetForecasts:
+        """These forecasts with ``columns`` filled."""
+        return replace(self, columns=self.arrays())
+
+    def arrays(self) -> dict[str, NDArrayFloat]:
+        """``columns``, made now where they were not."""
+        if self.columns is not None:
+            return self.columns
+        current = self.history[:, -1]
+        columns = {"current_x": current[:, 0], "current_y": current[:, 1], "score": self.scores,
+                   "x": self.futures[..., 0], "y": self.futures[..., 1]}
+        return {k: np.ascontiguousarray(v) for k, v in columns.items()}
 
     @classmethod
     def of_sample(cls, sample: SceneSample, targets: NDArrayInt, futures: NDArrayFloat,
@@ -100,7 +116,8 @@ class TargetForecasts:
         a, b = self.bounds[first], self.bounds[stop]
         return TargetForecasts(self.sample_ids[first:stop], [i - a for i in self.bounds[first : stop + 1]],
                                self.track_ids[a:b], self.object_types[a:b], self.history[a:b], self.truth[a:b],
-                               self.futures[a:b], self.scores[a:b])
+                               self.futures[a:b], self.scores[a:b],
+                               None if self.columns is None else {k: v[a:b] for k, v in self.columns.items()})
 
 
 def forecast_scene_updates(forecasts: TargetForecasts, frames: Sequence[str], now_ns: Sequence[int],
