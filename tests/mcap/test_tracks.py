@@ -101,3 +101,20 @@ def test_a_batch_of_logs_writes_one_file_per_log_as_each_log_alone(tmp_path: Pat
     assert messages == alone
     for name in ("L.mcap", "M.mcap"):
         assert (tmp_path / "batch" / name).read_bytes() == (tmp_path / name).read_bytes()
+
+
+def test_json_columns_cut_to_each_rows_json_dumps() -> None:
+    import numpy as np
+
+    from logpipe.mcap.tracks import JsonColumn
+
+    rng = np.random.default_rng(1)
+    plain = rng.uniform(-5000, 5000, 500)  # orjson's own text, cut at its commas
+    tricky = np.concatenate([plain, [1e-5, 0.0, -0.0, 2.0**60]])  # repr fix-ups: the per-row path
+    for values in (plain, tricky):
+        column = JsonColumn.of_floats(values)
+        for lo, hi in ((0, len(values)), (3, 17), (len(values) - 1, len(values))):
+            text = column.text[column.offsets[lo] : column.offsets[hi] - 1].decode()
+            assert text == ",".join(json.dumps(v) for v in values[lo:hi].tolist())
+    names = JsonColumn.of_codes(np.array([2, 0, 2, 1]), ["a", 'q"uote', "é"])
+    assert names.text[: names.offsets[4] - 1].decode() == ",".join(json.dumps(v) for v in ["é", "a", "é", 'q"uote'])
