@@ -14,10 +14,11 @@ Measures, in one run (the machine is shared: compare figures of the same run onl
 * for each, the share of the time spent in the model and in output/shard IO (``model_seconds`` /
   ``io_seconds`` of the stage summary; the rest is cutting samples and attaching rasters);
 * for the constant-velocity rows, the floor of their output: writing the same Parquet tables (and MCAP records,
-  already serialized) alone with the stage's libraries and settings; for the short split, also the run's fixed cost
-  and, with MCAP, reading the original logs it copies.
+  already serialized, the originals' chunks copied as the stage copies them) alone with the stage's libraries and
+  settings; for the short split, also the run's fixed cost and, with MCAP, reading the original logs it copies.
 
-Run: ``.venv/bin/python -m benchmarks.bench_predict [--quick]`` (prints JSON).
+Run: ``.venv/bin/python -m benchmarks.bench_predict [--quick] [--mcap-rows]`` (prints JSON; ``--mcap-rows``: the
+constant-velocity rows only).
 """
 
 from __future__ import annotations
