@@ -14,10 +14,11 @@ Measures, in one run (the machine is shared: compare figures of the same run onl
 * for each, the share of the time spent in the model and in output/shard IO (``model_seconds`` /
   ``io_seconds`` of the stage summary; the rest is cutting samples and attaching rasters);
 * for the constant-velocity rows, the floor of their output: writing the same Parquet tables (and MCAP records,
-  already serialized) alone with the stage's libraries and settings; for the short split, also the run's fixed cost
-  and, with MCAP, reading the original logs it copies.
+  already serialized, the originals' chunks copied as the stage copies them) alone with the stage's libraries and
+  settings; for the short split, also the run's fixed cost and, with MCAP, reading the original logs it copies.
 
-Run: ``.venv/bin/python -m benchmarks.bench_predict [--quick]`` (prints JSON).
+Run: ``.venv/bin/python -m benchmarks.bench_predict [--quick] [--mcap-rows]`` (prints JSON; ``--mcap-rows``: the
+constant-velocity rows only).
 """
 
 from __future__ import annotations
@@ -32,12 +33,12 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 from unittest import mock
 
 import numpy as np
 
-from benchmarks.mcap_floor import mcap_records, rewrite_as_stage
+from benchmarks.mcap_floor import PredictionFloor, mcap_records, rewrite_as_stage
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED = REPO.parent / "shared" / "data"
@@ -371,7 +372,7 @@ def _cv_row(dataset: Path, out: Path, repeats: int, write_mcap: bool = True, **k
     """Constant velocity's figures (``_predict``) beside the floor of writing its outputs alone: with MCAP,
     ``outputs_write_alone_samples_per_s``; Parquet only, ``parquet_write_alone_samples_per_s``."""
     row = _predict(dataset, out, repeats, predictor="cv", write_mcap=write_mcap, **kwargs)
-    floor = _outputs_write_rate(out / "run0", row["samples"], repeats, mcap=write_mcap)
+    floor = _outputs_write_rate(out / "run0", row["samples"], repeats, mcap=write_mcap, dataset=dataset)
     row["outputs_write_alone_samples_per_s" if write_mcap else "parquet_write_alone_samples_per_s"] = floor
     return row
 
@@ -391,47 +392,58 @@ def _empty_run_seconds(dataset: Path, out: Path, repeats: int, **kwargs: Any) ->
 
 
 def _originals_read_seconds(dataset: Path, run: Path, repeats: int) -> float:
-    """Median seconds of reading, through the ``mcap`` reader the stage copies them with, every record of the
-    original MCAPs (the ones ingest wrote) of the logs a predict ``run`` wrote MCAPs for: what copying the
-    originals into those MCAPs cannot skip."""
-    from mcap.stream_reader import StreamReader
-
+    """Median seconds of reading the original MCAPs (the ones ingest wrote) of the logs a predict ``run`` wrote MCAPs
+    for as the stage reads them to copy them (``chunk_copy.read_chunked``: records, chunks left compressed, the
+    data section's CRC checked): what copying the originals into those MCAPs cannot skip."""
     from logpipe.dataset.reader import Dataset
+    from logpipe.mcap.chunk_copy import read_chunked
 
     ds = Dataset.open(dataset)
     originals = [ds.mcap_path(path.stem) for path in sorted((run / "mcap").rglob("*.mcap"))]
 
     def read_all() -> None:
         for path in originals:
-            with path.open("rb") as fh:
-                for _record in StreamReader(fh, skip_magic=False).records:
-                    pass
+            read_chunked(path, path.name)
 
     return round(_median_seconds(read_all, repeats), 4)
 
 
-def _outputs_write_rate(run: Path, samples: int, repeats: int, mcap: bool = True) -> float:
+def _outputs_write_rate(run: Path, samples: int, repeats: int, mcap: bool = True,
+                        dataset: Path | None = None) -> float:
     """Samples/s of writing the run's outputs alone, nothing encoded: its predictions tables (pyarrow, the stage's
     codec) and, with ``mcap``, every log MCAP's records, already serialized, through the writer the stage picks for
-    them with its settings (``rewrite_as_stage``: the native one for every MCAP here; read back from its files).
+    them with its settings (read back from its files): an original of ``dataset`` that the stage copies by chunk
+    (every ingest MCAP) is copied by chunk, already read, plus the appended messages (``PredictionFloor``), any other
+    MCAP rewritten record by record (``rewrite_as_stage``).
     The floor of a predict path that writes them with these libraries; the forecasting, the message encoding and
     the durability work (fsync, hashes) are not in it."""
     import pyarrow.parquet as pq
 
+    from logpipe.dataset.reader import Dataset
     from logpipe.mcap.merge import NATIVE_COMPRESSION_THREADS
 
     files = sorted((run / "predictions").glob("*.parquet"))
     tables = [pq.read_table(f) for f in files]
     codec = pq.ParquetFile(files[0]).metadata.row_group(0).column(0).compression.lower()
-    logs = [mcap_records(path) for path in sorted((run / "mcap").rglob("*.mcap"))] if mcap else []
+    logs: list[Any] = []
+    ds = Dataset.open(dataset) if mcap and dataset is not None else None
+    for path in sorted((run / "mcap").rglob("*.mcap")) if ds is not None else []:
+        original = cast(Dataset, ds).mcap_path(path.stem)
+        try:  # the stage copies an ingest MCAP by chunk: its floor is that copy plus the appended messages
+            logs.append(PredictionFloor(path, original))
+        except ValueError:
+            logs.append(mcap_records(path))
     rates = []
     with tempfile.TemporaryDirectory() as tmp:
         for _ in range(max(repeats, 3)):
             t0 = time.perf_counter()
             for i, table in enumerate(tables):
                 pq.write_table(table, Path(tmp) / f"{i}.parquet", compression=codec)
-            for i, records in enumerate(logs):
-                rewrite_as_stage(Path(tmp) / f"{i}.mcap", records, NATIVE_COMPRESSION_THREADS)
+            for i, log in enumerate(logs):
+                if isinstance(log, PredictionFloor):
+                    log.write(Path(tmp) / f"{i}.mcap")
+                else:
+                    rewrite_as_stage(Path(tmp) / f"{i}.mcap", log, NATIVE_COMPRESSION_THREADS)
             rates.append(samples / (time.perf_counter() - t0))
     return round(statistics.median(rates), 1)
 
@@ -480,5 +492,28 @@ def targets(result: dict[str, Any]) -> list[dict[str, Any]]:
     return rows
 
 
+def run_mcap_rows(quick: bool = False) -> dict[str, Any]:
+    """Only the constant-velocity rows (the MCAP writer's: AV1 with rasters, ETH/UCY with and without MCAP), as
+    ``run`` measures them: ``python -m benchmarks.bench_predict --mcap-rows``."""
+    from logpipe.maps import MapSource
+    from logpipe.raster.rasteriser import RasterSpec
+    from logpipe.stages.ingest import IngestOptions, ingest
+    from logpipe.stages.rasterise import rasterise_dataset
+
+    repeats = 1 if quick else 3
+    result: dict[str, Any] = {"load_avg_1m": round(os.getloadavg()[0], 2), "repeats": repeats}
+    with tempfile.TemporaryDirectory() as tmp_name:
+        tmp = Path(tmp_name)
+        av1, eth = tmp / "av1", tmp / "eth"
+        ingest([SHARED / "argoverse1" / "data"], IngestOptions(out=av1))
+        rasterise_dataset(av1, MapSource(roots=(SHARED / "argoverse1" / "maps",)), rotate=True,
+                          spec=RasterSpec(rotate=True))
+        result["cv_argoverse1"] = _cv_row(av1, tmp / "cv_av1", repeats)
+        ingest([SHARED / "ethucy"], IngestOptions(out=eth))
+        result.update(_cv_ethucy_rows(eth, tmp, ["split=eth/test"] if quick else ["split=hotel/test"], repeats))
+    result["targets"] = targets(result)
+    return result
+
+
 if __name__ == "__main__":
-    print(json.dumps(run(quick="--quick" in sys.argv), indent=2))
+    print(json.dumps((run_mcap_rows if "--mcap-rows" in sys.argv else run)(quick="--quick" in sys.argv), indent=2))

@@ -16,8 +16,8 @@ import time
 from pathlib import Path
 from typing import Any
 
-BENCHMARKS = ["bench_mcap_writers", "bench_ingest", "bench_rosbag", "bench_raster", "bench_model", "bench_train",
-              "bench_predict"]
+BENCHMARKS = ["bench_mcap_writers", "bench_mcap_channels", "bench_ingest", "bench_rosbag", "bench_raster",
+              "bench_model", "bench_train", "bench_predict"]
 
 
 def render_targets(results: dict[str, Any], command: str) -> str:

@@ -46,7 +46,7 @@ from logpipe.formats.base import FormatAdapter
 from logpipe.formats.input_copies import duplicate_inputs
 from logpipe.formats.inputs import complete_hashes, find_inputs, fingerprint_inputs, read_ahead, unhashed_inputs
 from logpipe.progress import report_total
-from logpipe.storage.artifact import FileEntry, file_entry, output_errors
+from logpipe.storage.artifact import FileEntry, output_errors
 from logpipe.storage.io import read_table
 from logpipe.types import SampleProtocol, SourceFile
 
@@ -237,11 +237,12 @@ def _ingest_batch(job: _BatchJob) -> _BatchResult:
     messages = 0
     if job.write_mcap:
         # Imported here: the mcap writer's imports (~35 ms) are wasted on the --no-mcap path.
-        from logpipe.mcap.tracks import write_log_mcaps
+        from logpipe.mcap.tracks import write_log_mcap_files
 
         folder = mcap_folder(job.shard_file)
-        messages = write_log_mcaps(tracks, kept, staging / folder, parsed.maps)
-        files |= {f"{folder}/{mcap.name}": file_entry(mcap) for mcap in sorted((staging / folder).iterdir())}
+        written = write_log_mcap_files(tracks, kept, staging / folder, parsed.maps)
+        messages = sum(n for n, _, _ in written.values())  # sizes and digests of the bytes written, not read back
+        files |= {f"{folder}/{p.name}": {"bytes": b, "sha256": d} for p, (_, b, d) in sorted(written.items())}
     if parsed.maps:  # inputs that carry their map (CommonRoad): the dataset keeps it for rasterise
         from logpipe.maps.store import write_stores
 

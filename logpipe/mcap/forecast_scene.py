@@ -8,7 +8,7 @@ log's clock. ``legend_scene`` is the legend entity naming these colours.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import cache, lru_cache
 
 import numpy as np
@@ -85,6 +85,22 @@ class TargetForecasts:
     truth: NDArrayFloat
     futures: NDArrayFloat
     scores: NDArrayFloat
+    columns: dict[str, NDArrayFloat] | None = None
+    """The ``logpipe.Predictions`` arrays (``current_x``, ``current_y``, ``score``, ``x``, ``y``) made C-contiguous
+    once for all the samples (``with_columns``), so a sample's are row slices orjson takes as they are."""
+
+    def with_columns(self) -> TargetForecasts:
+        """These forecasts with ``columns`` filled."""
+        return replace(self, columns=self.arrays())
+
+    def arrays(self) -> dict[str, NDArrayFloat]:
+        """``columns``, made now where they were not."""
+        if self.columns is not None:
+            return self.columns
+        current = self.history[:, -1]
+        columns = {"current_x": current[:, 0], "current_y": current[:, 1], "score": self.scores,
+                   "x": self.futures[..., 0], "y": self.futures[..., 1]}
+        return {k: np.ascontiguousarray(v) for k, v in columns.items()}
 
     @classmethod
     def of_sample(cls, sample: SceneSample, targets: NDArrayInt, futures: NDArrayFloat,
@@ -100,7 +116,8 @@ class TargetForecasts:
         a, b = self.bounds[first], self.bounds[stop]
         return TargetForecasts(self.sample_ids[first:stop], [i - a for i in self.bounds[first : stop + 1]],
                                self.track_ids[a:b], self.object_types[a:b], self.history[a:b], self.truth[a:b],
-                               self.futures[a:b], self.scores[a:b])
+                               self.futures[a:b], self.scores[a:b],
+                               None if self.columns is None else {k: v[a:b] for k, v in self.columns.items()})
 
 
 def forecast_scene_updates(forecasts: TargetForecasts, frames: Sequence[str], now_ns: Sequence[int],
@@ -120,7 +137,7 @@ def forecast_scene_updates(forecasts: TargetForecasts, frames: Sequence[str], no
     spheres = _spheres(f.object_types, snap(current, POSITION_QUANTUM))
     observed = _observed_lines(f.history, f.truth, current)
     modes = _mode_lines(current, f.futures, f.scores)
-    width = len(modes) // n if n else 0
+    width, mode_view = (len(modes) // n if n else 0), memoryview(modes)
     updates = []
     for s, sample_id in enumerate(f.sample_ids):
         life = max(lifetimes_ns[s], 0)
@@ -128,14 +145,17 @@ def forecast_scene_updates(forecasts: TargetForecasts, frames: Sequence[str], no
         stamp_frame = serialize(SceneEntity(timestamp=timestamp(now_ns[s]), frame_id=frames[s]))
         lifetime = serialize(SceneEntity(lifetime=Duration(seconds=life // 1_000_000_000, nanos=life % 1_000_000_000)))
         sample_pair = serialize(SceneEntity(metadata=[KeyValuePair(key="sample_id", value=sample_id)]))
-        entities = []
+        shared = len(stamp_frame) + len(lifetime) + len(sample_pair) + width
+        pieces: list[bytes | memoryview] = []
         for j in range(f.bounds[s], f.bounds[s + 1]):
+            # One join per sample: each entity's key and length, then its parts (the modes a view, not a copy).
             name = f.track_ids[j]
-            entity = b"".join((stamp_frame, _string_field(SceneEntity.ID_FIELD_NUMBER, name), lifetime, sample_pair,
-                               _pair("track_id", name), _pair("object_type", f.object_types[j]), spheres[j],
-                               observed[j], modes[j * width : (j + 1) * width]))
-            entities.append(_ENTITIES_KEY + _varint(len(entity)) + entity)
-        updates.append(b"".join(entities))
+            parts = (_string_field(SceneEntity.ID_FIELD_NUMBER, name), _pair("track_id", name),
+                     _pair("object_type", f.object_types[j]), spheres[j], observed[j])
+            size = shared + sum(map(len, parts))
+            pieces += [_ENTITIES_KEY + _varint(size), stamp_frame, parts[0], lifetime, sample_pair, *parts[1:],
+                       mode_view[j * width : (j + 1) * width]]
+        updates.append(b"".join(pieces))
     return updates
 
 
@@ -151,6 +171,7 @@ def legend_scene(frame: str, now_ns: int, at: tuple[float, float]) -> bytes:
                                                        texts=texts)]))
 
 
+@lru_cache(maxsize=1 << 16)  # track ids recur in the samples of a log's sliding windows
 def _string_field(number: int, text: str) -> bytes:
     """A proto3 string field (left out when empty, as the classes do)."""
     data = text.encode()

@@ -39,7 +39,6 @@ JSON channels and the Parquet tables.
 
 from __future__ import annotations
 
-import itertools
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from functools import cache
@@ -63,6 +62,7 @@ from foxglove_schemas_protobuf.Vector3_pb2 import Vector3
 from google.protobuf.timestamp_pb2 import Timestamp
 from mcap_protobuf.schema import build_file_descriptor_set
 
+from logpipe.mcap.bulk import Pieces
 from logpipe.mcap.merge import NewChannel
 from logpipe.mcap.protobuf_splice import Template, field_key, serialize, varint
 from logpipe.types import OBJECT_TYPES, NDArrayBool, NDArrayFloat, NDArrayInt
@@ -257,10 +257,19 @@ def _agent_template(object_type: str, arrow: bool) -> Template:
     return Template(_agent_geometry(object_type, arrow), 4 if arrow else 2)
 
 
-def agent_scene_updates(agents: LogAgents, frame: str) -> list[bytes]:
+def agent_scene_updates(agents: LogAgents, frame: str, log_starts: NDArrayInt | None = None) -> list[bytes]:
+    """``agent_scene_pieces`` as one bytes object per message."""
+    return agent_scene_pieces(agents, frame, log_starts).messages()
+
+
+def agent_scene_pieces(agents: LogAgents, frame: str, log_starts: NDArrayInt | None = None) -> Pieces:
     """One serialized ``foxglove.SceneUpdate`` per step of ``agents`` (in time order): an entity per agent
     in ``frame`` (id = track id; a cube, an arrow when it has a heading; metadata ``track_id``,
     ``object_type``, ``role``), and deletions of the agents the previous step had and this one lacks.
+
+    ``agents`` may hold several logs one after the other (steps numbered on across them, tracks coded apart):
+    ``log_starts`` are the indexes of the steps that start a log (none: one log), and no log's message deletes
+    an agent of the log before it. Built for a batch of logs at once, the numpy work is per batch, not per log.
 
     A message is its deletions, then per row the entity's key and length, the step's timestamp and frame, the
     track's id and metadata and the row's geometry. Each distinct part is serialized once; numpy orders
@@ -269,16 +278,19 @@ def agent_scene_updates(agents: LogAgents, frame: str) -> list[bytes]:
     """
     n = len(agents.ts)
     if n == 0:
-        return []
+        return Pieces.of_messages([])
     changes = np.diff(agents.steps) != 0
     starts = np.concatenate([[0], np.flatnonzero(changes) + 1])
     step = np.concatenate([[0], np.cumsum(changes)]).astype(np.int64)  # index of the row's message
     step_ts = agents.ts[starts].tolist()
     pool = _Pool()
     frame_part, stamp_key = serialize(SceneEntity(frame_id=frame)), field_key(SceneEntity.TIMESTAMP_FIELD_NUMBER)
-    stamps = [serialize(timestamp(t)) for t in step_ts]
+    stamps = [timestamp_bytes(t) for t in step_ts]
     step_id = pool.add([stamp_key + varint(len(t)) + t + frame_part for t in stamps])
-    del_step, deletions = _departures(agents.track, step, step_ts, agents.track_names)
+    last_steps = np.zeros(len(starts), bool)
+    if log_starts is not None and len(log_starts):
+        last_steps[np.asarray(log_starts, np.int64)[np.asarray(log_starts) > 0] - 1] = True
+    del_step, deletions = _departures(agents.track, step, stamps, agents.track_names, last_steps)
     del_id = pool.add(deletions)
 
     # One part per distinct (track, kind): its id and metadata.
@@ -321,10 +333,7 @@ def agent_scene_updates(agents: LogAgents, frame: str) -> list[bytes]:
     at_row = block_start[step] + dels[step] + 4 * (np.arange(n) - starts[step])
     order[at_row], order[at_row + 1], order[at_row + 2], order[at_row + 3] = (
         head_id, step_id[step], track_id[combo], geo_id)
-    blob = b"".join(pool.objects()[order].tolist())
-    sizes = pool.lengths()[order]
-    bounds = [*(np.cumsum(sizes) - sizes)[block_start].tolist(), len(blob)]
-    return [blob[a:b] for a, b in itertools.pairwise(bounds)]
+    return Pieces(pool.objects()[order], pool.lengths()[order], np.append(block_start, len(order)))
 
 
 class _Pool:
@@ -349,21 +358,42 @@ class _Pool:
         return out
 
 
-def _departures(track: NDArrayInt, step: NDArrayInt, step_ts: list[int],
-                names: list[str]) -> tuple[NDArrayInt, list[bytes]]:
-    """The serialized ``deletions`` records of agents seen at a step and absent at the next one, and the
-    (sorted) index of the step whose message carries each."""
+def _departures(track: NDArrayInt, step: NDArrayInt, stamps: list[bytes], names: list[str],
+                last_steps: NDArrayBool) -> tuple[NDArrayInt, list[bytes]]:
+    """The serialized ``deletions`` records of agents seen at a step and absent at the next one (unless the step
+    is its log's last, ``last_steps``), and the (sorted) index of the step whose message carries each; ``stamps``:
+    each step's serialized timestamp."""
     order = np.lexsort((step, track))
     t_s, s_s = track[order], step[order]
     continues = (t_s[1:] == t_s[:-1]) & (s_s[1:] == s_s[:-1] + 1)
-    leaving = np.flatnonzero(~np.concatenate([continues, [False]]) & (s_s + 1 < len(step_ts)))
+    leaving = np.flatnonzero(~np.concatenate([continues, [False]]) & (s_s + 1 < len(stamps)) & ~last_steps[s_s])
     at = s_s[leaving] + 1
     by_step = np.argsort(at, kind="stable")
     leaving, at = leaving[by_step], at[by_step]
-    records = [serialize(SceneUpdate(deletions=[SceneEntityDeletion(
-        timestamp=timestamp(step_ts[a]), type=SceneEntityDeletion.MATCHING_ID, id=names[t])]))
-        for a, t in zip(at.tolist(), t_s[leaving].tolist(), strict=True)]
+    # SceneUpdate.deletions = [{timestamp, type MATCHING_ID (0, so not written), id}], spliced per the wire format.
+    ids = [_ID_KEY + varint(len(b)) + b for b in (n.encode() for n in names)]
+    stamped = [_STAMP_KEY + varint(len(t)) + t for t in stamps]
+    records = []
+    for a, t in zip(at.tolist(), t_s[leaving].tolist(), strict=True):
+        body = stamped[a] + ids[t]
+        records.append(_DELETIONS_KEY + varint(len(body)) + body)
     return at.astype(np.int64), records
+
+
+def timestamp_bytes(ns: int) -> bytes:
+    """``serialize(timestamp(ns))`` without building the message (a few times faster; ingest makes one per step
+    and per departing agent)."""
+    if ns < 0:
+        return serialize(timestamp(ns))
+    seconds, nanos = divmod(ns, 1_000_000_000)
+    return (b"\x08" + varint(seconds) if seconds else b"") + (b"\x10" + varint(nanos) if nanos else b"")
+
+
+_ID_KEY = field_key(SceneEntityDeletion.ID_FIELD_NUMBER)
+_STAMP_KEY = field_key(SceneEntityDeletion.TIMESTAMP_FIELD_NUMBER)
+_DELETIONS_KEY = field_key(SceneUpdate.DELETIONS_FIELD_NUMBER)
+if SceneEntityDeletion.MATCHING_ID != 0:  # the splice above leaves the type out, as proto3 does for 0
+    raise RuntimeError("SceneEntityDeletion.MATCHING_ID is not the default")
 
 
 @cache

@@ -3,9 +3,10 @@
 Sources (``Source``):
 
 * **MCAP** (plain MCAP, ROS2 bags stored as MCAP, the MCAP ingest wrote): every schema, channel, message,
-  metadata record and attachment is copied record by record, in file order — same bytes, encodings,
-  schemas, channel metadata, sequence numbers and timestamps. Only the file-level framing (chunking,
-  compression, indexes) is the writer's own.
+  metadata record and attachment is copied, in file order — same bytes, encodings, schemas, channel metadata,
+  sequence numbers and timestamps (by chunk where the file allows, else record by record, below). Only the
+  file-level framing (indexes, and the chunking and compression of what is copied record by record) is the
+  writer's own.
 * **ROS bags** (ROS1 ``.bag``, ROS2 ``.db3`` bags) read with ``rosbags``: converted the way the MCAP ROS
   profiles define it — a ``ros1msg``/``ros2msg`` schema per message type (the bag's own message
   definition, generated from the type store when a ROS2 bag stores none), one channel per bag connection,
@@ -14,17 +15,23 @@ Sources (``Source``):
 Schema and channel ids of an MCAP source are kept when they are numbered 1, 2, ... in order of first
 appearance (as writers number them); otherwise they are renumbered consistently.
 
-Two writers: the Rust one of ``foxglove-sdk`` (``logpipe.mcap.native``, several times faster) whenever the
-output it would write keeps every original field — one MCAP source of at most ``NATIVE_MAX_BYTES``, no
-attachments, every channel with messages and numbered 1, 2, ... in order of its first message (schemas likewise),
-every message's sequence number its 1-based count on its channel and its publish time its log time, which is
-what that writer itself decides and so what every MCAP ingest writes satisfies (``native_copyable``); the
-``mcap`` writer for every other source (ROS bags, other MCAPs), which sets each field as read. The appended
-channels are numbered alike either way; their sequence numbers start at 1 with the first writer and 0 with the
-second, and an appended channel that gets no message is left out by the first. Appended channels come
-after every original one, and their messages after the original messages, so the originals keep their
-ids and order; readers that want time order (``iter_messages(log_time_order=True)``, Foxglove) sort by the
-chunk indexes.
+Three ways to copy, the first that applies:
+
+* **by chunk** (``logpipe.mcap.chunk_copy``): one MCAP source whose messages all sit in indexed chunks and that has
+  no attachments (every MCAP ingest writes, and most recorders' files): its chunk and message-index records are
+  copied byte for byte (so every original record, id, sequence number and time is the original's, nothing is
+  decompressed), and the appended channels are laid out after them by ``logpipe.mcap.bulk``;
+* **natively**: the Rust writer of ``foxglove-sdk`` (``logpipe.mcap.native``) whenever the output it would write
+  keeps every original field — one MCAP source of at most ``NATIVE_MAX_BYTES``, no attachments, every channel with
+  messages and numbered 1, 2, ... in order of its first message (schemas likewise), every message's sequence number
+  its 1-based count on its channel and its publish time its log time (``native_copyable``);
+* the ``mcap`` writer for every other source (ROS bags, other MCAPs), which sets each field as read.
+
+The appended channels are numbered after the original's; their sequence numbers start at 1 with the first two
+ways and 0 with the third, and an appended channel that gets no message is left out by the first two. Appended
+channels come after every original one, and their messages after the original messages (in their own chunks), so
+the originals keep their ids and order; readers that want time order (``iter_messages(log_time_order=True)``,
+Foxglove) sort by the chunk indexes.
 """
 
 from __future__ import annotations
@@ -40,6 +47,8 @@ from mcap.writer import CompressionType, Writer
 
 from logpipe import __version__
 from logpipe.errors import SourceError
+from logpipe.mcap.bulk import BulkMcap
+from logpipe.mcap.chunk_copy import ChunkedOriginal, read_chunked
 from logpipe.mcap.native import NativeMcap
 from logpipe.storage.io import atomic_path
 
@@ -145,6 +154,9 @@ def write_merged(
     Raises:
         SourceError: a source cannot be read.
     """
+    chunked = _chunked_original(sources)
+    if chunked is not None:
+        return _write_chunked(target, chunked, channels, messages, metadata or {})
     records = _native_records(sources)
     if records is not None:
         return _write_native(target, records, channels, messages, metadata or {})
@@ -193,6 +205,39 @@ one chunk each, written at ``close``: nothing to overlap there."""
 
 NATIVE_MAX_BYTES = 64 << 20
 """Largest original read whole to check it for the native writer (ingest's MCAPs are a few hundred KB)."""
+
+
+def _chunked_original(sources: Sequence[Source]) -> ChunkedOriginal | None:
+    """The one MCAP source read for a chunk copy (``logpipe.mcap.chunk_copy``), None where that does not apply."""
+    if len(sources) != 1 or sources[0].kind != "mcap" or len(sources[0].paths) != 1:
+        return None
+    return read_chunked(sources[0].paths[0], sources[0].name)
+
+
+def _write_chunked(target: Path, original: ChunkedOriginal, channels: Sequence[NewChannel],
+                   messages: Iterable[NewMessage], metadata: dict[str, dict[str, str]]) -> MergeStats:
+    """``write_merged`` of an original copied by chunk, the appended messages laid out whole (``BulkMcap``)."""
+    writer = BulkMcap(original.profile)
+    writer.copy_chunks(original.schemas, original.channels, original.chunks)
+    for record in original.metadata:
+        writer.metadata(record.name, dict(record.metadata))
+    times: list[list[int]] = [[] for _ in channels]
+    data: list[list[bytes]] = [[] for _ in channels]
+    for m in messages:
+        if m.publish_time != m.log_time:
+            raise ValueError("appended messages are written with publish time = log time")
+        times[m.channel].append(m.log_time)
+        data[m.channel].append(m.data)
+    for c, channel_times, channel_data in zip(channels, times, data, strict=True):
+        if channel_times:  # as the native writer did: no record for a channel without messages
+            writer.log(writer.channel(c.topic, c.message_encoding, (c.schema_name, c.schema_encoding, c.schema_data),
+                                      dict(c.metadata)), channel_times, channel_data)
+    for name, values in metadata.items():
+        writer.metadata(name, values)
+    with atomic_path(target) as tmp:
+        writer.write(tmp)
+    return MergeStats(schemas=len(original.schemas), channels=len(original.channels), messages=original.messages,
+                      metadata=len(original.metadata), appended=sum(map(len, times)))
 
 
 def _native_records(sources: Sequence[Source]) -> list[Any] | None:

@@ -1,5 +1,7 @@
-"""MCAP files through the Rust MCAP writer inside ``foxglove-sdk``: what ingest's MCAPs and predict's (where the
-original allows, ``logpipe.mcap.merge``) are written with.
+"""MCAP files through the Rust MCAP writer inside ``foxglove-sdk``: what predict copies an original MCAP with when
+it cannot copy it by chunk but this writer keeps every field (``logpipe.mcap.merge``). Ingest's MCAPs and predict's
+others are laid out by ``logpipe.mcap.bulk`` since issue 66 (``docs/bench.md``: fed the same batch-built messages,
+this writer measured the same end to end, and it cannot copy chunks).
 
 Why this writer: on our own records (``make bench``'s ``mcap_writers``) it writes ~5-8x as many records per CPU
 second as the pure-Python ``mcap`` writer, whose per-record Python work was most of ingest's MCAP cost; the files

@@ -116,7 +116,7 @@ class ChunkForecasts:
         forecasts = TargetForecasts(
             [str(i) for i in sample_ids], bounds, cut.track_ids[kept].tolist(),
             [OBJECT_TYPES[c] for c in cut.object_types[kept].tolist()], cut.observed[kept],
-            cast(NDArrayFloat, cut.truth)[kept], self.futures, self.scores)
+            cast(NDArrayFloat, cut.truth)[kept], self.futures, self.scores).with_columns()
         for first in range(0, len(drawn), SCENE_SAMPLES):
             stop = min(first + SCENE_SAMPLES, len(drawn))
             part = forecasts.part(first, stop)

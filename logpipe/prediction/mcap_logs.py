@@ -225,7 +225,7 @@ class PredictionMcaps:
 
     def _predictions_json(self, log_id: str, frame: str, now_ns: int, step_ns: NDArrayInt,
                           f: TargetForecasts) -> bytes:
-        current = f.history[:, -1]
+        columns = f.arrays()
         message = {
             "log_id": log_id,
             "sample_id": f.sample_ids[0],
@@ -239,10 +239,10 @@ class PredictionMcaps:
             "step_timestamps_ns": step_ns.tolist(),
             "track_id": list(f.track_ids),
             "object_type": list(f.object_types),
-            "current_x": np.ascontiguousarray(current[:, 0]),
-            "current_y": np.ascontiguousarray(current[:, 1]),
-            "score": np.ascontiguousarray(f.scores),
-            "x": np.ascontiguousarray(f.futures[..., 0]),
-            "y": np.ascontiguousarray(f.futures[..., 1]),
+            "current_x": columns["current_x"],
+            "current_y": columns["current_y"],
+            "score": columns["score"],
+            "x": columns["x"],
+            "y": columns["y"],
         }
         return dumps(message)

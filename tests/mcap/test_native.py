@@ -1,15 +1,19 @@
 """The native (foxglove-sdk) MCAP writer: what it decides itself, and that ``write_merged`` copies an original
-through it only when every original field survives (ids, sequence numbers, times, bytes, metadata)."""
+chunk by chunk where it can (``logpipe.mcap.chunk_copy``), through the native writer only when every original field
+survives (ids, sequence numbers, times, bytes, metadata), and record by record otherwise."""
 
 from __future__ import annotations
 
 from pathlib import Path
 from typing import Any
 
+import pytest
 from mcap.reader import make_reader
+from mcap.records import Chunk, Message
 from mcap.stream_reader import StreamReader
 from mcap.writer import Writer
 
+from logpipe.errors import SourceError
 from logpipe.mcap.merge import NewChannel, NewMessage, Source, native_copyable, write_merged
 from logpipe.mcap.native import NativeMcap
 
@@ -52,7 +56,12 @@ def test_the_native_writer_numbers_sequences_and_ids_by_first_message(tmp_path: 
     assert native_copyable(_records(path))
 
 
-def test_natively_written_originals_are_copied_natively_and_unchanged(tmp_path: Path) -> None:
+def _chunks(path: Path) -> list[Any]:
+    with path.open("rb") as fh:
+        return [r for r in StreamReader(fh, skip_magic=False, emit_chunks=True).records if isinstance(r, Chunk)]
+
+
+def test_chunked_originals_are_copied_chunk_by_chunk_and_unchanged(tmp_path: Path) -> None:
     src, out = tmp_path / "src.mcap", tmp_path / "out.mcap"
     _native_original(src)
     extra = NewChannel("/p", "p.P", "jsonschema", b"{}", "json", {"frame_id": "world"})
@@ -61,7 +70,8 @@ def test_natively_written_originals_are_copied_natively_and_unchanged(tmp_path: 
     assert (stats.messages, stats.channels, stats.schemas, stats.appended) == (40, 2, 2, 2)
     _, schemas_in, channels_in, messages_in = _read(src)
     library, schemas_out, channels_out, messages_out = _read(out)
-    assert library.startswith("foxglove-sdk-python/")  # the native path was taken
+    assert library.startswith("logpipe ")  # written by logpipe.mcap.bulk
+    assert _chunks(out)[: len(_chunks(src))] == _chunks(src)  # the original's chunks, compressed bytes and all
     assert {i: schemas_out[i] for i in schemas_in} == schemas_in
     assert {i: channels_out[i] for i in channels_in} == channels_in
     assert messages_out[:40] == messages_in  # same ids, sequence numbers, times and bytes, in file order
@@ -70,6 +80,43 @@ def test_natively_written_originals_are_copied_natively_and_unchanged(tmp_path: 
         reader = make_reader(fh)
         assert reader.get_header().profile == "x-test"
         assert {m.name: m.metadata for m in reader.iter_metadata()} == {"m": {"x": "1"}, "n": {"y": "2"}}
+    with out.open("rb") as fh:  # every CRC (chunks, data section) holds
+        assert sum(isinstance(r, Message) for r in StreamReader(fh, skip_magic=False, validate_crcs=True).records) == 42
+
+
+def test_an_appended_channel_reuses_the_originals_identical_schema(tmp_path: Path) -> None:
+    src, out = tmp_path / "src.mcap", tmp_path / "out.mcap"
+    _native_original(src)
+    extra = NewChannel("/p", "a.A", "jsonschema", b'{"type":"object"}', "json")
+    write_merged(out, [Source((src,), "mcap", "src.mcap")], [extra], [NewMessage(0, 5, 5, b"{}")])
+    _, schemas, channels, _ = _read(out)
+    assert len(schemas) == 2 and {c.topic: c.schema_id for c in channels.values()}["/p"] == 2  # a.A's id
+
+
+def test_a_damaged_chunk_of_an_original_is_one_error_naming_it(tmp_path: Path) -> None:
+    src = tmp_path / "src.mcap"
+    _native_original(src)
+    chunk = _chunks(src)[0]
+    data = bytearray(src.read_bytes())
+    at = data.index(chunk.data) + len(chunk.data) // 2
+    data[at] ^= 0xFF
+    src.write_bytes(bytes(data))
+    with pytest.raises(SourceError, match=r"src\.mcap"):
+        write_merged(tmp_path / "out.mcap", [Source((src,), "mcap", "src.mcap")], [], [])
+    assert not (tmp_path / "out.mcap").exists()
+
+
+def test_an_original_with_messages_outside_chunks_is_copied_record_by_record(tmp_path: Path) -> None:
+    src, out = tmp_path / "src.mcap", tmp_path / "out.mcap"
+    with src.open("wb") as fh:
+        w = Writer(fh, use_chunking=False)
+        w.start(profile="", library="test")
+        channel = w.register_channel("/a", "json", w.register_schema("a.A", "jsonschema", b"{}"))
+        for i in range(5):
+            w.add_message(channel, log_time=10 - i, publish_time=i, data=b"{}", sequence=7 * i)
+        w.finish()  # type: ignore[no-untyped-call]
+    write_merged(out, [Source((src,), "mcap", "src.mcap")], [], [])
+    assert not _chunks(src) and _read(out)[3] == [(1, 7 * i, 10 - i, i, b"{}") for i in range(5)]
 
 
 def test_originals_the_native_writer_would_change_are_not_native_copyable(tmp_path: Path) -> None:

@@ -86,17 +86,6 @@ def test_float_texts_equal_json_dumps_across_exponent_ranges() -> None:
     assert _json_floats(np.array([], dtype=np.float64)) == []
 
 
-def test_log_rows_slices_write_what_each_log_alone_writes(tmp_path: Path) -> None:
-    from logpipe.mcap.tracks import LogRows
-
-    two = pa.concat_tables([_log(True), _log(True)])
-    rows = LogRows.of(two)
-    assert len(rows) == 10
-    write_log_mcap("L", rows.slice(5, 10), tmp_path / "sliced.mcap", "MIA")
-    write_log_mcap("L", _log(True), tmp_path / "alone.mcap", "MIA")
-    assert _messages(tmp_path / "sliced.mcap") == _messages(tmp_path / "alone.mcap")
-
-
 def test_a_batch_of_logs_writes_one_file_per_log_as_each_log_alone(tmp_path: Path) -> None:
     from logpipe.mcap.tracks import write_log_mcaps
     from logpipe.types import LogMeta
@@ -112,3 +101,20 @@ def test_a_batch_of_logs_writes_one_file_per_log_as_each_log_alone(tmp_path: Pat
     assert messages == alone
     for name in ("L.mcap", "M.mcap"):
         assert (tmp_path / "batch" / name).read_bytes() == (tmp_path / name).read_bytes()
+
+
+def test_json_columns_cut_to_each_rows_json_dumps() -> None:
+    import numpy as np
+
+    from logpipe.mcap.tracks import JsonColumn
+
+    rng = np.random.default_rng(1)
+    plain = rng.uniform(-5000, 5000, 500)  # orjson's own text, cut at its commas
+    tricky = np.concatenate([plain, [1e-5, 0.0, -0.0, 2.0**60]])  # repr fix-ups: the per-row path
+    for values in (plain, tricky):
+        column = JsonColumn.of_floats(values)
+        for lo, hi in ((0, len(values)), (3, 17), (len(values) - 1, len(values))):
+            text = column.text[column.offsets[lo] : column.offsets[hi] - 1].decode()
+            assert text == ",".join(json.dumps(v) for v in values[lo:hi].tolist())
+    names = JsonColumn.of_codes(np.array([2, 0, 2, 1]), ["a", 'q"uote', "é"])
+    assert names.text[: names.offsets[4] - 1].decode() == ",".join(json.dumps(v) for v in ["é", "a", "é", 'q"uote'])
