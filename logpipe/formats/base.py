@@ -10,7 +10,6 @@ from __future__ import annotations
 import hashlib
 import math
 import os
-import stat
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -23,6 +22,7 @@ import pyarrow.compute as pc
 from logpipe.dataset.samples import TrackCodes
 from logpipe.errors import LogpipeError, SourceError
 from logpipe.storage.artifact import unsafe_file_name
+from logpipe.storage.regular_files import irregular_kind
 from logpipe.types import LogMeta, SampleProtocol, SourceFile
 
 if TYPE_CHECKING:  # annotations only: the text formats' pool workers need not import the map store
@@ -72,17 +72,14 @@ def require_regular(path: str | Path, relpath: str, *, folder_ok: bool = False) 
         SourceError: missing / dangling link / FIFO / device / socket.
     """
     try:
-        mode = os.stat(path).st_mode
+        kind = irregular_kind(path)
     except FileNotFoundError:
         what = "a dangling symbolic link" if os.path.islink(path) else "missing (removed since it was listed?)"
         raise SourceError(relpath, f"not readable: {what}") from None
     except OSError as err:
         raise SourceError(relpath, f"not readable: {err.strerror or err}") from None
-    if stat.S_ISREG(mode) or (folder_ok and stat.S_ISDIR(mode)):
+    if kind is None or (folder_ok and kind == "a folder"):
         return
-    kind = ("a folder" if stat.S_ISDIR(mode) else "a FIFO (named pipe)" if stat.S_ISFIFO(mode)
-            else "a device" if stat.S_ISCHR(mode) or stat.S_ISBLK(mode)
-            else "a socket" if stat.S_ISSOCK(mode) else "not a regular file")
     raise SourceError(relpath, f"not a regular file: {kind}; only regular files are read")
 
 

@@ -30,7 +30,7 @@ import os
 import re
 import shutil
 from collections.abc import Iterable, Iterator, Sequence
-from contextlib import contextmanager
+from contextlib import contextmanager, suppress
 from dataclasses import dataclass
 from pathlib import Path
 from types import TracebackType
@@ -39,10 +39,13 @@ from typing import Any, Self, TypedDict
 from logpipe.errors import DatasetError, LogpipeError, OutputError
 from logpipe.storage.durability import crash_point, fsync_dir, syncfs
 from logpipe.storage.folder_lock import LOCK_FILE, FolderLock
+from logpipe.storage.regular_files import parse_nested, read_regular_bytes
 from logpipe.storage.safe_paths import check_manifest_files, refuse_linked_folders
+from logpipe.storage.write_journal import JOURNAL, logpipe_scratch, proven_written, prune_journal, written_identities
 
 MANIFEST = "manifest.json"
 STAGING_PREFIX = ".staging-"
+_RESERVED = (MANIFEST, LOCK_FILE, JOURNAL)
 
 
 class FileEntry(TypedDict, total=False):
@@ -81,7 +84,7 @@ def read_manifest(root: Path, *, required: bool = True) -> dict[str, Any] | None
     """
     path = root / MANIFEST
     try:
-        text = path.read_bytes()
+        text = read_regular_bytes(path)
     except FileNotFoundError:
         if required:
             raise DatasetError(f"{root}: no {MANIFEST} (not a logpipe output folder, or never committed)") from None
@@ -89,7 +92,7 @@ def read_manifest(root: Path, *, required: bool = True) -> dict[str, Any] | None
     except OSError as exc:
         raise DatasetError(f"{path}: cannot read: {exc.strerror}") from None
     try:
-        manifest = json.loads(text)
+        manifest = parse_nested(json.loads, text.decode("utf-8"))
     except (ValueError, UnicodeDecodeError) as exc:
         raise DatasetError(f"{path}: damaged manifest ({exc}); `logpipe verify` lists what is wrong") from None
     if not isinstance(manifest, dict):
@@ -223,6 +226,9 @@ class ArtifactWriter:
         self._created = False
 
     def __enter__(self) -> ArtifactWriter:
+        if self.root.is_symlink():  # before the first write: every file would land in the link's target
+            raise OutputError(f"{self.root}: is a symbolic link; logpipe never writes through links: give the "
+                              "folder it points to, or another folder")
         if self.root.exists() and not self.root.is_dir():
             raise DatasetError(f"{self.root}: exists and is not a folder")
         self.root.parent.mkdir(parents=True, exist_ok=True)
@@ -255,6 +261,9 @@ class ArtifactWriter:
                 # Leave no trace, and only under the lock: released first, another writer could take the folder
                 # and commit into it before it is gone. Only owned files this run wrote can be here.
                 self.clean(everything_owned=True)
+            else:  # still under the lock: the journal keeps only what the folder holds (best effort)
+                with suppress(OSError):
+                    prune_journal(self.root, (path for _rel, path in _walk(self.root)))
         finally:
             self._lock.release(remove_folder=failed_first_run)
 
@@ -278,20 +287,27 @@ class ArtifactWriter:
         """
         keep = self.committed_files()
         ours = self.manifest is not None or self._lock.found_stale or everything_owned
-        removed = []
+        written = written_identities(self.root)
+        removed, present = [], []
         for rel, path in _walk(self.root):
-            if rel in keep or rel in (MANIFEST, LOCK_FILE):
+            if rel in keep or rel in _RESERVED:
+                present.append(path)
                 continue
-            name = path.name
-            leftover = name.startswith(STAGING_PREFIX) or (name.startswith(".") and name.endswith(".tmp"))
-            if (leftover and ("/" not in rel or self.owned(rel))) or (ours and self.owned(rel) and not path.is_dir()):
+            # A file no commit names is removed only when logpipe can prove it wrote it (its journal), never on
+            # a manifest's word: a spoofed manifest beside the user's files must not turn them into leftovers.
+            proven = everything_owned or proven_written(path, written)
+            scratch = logpipe_scratch(path.name)
+            if (scratch and ("/" not in rel or self.owned(rel))) or (ours and self.owned(rel) and proven):
                 crash_point(f"clean {rel}")
                 if path.is_dir() and not path.is_symlink():
                     shutil.rmtree(path)
                 else:
                     path.unlink()
                 removed.append(rel)
+            else:
+                present.append(path)
         _remove_empty_owned_dirs(self.root, self.owned)
+        prune_journal(self.root, present)
         return removed
 
     def stamped(self, manifest: dict[str, Any]) -> dict[str, Any]:
@@ -331,9 +347,11 @@ class ArtifactWriter:
         self.manifest = manifest
         # Only what the previous state named: workers may be writing the next commit's files right now, so
         # only the folders these files leave empty go, never a sweep (it would take a worker's new folder).
+        written = written_identities(self.root) if superseded else set()
         for rel in superseded:
             crash_point(f"remove {rel}")
-            (self.root / rel).unlink(missing_ok=True)
+            if proven_written(self.root / rel, written):  # an edited or foreign manifest names no file to delete
+                (self.root / rel).unlink()
         _remove_emptied_dirs(self.root, self.owned, superseded)
 
 
@@ -432,12 +450,12 @@ def verify_folder(root: Path, owned: Ownership | None = None, *,
             if rows != entry["rows"]:
                 problems.append(Problem(str(path), f"{rows} rows, manifest says {entry['rows']}"))
     leftovers = []
+    written = written_identities(root)
     for rel, path in _walk(root):
-        if rel in files or rel in (MANIFEST, LOCK_FILE):
+        if rel in files or rel in _RESERVED:
             continue
-        leftover = path.name.startswith(STAGING_PREFIX) or (path.name.startswith(".") and path.name.endswith(".tmp"))
         mine = owned(rel)
-        if (leftover and ("/" not in rel or mine)) or (mine and not path.is_dir()):
+        if (logpipe_scratch(path.name) and ("/" not in rel or mine)) or (mine and proven_written(path, written)):
             leftovers.append(rel)
     return problems, leftovers
 

@@ -17,6 +17,7 @@ import pyarrow.parquet as pq
 
 from logpipe.errors import DatasetError, OutputError
 from logpipe.storage.durability import crash_point
+from logpipe.storage.write_journal import record_written
 
 _HASH_CHUNK = 1 << 20
 
@@ -142,6 +143,7 @@ def atomic_path(target: Path, *, durable: bool = False) -> Iterator[Path]:
                 os.fsync(fh.fileno())
         crash_point(f"before rename {target.name}")
         os.replace(tmp, target)
+        record_written(target)  # the proof a later cleanup needs before it may delete this file
         crash_point(f"after rename {target.name}")
     except BaseException:
         tmp.unlink(missing_ok=True)
@@ -212,9 +214,10 @@ def read_table(path: Path, **kwargs: Any) -> pa.Table:
 
 
 def read_json(path: Path) -> Any:
-    """Parsed JSON of ``path``."""
-    with path.open(encoding="utf-8") as fh:
-        return json.load(fh)
+    """Parsed JSON of ``path`` (a regular file only; too deep a nesting is a ``ValueError``)."""
+    from logpipe.storage.regular_files import read_json_file
+
+    return read_json_file(path)
 
 
 def as_numpy(column: pa.Array | pa.ChunkedArray) -> Any:
