@@ -150,7 +150,8 @@ def read_bodies(
         finally:
             os.close(fd)
         end = _strip_end(buffer, pos, pos + got)
-        error = (_check_encoding(source, head) or check_header(source, head[:start] if header_lines else head, end > pos)
+        error = (_check_encoding(source, head)
+                 or check_header(source, head[:start] if header_lines else head, end > pos)
                  or _cut_last_line(source, buffer, pos, end, pos + got, header_lines))
         if error is not None:
             if not keep_going:

@@ -191,9 +191,9 @@ class BoundedZstd:
 
 def bound_rosbag2_zstd() -> None:
     """Make ``rosbags``' ROS 2 reader decompress through ``BoundedZstd`` (idempotent)."""
-    import rosbags.rosbag2.reader as reader
+    from rosbags.rosbag2 import reader
 
-    reader.zstd = BoundedZstd  # type: ignore[attr-defined]
+    reader.zstd = BoundedZstd  # type: ignore[assignment,attr-defined,unused-ignore]
 
 
 bound_rosbag2_zstd()  # every importer of this module reads bags through rosbags: bounded from the first read

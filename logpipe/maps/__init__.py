@@ -244,7 +244,10 @@ class MapSource:
     def resolve(self, map_id: str | None, log_id: str | None = None) -> Path | None:
         """The map file for a log, or None when nothing matches."""
         if map_id is not None and map_id in self.files:
-            return self.files[map_id]
+            given = self.files[map_id]
+            if not _regular(given) and not given.is_dir():  # a FIFO is refused here, before anything hashes it
+                raise SourceError(str(given), "map file not found")
+            return given
         if log_id in self.own:
             return self.own[log_id]
         if log_id:

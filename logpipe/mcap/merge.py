@@ -338,9 +338,9 @@ def ros1_schema_name(msgtype: str) -> str:
 def _copy_rosbag(source: Source, copier: _Copier) -> None:
     """Convert one bag's connections and raw messages (MCAP ROS1/ROS2 profiles)."""
     from rosbags.highlevel import AnyReader
+    from rosbags.interfaces import MessageDefinitionFormat
 
     import logpipe.formats.inflation  # noqa: F401  bounds rosbags' ROS 2 zstd decompression
-    from rosbags.interfaces import MessageDefinitionFormat
 
     writer, stats = copier.writer, copier.stats
     with AnyReader(list(source.paths)) as reader:

@@ -88,10 +88,27 @@ class NestingError(ValueError):
     """A document nested deeper than its parser can follow (``'[' * 100000``)."""
 
 
+MAX_BRACKET_DEPTH = 1000
+"""Deepest ``[``/``{`` nesting ``parse_nested`` hands to a parser (no real manifest, meta.json or mapping nests
+more than ~10): the pure-Python YAML parser spends minutes on ``'[' * 100000`` before it recurses too deep."""
+
+
+def _bracket_depth(text: str) -> int:
+    """Deepest nesting of brackets in ``text`` (brackets inside strings counted too: an upper bound)."""
+    import numpy as np
+
+    codes = np.frombuffer(text.encode("utf-8", "replace"), dtype=np.uint8)
+    step = np.isin(codes, (ord("["), ord("{"))).astype(np.int32) - np.isin(codes, (ord("]"), ord("}")))
+    return int(np.cumsum(step).max()) if len(step) else 0
+
+
 def parse_nested(parse: Callable[[str], T], text: str) -> T:
-    """``parse(text)`` with a parser's ``RecursionError`` turned into a ``NestingError`` (a ``ValueError``:
-    readers already report those, after the file's name, as a damaged document)."""
+    """``parse(text)`` with too deep a nesting (over ``MAX_BRACKET_DEPTH`` brackets, or a parser's
+    ``RecursionError``) as a ``NestingError`` (a ``ValueError``: readers already report those, after the file's
+    name, as a damaged document)."""
     try:
+        if _bracket_depth(text) > MAX_BRACKET_DEPTH:
+            raise RecursionError
         return parse(text)
     except RecursionError:
         raise NestingError("nested too deeply to parse (lists or tables inside each other thousands of levels "
