@@ -70,6 +70,12 @@ def ingest(  # noqa: PLR0913  typer command: one parameter per CLI option
     """Turn logs (Argoverse 1 CSV, ETH/UCY, ApolloScape, ...) into canonical Parquet shards, a sample index
     and one MCAP per log. Re-running skips inputs already ingested (by content hash).
 
+    Limits per input (an input over one is refused, or quarantined with --on-error skip, with the limit named):
+    CommonRoad files 16 MiB (after gzip); compressed chunks and ROS 2 zstd messages inflate at most
+    LOGPIPE_MAX_INFLATION (1000) times their size, and at most LOGPIPE_MAX_CHUNK_BYTES (1 GiB); coordinates
+    below 1e7 m (CommonRoad states 1e5); no track moving faster than 150 m/s between observations; ETH/UCY and
+    ApolloScape ids whole numbers below 2^31; a text file's last line ends with a newline (else it was cut).
+
     Example: logpipe ingest ../shared/data/argoverse1/data --out out/av1
     Example: logpipe ingest run.bag --out out/run --set ego=/odom --set agent=/red_pose --hz 10
     """

@@ -21,6 +21,7 @@ import pyarrow.compute as pc
 
 from logpipe.dataset.samples import TrackCodes
 from logpipe.errors import LogpipeError, SourceError
+from logpipe.formats.motion_checks import impossible_motion
 from logpipe.storage.artifact import unsafe_file_name
 from logpipe.storage.regular_files import irregular_kind
 from logpipe.types import LogMeta, SampleProtocol, SourceFile
@@ -377,7 +378,8 @@ COORD_LIMIT_M = 1e7
 
 def implausible_rows(tracks: pa.Table) -> dict[str, tuple[str, str]]:
     """(field, reason) for each log of ``tracks`` holding a physically implausible row: a coordinate beyond
-    ``COORD_LIMIT_M``, or a track id with NUL or control characters (ids reach file names, MCAP and terminals).
+    ``COORD_LIMIT_M``, a track id with NUL or control characters (ids reach file names, MCAP and terminals), or
+    motion no agent is capable of (``logpipe.formats.motion_checks``).
     One vectorised pass, the same for every format."""
     if tracks.num_rows == 0:
         return {}
@@ -392,6 +394,8 @@ def implausible_rows(tracks: pa.Table) -> dict[str, tuple[str, str]]:
     control = pc.fill_null(pc.match_substring_regex(ids, r"[\x00-\x1f\x7f]"), False)
     for log, value in zip(pc.filter(logs, control).to_pylist(), pc.filter(ids, control).to_pylist(), strict=True):
         found.setdefault(log, ("track_id", f"track id {value[:40]!r} holds NUL or control characters"))
+    for log, why in impossible_motion(tracks).items():  # jumps and velocities beyond any agent's
+        found.setdefault(log, why)
     return found
 
 

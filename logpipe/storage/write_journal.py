@@ -116,6 +116,9 @@ def prune_journal(root: Path, present: Iterable[Path]) -> None:
     if not written:
         return
     keep = [(p, found) for p in present if (found := identity(p)) is not None and found in written]
+    if not keep:  # a failed run into a folder that held nothing of logpipe's leaves no trace
+        path.unlink(missing_ok=True)
+        return
     tmp = root / f"{JOURNAL}.new"
     fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC | os.O_NOFOLLOW | os.O_CLOEXEC, 0o644)
     with os.fdopen(fd, "w", encoding="utf-8") as fh:

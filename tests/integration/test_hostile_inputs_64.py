@@ -300,3 +300,84 @@ def test_the_native_mcap_writer_turns_a_full_disk_into_enospc(tmp_path: Path) ->
         assert caught.value.errno == errno.ENOSPC and caught.value.filename == str(disk / "a.mcap")
     finally:
         subprocess.run(["umount", str(disk)], check=False)
+
+
+# ---- 9: physically impossible motion ----------------------------------------------------------------------
+
+
+def _eth_track(tmp_path: Path, name: str, xs: list[float]) -> Path:
+    """One ETH/UCY file: pedestrian 1 walking at 1.2 m/s (0.48 m a 0.4 s step) along y, with ``xs`` as x."""
+    path = tmp_path / "in" / name
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text("".join(f"{10 * i}.0\t1.0\t{x}\t{0.48 * i}\n" for i, x in enumerate(xs)))
+    return path
+
+
+@pytest.mark.parametrize(("name", "xs"), [
+    ("teleport.txt", [0.0] * 10 + [1000.0] * 10),  # 1 km in one 0.4 s step at observed step 10
+    ("zigzag.txt", [50.0 if i % 2 else -50.0 for i in range(20)]),  # +-50 m every step
+])
+def test_impossible_motion_is_quarantined_at_ingest(tmp_path: Path, name: str, xs: list[float]) -> None:
+    path = _eth_track(tmp_path, name, xs)
+    line = _one_error_line(_cli("ingest", path, "--out", tmp_path / "a"), name, "m/s")
+    assert "jumps" in line
+    good = _eth_track(tmp_path, "walker.txt", [0.0] * 20)
+    skipped = _cli("ingest", path.parent, "--out", tmp_path / "b", "--on-error", "skip", "--no-mcap", "--json")
+    assert skipped.returncode == 0, skipped.stderr
+    import json
+
+    summary = json.loads(skipped.stdout)
+    assert [q["path"] for q in summary["quarantined"]] == [name]
+    assert summary["totals"]["logs"] == 1 and good.exists()
+
+
+def test_a_walker_lands(tmp_path: Path) -> None:
+    path = _eth_track(tmp_path, "walker.txt", [0.0] * 20)
+    assert _cli("ingest", path, "--out", tmp_path / "a", "--no-mcap").returncode == 0
+
+
+def _commonroad_with(tmp_path: Path, old: str, new: str) -> Path:
+    source = DATA / "commonroad"
+    xml = next(p for p in sorted(source.rglob("*.xml")))
+    text = xml.read_text()
+    assert old in text
+    path = tmp_path / "in" / xml.name
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(text.replace(old, new, 1))
+    return path
+
+
+@pytest.mark.parametrize("field", ["x", "velocity"])
+def test_a_commonroad_obstacle_far_away_or_too_fast_is_refused(tmp_path: Path, field: str) -> None:
+    from lxml import etree
+
+    xml = next(p for p in sorted((DATA / "commonroad").rglob("*.xml")))
+    root = etree.parse(str(xml)).getroot()
+    element = next(el for el in root.iter(field) if el.getparent().tag in ("position", "state")
+                   or el.getparent().getparent().tag == "state") if field == "velocity" else \
+        next(el for el in root.iter("x") if el.getparent().tag == "point" and
+             el.getparent().getparent().tag == "position")
+    target = element.find("exact") if element.find("exact") is not None else element
+    target.text = "1000000.0"
+    path = tmp_path / "in" / xml.name
+    path.parent.mkdir(parents=True)
+    etree.ElementTree(root).write(str(path))
+    _one_error_line(_cli("ingest", path, "--out", tmp_path / "o"), xml.name)
+
+
+# ---- 10: large CommonRoad files ---------------------------------------------------------------------------
+
+
+def test_a_commonroad_file_over_the_limit_is_refused_at_once(tmp_path: Path) -> None:
+    from logpipe.maps.commonroad import MAX_FILE_BYTES
+
+    xml = next(p for p in sorted((DATA / "commonroad").rglob("*.xml")))
+    text = xml.read_bytes()
+    big = tmp_path / "in" / xml.name
+    big.parent.mkdir()
+    # Padding in an XML comment after the root element: a well-formed file, only too large.
+    big.write_bytes(text + b"<!--" + b" " * (MAX_FILE_BYTES + 1 - len(text)) + b"-->\n")
+    line = _one_error_line(_cli("ingest", big, "--out", tmp_path / "o"), xml.name, "16 MiB")
+    assert "refused before parsing" in line
+    help_text = _cli("ingest", "--help").stdout
+    assert "CommonRoad files 16 MiB" in " ".join(help_text.split())
