@@ -109,6 +109,7 @@ def ingest_lines(s: dict[str, Any]) -> list[str]:
         e = q["error"]
         where = e["file"] + (f":{e['line']}" if e["line"] else "") + (f" field '{e['field']}'" if e["field"] else "")
         lines.append(f"  quarantined {where}: {e['reason']}")
+    lines += [f"  warning: {w}" for w in s.get("warnings", [])]
     lines += [f"  {line}" for line in summary_notes(s) + location_lines(s)]
     earlier = totals.get("quarantined", 0) - len(s["quarantined"])
     if earlier > 0 and not s.get("inputs_retried"):

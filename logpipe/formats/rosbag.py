@@ -291,6 +291,8 @@ class RosbagAdapter:
 
         result = extract_log(rel, topics, read, self.options, log_id, keep_going=keep_going)
         attributes = {
+            **({} if reader.is2 else {"unchecked": "a ROS 1 bag carries no checksums: corruption inside it cannot be "
+                                      "detected"}),
             "storage": "rosbag2" if reader.is2 else "rosbag1",
             "files": [p.name for p in paths] if (paths := storage_paths(path)) and path.is_dir() else [path.name],
             "start_ns": reader.start_time if reader.message_count else None,

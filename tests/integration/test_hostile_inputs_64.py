@@ -381,3 +381,53 @@ def test_a_commonroad_file_over_the_limit_is_refused_at_once(tmp_path: Path) -> 
     assert "refused before parsing" in line
     help_text = _cli("ingest", "--help").stdout
     assert "CommonRoad files 16 MiB" in " ".join(help_text.split())
+
+
+# ---- files without chunk CRCs ------------------------------------------------------------------------------
+
+
+def _pose_mcap(path: Path, *, crcs: bool) -> Path:
+    import json
+
+    from mcap.writer import Writer
+
+    with path.open("wb") as fh:
+        writer = Writer(fh, enable_crcs=crcs)
+        writer.start()
+        schema = writer.register_schema(name="foxglove.PoseInFrame", encoding="jsonschema", data=b"{}")
+        channel = writer.register_channel(topic="/pose", message_encoding="json", schema_id=schema)
+        for i in range(50):
+            pose = {"timestamp": {"sec": i // 10, "nsec": (i % 10) * 100_000_000}, "frame_id": "map",
+                    "pose": {"position": {"x": i * 0.5, "y": 0.0, "z": 0.0},
+                             "orientation": {"x": 0.0, "y": 0.0, "z": 0.0, "w": 1.0}}}
+            t = (i + 1) * 100_000_000
+            writer.add_message(channel, log_time=t, publish_time=t, data=json.dumps(pose).encode())
+        writer.finish()
+    return path
+
+
+def test_an_mcap_without_chunk_crcs_lands_with_a_warning(tmp_path: Path) -> None:
+    import json
+
+    (tmp_path / "in").mkdir()
+    bare = _pose_mcap(tmp_path / "in" / "bare.mcap", crcs=False)
+    checked = _pose_mcap(tmp_path / "in" / "checked.mcap", crcs=True)
+    result = _cli("ingest", bare, checked, "--out", tmp_path / "o", "--set", "ego=/pose", "--json")
+    assert result.returncode == 0, result.stderr
+    warnings = json.loads(result.stdout)["warnings"]
+    assert warnings == ["bare.mcap: 1 chunks carry no CRC: corruption inside them cannot be detected"]
+    human = subprocess.run([*LOGPIPE, "ingest", str(bare), "--out", str(tmp_path / "h"), "--set", "ego=/pose"],
+                           capture_output=True, text=True, cwd=REPO, timeout=HANG_SECONDS, check=False)
+    assert "warning: bare.mcap: 1 chunks carry no CRC" in human.stdout + human.stderr
+
+
+def test_a_ros1_bag_lands_with_a_warning(tmp_path: Path) -> None:
+    import json
+
+    bag = next(p for p in sorted((DATA / "rosbags").rglob("*.bag")))
+    result = _cli("ingest", bag, "--out", tmp_path / "o", "--json", "--on-error", "skip")
+    assert result.returncode == 0, result.stderr
+    summary = json.loads(result.stdout)
+    assert summary["inputs_ingested"] == 1, summary["quarantined"]
+    assert [w.split(": ", 1)[1] for w in summary["warnings"]] == [
+        "a ROS 1 bag carries no checksums: corruption inside it cannot be detected"]
