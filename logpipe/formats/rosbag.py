@@ -188,8 +188,8 @@ class RosbagAdapter:
         for child in sorted(root.iterdir()):
             if child.is_dir():
                 found += self.discover(child)
-            elif child.suffix in (".bag", ".db3") and self.sniff(child):
-                found.append(child)
+            elif child.suffix == ".bag" or (child.suffix == ".db3" and self.sniff(child)):
+                found.append(child)  # a .bag that is none (empty, cut, a dangling link) is quarantined, not skipped
         return sorted(found)
 
     # --- reading
