@@ -363,7 +363,8 @@ class McapAdapter:
         """``.mcap`` files under ``root``, except the storage files of rosbag2 folders (metadata.yaml beside)."""
         if root.is_file():
             return [root] if self.sniff(root) else []
-        return sorted(p for p in root.rglob("*.mcap") if p.is_file() and not (p.parent / "metadata.yaml").exists())
+        # Anything named .mcap but a folder: a FIFO, device or dangling link is quarantined saying what it is.
+        return sorted(p for p in root.rglob("*.mcap") if not p.is_dir() and not (p.parent / "metadata.yaml").exists())
 
     def read(self, sources: Sequence[SourceFile], *, keep_going: bool) -> ParsedLogs:
         """Parse MCAP files into track rows (see ``FormatAdapter.read``)."""

@@ -41,7 +41,7 @@ from logpipe.storage.durability import crash_point, fsync_dir, syncfs
 from logpipe.storage.folder_lock import LOCK_FILE, FolderLock
 from logpipe.storage.regular_files import parse_nested, read_regular_bytes
 from logpipe.storage.safe_paths import check_manifest_files, refuse_linked_folders
-from logpipe.storage.write_journal import JOURNAL, logpipe_scratch, proven_written, prune_journal, written_identities
+from logpipe.storage.write_journal import JOURNAL, logpipe_scratch, prune_journal, read_journal, record_committed
 
 MANIFEST = "manifest.json"
 STAGING_PREFIX = ".staging-"
@@ -224,6 +224,7 @@ class ArtifactWriter:
         self.manifest: dict[str, Any] | None = None
         self._lock = FolderLock(self.root)
         self._created = False
+        self._recorded: dict[str, Any] = {}
 
     def __enter__(self) -> ArtifactWriter:
         if self.root.is_symlink():  # before the first write: every file would land in the link's target
@@ -287,7 +288,7 @@ class ArtifactWriter:
         """
         keep = self.committed_files()
         ours = self.manifest is not None or self._lock.found_stale or everything_owned
-        written = written_identities(self.root)
+        journal = read_journal(self.root)
         removed, present = [], []
         for rel, path in _walk(self.root):
             if rel in keep or rel in _RESERVED:
@@ -295,7 +296,7 @@ class ArtifactWriter:
                 continue
             # A file no commit names is removed only when logpipe can prove it wrote it (its journal), never on
             # a manifest's word: a spoofed manifest beside the user's files must not turn them into leftovers.
-            proven = everything_owned or proven_written(path, written)
+            proven = everything_owned or (self.owned(rel) and journal.proves(self.root, path))
             scratch = logpipe_scratch(path.name)
             if (scratch and ("/" not in rel or self.owned(rel))) or (ours and self.owned(rel) and proven):
                 crash_point(f"clean {rel}")
@@ -343,14 +344,17 @@ class ArtifactWriter:
             tmp.write_text(text, encoding="utf-8")
         crash_point("after manifest")
         fsync_dir(self.root)
+        # By what this writer recorded, not by the previous manifest: a caller may pass the same (growing) dict.
+        record_committed(self.root, {rel: e for rel, e in files.items() if self._recorded.get(rel) != e})
+        self._recorded.update((rel, dict(e)) for rel, e in files.items())
         superseded = sorted(self.committed_files() - set(files))
         self.manifest = manifest
         # Only what the previous state named: workers may be writing the next commit's files right now, so
         # only the folders these files leave empty go, never a sweep (it would take a worker's new folder).
-        written = written_identities(self.root) if superseded else set()
+        journal = read_journal(self.root)
         for rel in superseded:
             crash_point(f"remove {rel}")
-            if proven_written(self.root / rel, written):  # an edited or foreign manifest names no file to delete
+            if journal.proves(self.root, self.root / rel):  # an edited or foreign manifest names no file to delete
                 (self.root / rel).unlink()
         _remove_emptied_dirs(self.root, self.owned, superseded)
 
@@ -450,12 +454,12 @@ def verify_folder(root: Path, owned: Ownership | None = None, *,
             if rows != entry["rows"]:
                 problems.append(Problem(str(path), f"{rows} rows, manifest says {entry['rows']}"))
     leftovers = []
-    written = written_identities(root)
+    journal = read_journal(root)
     for rel, path in _walk(root):
         if rel in files or rel in _RESERVED:
             continue
         mine = owned(rel)
-        if (logpipe_scratch(path.name) and ("/" not in rel or mine)) or (mine and proven_written(path, written)):
+        if (logpipe_scratch(path.name) and ("/" not in rel or mine)) or (mine and journal.proves(root, path)):
             leftovers.append(rel)
     return problems, leftovers
 

@@ -6,12 +6,13 @@ own files), so every file ``atomic_path`` puts in place inside a locked artifact
 ``FOLDER/.logpipe-written``, by its identity: inode, size and modification time in ns. A cleanup removes an
 unnamed file only when a recorded identity is that very file, unchanged since logpipe renamed it into place
 (renames keep the identity, so a file moved from staging stays proven; a file edited, replaced or copied in is
-not). Temp files and staging folders are recognised by logpipe's own names for them (``TEMP_NAME``,
-``STAGING_NAME``): they hold no committed content and are never shown to readers.
+not). Each commit also records the files it names by content (path, bytes, sha256, as computed when written), and
+the journal is pruned to those at the end of every write: a folder written twice alike has the same journal.
+Temp files and staging folders are recognised by logpipe's own names for them (``TEMP_NAME``, ``STAGING_NAME``):
+they hold no committed content and are never shown to readers.
 
-Appends are single ``O_APPEND`` writes of one short line, so worker processes writing files at once never
-interleave; the journal is rewritten (to the entries whose files are still there) only under the folder's
-lock, before any worker starts.
+Appends are single ``O_APPEND`` writes, so worker processes writing files at once never interleave; the journal
+is rewritten (to the entries whose files are still there) only under the folder's lock, with no worker running.
 """
 
 from __future__ import annotations
@@ -20,7 +21,9 @@ import json
 import os
 import re
 from collections.abc import Iterable
+from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 from logpipe.storage.folder_lock import LOCK_FILE
 
@@ -33,6 +36,8 @@ _MAX_ANCESTORS = 8
 """How far above a written file its artifact folder may be (``DATASET/rasters/RUN/shards/x.npy`` is 3)."""
 
 Identity = tuple[int, int, int]
+_RESERVED = frozenset({JOURNAL, "manifest.json", LOCK_FILE})
+"""Names a cleanup never removes anyway: not recorded (the manifest is rewritten at every commit)."""
 
 
 def identity(path: Path) -> Identity | None:
@@ -56,51 +61,83 @@ def _artifact_root(path: Path) -> Path | None:
     return None
 
 
-def record_written(path: Path) -> None:
-    """Record ``path`` (just renamed into place) in the journal of the artifact folder being written around it;
-    nothing when no logpipe writer holds a folder above it."""
-    if path.name == JOURNAL:
+def _append(root: Path, lines: Iterable[str]) -> None:
+    text = "".join(lines)
+    if not text:
         return
-    root = _artifact_root(path)
-    found = identity(path)
-    if root is None or found is None:
-        return
-    line = json.dumps([path.relative_to(root).as_posix(), *found]) + "\n"
     fd = os.open(root / JOURNAL, os.O_WRONLY | os.O_APPEND | os.O_CREAT | os.O_NOFOLLOW | os.O_CLOEXEC, 0o644)
     try:
-        os.write(fd, line.encode())
+        os.write(fd, text.encode())
     finally:
         os.close(fd)
 
 
-def written_identities(root: Path) -> set[Identity]:
-    """Every identity the journal of ``root`` records (none when it is missing, a link or unreadable; a
-    damaged line is skipped: it proves nothing)."""
+def record_written(path: Path) -> None:
+    """Record ``path`` (just renamed into place) by its identity in the journal of the artifact folder being
+    written around it; nothing when no logpipe writer holds a folder above it."""
+    if path.name in _RESERVED:
+        return
+    root = _artifact_root(path)
+    found = identity(path)
+    if root is not None and found is not None:
+        _append(root, [json.dumps([path.relative_to(root).as_posix(), *found]) + "\n"])
+
+
+def record_committed(root: Path, files: dict[str, Any]) -> None:
+    """Record files a commit of ``root`` just named, by content (``{rel: {"bytes", "sha256"}}``, as logpipe itself
+    computed them when writing): these entries are the same on every run that writes the same files."""
+    _append(root, [json.dumps([rel, entry["bytes"], entry["sha256"]]) + "\n" for rel, entry in sorted(files.items())])
+
+
+@dataclass
+class Journal:
+    """What a folder's journal records: identities of files put in place, and (rel, bytes, sha256) of files
+    committed."""
+
+    identities: set[Identity] = field(default_factory=set)
+    contents: dict[str, tuple[int, str]] = field(default_factory=dict)
+
+    def proves(self, root: Path, path: Path) -> bool:
+        """Whether ``path`` is, unchanged, a file logpipe wrote: the very file it put in place, or a file at a
+        committed path with the committed size and sha256."""
+        found = identity(path)
+        if found is None:
+            return False
+        if found in self.identities:
+            return True
+        committed = self.contents.get(path.relative_to(root).as_posix())
+        if committed is None or committed[0] != found[1]:
+            return False
+        from logpipe.storage.io import sha256_file
+
+        return sha256_file(path) == committed[1]
+
+
+def read_journal(root: Path) -> Journal:
+    """The journal of ``root`` (empty when missing, a link or unreadable; a damaged line proves nothing)."""
     from logpipe.storage.regular_files import open_regular
 
+    journal = Journal()
     path = root / JOURNAL
     if os.path.islink(path):
-        return set()
+        return journal
     try:
         with open_regular(path, "r", encoding="utf-8", errors="replace") as fh:
             lines = fh.read().splitlines()
     except OSError:
-        return set()
-    found: set[Identity] = set()
+        return journal
     for line in lines:
         try:
             entry = json.loads(line)
         except ValueError:
             continue
-        if isinstance(entry, list) and len(entry) == 4 and all(type(v) is int for v in entry[1:]):
-            found.add((entry[1], entry[2], entry[3]))
-    return found
-
-
-def proven_written(path: Path, written: set[Identity]) -> bool:
-    """Whether ``path`` is, unchanged, a file logpipe recorded writing (``written``: ``written_identities``)."""
-    found = identity(path)
-    return found is not None and found in written
+        if not isinstance(entry, list) or not entry or not isinstance(entry[0], str):
+            continue
+        if len(entry) == 4 and all(type(v) is int for v in entry[1:]):
+            journal.identities.add((entry[1], entry[2], entry[3]))
+        elif len(entry) == 3 and type(entry[1]) is int and isinstance(entry[2], str):
+            journal.contents[entry[0]] = (entry[1], entry[2])
+    return journal
 
 
 def logpipe_scratch(name: str) -> bool:
@@ -109,18 +146,32 @@ def logpipe_scratch(name: str) -> bool:
 
 
 def prune_journal(root: Path, present: Iterable[Path]) -> None:
-    """Rewrite the journal to the entries of files still ``present`` (called under the folder's lock, with no
-    worker writing): it grows only with the files a folder holds."""
+    """Rewrite the journal to what still proves something (called under the folder's lock, with no worker
+    writing): committed entries of files still there with their size, then identities of files still there that
+    no committed entry covers, each in path order. After a clean run only committed entries remain, so two runs
+    that write the same files leave the same journal."""
     path = root / JOURNAL
-    written = written_identities(root)
-    if not written:
+    journal = read_journal(root)
+    if not journal.identities and not journal.contents:
+        path.unlink(missing_ok=True)
         return
-    keep = [(p, found) for p in present if (found := identity(p)) is not None and found in written]
-    if not keep:  # a failed run into a folder that held nothing of logpipe's leaves no trace
+    lines: list[str] = []
+    loose: list[str] = []
+    for file in sorted(present):
+        found = identity(file)
+        if found is None:
+            continue
+        rel = file.relative_to(root).as_posix()
+        committed = journal.contents.get(rel)
+        if committed is not None and committed[0] == found[1]:
+            lines.append(json.dumps([rel, *committed]) + "\n")
+        elif found in journal.identities:
+            loose.append(json.dumps([rel, *found]) + "\n")
+    if not lines and not loose:  # a failed run into a folder that held nothing of logpipe's leaves no trace
         path.unlink(missing_ok=True)
         return
     tmp = root / f"{JOURNAL}.new"
     fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC | os.O_NOFOLLOW | os.O_CLOEXEC, 0o644)
     with os.fdopen(fd, "w", encoding="utf-8") as fh:
-        fh.writelines(json.dumps([p.relative_to(root).as_posix(), *found]) + "\n" for p, found in keep)
+        fh.writelines(lines + loose)
     os.replace(tmp, path)
