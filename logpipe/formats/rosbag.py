@@ -125,6 +125,17 @@ _MAGIC = {".bag": b"#ROSBAG V2.0\n", ".db3": b"SQLite format 3\x00"}
 """First bytes of a ROS1 bag and of a rosbag2 sqlite3 storage file."""
 
 
+def _damaged_bag(path: Path) -> bool:
+    """A ``.bag`` that fails the sniff but is a damaged bag rather than some other file: empty, not a regular file
+    (FIFO, device, dangling link), or a ROS 1 magic with at most two bytes changed."""
+    if not path.is_file():
+        return True
+    head = read_head(path, len(_MAGIC[".bag"]))
+    if not head:
+        return True
+    return len(head) == len(_MAGIC[".bag"]) and sum(a != b for a, b in zip(head, _MAGIC[".bag"], strict=True)) <= 2
+
+
 class RosbagAdapter:
     """ROS1/ROS2 bags → tracks (see the module docstring).
 
@@ -188,8 +199,10 @@ class RosbagAdapter:
         for child in sorted(root.iterdir()):
             if child.is_dir():
                 found += self.discover(child)
-            elif child.suffix == ".bag" or (child.suffix == ".db3" and self.sniff(child)):
-                found.append(child)  # a .bag that is none (empty, cut, a dangling link) is quarantined, not skipped
+            elif child.suffix in (".bag", ".db3") and self.sniff(child):
+                found.append(child)
+            elif child.suffix == ".bag" and _damaged_bag(child):
+                found.append(child)  # quarantined saying what is wrong, not skipped as "no bag"
         return sorted(found)
 
     # --- reading
