@@ -37,15 +37,15 @@ from types import TracebackType
 from typing import Any, Self, TypedDict
 
 from logpipe.errors import DatasetError, LogpipeError, OutputError
+from logpipe.storage import write_journal as jf
 from logpipe.storage.durability import crash_point, fsync_dir, syncfs
 from logpipe.storage.folder_lock import LOCK_FILE, FolderLock
 from logpipe.storage.regular_files import parse_nested, read_regular_bytes
 from logpipe.storage.safe_paths import check_manifest_files, refuse_linked_folders
-from logpipe.storage.write_journal import JOURNAL, logpipe_scratch, prune_journal, read_journal, record_committed
 
 MANIFEST = "manifest.json"
 STAGING_PREFIX = ".staging-"
-_RESERVED = (MANIFEST, LOCK_FILE, JOURNAL)
+_RESERVED = (MANIFEST, LOCK_FILE, jf.JOURNAL)
 
 
 class FileEntry(TypedDict, total=False):
@@ -249,6 +249,7 @@ class ArtifactWriter:
                 raise DatasetError(f"{self.root}: holds a {str(found).replace('_', ' ')}, not a "
                                    f"{self.kind.replace('_', ' ')}; choose another folder")
             refuse_linked_folders(self.root, self.owned)
+            jf.start_journal(self.root)
             self.clean()
         except BaseException:
             self._lock.release(remove_folder=self._created)
@@ -264,7 +265,7 @@ class ArtifactWriter:
                 self.clean(everything_owned=True)
             else:  # still under the lock: the journal keeps only what the folder holds (best effort)
                 with suppress(OSError):
-                    prune_journal(self.root, (path for _rel, path in _walk(self.root)))
+                    jf.prune_journal(self.root, (path for _rel, path in _walk(self.root)))
         finally:
             self._lock.release(remove_folder=failed_first_run)
 
@@ -288,7 +289,7 @@ class ArtifactWriter:
         """
         keep = self.committed_files()
         ours = self.manifest is not None or self._lock.found_stale or everything_owned
-        journal = read_journal(self.root)
+        journal = jf.read_journal(self.root)
         removed, present = [], []
         for rel, path in _walk(self.root):
             if rel in keep or rel in _RESERVED:
@@ -297,7 +298,7 @@ class ArtifactWriter:
             # A file no commit names is removed only when logpipe can prove it wrote it (its journal), never on
             # a manifest's word: a spoofed manifest beside the user's files must not turn them into leftovers.
             proven = everything_owned or (self.owned(rel) and journal.proves(self.root, path))
-            scratch = logpipe_scratch(path.name)
+            scratch = jf.logpipe_scratch(path.name)
             if (scratch and ("/" not in rel or self.owned(rel))) or (ours and self.owned(rel) and proven):
                 crash_point(f"clean {rel}")
                 if path.is_dir() and not path.is_symlink():
@@ -308,7 +309,7 @@ class ArtifactWriter:
             else:
                 present.append(path)
         _remove_empty_owned_dirs(self.root, self.owned)
-        prune_journal(self.root, present)
+        jf.prune_journal(self.root, present, keep_empty=not everything_owned)
         return removed
 
     def stamped(self, manifest: dict[str, Any]) -> dict[str, Any]:
@@ -344,14 +345,13 @@ class ArtifactWriter:
             tmp.write_text(text, encoding="utf-8")
         crash_point("after manifest")
         fsync_dir(self.root)
-        # By what this writer recorded, not by the previous manifest: a caller may pass the same (growing) dict.
-        record_committed(self.root, {rel: e for rel, e in files.items() if self._recorded.get(rel) != e})
+        jf.record_committed(self.root, {rel: e for rel, e in files.items() if self._recorded.get(rel) != e})
         self._recorded.update((rel, dict(e)) for rel, e in files.items())
         superseded = sorted(self.committed_files() - set(files))
         self.manifest = manifest
         # Only what the previous state named: workers may be writing the next commit's files right now, so
         # only the folders these files leave empty go, never a sweep (it would take a worker's new folder).
-        journal = read_journal(self.root)
+        journal = jf.read_journal(self.root)
         for rel in superseded:
             crash_point(f"remove {rel}")
             if journal.proves(self.root, self.root / rel):  # an edited or foreign manifest names no file to delete
@@ -454,12 +454,12 @@ def verify_folder(root: Path, owned: Ownership | None = None, *,
             if rows != entry["rows"]:
                 problems.append(Problem(str(path), f"{rows} rows, manifest says {entry['rows']}"))
     leftovers = []
-    journal = read_journal(root)
+    journal = jf.read_journal(root)
     for rel, path in _walk(root):
         if rel in files or rel in _RESERVED:
             continue
         mine = owned(rel)
-        if (logpipe_scratch(path.name) and ("/" not in rel or mine)) or (mine and journal.proves(root, path)):
+        if (jf.logpipe_scratch(path.name) and ("/" not in rel or mine)) or (mine and journal.proves(root, path)):
             leftovers.append(rel)
     return problems, leftovers
 

@@ -21,6 +21,7 @@ import json
 import os
 import re
 from collections.abc import Iterable
+from contextlib import suppress
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -61,11 +62,20 @@ def _artifact_root(path: Path) -> Path | None:
     return None
 
 
+def start_journal(root: Path) -> None:
+    """Make ``root``'s journal if it has none (``ArtifactWriter`` on entering): only folders with one record
+    writes, so a folder merely locked (a checkpoint being amended) never gets one."""
+    os.close(os.open(root / JOURNAL, os.O_WRONLY | os.O_CREAT | os.O_NOFOLLOW | os.O_CLOEXEC, 0o644))
+
+
 def _append(root: Path, lines: Iterable[str]) -> None:
     text = "".join(lines)
     if not text:
         return
-    fd = os.open(root / JOURNAL, os.O_WRONLY | os.O_APPEND | os.O_CREAT | os.O_NOFOLLOW | os.O_CLOEXEC, 0o644)
+    try:
+        fd = os.open(root / JOURNAL, os.O_WRONLY | os.O_APPEND | os.O_NOFOLLOW | os.O_CLOEXEC)
+    except FileNotFoundError:  # not an artifact folder's writer (``start_journal``)
+        return
     try:
         os.write(fd, text.encode())
     finally:
@@ -145,15 +155,17 @@ def logpipe_scratch(name: str) -> bool:
     return TEMP_NAME.fullmatch(name) is not None or STAGING_NAME.fullmatch(name) is not None
 
 
-def prune_journal(root: Path, present: Iterable[Path]) -> None:
+def prune_journal(root: Path, present: Iterable[Path], *, keep_empty: bool = False) -> None:
     """Rewrite the journal to what still proves something (called under the folder's lock, with no worker
     writing): committed entries of files still there with their size, then identities of files still there that
     no committed entry covers, each in path order. After a clean run only committed entries remain, so two runs
-    that write the same files leave the same journal."""
+    that write the same files leave the same journal. ``keep_empty``: a writer going on keeps an empty journal
+    (the file's presence is what makes writes be recorded); one leaving removes it."""
     path = root / JOURNAL
     journal = read_journal(root)
     if not journal.identities and not journal.contents:
-        path.unlink(missing_ok=True)
+        if not keep_empty:
+            path.unlink(missing_ok=True)
         return
     lines: list[str] = []
     loose: list[str] = []
@@ -168,10 +180,17 @@ def prune_journal(root: Path, present: Iterable[Path]) -> None:
         elif found in journal.identities:
             loose.append(json.dumps([rel, *found]) + "\n")
     if not lines and not loose:  # a failed run into a folder that held nothing of logpipe's leaves no trace
-        path.unlink(missing_ok=True)
+        if keep_empty:
+            path.write_bytes(b"")
+        else:
+            path.unlink(missing_ok=True)
         return
+    text = "".join(lines + loose)
+    with suppress(OSError):
+        if path.read_text(encoding="utf-8") == text:  # a run that changed nothing leaves the journal untouched
+            return
     tmp = root / f"{JOURNAL}.new"
     fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC | os.O_NOFOLLOW | os.O_CLOEXEC, 0o644)
     with os.fdopen(fd, "w", encoding="utf-8") as fh:
-        fh.writelines(lines + loose)
+        fh.write(text)
     os.replace(tmp, path)

@@ -19,6 +19,7 @@ from logpipe.stages.ingest import IngestOptions, ingest
 from logpipe.storage.artifact import MANIFEST, read_manifest
 from logpipe.storage.folder_lock import LOCK_FILE, FolderLock
 from logpipe.storage.io import atomic_path
+from logpipe.storage.write_journal import start_journal
 
 REPO = Path(__file__).resolve().parents[2]
 DATA = REPO / "tests" / "data"
@@ -181,6 +182,7 @@ def test_verify_repair_removes_leftovers_only(artifacts: dict[str, Path], tmp_pa
     (copy / ".staging-0123456789ab").mkdir()
     (copy / ".staging-0123456789ab" / "part-00009.parquet").write_bytes(b"half")
     (copy / LOCK_FILE).write_text("{}")  # a writer killed while writing: its file is in the folder's journal
+    start_journal(copy)  # the copy's journal (copied from the dataset) proves nothing here: new inodes
     with atomic_path(copy / "tracks" / "part-00009.parquet") as tmp:
         tmp.write_bytes(b"uncommitted")
     (copy / LOCK_FILE).unlink()

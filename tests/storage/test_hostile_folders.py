@@ -18,6 +18,7 @@ from logpipe.storage import folder_lock
 from logpipe.storage.artifact import MANIFEST, ArtifactWriter, Ownership, file_entry, manifest_checksum, read_manifest
 from logpipe.storage.folder_lock import LOCK_FILE, FolderLock
 from logpipe.storage.io import atomic_path
+from logpipe.storage.write_journal import start_journal
 from logpipe.verify import verify_tree
 
 REPO = Path(__file__).resolve().parents[2]
@@ -156,6 +157,7 @@ def test_verify_repair_removes_only_what_the_kinds_writer_owns(tmp_path: Path) -
     (folder / MANIFEST).write_text(json.dumps(manifest))
     (folder / "notes.txt").write_text("mine")
     (folder / LOCK_FILE).write_text("{}")  # a killed writer's stale lock: it was writing when it died
+    start_journal(folder)  # as that writer did on entering
     with atomic_path(folder / "horizon.png") as tmp:  # as the killed run wrote it: recorded in its journal
         tmp.write_bytes(b"stale leftover of a killed run")
     (folder / LOCK_FILE).unlink()
