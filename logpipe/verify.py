@@ -52,12 +52,11 @@ CHECKPOINT_META = "meta.json"
 
 def _verify_checkpoint(folder: Path) -> list[str]:
     """Problems of a checkpoint folder: unreadable metadata, or weights whose sha256 is not the recorded one."""
-    import json
-
     from logpipe.storage.io import sha256_file
+    from logpipe.storage.regular_files import read_json_file
 
     try:
-        meta = json.loads((folder / CHECKPOINT_META).read_text(encoding="utf-8"))
+        meta = read_json_file(folder / CHECKPOINT_META)
         expected = str(meta["weights_sha256"])
     except (OSError, ValueError, KeyError, TypeError) as exc:
         return [f"{folder / CHECKPOINT_META}: unreadable checkpoint metadata ({type(exc).__name__})"]

@@ -4,9 +4,8 @@ Reads top-down: lock the dataset folder and clean what no commit names → find 
 ingested (by content) → parse batches in parallel (rows in canonical order, logs rows:
 ``logpipe.dataset.log_table``), each one shard (and MCAPs) in a staging folder → move the shards into place, write
 the new generation's tables → commit by the manifest swap (``logpipe.storage.artifact``). A crash at any point
-leaves the previous state, and a rerun gives the same bytes. With ``on_error="fail"`` the first bad input stops the
-run and nothing becomes visible; with ``"skip"`` bad inputs are quarantined (listed in the manifest and the summary)
-and the rest lands.
+leaves the previous state, and a rerun gives the same bytes. ``on_error="fail"``: the first bad input stops the run,
+nothing becomes visible; ``"skip"``: bad inputs are quarantined (in the manifest and the summary), the rest lands.
 """
 
 from __future__ import annotations
@@ -105,6 +104,7 @@ class _BatchResult:
     """Entries of the files written into staging (paths relative to the dataset), hashed by the worker."""
     no_samples: dict[str, str] = field(default_factory=dict)
     """Why each log of the batch that gives no sample gives none (``dataset.samples.no_sample_reasons``)."""
+    warnings: list[str] = field(default_factory=list)  # inputs whose damage could not be found (no CRCs)
 
 
 def ingest(roots: Sequence[Path], options: IngestOptions,
@@ -248,7 +248,8 @@ def _ingest_batch(job: _BatchJob) -> _BatchResult:
 
         files |= write_stores({m.log_id: parsed.maps[m.log_id] for m in kept if m.log_id in parsed.maps}, staging,
                               maps_folder(job.shard_file))
-    return _BatchResult(shard, logs, samples, ingested, failures, messages, files, no_samples)
+    unchecked = [f"{m.source_file}: {m.attributes['unchecked']}" for m in kept if m.attributes.get("unchecked")]
+    return _BatchResult(shard, logs, samples, ingested, failures, messages, files, no_samples, unchecked)
 
 
 def _commit(writer: DatasetWriter, results: list[_BatchResult], manifest: DatasetManifest, staging: Path,
@@ -268,6 +269,7 @@ def _commit(writer: DatasetWriter, results: list[_BatchResult], manifest: Datase
     writer.commit_shards(manifest, batches, staging)
     summary["shards_written"] = [b.shard["file"] for b in batches if b.shard is not None]
     summary["quarantined"] = [q for b in batches for q in b.quarantined]
+    summary["warnings"] = [w for r in results for w in r.warnings]
     summary["inputs_ingested"] = sum(len(r.ingested) for r in results)
     summary["logs"] = sum(r.logs.num_rows for r in results)
     summary["rows"] = sum(r.shard["rows"] for r in results if r.shard)

@@ -75,6 +75,12 @@ def ingest(  # noqa: PLR0913  typer command: one parameter per CLI option
     """Turn logs (Argoverse 1 CSV, ETH/UCY, ApolloScape, ...) into canonical Parquet shards, a sample index
     and one MCAP per log. Re-running skips inputs already ingested (by content hash).
 
+    Limits per input (an input over one is refused, or quarantined with --on-error skip, with the limit named):
+    CommonRoad files 16 MiB (after gzip); compressed chunks and ROS 2 zstd messages inflate at most
+    LOGPIPE_MAX_INFLATION (1000) times their size, and at most LOGPIPE_MAX_CHUNK_BYTES (1 GiB); coordinates
+    below 1e7 m (CommonRoad states 1e5); no track moving faster than 150 m/s between observations; ETH/UCY and
+    ApolloScape ids whole numbers below 2^31; a text file's last line ends with a newline (else it was cut).
+
     Example: logpipe ingest tests/data/driving --out out/av1
 
     Example: logpipe ingest tests/data/rosbags/datmo --out out/ros --set ego=/ego_pose --set agent=/red_pose --hz 10
@@ -117,6 +123,7 @@ def ingest_lines(s: dict[str, Any]) -> list[str]:
         e = q["error"]
         where = e["file"] + (f":{e['line']}" if e["line"] else "") + (f" field '{e['field']}'" if e["field"] else "")
         lines.append(f"  quarantined {where}: {e['reason']}")
+    lines += [f"  warning: {w}" for w in s.get("warnings", [])]
     lines += [f"  {line}" for line in summary_notes(s) + location_lines(s)]
     earlier = totals.get("quarantined", 0) - len(s["quarantined"])
     if earlier > 0 and not s.get("inputs_retried"):

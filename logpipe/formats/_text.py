@@ -29,8 +29,11 @@ from logpipe.formats.base import TIME_LIMIT_NS, files_with_suffix, require_regul
 from logpipe.storage.io import as_numpy
 from logpipe.types import PENDING_SHA256, NDArrayByte, NDArrayInt, SourceFile
 
-ID_LIMIT = float(2**53)
-"""Largest |id| a numeric text format may hold: integers above it are not exact in the float64 they are parsed as."""
+ID_LIMIT = float(2**31)
+"""Largest |id| a numeric text format may hold. Ids are parsed as float64, and an id must round-trip exactly or be
+refused: a fractional id is refused, but only if the float still holds its fraction. At 2^52 it holds none
+(``4503599627370497.3`` parsed as ``...497``), below 2^31 every fraction down to 2^-21 (~5e-7) survives, and no
+real ETH/UCY or ApolloScape id comes near (they count agents of one scene)."""
 _DECIMAL = re.compile(r"^[+-]?(\d+\.?\d*|\.\d+)$")
 
 
@@ -147,8 +150,9 @@ def read_bodies(
         finally:
             os.close(fd)
         end = _strip_end(buffer, pos, pos + got)
-        error = _check_encoding(source, head) or check_header(source, head[:start] if header_lines else head,
-                                                               end > pos)
+        error = (_check_encoding(source, head)
+                 or check_header(source, head[:start] if header_lines else head, end > pos)
+                 or _cut_last_line(source, buffer, pos, end, pos + got, header_lines))
         if error is not None:
             if not keep_going:
                 raise error
@@ -211,6 +215,18 @@ def _strip_end(buffer: bytes | NDArrayByte, lo: int, hi: int) -> int:
     while hi > lo and int(buffer[hi - 1]) in _TRAILING_SPACE:
         hi -= 1
     return hi
+
+
+def _cut_last_line(source: SourceFile, buffer: NDArrayByte, lo: int, end: int, hi: int,
+                   header_lines: int) -> SourceError | None:
+    """An error when the file's last record has no newline after it (``buffer[end:hi]`` is the whitespace
+    after the last value): a file cut mid-record ends there, and a number cut short (10.3817 -> 10.3) still
+    parses, as another value. Every real file of every text format here ends with a newline."""
+    if end <= lo or 10 in buffer[end:hi].tolist():
+        return None
+    line = _line_count(buffer, lo, end) + header_lines
+    return SourceError(source.relpath, "truncated record: the last line has no newline after it (the file was "
+                       "cut short?); its values cannot be trusted", line=line)
 
 
 def _line_count(buffer: bytes | NDArrayByte, lo: int, hi: int) -> int:

@@ -119,4 +119,5 @@ def _errors(table: pa.Table, batch: TextBatch, sources: Sequence[SourceFile]) ->
         return errors
     ts = as_numpy(table.column("frame_id")).astype(np.int64) * FRAME_PERIOD_NS
     ids = as_numpy(table.column("object_id")).astype(np.int64)
-    return check_time_and_duplicates(ts, ids - ids.min(), batch, sources, "frame_id", "object_id")
+    return check_time_and_duplicates(ts, ids - ids.min() if len(ids) else ids, batch, sources, "frame_id",
+                                     "object_id")

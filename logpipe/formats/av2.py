@@ -136,7 +136,7 @@ class Av2Adapter:
             return [root]
         if not root.is_dir():
             return []
-        found = [p for p in root.rglob("scenario_*.parquet") if p.is_file()]
+        found = [p for p in root.rglob("scenario_*.parquet") if not p.is_dir()]  # a FIFO is refused, not skipped
         found += [p.parent for p in root.rglob("city_SE3_egovehicle.feather")]
         return sorted(set(found))
 

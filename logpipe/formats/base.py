@@ -10,7 +10,6 @@ from __future__ import annotations
 import hashlib
 import math
 import os
-import stat
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -22,7 +21,9 @@ import pyarrow.compute as pc
 
 from logpipe.dataset.samples import TrackCodes
 from logpipe.errors import LogpipeError, SourceError
+from logpipe.formats.motion_checks import impossible_motion
 from logpipe.storage.artifact import unsafe_file_name
+from logpipe.storage.regular_files import irregular_kind
 from logpipe.types import LogMeta, SampleProtocol, SourceFile
 
 if TYPE_CHECKING:  # annotations only: the text formats' pool workers need not import the map store
@@ -72,17 +73,14 @@ def require_regular(path: str | Path, relpath: str, *, folder_ok: bool = False) 
         SourceError: missing / dangling link / FIFO / device / socket.
     """
     try:
-        mode = os.stat(path).st_mode
+        kind = irregular_kind(path)
     except FileNotFoundError:
         what = "a dangling symbolic link" if os.path.islink(path) else "missing (removed since it was listed?)"
         raise SourceError(relpath, f"not readable: {what}") from None
     except OSError as err:
         raise SourceError(relpath, f"not readable: {err.strerror or err}") from None
-    if stat.S_ISREG(mode) or (folder_ok and stat.S_ISDIR(mode)):
+    if kind is None or (folder_ok and kind == "a folder"):
         return
-    kind = ("a folder" if stat.S_ISDIR(mode) else "a FIFO (named pipe)" if stat.S_ISFIFO(mode)
-            else "a device" if stat.S_ISCHR(mode) or stat.S_ISBLK(mode)
-            else "a socket" if stat.S_ISSOCK(mode) else "not a regular file")
     raise SourceError(relpath, f"not a regular file: {kind}; only regular files are read")
 
 
@@ -380,7 +378,8 @@ COORD_LIMIT_M = 1e7
 
 def implausible_rows(tracks: pa.Table) -> dict[str, tuple[str, str]]:
     """(field, reason) for each log of ``tracks`` holding a physically implausible row: a coordinate beyond
-    ``COORD_LIMIT_M``, or a track id with NUL or control characters (ids reach file names, MCAP and terminals).
+    ``COORD_LIMIT_M``, a track id with NUL or control characters (ids reach file names, MCAP and terminals), or
+    motion no agent is capable of (``logpipe.formats.motion_checks``).
     One vectorised pass, the same for every format."""
     if tracks.num_rows == 0:
         return {}
@@ -395,6 +394,8 @@ def implausible_rows(tracks: pa.Table) -> dict[str, tuple[str, str]]:
     control = pc.fill_null(pc.match_substring_regex(ids, r"[\x00-\x1f\x7f]"), False)
     for log, value in zip(pc.filter(logs, control).to_pylist(), pc.filter(ids, control).to_pylist(), strict=True):
         found.setdefault(log, ("track_id", f"track id {value[:40]!r} holds NUL or control characters"))
+    for log, why in impossible_motion(tracks).items():  # jumps and velocities beyond any agent's
+        found.setdefault(log, why)
     return found
 
 

@@ -66,6 +66,10 @@ OBSTACLE_TYPES: dict[str, ObjectType] = {
 }
 """CommonRoad's obstacle types (its ``ObstacleType`` vocabulary, 2018b-2020a) → ours; any other word is refused."""
 MAX_TIME_STEP_S = 10.0
+STATE_LIMIT = 1e5
+"""Largest |value| of an obstacle state (position in m, velocity in m/s, ...): a CommonRoad scenario is a local
+frame a few km across (the real ones here stay within 210 m of the origin), so 100 km is damage; velocities are
+bounded tighter by ``logpipe.formats.motion_checks``."""
 """Largest ``timeStepSize`` accepted, seconds (recordings use 0.04-0.2 s)."""
 _LOCATION = re.compile(r"^([A-Z]{2,3}_[A-Za-z0-9]+)-")
 SYNTHETIC_SOURCE = "SYNTHETIC"
@@ -294,7 +298,7 @@ def _states_fast(el: etree._Element, n: int) -> np.ndarray | None:
             return None
         given[column] = True
     values = table[:, given]
-    if not np.isfinite(values).all() or (np.abs(values[:, 1:]) > crmap.COORDINATE_LIMIT_M).any():
+    if not np.isfinite(values).all() or (np.abs(values[:, 1:]) > STATE_LIMIT).any():
         return None
     if (table[:, 0] < 0).any() or (table[:, 0] >= 1 << 40).any():
         return None
@@ -346,8 +350,9 @@ def _float(text: str | None, state: etree._Element, tag: str, name: str, label: 
     except ValueError:
         value = math.nan
         text = f"{text[:40]!r} (not a number)"
-    if not math.isfinite(value) or abs(value) > crmap.COORDINATE_LIMIT_M:
-        raise SourceError(name, f"{label}: <{tag}> is {text}: not finite or absurd", line=state.sourceline,
+    if not math.isfinite(value) or abs(value) > STATE_LIMIT:
+        raise SourceError(name, f"{label}: <{tag}> is {text}: not finite or absurd (|value| over {STATE_LIMIT:.0e})",
+                          line=state.sourceline,
                           field=tag)
     return value
 

@@ -106,4 +106,5 @@ def _errors(table: pa.Table, batch: TextBatch, sources: Sequence[SourceFile]) ->
         return errors
     ts = np.rint(as_numpy(table.column("frame_id")) * FRAME_PERIOD_NS).astype(np.int64)
     peds = as_numpy(table.column("ped_id")).astype(np.int64)
-    return check_time_and_duplicates(ts, peds - peds.min(), batch, sources, "frame_id", "ped_id")
+    return check_time_and_duplicates(ts, peds - peds.min() if len(peds) else peds, batch, sources, "frame_id",
+                                     "ped_id")

@@ -18,7 +18,7 @@ import bz2
 import os
 import struct
 from pathlib import Path
-from typing import BinaryIO
+from typing import Any, BinaryIO
 
 BAG_MAGIC = b"#ROSBAG V2.0\n"
 FLOOR_BYTES = 16 << 20
@@ -116,3 +116,84 @@ def _check_inflation(data: bytes, compression: str, declared: int, offset: int) 
         return
     if len(out) > declared:
         raise InflationError(f"{compression} chunk at byte {offset} inflates past the {declared} bytes it declares")
+
+
+def _zstd() -> Any:
+    """The ``zstd`` module rosbags uses: the standard library's from Python 3.14, else ``backports.zstd``."""
+    try:
+        from compression import zstd  # type: ignore[import-not-found,unused-ignore]
+    except ImportError:
+        from backports import zstd  # type: ignore[import-not-found,unused-ignore,no-redef]
+    return zstd
+
+
+def _message_limit(compressed: int) -> int:
+    ratio, cap = limits()
+    return min(cap, max(ratio * compressed, FLOOR_BYTES))
+
+
+def bounded_zstd_decompress(data: bytes) -> bytes:
+    """``zstd.decompress`` that holds at most the limit + 1 bytes (``limits``: ratio to the compressed size with
+    the ``FLOOR_BYTES`` floor, and the chunk cap) and refuses past it: a ROS 2 message of a few KB declaring
+    1 GiB otherwise took 2.25 GB (and 4 GiB a ``MemoryError``)."""
+    zstd = _zstd()
+    limit = _message_limit(len(data))
+    out = bytearray()
+    rest = bytes(data)
+    while rest:
+        decompressor = zstd.ZstdDecompressor()
+        out += decompressor.decompress(rest, max_length=limit + 1 - len(out))
+        if len(out) > limit or not decompressor.eof:
+            what = "inflates past" if len(out) > limit else "is cut short before"
+            raise InflationError(f"a zstd-compressed message of {len(data)} bytes {what} the {limit} bytes "
+                                 "allowed (LOGPIPE_MAX_INFLATION times its size, at most LOGPIPE_MAX_CHUNK_BYTES)")
+        rest = decompressor.unused_data
+    return bytes(out)
+
+
+class _BoundedStream:
+    """A zstd stream that refuses to inflate past ``limit`` bytes in total."""
+
+    def __init__(self, inner: BinaryIO, limit: int, compressed: int) -> None:
+        self._inner, self._limit, self._compressed, self._read = inner, limit, compressed, 0
+
+    def read(self, size: int = -1) -> bytes:
+        want = self._limit + 1 - self._read if size < 0 else min(size, self._limit + 1 - self._read)
+        data = self._inner.read(max(want, 1))
+        self._read += len(data)
+        if self._read > self._limit:
+            raise InflationError(f"a zstd-compressed storage file of {self._compressed} bytes inflates past the "
+                                 f"{self._limit} bytes allowed (LOGPIPE_MAX_INFLATION times its size)")
+        return data
+
+    def __enter__(self) -> _BoundedStream:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._inner.close()
+
+
+class BoundedZstd:
+    """Stands in for the ``zstd`` module inside ``rosbags.rosbag2.reader`` (its only uses: ``decompress`` per
+    message, ``open`` per compressed storage file), so both are bounded like MCAP and ROS 1 chunks."""
+
+    @staticmethod
+    def decompress(data: bytes) -> bytes:
+        return bounded_zstd_decompress(data)
+
+    @staticmethod
+    def open(source: BinaryIO, mode: str = "rb") -> _BoundedStream:
+        zstd = _zstd()
+        size = os.fstat(source.fileno()).st_size
+        ratio, _cap = limits()
+        return _BoundedStream(zstd.open(source, mode), max(ratio * size, FLOOR_BYTES), size)
+
+
+def bound_rosbag2_zstd() -> None:
+    """Make ``rosbags``' ROS 2 reader decompress through ``BoundedZstd`` (idempotent)."""
+    from rosbags.rosbag2 import reader
+
+    reader.zstd = BoundedZstd  # type: ignore[assignment,attr-defined,unused-ignore]
+
+
+bound_rosbag2_zstd()  # every importer of this module reads bags through rosbags: bounded from the first read

@@ -107,6 +107,19 @@ def _decode_json(data: bytes) -> Any:
     return _namespace(json.loads(data))
 
 
+
+_CHUNK_CRC_AT = 1 + 8 + 8 + 8 + 8
+"""Offset of a chunk record's ``uncompressed_crc`` (after opcode, record length, start, end, uncompressed size)."""
+
+
+def _chunks_without_crc(stream: Any, indexes: Any) -> int:
+    """How many of the indexed chunks carry CRC 0 (none computed): 4 bytes read per chunk."""
+    missing = 0
+    for index in indexes:
+        data = os.pread(stream.fileno(), 4, index.chunk_start_offset + _CHUNK_CRC_AT)
+        missing += len(data) == 4 and data == b"\0\0\0\0"
+    return missing
+
 @dataclass
 class ChannelInfo:
     """One MCAP channel as the summary (or a streaming pass) describes it.
@@ -141,6 +154,8 @@ class McapFile:
     profile: str = ""
     library: str = ""
     indexed: bool = True
+    chunks_without_crc: int = 0
+    """Chunks whose CRC field is 0 (the writer computed none): a flipped bit inside them cannot be found."""
     channels: dict[int, ChannelInfo] = field(default_factory=dict)
     schemas: dict[int, Schema] = field(default_factory=dict)
     damage: str | None = None
@@ -173,6 +188,8 @@ class McapFile:
                     if index.uncompressed_size > chunk_limit or index.compressed_size > size:
                         raise LengthError(f"a chunk index claims {index.uncompressed_size} bytes decompressed, "
                                           f"{index.compressed_size} compressed (file: {size} bytes)")
+            if summary is not None:
+                out.chunks_without_crc = _chunks_without_crc(stream, summary.chunk_indexes)
             if summary is not None and any(i.compression == "lz4" for i in summary.chunk_indexes):
                 _check_chunk_sizes(stream, size)  # the indexes' sizes are declared, lz4's inflation is not
             if summary is None or not summary.chunk_indexes:
@@ -346,7 +363,8 @@ class McapAdapter:
         """``.mcap`` files under ``root``, except the storage files of rosbag2 folders (metadata.yaml beside)."""
         if root.is_file():
             return [root] if self.sniff(root) else []
-        return sorted(p for p in root.rglob("*.mcap") if p.is_file() and not (p.parent / "metadata.yaml").exists())
+        # Anything named .mcap but a folder: a FIFO, device or dangling link is quarantined saying what it is.
+        return sorted(p for p in root.rglob("*.mcap") if not p.is_dir() and not (p.parent / "metadata.yaml").exists())
 
     def read(self, sources: Sequence[SourceFile], *, keep_going: bool) -> ParsedLogs:
         """Parse MCAP files into track rows (see ``FormatAdapter.read``)."""
@@ -381,6 +399,8 @@ class McapAdapter:
                 )
             result = extract_log(rel, topics, f.decoded, self.options, log_id, keep_going=keep_going)
             attributes = {
+                **({"unchecked": f"{f.chunks_without_crc} chunks carry no CRC: corruption inside them cannot be "
+                    "detected"} if f.chunks_without_crc else {}),
                 "storage": "mcap",
                 "profile": f.profile,
                 "library": f.library,

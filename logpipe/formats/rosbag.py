@@ -125,6 +125,17 @@ _MAGIC = {".bag": b"#ROSBAG V2.0\n", ".db3": b"SQLite format 3\x00"}
 """First bytes of a ROS1 bag and of a rosbag2 sqlite3 storage file."""
 
 
+def _damaged_bag(path: Path) -> bool:
+    """A ``.bag`` that fails the sniff but is a damaged bag rather than some other file: empty, not a regular file
+    (FIFO, device, dangling link), or a ROS 1 magic with at most two bytes changed."""
+    if not path.is_file():
+        return True
+    head = read_head(path, len(_MAGIC[".bag"]))
+    if not head:
+        return True
+    return len(head) == len(_MAGIC[".bag"]) and sum(a != b for a, b in zip(head, _MAGIC[".bag"], strict=True)) <= 2
+
+
 class RosbagAdapter:
     """ROS1/ROS2 bags → tracks (see the module docstring).
 
@@ -202,6 +213,8 @@ class RosbagAdapter:
                 found += self._discover_bags(child)
             elif child.suffix in (".bag", ".db3") and self.sniff(child):
                 found.append(child)
+            elif child.suffix == ".bag" and _damaged_bag(child):
+                found.append(child)  # quarantined saying what is wrong, not skipped as "no bag"
         return sorted(found)
 
     # --- reading
@@ -307,6 +320,8 @@ class RosbagAdapter:
 
         result = extract_log(rel, topics, read, self.options, log_id, keep_going=keep_going)
         attributes = {
+            **({} if reader.is2 else {"unchecked": "a ROS 1 bag carries no checksums: corruption inside it cannot be "
+                                      "detected"}),
             "storage": "rosbag2" if reader.is2 else "rosbag1",
             "files": [p.name for p in paths] if (paths := storage_paths(path)) and path.is_dir() else [path.name],
             "start_ns": reader.start_time if reader.message_count else None,

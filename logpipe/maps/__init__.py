@@ -20,6 +20,7 @@ from logpipe.maps import argoverse1, av2, commonroad, lanelet2
 from logpipe.maps.feature_kinds import KINDS, POLYGON_KINDS, FeatureKind
 from logpipe.maps.grid_index import Layer, Window
 from logpipe.maps.store import MapBuilder, MapStore
+from logpipe.storage.regular_files import irregular_kind
 
 __all__ = [
     "ADAPTERS",
@@ -132,11 +133,11 @@ def load_map(path_or_city: str | Path, roots: Sequence[Path] = (), map_id: str |
     """
     path = Path(path_or_city)
     if path.is_dir():
-        files = sorted(p for p in path.rglob("*") if p.suffix in _MAP_SUFFIXES and _sniffs(p))
+        files = sorted(p for p in path.rglob("*") if p.suffix in _MAP_SUFFIXES and _regular(p) and _sniffs(p))
         if len(files) != 1:
             raise DatasetError(f"{path}: expected one map file, found {[p.name for p in files]}")
         path = files[0]
-    elif not path.is_file():
+    elif not _regular(path):
         files = [p for p in find_map_files(str(path_or_city), roots) if _sniffs(p)]
         if not files:
             raise DatasetError(f"no map named {path_or_city!r} under {[str(r) for r in roots]}")
@@ -175,8 +176,25 @@ def _map_error(path: Path, err: BaseException) -> SourceError:
     return SourceError(str(path), f"unreadable or damaged map file: {what}")
 
 
+def _regular(path: Path) -> bool:
+    """Whether ``path`` is a regular file; False when nothing is there. A FIFO, device or socket is refused: a
+    map reader would block on it forever (or, for ``/dev/zero``, never finish).
+
+    Raises:
+        SourceError: naming the path and what it is.
+    """
+    try:
+        kind = irregular_kind(path)
+    except OSError:
+        return False
+    if kind in (None, "a folder"):
+        return kind is None
+    raise SourceError(str(path), f"not a regular file: {kind}; only regular files are read as maps")
+
+
 def _load(path: Path, map_id: str | None) -> MapStore:
     """``_adapter_for(path).load`` with any failure of a damaged file as one ``SourceError`` naming it."""
+    _regular(path)
     try:
         adapter = _adapter_for(path)
     except DatasetError:
@@ -226,7 +244,10 @@ class MapSource:
     def resolve(self, map_id: str | None, log_id: str | None = None) -> Path | None:
         """The map file for a log, or None when nothing matches."""
         if map_id is not None and map_id in self.files:
-            return self.files[map_id]
+            given = self.files[map_id]
+            if not _regular(given) and not given.is_dir():  # a FIFO is refused here, before anything hashes it
+                raise SourceError(str(given), "map file not found")
+            return given
         if log_id in self.own:
             return self.own[log_id]
         if log_id:

@@ -385,6 +385,8 @@ def _copy_rosbag(source: Source, copier: _Copier) -> None:
     from rosbags.highlevel import AnyReader
     from rosbags.interfaces import MessageDefinitionFormat
 
+    import logpipe.formats.inflation  # noqa: F401  bounds rosbags' ROS 2 zstd decompression
+
     writer, stats = copier.writer, copier.stats
     with AnyReader(list(source.paths)) as reader:
         ros1 = reader.is2 is False

@@ -21,12 +21,38 @@ channel in a module-level dict for ever, which at one MCAP per log would grow wi
 
 from __future__ import annotations
 
+import errno
+import logging
+import os
 from pathlib import Path
 from types import TracebackType
 from typing import Any
 
 import foxglove
 from foxglove.mcap import MCAPWriteOptions
+
+from logpipe.storage.write_journal import record_written
+
+# The SDK logs one line per message it could not write (a full disk: thousands) and then fails the file's
+# ``close`` with one error, which ``_as_os_error`` turns into the same one line as any full disk.
+logging.getLogger("foxglove").setLevel(logging.CRITICAL)
+
+_FREE_BYTES_FULL = 1 << 20
+"""Free space under which an SDK "I/O error" on writing is taken for a full disk (the SDK does not say which)."""
+
+
+def _as_os_error(err: RuntimeError, target: Path) -> OSError | RuntimeError:
+    """The SDK's ``RuntimeError('FoxgloveError: MCAP error: I/O error ...')`` as the ``OSError`` it stands for:
+    ENOSPC when the target's file system is (nearly) full, else EIO; any other error as it is."""
+    if "I/O error" not in str(err):
+        return err
+    try:
+        stats = os.statvfs(target.parent)
+        full = stats.f_bavail * stats.f_frsize < _FREE_BYTES_FULL
+    except OSError:
+        full = False
+    code = errno.ENOSPC if full else errno.EIO
+    return OSError(code, os.strerror(code), str(target))
 
 
 class NativeMcap:
@@ -35,6 +61,7 @@ class NativeMcap:
     def __init__(self, target: Path, profile: str = "", compression_threads: int = 0) -> None:
         """``compression_threads``: 0 compresses each chunk in the logging call, n > 0 on n threads of the SDK
         while the caller goes on (the same CPU, less waiting where a file has many chunks)."""
+        self._target = target
         self._context = foxglove.Context()
         options = MCAPWriteOptions(profile=profile, compression_threads=compression_threads)
         self._writer = foxglove.open_mcap(target, allow_overwrite=True, context=self._context,
@@ -56,8 +83,12 @@ class NativeMcap:
         self._writer.attach(log_time=log_time, create_time=create_time, name=name, media_type=media_type, data=data)
 
     def close(self) -> None:
-        """Write the summary and footer and close the file."""
-        self._writer.close()
+        """Write the summary and footer and close the file (a write the SDK failed is an ``OSError`` here)."""
+        try:
+            self._writer.close()
+        except RuntimeError as err:
+            raise _as_os_error(err, self._target) from None
+        record_written(self._target)  # written in place (in staging): the proof a later cleanup needs
 
     def __enter__(self) -> NativeMcap:
         return self

@@ -30,19 +30,22 @@ import os
 import re
 import shutil
 from collections.abc import Iterable, Iterator, Sequence
-from contextlib import contextmanager
+from contextlib import contextmanager, suppress
 from dataclasses import dataclass
 from pathlib import Path
 from types import TracebackType
 from typing import Any, Self, TypedDict
 
 from logpipe.errors import DatasetError, LogpipeError, OutputError
+from logpipe.storage import write_journal as jf
 from logpipe.storage.durability import crash_point, fsync_dir, syncfs
 from logpipe.storage.folder_lock import LOCK_FILE, FolderLock
+from logpipe.storage.regular_files import parse_nested, read_regular_bytes
 from logpipe.storage.safe_paths import check_manifest_files, refuse_linked_folders
 
 MANIFEST = "manifest.json"
 STAGING_PREFIX = ".staging-"
+_RESERVED = (MANIFEST, LOCK_FILE, jf.JOURNAL)
 
 
 class FileEntry(TypedDict, total=False):
@@ -81,7 +84,7 @@ def read_manifest(root: Path, *, required: bool = True) -> dict[str, Any] | None
     """
     path = root / MANIFEST
     try:
-        text = path.read_bytes()
+        text = read_regular_bytes(path)
     except FileNotFoundError:
         if required:
             raise DatasetError(f"{root}: no {MANIFEST} (not a logpipe output folder, or never committed)") from None
@@ -89,7 +92,7 @@ def read_manifest(root: Path, *, required: bool = True) -> dict[str, Any] | None
     except OSError as exc:
         raise DatasetError(f"{path}: cannot read: {exc.strerror}") from None
     try:
-        manifest = json.loads(text)
+        manifest = parse_nested(json.loads, text.decode("utf-8"))
     except (ValueError, UnicodeDecodeError) as exc:
         raise DatasetError(f"{path}: damaged manifest ({exc}); `logpipe verify` lists what is wrong") from None
     if not isinstance(manifest, dict):
@@ -221,8 +224,12 @@ class ArtifactWriter:
         self.manifest: dict[str, Any] | None = None
         self._lock = FolderLock(self.root)
         self._created = False
+        self._recorded: dict[str, Any] = {}
 
     def __enter__(self) -> ArtifactWriter:
+        if self.root.is_symlink():  # before the first write: every file would land in the link's target
+            raise OutputError(f"{self.root}: is a symbolic link; logpipe never writes through links: give the "
+                              "folder it points to, or another folder")
         if self.root.exists() and not self.root.is_dir():
             raise DatasetError(f"{self.root}: exists and is not a folder")
         self.root.parent.mkdir(parents=True, exist_ok=True)
@@ -242,6 +249,7 @@ class ArtifactWriter:
                 raise DatasetError(f"{self.root}: holds a {str(found).replace('_', ' ')}, not a "
                                    f"{self.kind.replace('_', ' ')}; choose another folder")
             refuse_linked_folders(self.root, self.owned)
+            jf.start_journal(self.root)
             self.clean()
         except BaseException:
             self._lock.release(remove_folder=self._created)
@@ -255,6 +263,9 @@ class ArtifactWriter:
                 # Leave no trace, and only under the lock: released first, another writer could take the folder
                 # and commit into it before it is gone. Only owned files this run wrote can be here.
                 self.clean(everything_owned=True)
+            else:  # still under the lock: the journal keeps only what the folder holds (best effort)
+                with suppress(OSError):
+                    jf.prune_journal(self.root, (path for _rel, path in _walk(self.root)))
         finally:
             self._lock.release(remove_folder=failed_first_run)
 
@@ -278,20 +289,27 @@ class ArtifactWriter:
         """
         keep = self.committed_files()
         ours = self.manifest is not None or self._lock.found_stale or everything_owned
-        removed = []
+        journal = jf.read_journal(self.root)
+        removed, present = [], []
         for rel, path in _walk(self.root):
-            if rel in keep or rel in (MANIFEST, LOCK_FILE):
+            if rel in keep or rel in _RESERVED:
+                present.append(path)
                 continue
-            name = path.name
-            leftover = name.startswith(STAGING_PREFIX) or (name.startswith(".") and name.endswith(".tmp"))
-            if (leftover and ("/" not in rel or self.owned(rel))) or (ours and self.owned(rel) and not path.is_dir()):
+            # A file no commit names is removed only when logpipe can prove it wrote it (its journal), never on
+            # a manifest's word: a spoofed manifest beside the user's files must not turn them into leftovers.
+            proven = everything_owned or (self.owned(rel) and journal.proves(self.root, path))
+            scratch = jf.logpipe_scratch(path.name)
+            if (scratch and ("/" not in rel or self.owned(rel))) or (ours and self.owned(rel) and proven):
                 crash_point(f"clean {rel}")
                 if path.is_dir() and not path.is_symlink():
                     shutil.rmtree(path)
                 else:
                     path.unlink()
                 removed.append(rel)
+            else:
+                present.append(path)
         _remove_empty_owned_dirs(self.root, self.owned)
+        jf.prune_journal(self.root, present, keep_empty=not everything_owned)
         return removed
 
     def stamped(self, manifest: dict[str, Any]) -> dict[str, Any]:
@@ -327,13 +345,17 @@ class ArtifactWriter:
             tmp.write_text(text, encoding="utf-8")
         crash_point("after manifest")
         fsync_dir(self.root)
+        jf.record_committed(self.root, {rel: e for rel, e in files.items() if self._recorded.get(rel) != e})
+        self._recorded.update((rel, dict(e)) for rel, e in files.items())
         superseded = sorted(self.committed_files() - set(files))
         self.manifest = manifest
         # Only what the previous state named: workers may be writing the next commit's files right now, so
         # only the folders these files leave empty go, never a sweep (it would take a worker's new folder).
+        journal = jf.read_journal(self.root)
         for rel in superseded:
             crash_point(f"remove {rel}")
-            (self.root / rel).unlink(missing_ok=True)
+            if journal.proves(self.root, self.root / rel):  # an edited or foreign manifest names no file to delete
+                (self.root / rel).unlink()
         _remove_emptied_dirs(self.root, self.owned, superseded)
 
 
@@ -432,12 +454,12 @@ def verify_folder(root: Path, owned: Ownership | None = None, *,
             if rows != entry["rows"]:
                 problems.append(Problem(str(path), f"{rows} rows, manifest says {entry['rows']}"))
     leftovers = []
+    journal = jf.read_journal(root)
     for rel, path in _walk(root):
-        if rel in files or rel in (MANIFEST, LOCK_FILE):
+        if rel in files or rel in _RESERVED:
             continue
-        leftover = path.name.startswith(STAGING_PREFIX) or (path.name.startswith(".") and path.name.endswith(".tmp"))
         mine = owned(rel)
-        if (leftover and ("/" not in rel or mine)) or (mine and not path.is_dir()):
+        if (jf.logpipe_scratch(path.name) and ("/" not in rel or mine)) or (mine and journal.proves(root, path)):
             leftovers.append(rel)
     return problems, leftovers
 

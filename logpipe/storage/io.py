@@ -17,6 +17,7 @@ import pyarrow.parquet as pq
 
 from logpipe.errors import DatasetError, OutputError
 from logpipe.storage.durability import crash_point
+from logpipe.storage.write_journal import record_written
 
 _HASH_CHUNK = 1 << 20
 
@@ -95,8 +96,10 @@ def sha256_bytes(data: bytes) -> str:
 
 def sha256_file(path: Path) -> str:
     """Hex sha256 of a file's bytes, read in 1 MiB chunks."""
+    from logpipe.storage.regular_files import open_regular
+
     digest = hashlib.sha256()
-    with path.open("rb") as fh:
+    with open_regular(path) as fh:  # a FIFO would block the hash forever
         while chunk := fh.read(_HASH_CHUNK):
             digest.update(chunk)
     return digest.hexdigest()
@@ -142,6 +145,7 @@ def atomic_path(target: Path, *, durable: bool = False) -> Iterator[Path]:
                 os.fsync(fh.fileno())
         crash_point(f"before rename {target.name}")
         os.replace(tmp, target)
+        record_written(target)  # the proof a later cleanup needs before it may delete this file
         crash_point(f"after rename {target.name}")
     except BaseException:
         tmp.unlink(missing_ok=True)
@@ -212,9 +216,10 @@ def read_table(path: Path, **kwargs: Any) -> pa.Table:
 
 
 def read_json(path: Path) -> Any:
-    """Parsed JSON of ``path``."""
-    with path.open(encoding="utf-8") as fh:
-        return json.load(fh)
+    """Parsed JSON of ``path`` (a regular file only; too deep a nesting is a ``ValueError``)."""
+    from logpipe.storage.regular_files import read_json_file
+
+    return read_json_file(path)
 
 
 def as_numpy(column: pa.Array | pa.ChunkedArray) -> Any:

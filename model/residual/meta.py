@@ -7,10 +7,11 @@ sha256 and the logpipe version. ``model.residual.checkpoint`` writes and loads t
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
+
+from logpipe.storage.io import read_json
 
 from ..checkpoint.format import (
     CHECKPOINT_FORMAT,
@@ -54,7 +55,7 @@ class ResidualMeta:
 def model_kind(folder: Path) -> str | None:
     """The ``model_kind`` a checkpoint folder's ``meta.json`` names (None when unreadable)."""
     try:
-        data = json.loads((folder / META).read_text(encoding="utf-8"))
+        data = read_json(folder / META)
     except (OSError, ValueError):
         return None
     kind = data.get("model_kind") if isinstance(data, dict) else None
@@ -69,7 +70,7 @@ def read_residual_meta(folder: Path) -> ResidualMeta:
     """
     path = folder / META
     try:
-        data = json.loads(path.read_text(encoding="utf-8"))
+        data = read_json(path)
     except (OSError, ValueError) as exc:
         raise CheckpointError(f"{path}: not a readable checkpoint: {exc}") from None
     if not isinstance(data, dict) or data.get("format") != CHECKPOINT_FORMAT or data.get("model_kind") != MODEL_KIND:

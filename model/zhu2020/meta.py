@@ -14,7 +14,7 @@ from pathlib import Path
 from typing import Any
 
 from logpipe.storage.folder_lock import FolderLock
-from logpipe.storage.io import atomic_path
+from logpipe.storage.io import atomic_path, read_json
 
 from ..checkpoint.format import (
     CHECKPOINT_FORMAT,
@@ -96,7 +96,7 @@ def read_meta(folder: Path) -> CheckpointMeta:
     """Parse and check ``meta.json`` of a checkpoint folder."""
     path = folder / "meta.json"
     try:
-        data = json.loads(path.read_text(encoding="utf-8"))
+        data = read_json(path)
     except (OSError, ValueError) as exc:
         raise CheckpointError(f"{path}: not a readable checkpoint: {exc}") from exc
     if not isinstance(data, dict):

@@ -223,7 +223,7 @@ def test_gzip_files_read_like_plain_ones_and_bombs_are_refused(tmp_path: Path) -
     bomb = tmp_path / "bomb.xml.gz"
     head = b'<?xml version="1.0"?><commonRoad benchmarkID="A_B-1" timeStepSize="0.1">'
     bomb.write_bytes(gzip.compress(head + b" " * (300 << 20)))  # 300 MiB of blanks in ~300 KB
-    with pytest.raises(SourceError, match="over 256 MiB"):
+    with pytest.raises(SourceError, match="over 16 MiB"):
         adapter.read([src(bomb)], keep_going=False)
     cut = tmp_path / "cut.xml.gz"
     cut.write_bytes(packed.read_bytes()[:-40])

@@ -17,7 +17,9 @@ from logpipe.dataset.reader import Dataset
 from logpipe.errors import ArtifactBusyError, OutputError
 from logpipe.stages.ingest import IngestOptions, ingest
 from logpipe.storage.artifact import MANIFEST, read_manifest
-from logpipe.storage.folder_lock import FolderLock
+from logpipe.storage.folder_lock import LOCK_FILE, FolderLock
+from logpipe.storage.io import atomic_path
+from logpipe.storage.write_journal import start_journal
 
 REPO = Path(__file__).resolve().parents[2]
 DATA = REPO / "tests" / "data"
@@ -179,13 +181,19 @@ def test_verify_repair_removes_leftovers_only(artifacts: dict[str, Path], tmp_pa
     shutil.copytree(artifacts["dataset"], copy)
     (copy / ".staging-0123456789ab").mkdir()
     (copy / ".staging-0123456789ab" / "part-00009.parquet").write_bytes(b"half")
-    (copy / "tracks" / "part-00009.parquet").write_bytes(b"uncommitted")
+    (copy / LOCK_FILE).write_text("{}")  # a writer killed while writing: its file is in the folder's journal
+    start_journal(copy)  # the copy's journal (copied from the dataset) proves nothing here: new inodes
+    with atomic_path(copy / "tracks" / "part-00009.parquet") as tmp:
+        tmp.write_bytes(b"uncommitted")
+    (copy / LOCK_FILE).unlink()
     (copy / "notes.txt").write_text("the user's own file")
+    (copy / "tracks" / "part-00010.parquet").write_bytes(b"put there by hand: logpipe cannot prove it wrote it")
     found = _cli("verify", str(copy), check=False)
     assert found.returncode == 0 and found.stdout.count("uncommitted leftover") == 2
     _cli("verify", str(copy), "--repair")
     assert not (copy / ".staging-0123456789ab").exists() and not (copy / "tracks" / "part-00009.parquet").exists()
     assert (copy / "notes.txt").read_text() == "the user's own file"
+    assert (copy / "tracks" / "part-00010.parquet").exists()
     assert json.loads(_cli("verify", str(copy), "--json").stdout)["leftovers"] == []
 
 

@@ -26,6 +26,7 @@ import pytest
 
 from logpipe.dataset.reader import Dataset
 from logpipe.storage.artifact import MANIFEST, verify_folder
+from logpipe.storage.write_journal import JOURNAL
 
 pytestmark = pytest.mark.slow  # minutes of end-to-end work
 
@@ -97,10 +98,12 @@ def _run(cmd: list[str], env: dict[str, str] | None = None) -> subprocess.Comple
 
 
 def _tree(folder: Path) -> dict[str, bytes]:
-    """Every file under ``folder`` (relative path → bytes): what 'byte-identical' compares."""
+    """Every file under ``folder`` (relative path → bytes): what 'byte-identical' compares. Not the write journal:
+    it records inodes and times of the files, which no two runs share."""
     if not folder.exists():
         return {}
-    return {p.relative_to(folder).as_posix(): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()}
+    return {p.relative_to(folder).as_posix(): p.read_bytes() for p in sorted(folder.rglob("*"))
+            if p.is_file() and p.name != JOURNAL}
 
 
 def _session_processes(sid: int) -> list[int]:

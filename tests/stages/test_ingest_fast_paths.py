@@ -145,7 +145,7 @@ def test_read_bodies_equals_join_of_whole_files(tmp_path: Path, header_lines: in
     from logpipe.formats._text import join_bodies, read_bodies
     from logpipe.types import PENDING_SHA256, SourceFile
 
-    blobs = [b"h\na\nb", b"h\nc\r\n", b"h\nx\ny\n\n \t", b"h\r\nlast line without newline",
+    blobs = [b"h\na\nb\n", b"h\nc\r\n", b"h\nx\ny\n\n \t", b"h\r\nlast line\r\n",
              b"h\n" + b"row,1\n" * 3000]  # the last one is bigger than the 4 KiB head read
     sources = [SourceFile(str(_write(tmp_path, f"{i}.txt", b)), f"{i}.txt", PENDING_SHA256, len(b)) for i, b in
                enumerate(blobs)]
@@ -155,6 +155,22 @@ def test_read_bodies_equals_join_of_whole_files(tmp_path: Path, header_lines: in
     assert [s.sha256 for s in good] == [hashlib.sha256(b).hexdigest() for b in blobs] and not failures
     kept = batch.keep([0, 3])  # dropping failed files (the keep_going retry)
     assert bytes(kept.buffer) == join_bodies([blobs[0], blobs[3]], header_lines).buffer
+
+
+@pytest.mark.parametrize("cut", [b"h\na\nb", b"h\r\n1 2 10.3", b"h\n1 2 3\n4 5 6 \t"])
+def test_a_last_line_without_newline_is_a_truncated_record(tmp_path: Path, cut: bytes) -> None:
+    """Issue 64 item 7: a file cut mid-record ends without a newline; its last line may still parse (10.3817 cut
+    to 10.3), so the file is refused naming that line, and with keep_going the other files still land."""
+    from logpipe.formats._text import read_bodies
+    from logpipe.types import PENDING_SHA256, SourceFile
+
+    blobs = [b"h\nfine\n", cut]
+    sources = [SourceFile(str(_write(tmp_path, f"{i}.txt", b)), f"{i}.txt", PENDING_SHA256, len(b)) for i, b in
+               enumerate(blobs)]
+    batch, good, failures = read_bodies(sources, 1, lambda s, head, rows: None, keep_going=True)
+    assert [s.relpath for s in good] == ["0.txt"] and bytes(batch.buffer) == b"fine\n"
+    [error] = failures
+    assert error.file == "1.txt" and error.line == cut.count(b"\n") + 1 and "truncated record" in error.reason
 
 
 def test_read_bodies_passes_header_and_emptiness_to_the_check(tmp_path: Path) -> None:

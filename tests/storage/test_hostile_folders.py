@@ -17,6 +17,8 @@ from logpipe.stages.ingest import IngestOptions, ingest
 from logpipe.storage import folder_lock
 from logpipe.storage.artifact import MANIFEST, ArtifactWriter, Ownership, file_entry, manifest_checksum, read_manifest
 from logpipe.storage.folder_lock import LOCK_FILE, FolderLock
+from logpipe.storage.io import atomic_path
+from logpipe.storage.write_journal import start_journal
 from logpipe.verify import verify_tree
 
 REPO = Path(__file__).resolve().parents[2]
@@ -154,7 +156,11 @@ def test_verify_repair_removes_only_what_the_kinds_writer_owns(tmp_path: Path) -
     manifest["checksum"] = manifest_checksum(manifest)
     (folder / MANIFEST).write_text(json.dumps(manifest))
     (folder / "notes.txt").write_text("mine")
-    (folder / "horizon.png").write_bytes(b"stale leftover of a killed run")
+    (folder / LOCK_FILE).write_text("{}")  # a killed writer's stale lock: it was writing when it died
+    start_journal(folder)  # as that writer did on entering
+    with atomic_path(folder / "horizon.png") as tmp:  # as the killed run wrote it: recorded in its journal
+        tmp.write_bytes(b"stale leftover of a killed run")
+    (folder / LOCK_FILE).unlink()
     report = verify_tree([folder], repair=True)
     assert report["leftovers"] == [str(folder / "horizon.png")]
     assert (folder / "notes.txt").read_text() == "mine"
@@ -210,8 +216,8 @@ def test_a_commit_never_removes_a_workers_new_empty_folder(tmp_path: Path) -> No
     root = tmp_path / "run"
     with ArtifactWriter(root, Ownership(["predictions/", "mcap/"]), "prediction_run") as writer:
         old = root / "mcap" / "part-00000" / "a.mcap"
-        old.parent.mkdir(parents=True)
-        old.write_bytes(b"old")
+        with atomic_path(old) as tmp:  # as logpipe writes: recorded, so the next commit may remove it
+            tmp.write_bytes(b"old")
         writer.commit({"files": {"mcap/part-00000/a.mcap": file_entry(old)}})
         fresh = root / "mcap" / "part-00001"
         fresh.mkdir()  # a worker's, about to hold its first file

@@ -40,6 +40,7 @@ import yaml
 
 from logpipe.errors import SourceError
 from logpipe.formats.ros.message_types import EGO_KINDS, OBJECT_KINDS, topic_kind
+from logpipe.storage.regular_files import parse_nested, read_regular_text
 from logpipe.types import OBJECT_TYPES
 
 TIME_SOURCES = ("header", "log")
@@ -210,8 +211,8 @@ def read_mapping_document(path: Path) -> dict[str, Any]:
         SourceError: unreadable file or syntax error.
     """
     try:
-        text = path.read_text(encoding="utf-8")
-        data = tomllib.loads(text) if path.suffix == ".toml" else yaml.safe_load(text)
+        text = read_regular_text(path)  # a FIFO would block forever
+        data = parse_nested(tomllib.loads if path.suffix == ".toml" else yaml.safe_load, text)
     except (OSError, ValueError, tomllib.TOMLDecodeError, yaml.YAMLError) as err:  # ValueError: not UTF-8
         raise SourceError(str(path), f"cannot read mapping: {err}") from None
     if data is None:
