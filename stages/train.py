@@ -1,10 +1,11 @@
 """``logpipe train``: fit the predictor on a dataset's samples (or on several datasets' together).
 
 Reads top-down: open the dataset(s) → build the config (``model.zhu2020.train_config``) → pick the train/validation
-logs (a folder split such as ``eth/train``, or a ``hash/…`` split, applied in each dataset) → cut their samples
-into ``SceneSample``s (concatenated in the order the datasets are given, each with its own raster run) →
-``model.zhu2020.fit.fit`` inside ``model.training.run_folder.run_folder`` (the run folder's lock; ``fit`` writes the
-checkpoints and the JSON-lines log, stops early, resumes) → a summary.
+logs (a folder split such as ``eth/train``, or a ``hash/…`` split, applied in each dataset) → cut their samples into
+``SceneSample``s (in the order the datasets are given, each with its own raster run) → ``model.zhu2020.fit.fit``
+under ``model.training.run_folder.run_folder`` (the folder's lock; ``fit`` writes checkpoints and the log, stops
+early, resumes) → a summary. The social baselines and the residual model train through ``model.social`` and
+``model.residual.run``.
 """
 
 from __future__ import annotations
@@ -88,7 +89,8 @@ def train(  # noqa: PLR0913  stage entry: keyword options mirror `logpipe train`
         config_path: TOML/JSON with every hyper-parameter (defaults: the paper's).
         overrides: ``TrainConfig`` fields to replace (e.g. ``{"steps": 50}``).
         preset: a row of the paper's tables applied over the config's model (``full``, ``v1``..``v4``,
-            ``baseline`` = Noise-LSTM, ``lstm``); ``lstm`` has no noise, so it trains and validates with one mode.
+            ``baseline`` = Noise-LSTM, ``lstm``; ``lstm`` has no noise, so it trains and validates with one mode), or
+            a social baseline (``social_lstm``, ``social_gan_20v``, ``social_gan_20vp``: ``model.social``).
         raster_run: the raster run under ``DATASET/rasters/`` to train the environment net on (default: the only
             one; none: the environment net is off); with several datasets, in each of them.
         loader_workers: 0 cuts every training sample into memory first (exact resume); N > 0 streams them from
@@ -96,13 +98,14 @@ def train(  # noqa: PLR0913  stage entry: keyword options mirror `logpipe train`
             shuffled through a buffer).
         resume: continue from ``out_dir/last``.
         progress: True: ``fit``'s progress bar (a terminal); a callable: ``logpipe.progress`` callback (steps).
-        init_from: start a new run from this checkpoint folder (e.g. a Noise-LSTM checkpoint into the full
-            model; see ``logpipe.model.zhu2020.checkpoint.warm_start``).
+        init_from: start a new run from this checkpoint folder (``logpipe.model.zhu2020.checkpoint.warm_start``).
         device: ``auto`` (CUDA when torch can use a GPU, else the CPU), ``cpu`` or ``cuda`` (autocast there; see
             ``logpipe.model.training.device``).
     """
     from logpipe.model.checkpoint.format import TrainingData, combined_kind, combined_manifest_hash
     from logpipe.model.residual.config import is_residual_config
+    from logpipe.model.residual.run import train_residual
+    from logpipe.model.social import train_social
     from logpipe.model.training.run_folder import run_folder, train_device
     from logpipe.model.zhu2020.fit import fit
     from logpipe.model.zhu2020.train_config import train_config, with_protocol_lengths
@@ -110,16 +113,18 @@ def train(  # noqa: PLR0913  stage entry: keyword options mirror `logpipe train`
     started = time.perf_counter()
     torch_device = train_device(device)  # a bad --device fails before any data is read
     datasets = _open_datasets([dataset_dir] if isinstance(dataset_dir, Path) else list(dataset_dir))
-    if config_path is not None and is_residual_config(config_path):  # the residual driving model (our extension)
-        from logpipe.model.residual.run import train_residual
-
-        _check_lengths(datasets)
-        summary: TrainSummary = train_residual(datasets, out_dir, config_path, train_split=train_split,
-                                               val_split=val_split, overrides=overrides, raster_run=raster_run,
-                                               init_from=init_from, progress=progress if callable(progress) else None)
+    _check_lengths(datasets)  # one model: every dataset's windows of the same steps, which the config takes
+    callback = progress if callable(progress) else None  # the social and residual loops report steps, no bar
+    summary: TrainSummary | None = None
+    if preset is not None and preset.startswith("social_"):  # Social-LSTM / Social-GAN baselines (issue 63)
+        summary = train_social(preset, datasets, out_dir, train_split=train_split, val_split=val_split,
+                               config_path=config_path, overrides=overrides, progress=callback)
+    elif config_path is not None and is_residual_config(config_path):  # the residual driving model (our extension)
+        summary = train_residual(datasets, out_dir, config_path, train_split=train_split, val_split=val_split,
+                                 overrides=overrides, raster_run=raster_run, init_from=init_from, progress=callback)
+    if summary is not None:
         return summary
     config = train_config(config_path, overrides, preset)
-    _check_lengths(datasets)  # one model: every dataset's windows of the same steps, which the config takes
     config = with_protocol_lengths(config, datasets[0].protocol)
     inputs = _resolve_inputs(datasets, config, train_split, val_split, raster_run, loader_workers)
     with run_folder(out_dir):
@@ -199,15 +204,11 @@ def _summary(dataset_dir: Path | Sequence[Path], out_dir: Path, inputs: _Inputs,
         # With several datasets: their folders and raster runs as lists, and the samples each gave.
         "dataset": [str(ds.root) for ds in datasets] if several else str(dataset_dir),
         **per_dataset,
-        "run": str(out_dir),
-        "train_split": inputs.train_split,
-        "val_split": inputs.val_split,
+        "run": str(out_dir), "train_split": inputs.train_split, "val_split": inputs.val_split,
         "train_samples": len(inputs.train_samples) if isinstance(inputs.train_samples, list) else "streamed",
         "val_samples": len(val_samples) if val_samples else 0,
-        "steps": result.steps,
-        "best_step": result.best_step,
-        "best_val_ade": result.best_val_ade,
-        "best_val_fde": result.best_val_fde,
+        "steps": result.steps, "best_step": result.best_step,
+        "best_val_ade": result.best_val_ade, "best_val_fde": result.best_val_fde,
         "stopped_early": result.stopped_early,
         "best_checkpoint": str(result.best_checkpoint) if result.best_checkpoint else None,
         "last_checkpoint": str(result.last_checkpoint),
