@@ -42,6 +42,7 @@ class SocialGanConfig:
     val_every: int = 250
     val_windows: int = 400
     patience: int = 8
+    time_budget_s: float = 0.0
     seed: int = 0
     obs_len: int = 8
     pred_len: int = 12

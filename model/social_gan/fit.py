@@ -81,7 +81,7 @@ def discriminator_step(gan: Gan, batch: SocialBatch) -> float:
     if config.clipping_threshold_d > 0:
         torch.nn.utils.clip_grad_norm_(gan.discriminator.parameters(), config.clipping_threshold_d)
     gan.d_optimizer.step()
-    return float(loss)
+    return float(loss.detach())
 
 
 def generator_step(gan: Gan, batch: SocialBatch) -> tuple[float, float]:
@@ -101,7 +101,7 @@ def generator_step(gan: Gan, batch: SocialBatch) -> tuple[float, float]:
     if config.clipping_threshold_g > 0:
         torch.nn.utils.clip_grad_norm_(gan.generator.parameters(), config.clipping_threshold_g)
     gan.g_optimizer.step()
-    return float(adversarial), float(l2)
+    return float(adversarial.detach()), float(l2.detach())
 
 
 def iteration(gan: Gan, next_batch: NextBatch) -> dict[str, float]:
@@ -155,7 +155,8 @@ def train_social_gan(train: Sequence[SceneSample], val: Sequence[SceneSample], c
     gan = Gan.new(config)
     tracks = window_tracks(train)
     val_tracks = evenly(window_tracks(val), config.val_windows) if val else evenly(tracks, config.val_windows)
-    settings = LoopSettings(config.steps, config.batch_size, config.val_every, config.patience, config.seed)
+    settings = LoopSettings(config.steps, config.batch_size, config.val_every, config.patience, config.seed,
+                            config.time_budget_s)
 
     def save(folder: Path, step: int, metrics: dict[str, float]) -> None:
         state = {f"generator.{k}": v for k, v in gan.generator.state_dict().items()}

@@ -31,6 +31,7 @@ class SocialLstmConfig:
     val_every: int = 250
     val_windows: int = 400
     patience: int = 8
+    time_budget_s: float = 0.0
     seed: int = 0
     obs_len: int = 8
     pred_len: int = 12

@@ -35,7 +35,7 @@ def train_step(net: SocialLstm, optimizer: torch.optim.Optimizer, next_batch: Ne
     loss.backward()  # type: ignore[no-untyped-call]
     torch.nn.utils.clip_grad_norm_(net.parameters(), net.config.clip_grad_norm)
     optimizer.step()
-    return {"nll": float(loss)}
+    return {"nll": float(loss.detach())}
 
 
 @torch.no_grad()
@@ -81,7 +81,8 @@ def train_social_lstm(train: Sequence[SceneSample], val: Sequence[SceneSample], 
     optimizer = torch.optim.RMSprop(net.parameters(), lr=config.learning_rate)
     tracks = window_tracks(train)
     val_tracks = evenly(window_tracks(val) if val else tracks, config.val_windows)
-    settings = LoopSettings(config.steps, config.batch_size, config.val_every, config.patience, config.seed)
+    settings = LoopSettings(config.steps, config.batch_size, config.val_every, config.patience, config.seed,
+                            config.time_budget_s)
 
     def save(folder: Path, step: int, metrics: dict[str, float]) -> None:
         meta.step, meta.metrics, meta.model_kind, meta.config = step, metrics, MODEL_KIND, config.to_dict()

@@ -36,6 +36,8 @@ class LoopSettings:
         val_every: iterations between validations.
         patience: validations without a better ADE before stopping (0: never stop early).
         seed: seeds torch and the batch order.
+        time_budget_s: stop (validating and saving) at the first validation after this many seconds (0: none),
+            for a run that must fit a machine's time; its log says how far it got.
     """
 
     steps: int
@@ -43,6 +45,7 @@ class LoopSettings:
     val_every: int
     patience: int
     seed: int
+    time_budget_s: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -108,7 +111,8 @@ def run_loop(
             save(out_dir / "best", it, metrics)
         else:
             stale += 1
-        if settings.patience and stale >= settings.patience:
+        over_time = 0 < settings.time_budget_s <= time.perf_counter() - started
+        if over_time or (settings.patience and stale >= settings.patience):
             stopped = True
             break
     seconds = time.perf_counter() - started
