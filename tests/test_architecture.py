@@ -26,7 +26,8 @@ MODEL_LAYERS = {  # docs/architecture.md §1, model/__init__.py: a package impor
     "training": 0, "checkpoint": 1, "kinematic": 1, "zhu2020": 2, "residual": 2, "social_lstm": 2, "social_gan": 2,
     "top": 3,
 }
-MODEL_FAMILIES = {"zhu2020", "residual", "social_lstm", "social_gan"}  # predictor families: a family never imports another one
+# predictor families: a family never imports another one
+MODEL_FAMILIES = {"zhu2020", "residual", "social_lstm", "social_gan"}
 MAX_TOP_MODEL_MODULES = 8
 ENTRY_POINTS = {"api", "options", "inspect", "verify"}  # logpipe/<name>.py: the commands' Python side
 
