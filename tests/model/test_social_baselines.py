@@ -97,7 +97,7 @@ def test_the_nll_is_the_bivariate_gaussians() -> None:
     mean, std, rho = params[:, :2], torch.exp(params[:, 2:4]), torch.tanh(params[:, 4])
     cov = torch.stack([torch.stack([std[:, 0] ** 2, rho * std[:, 0] * std[:, 1]], dim=1),
                        torch.stack([rho * std[:, 0] * std[:, 1], std[:, 1] ** 2], dim=1)], dim=1)
-    expected = -torch.distributions.MultivariateNormal(mean, covariance_matrix=cov).log_prob(target)
+    expected = -torch.distributions.MultivariateNormal(mean, covariance_matrix=cov).log_prob(target)  # type: ignore[no-untyped-call]
     assert torch.allclose(bivariate_nll(params, target), expected, atol=1e-4)
     # the mean is the most likely point, and draws have the Gaussian's moments
     assert bool((bivariate_nll(params, mean) <= bivariate_nll(params, target)).all())
@@ -148,7 +148,8 @@ def samples(tmp_path_factory: pytest.TempPathFactory) -> list[SceneSample]:
     """The bundled ETH/UCY sample ingested; its eth/test windows."""
     out = tmp_path_factory.mktemp("social") / "ds"
     ingest([ETHUCY], IngestOptions(out=out, write_mcap=False))
-    return split_samples([Dataset.open(out)], "eth/test")[0][:40]
+    windows: list[SceneSample] = split_samples([Dataset.open(out)], "eth/test")[0]
+    return windows[:40]
 
 
 @pytest.mark.parametrize("kind", ["social_gan", "social_lstm"])
@@ -161,13 +162,13 @@ def test_checkpoints_round_trip_and_refuse_damage(kind: str, samples: list[Scene
         state = {f"generator.{k}": v for k, v in net.state_dict().items()}
         save_weights_folder(folder, state, _meta(kind, gan_config.to_dict()))
         loaded: SocialGanPredictor | SocialLstmPredictor = SocialGanPredictor.from_checkpoint(folder)
-        fresh: SocialGanPredictor | SocialLstmPredictor = SocialGanPredictor(net, loaded.meta)  # type: ignore[arg-type]
+        fresh: SocialGanPredictor | SocialLstmPredictor = SocialGanPredictor(net, loaded.meta)
     else:
         lstm_config = SocialLstmConfig(hidden_dim=16, embedding_dim=8)
         net = SocialLstm(lstm_config)
         save_weights_folder(folder, dict(net.state_dict()), _meta(kind, lstm_config.to_dict()))
         loaded = SocialLstmPredictor.from_checkpoint(folder)
-        fresh = SocialLstmPredictor(net, loaded.meta)  # type: ignore[arg-type]
+        fresh = SocialLstmPredictor(net, loaded.meta)
     got, want = loaded.predict(samples, 5, seed=3), fresh.predict(samples, 5, seed=3)
     assert all(np.array_equal(a, b, equal_nan=True) for a, b in zip(got, want, strict=True))
     # a forecast depends on its sample and seed only, not on its batch mates
@@ -195,7 +196,7 @@ def test_checkpoints_round_trip_and_refuse_damage(kind: str, samples: list[Scene
 
 def test_social_lstm_k1_is_the_mean_and_larger_k_samples(samples: list[SceneSample]) -> None:
     torch.manual_seed(0)
-    predictor = SocialLstmPredictor(SocialLstm(SocialLstmConfig(hidden_dim=16, embedding_dim=8)), _meta("x", {}))  # type: ignore[arg-type]
+    predictor = SocialLstmPredictor(SocialLstm(SocialLstmConfig(hidden_dim=16, embedding_dim=8)), _meta("x", {}))
     mean = predictor.predict(samples[:5], 1, seed=0)
     sampled = predictor.predict(samples[:5], 4, seed=0)
     assert all(m.shape[1] == 1 and s.shape[1] == 4 for m, s in zip(mean, sampled, strict=True))
