@@ -259,3 +259,34 @@ def test_train_predict_and_score_through_the_cli(preset: str, cli_dataset: Path,
     result = runner.invoke(app, ["-q", "predict", str(dataset), "--checkpoint", str(run / "best"), "--noise-scale",
                                  "2", "--out", str(tmp_path / "p2")])
     assert result.exit_code == 2 and "not to a" in result.output
+
+
+@pytest.mark.parametrize(("inputs", "preset", "agents", "k"), [
+    (["apolloscape"], "social_gan_20vp", "all", "k20"),
+    (["driving/20.csv", "driving/32.csv"], "social_lstm", "focal", "k6"),
+])
+def test_the_other_dataset_kinds_train_and_predict(inputs: list[str], preset: str, agents: str, k: str,
+                                                   tmp_path: Path) -> None:
+    data = Path(__file__).resolve().parents[1] / "data"
+    dataset = tmp_path / "ds"
+    assert runner.invoke(app, ["-q", "ingest", *(str(data / p) for p in inputs), "--out", str(dataset),
+                               "--no-mcap"]).exit_code == 0
+    config = tmp_path / "small.toml"
+    table = "social_lstm" if preset == "social_lstm" else "social_gan"
+    config.write_text(f"[{table}]\nbatch_size = 4\nval_every = 2\nval_windows = 4\n"
+                      + ("hidden_dim = 16\nembedding_dim = 8\n" if table == "social_lstm" else ""))
+    run = tmp_path / "run"
+    result = runner.invoke(app, ["-q", "train", str(dataset), "--train-split", "all", "--val-split", "none",
+                                 "--preset", preset, "--config", str(config), "--steps", "2", "--out", str(run)])
+    assert result.exit_code == 0, result.output
+    meta = json.loads((run / "best" / "meta.json").read_text())
+    protocol = Dataset.open(dataset).protocol
+    assert (meta["obs_len"], meta["pred_len"]) == (protocol.obs_len, protocol.pred_len)  # the dataset's windows
+    pred = tmp_path / "pred"
+    assert runner.invoke(app, ["-q", "predict", str(dataset), "--checkpoint", str(run / "best"), "--out", str(pred),
+                               "--no-mcap"]).exit_code == 0
+    result = runner.invoke(app, ["score", str(pred), "--truth", str(dataset), "--agents", agents, "--no-plots",
+                                 "--out", str(tmp_path / "score"), "--json"])
+    assert result.exit_code == 0, result.output
+    method = json.loads(result.stdout)["methods"][table]
+    assert method["counts"]["agents_missing"] == 0 and math.isfinite(method["overall"][k]["ade"])
