@@ -255,7 +255,10 @@ def test_train_predict_and_score_through_the_cli(preset: str, cli_dataset: Path,
     k20 = method["overall"]["k20"]
     assert 0 < k20["ade"] <= k20["ade_joint"] and math.isfinite(k20["fde_joint"])
 
-    # options of the paper's network do not apply to these checkpoints
+    # options of the paper's network do not apply to these runs and checkpoints
+    result = runner.invoke(app, ["-q", "train", str(dataset), "--train-split", "eth/train", "--val-split", "none",
+                                 "--preset", preset, "--resume", "--out", str(run)])
+    assert result.exit_code == 2 and "--resume" in result.output
     result = runner.invoke(app, ["-q", "predict", str(dataset), "--checkpoint", str(run / "best"), "--noise-scale",
                                  "2", "--out", str(tmp_path / "p2")])
     assert result.exit_code == 2 and "not to a" in result.output
