@@ -31,7 +31,11 @@ TOLERANCE = 0.15  # issue 63: within 15 % of the published figure
 
 
 def _read(path: Path) -> Any:
-    return json.loads(path.read_text(encoding="utf-8")) if path.is_file() else None
+    """The JSON at ``path``, None when absent or not yet written (a run still training)."""
+    try:
+        return json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return None
 
 
 def collect(runs: Path) -> dict[str, Any]:
@@ -85,9 +89,9 @@ def _rows(data: dict[str, Any]) -> list[str]:
                 if k == 0 and cell != "-":
                     ade = float(cell.split("/")[0])
                     verdict = "yes" if abs(ade - printed[col][0]) <= TOLERANCE * printed[col][0] else "**no**"
-                lines.append(f"| {label} | {rule} | {scene.upper()} | {cell} | {printed[col][0]:.2f}/"
-                             f"{printed[col][1]:.2f} | {verdict} | {s['steps']:,} (best at {s['best_step']:,}) | "
-                             f"{s['seconds']:.0f} s |")
+                shown = f"{printed[col][0]:.2f}/{printed[col][1]:.2f}" if k == 0 else "-"  # printed: one rule
+                lines.append(f"| {label} | {rule} | {scene.upper()} | {cell} | {shown} | {verdict} | "
+                             f"{s['steps']:,} (best at {s['best_step']:,}) | {s['seconds']:.0f} s |")
     return lines
 
 
