@@ -293,3 +293,24 @@ def test_the_other_dataset_kinds_train_and_predict(inputs: list[str], preset: st
     assert result.exit_code == 0, result.output
     method = json.loads(result.stdout)["methods"][table]
     assert method["counts"]["agents_missing"] == 0 and math.isfinite(method["overall"][k]["ade"])
+
+
+def test_the_loop_keeps_the_best_validation_and_stops_when_it_no_longer_improves(tmp_path: Path) -> None:
+    from logpipe.model.training.window_loop import LoopSettings, run_loop
+
+    ades = iter([3.0, 2.0, 2.5, 2.6, 2.7, 1.0])
+    saved: list[tuple[str, int, float]] = []
+    result = run_loop([np.zeros((20, 2, 2))] * 5, LoopSettings(steps=60, batch_size=2, val_every=10, patience=3,
+                                                               seed=0), tmp_path,
+                      step=lambda next_batch: {"loss": float(next_batch().positions.shape[1])},
+                      validate=lambda: {"ade": next(ades)},
+                      save=lambda folder, step, m: saved.append((folder.name, step, m.get("ade", -1.0))))
+    assert result.stopped_early and result.steps == 50 and result.best_step == 20
+    assert saved == [("best", 10, 3.0), ("best", 20, 2.0), ("last", 50, 2.7)]
+    log = [json.loads(line) for line in (tmp_path / "train_log.jsonl").read_text().splitlines()]
+    assert [r["step"] for r in log] == [10, 20, 30, 40, 50] and log[0]["loss"] == 4.0  # 2 windows of 2 agents
+    budget = run_loop([np.zeros((20, 1, 2))], LoopSettings(steps=100, batch_size=1, val_every=5, patience=0, seed=0,
+                                                          time_budget_s=1e-9), tmp_path,
+                      step=lambda next_batch: {"loss": 0.0}, validate=lambda: {"ade": 1.0},
+                      save=lambda folder, step, m: None)
+    assert budget.stopped_early and budget.steps == 5  # stops at the first validation past the budget
