@@ -15,8 +15,8 @@ Packages (each ``__init__`` says what it holds and what it may import; ``docs/ar
 
 Modules at the top: ``predictor`` (the ``Predictor`` interface every method implements), ``registry`` (which
 predictor a run uses: shipped checkpoints, baselines, inference settings), ``social`` (``logpipe train --preset
-social_*``), ``ray_predict`` (forecasts on Ray or in
-worker processes) and ``synthetic`` (synthetic scenes for tests and benchmarks).
+social_*``), ``ray_predict`` (forecasts on Ray or in worker processes) and ``synthetic`` (synthetic scenes for
+tests and benchmarks).
 
 Layers inside ``model/``: ``training`` < ``checkpoint``, ``kinematic`` < the families < the top modules. A family
 imports ``training``, ``checkpoint`` and ``kinematic``, never another family; ``training``, ``checkpoint`` and
