@@ -8,7 +8,7 @@ OUT ?= out
 SHARED ?= ../shared/data
 ETHUCY_SCENES := eth hotel univ zara1 zara2
 
-.PHONY: setup demo test bench lint clean train-driving train-ethucy train-apolloscape train-ethucy-paper train-apolloscape-paper reproduce-ethucy reproduce-apolloscape reproduce-argoverse reproduce-driving replica-cost scaling fuzz synthetic-map-check synthetic-pretrain
+.PHONY: setup demo test bench lint clean train-driving train-ethucy train-ethucy-social train-apolloscape train-ethucy-paper train-apolloscape-paper reproduce-ethucy reproduce-apolloscape reproduce-argoverse reproduce-driving replica-cost scaling fuzz synthetic-map-check synthetic-pretrain
 
 # torch first and pinned: a looser pin would pull a multi-GB CUDA build; 2.13.0 is a local CPU wheel here.
 # The installers' output goes to $(INSTALL_LOG), named (and its end shown) only when a step fails.
@@ -156,6 +156,31 @@ train-ethucy/%:
 	$(VENV)/bin/logpipe train $(OUT)/ethucy --scene $(scene) --config configs/ethucy.toml $(call preset_flag,$(method)) \
 		--seed $(SEED) --out $(RUNS)/ethucy/$* --json > $(RUNS)/ethucy/$*.json
 	$(call copy_best,$(RUNS)/ethucy/$*,$(CKPT)/ethucy/$(scene)$(if $(filter zhu2020,$(method)),,/$(method)))
+
+# The social baselines (issue 63; model/social_lstm, model/social_gan): Social-LSTM, Social-GAN 20V-20 and 20VP-20 for
+# each left-out scene, ONE training at a time (each is single-threaded: OMP_NUM_THREADS=1), then predict + score of
+# S/test (Social-GAN's windows, --min-agents 2; K = 20, and K = 1 for Social-LSTM's mean). Runs in
+# $(RUNS)/ethucy-social/<scene>/<preset>, scores beside them. SOCIAL_CONFIG: the published schedule by default
+# (20,000 iterations, early stopping on S/val); configs/ethucy_social_budget.toml stops each run on a time budget.
+SOCIAL_PRESETS := social_lstm social_gan_20v social_gan_20vp
+SOCIAL_CONFIG ?=
+SOCIAL := $(RUNS)/ethucy-social
+train-ethucy-social: setup
+	$(LP) -q ingest $(SHARED)/ethucy --out $(OUT)/ethucy --no-mcap
+	for scene in $(ETHUCY_SCENES); do for preset in $(SOCIAL_PRESETS); do \
+		run=$(SOCIAL)/$$scene/$$preset; rm -rf $$run; mkdir -p $(SOCIAL)/$$scene || exit 1; \
+		OMP_NUM_THREADS=1 $(LP) train $(OUT)/ethucy --scene $$scene --preset $$preset \
+			$(if $(SOCIAL_CONFIG),--config $(SOCIAL_CONFIG),) --seed $(SEED) --out $$run --json > $$run.json || exit 1; \
+		$(LP) -q predict $(OUT)/ethucy --checkpoint $$run/best --filter split=$$scene/test --out $$run-pred \
+			--no-mcap || exit 1; \
+		$(LP) score $$run-pred --truth $(OUT)/ethucy --split $$scene/test --min-agents 2 --no-plots \
+			--out $$run-score --json > $$run-score.json || exit 1; \
+		if [ $$preset = social_lstm ]; then \
+			$(LP) -q predict $(OUT)/ethucy --checkpoint $$run/best --filter split=$$scene/test --modes 1 \
+				--out $$run-pred-k1 --no-mcap && $(LP) score $$run-pred-k1 --truth $(OUT)/ethucy \
+				--split $$scene/test --min-agents 2 --no-plots --out $$run-score-k1 --json > $$run-score-k1.json \
+				|| exit 1; fi; \
+	done; done
 
 # The paper's method as the paper specifies it (configs/*_paper.toml: model defaults, eq. 23's per-scene loss), the
 # rows the results tables lead with: model/checkpoints/ethucy/<scene>/paper and model/checkpoints/apolloscape/paper.

@@ -11,10 +11,12 @@ Packages (each ``__init__`` says what it holds and what it may import; ``docs/ar
 * ``zhu2020``: the paper's network (Zhu et al., IJCAI 2020; also its LSTM and Noise-LSTM presets), one module per
   part, its training loop and checkpoints;
 * ``residual``: our driving model, corrections to the adaptive kinematic prior (issue 57).
+* ``social_lstm``, ``social_gan``: the comparison baselines Social-LSTM and Social-GAN (20V-20, 20VP-20), issue 63.
 
 Modules at the top: ``predictor`` (the ``Predictor`` interface every method implements), ``registry`` (which
-predictor a run uses: shipped checkpoints, baselines, inference settings), ``ray_predict`` (forecasts on Ray or in
-worker processes) and ``synthetic`` (synthetic scenes for tests and benchmarks).
+predictor a run uses: shipped checkpoints, baselines, inference settings), ``social`` (``logpipe train --preset
+social_*``), ``ray_predict`` (forecasts on Ray or in worker processes) and ``synthetic`` (synthetic scenes for
+tests and benchmarks).
 
 Layers inside ``model/``: ``training`` < ``checkpoint``, ``kinematic`` < the families < the top modules. A family
 imports ``training``, ``checkpoint`` and ``kinematic``, never another family; ``training``, ``checkpoint`` and

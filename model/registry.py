@@ -23,8 +23,10 @@ from logpipe.raster.rasteriser import DEFAULT_CHANNELS
 from logpipe.storage.io import read_json, read_table
 
 from .checkpoint.format import InferenceSettings, TrainingData, kind_accepts
+from .checkpoint.weights_folder import read_weights_meta
 from .residual.config import MODEL_KIND as RESIDUAL_KIND
 from .residual.meta import model_kind, read_residual_meta
+from .social import SOCIAL_KINDS
 from .zhu2020.meta import read_meta
 
 if TYPE_CHECKING:  # the network's modules load torch: imported where a checkpoint is used, so baselines never do
@@ -187,7 +189,12 @@ def choose_predictor(
         checkpoint = default_checkpoint(dataset.kind, split)
         why = checkpoint_reason(dataset, checkpoint, driving=dataset.kind in KIND_FOLDERS)
     folder = checkpoint.parent if checkpoint.name == "meta.json" else checkpoint
-    if model_kind(folder) == RESIDUAL_KIND:
+    kind = model_kind(folder)
+    if kind in SOCIAL_KINDS:  # Social-LSTM / Social-GAN: tracks only, no inference settings
+        social = read_weights_meta(folder, SOCIAL_KINDS)
+        return ChosenPredictor(None, social.model_kind, social.weights_sha256, folder, False, None,
+                               social.weights_sha256, None, social.training_data)
+    if kind == RESIDUAL_KIND:
         residual = read_residual_meta(folder)
         return ChosenPredictor(None, "residual", residual.weights_sha256, folder, residual.config.environment,
                                len(DEFAULT_CHANNELS), residual.weights_sha256, None, residual.training_data, why=why)
@@ -207,10 +214,10 @@ def resolve_inference(chosen: ChosenPredictor, *, num_modes: int, noise_scale: f
         LogpipeError: an option for a baseline, or a value out of range.
     """
     options = [v is not None for v in (noise_scale, constant_velocity_modes, context_max_neighbours)]
-    if chosen.name == "residual" and (any(options) or as_trained):
+    if chosen.name in ("residual", *SOCIAL_KINDS) and (any(options) or as_trained):
         raise LogpipeError("--noise-scale, --constant-velocity-modes, --context-max-neighbours and --as-trained "
-                           "apply to the paper's network; the residual model's heads draw no noise")
-    if chosen.checkpoint is None or chosen.name == "residual":
+                           f"apply to the paper's network, not to a {chosen.name} checkpoint")
+    if chosen.checkpoint is None or chosen.name in ("residual", *SOCIAL_KINDS):
         if any(options) or as_trained:
             raise LogpipeError("--noise-scale, --constant-velocity-modes, --context-max-neighbours and --as-trained "
                                "apply to a checkpoint's network, not to a --predictor baseline")
@@ -251,6 +258,9 @@ def check_fit(dataset: Dataset, chosen: ChosenPredictor, logs: pa.Table) -> list
     if chosen.name == "residual":
         residual = read_residual_meta(chosen.checkpoint)
         kind, lengths = residual.dataset_kind, (residual.config.obs_len, residual.config.pred_len)
+    elif chosen.name in SOCIAL_KINDS:
+        social = read_weights_meta(chosen.checkpoint, SOCIAL_KINDS)
+        kind, lengths = social.dataset_kind, (social.obs_len, social.pred_len)
     else:
         meta = read_meta(chosen.checkpoint)
         kind, lengths = meta.dataset_kind, (meta.config.model.obs_len, meta.config.model.pred_len)
@@ -303,6 +313,11 @@ def load_net(chosen: ChosenPredictor, dataset: Dataset, batch_size: int, device:
         from .residual.predictor import ResidualPredictor
 
         chosen.model = ResidualPredictor.from_checkpoint(chosen.checkpoint)
+        return
+    if chosen.name in SOCIAL_KINDS:
+        from .social import load_social
+
+        chosen.model = load_social(chosen.checkpoint, chosen.name)
         return
     from .zhu2020.predictor import NetPredictor
 

@@ -197,7 +197,7 @@ _SEP = "|---|" + "---|" * (len(SCENES) + 1)
 def render(results: dict[str, Any], args: argparse.Namespace, seconds: float) -> str:
     """``docs/results/ethucy.md``."""
     present = {m for r in results["scenes"].values() for m in r["min2"]["methods"]}
-    lines = [*_intro(args), *_table(results, present, "min2"), *_printed_table()]
+    lines = [*_intro(args), *_table(results, present, "min2"), *_printed_table(), *_social_section(args)]
     lines += ["## Every window (`min_agents=1`)", "", _HEAD, _SEP, *_table(results, present, "min1")]
     lines += _settings_sections(results, args)
     lines += _shift_sections(results)
@@ -207,6 +207,12 @@ def render(results: dict[str, Any], args: argparse.Namespace, seconds: float) ->
     lines += _learned_section(results)
     lines += _closing(results, seconds)
     return "\n".join(lines)
+
+
+def _social_section(args: argparse.Namespace) -> list[str]:
+    """The social baselines' runs (``scripts.social_report`` writes them apart: they train one at a time, for hours)."""
+    path = Path(args.results) / "ethucy_social.md"
+    return [path.read_text(encoding="utf-8").rstrip("\n"), ""] if path.is_file() else []
 
 
 def _intro(args: argparse.Namespace) -> list[str]:

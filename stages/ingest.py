@@ -1,11 +1,10 @@
 """``logpipe ingest``: input logs → canonical Parquet shards, logs table, sample index, MCAP per log.
 
-Reads top-down: lock the dataset folder and clean what no commit names → find and hash inputs → skip those already
-ingested (by content) → parse batches in parallel (rows in canonical order, logs rows:
-``logpipe.dataset.log_table``), each one shard (and MCAPs) in a staging folder → move the shards into place, write
-the new generation's tables → commit by the manifest swap (``logpipe.storage.artifact``). A crash at any point
-leaves the previous state, and a rerun gives the same bytes. ``on_error="fail"``: the first bad input stops the run,
-nothing becomes visible; ``"skip"``: bad inputs are quarantined (in the manifest and the summary), the rest lands.
+Reads top-down: lock the folder, clean what no commit names → find, hash inputs, skip those already ingested → parse
+batches in parallel (canonical row order, logs rows: ``logpipe.dataset.log_table``), each one shard (and MCAPs) in
+staging → move shards into place, write the new tables → commit by the manifest swap (``logpipe.storage.artifact``):
+a crash leaves the previous state, a rerun the same bytes. ``on_error="fail"``: the first bad input stops the run
+and nothing becomes visible; ``"skip"``: bad inputs are quarantined (manifest and summary), the rest lands.
 """
 
 from __future__ import annotations
@@ -122,8 +121,7 @@ def ingest(roots: Sequence[Path], options: IngestOptions,
     """
     started = time.perf_counter()
     if any(root.is_dir() for root in roots):
-        # A folder usually means several batches: start the workers' imports (~0.5 s of a core, once per process)
-        # now, to overlap detection, discovery and hashing instead of delaying the first batch; no-op with 1 worker.
+        # Several batches likely: start the workers' imports (~0.5 s of a core each) to overlap discovery and hashing.
         warm_up(_ingest_batch, workers=options.workers, backend=options.backend)
     fmt, added = choose_format(roots, options.format)  # a folder of bags and MCAP files: one ROS dataset
     options = replace(options, adapter_options={**options.adapter_options, **added})

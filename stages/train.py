@@ -1,10 +1,10 @@
 """``logpipe train``: fit the predictor on a dataset's samples (or on several datasets' together).
 
 Driving data without ``--config`` trains the shipped driving default's recipe (``model.residual.fleet``); a
-``[residual]`` config the residual model (``model.residual.run``). Otherwise: open the dataset(s) → the config
-(``model.zhu2020.train_config``) → the train/validation logs (``eth/train``, ``hash/…``, in each dataset) → their
-``SceneSample``s (in dataset order, each with its raster run) → ``model.zhu2020.fit.fit`` in the run folder's
-lock (checkpoints, JSON-lines log, early stop, resume) → a summary.
+``[residual]`` config the residual model (``model.residual.run``); ``--preset social_*`` a social baseline
+(``model.social``). Otherwise: open the dataset(s) → the config (``model.zhu2020.train_config``) → the train and
+validation logs (``eth/train``, ``hash/…``, in each dataset) → their ``SceneSample``s (in dataset order, each with
+its raster run) → ``model.zhu2020.fit.fit`` in the run folder's lock (checkpoints, log, early stop, resume) → a summary.
 """
 
 from __future__ import annotations
@@ -86,7 +86,8 @@ def train(  # noqa: PLR0913  stage entry: keyword options mirror `logpipe train`
         val_split: e.g. ``eth/val``; None trains without validation (no early stopping).
         config_path: TOML/JSON with every hyper-parameter (defaults: on driving data, the shipped driving
             default's recipe, ``model.residual.fleet``; elsewhere the paper's).
-        overrides: ``TrainConfig`` fields to replace (``{"steps": 50}``); preset: a row of the paper's tables.
+        overrides: ``TrainConfig`` fields to replace (``{"steps": 50}``); preset: a row of the paper's tables, or a
+            social baseline (``social_lstm``, ``social_gan_20v``, ``social_gan_20vp``: ``model.social``).
         raster_run: the raster run under ``DATASET/rasters/`` (default: the only one; none: environment net off).
         loader_workers: 0 cuts every training sample into memory first (exact resume); N > 0 streams them from
             the shards through a DataLoader of N workers (memory bounded by a shard per worker).
@@ -98,6 +99,8 @@ def train(  # noqa: PLR0913  stage entry: keyword options mirror `logpipe train`
     from logpipe.model.checkpoint.format import TrainingData, combined_kind, combined_manifest_hash
     from logpipe.model.registry import driving_recipe
     from logpipe.model.residual.config import is_residual_config
+    from logpipe.model.residual.run import train_residual
+    from logpipe.model.social import train_social
     from logpipe.model.training.run_folder import run_folder, train_device
     from logpipe.model.zhu2020.fit import fit
     from logpipe.model.zhu2020.train_config import train_config, with_protocol_lengths
@@ -116,12 +119,14 @@ def train(  # noqa: PLR0913  stage entry: keyword options mirror `logpipe train`
             datasets, out_dir, shipped=recipe, train_split=train_split, val_split=val_split, raster_run=raster_run,
             paper_only=paper_only, seed=(overrides or {}).get("seed"), progress=callback))
     train_split, val_split = train_split or "hash/train", val_split if train_split else "hash/val"
-    if config_path is not None and is_residual_config(config_path):  # the residual driving model (our extension)
-        from logpipe.model.residual.run import train_residual
-
-        summary: TrainSummary = train_residual(datasets, out_dir, config_path, train_split=train_split,
-                                               val_split=val_split, overrides=overrides, raster_run=raster_run,
-                                               init_from=init_from, progress=callback)
+    summary: TrainSummary | None = None
+    if preset is not None and preset.startswith("social_"):  # Social-LSTM / Social-GAN baselines (issue 63)
+        summary = train_social(preset, datasets, out_dir, train_split=train_split, val_split=val_split,
+                               config_path=config_path, overrides=overrides, progress=callback)
+    elif config_path is not None and is_residual_config(config_path):  # the residual driving model (our extension)
+        summary = train_residual(datasets, out_dir, config_path, train_split=train_split, val_split=val_split,
+                                 overrides=overrides, raster_run=raster_run, init_from=init_from, progress=callback)
+    if summary is not None:
         return summary
     config = train_config(config_path, overrides, preset)
     config = with_protocol_lengths(config, datasets[0].protocol)
@@ -201,15 +206,11 @@ def _summary(dataset_dir: Path | Sequence[Path], out_dir: Path, inputs: _Inputs,
         # With several datasets: their folders and raster runs as lists, and the samples each gave.
         "dataset": [str(ds.root) for ds in datasets] if several else str(dataset_dir),
         **per_dataset,
-        "run": str(out_dir),
-        "train_split": inputs.train_split,
-        "val_split": inputs.val_split,
+        "run": str(out_dir), "train_split": inputs.train_split, "val_split": inputs.val_split,
         "train_samples": len(inputs.train_samples) if isinstance(inputs.train_samples, list) else "streamed",
         "val_samples": len(val_samples) if val_samples else 0,
-        "steps": result.steps,
-        "best_step": result.best_step,
-        "best_val_ade": result.best_val_ade,
-        "best_val_fde": result.best_val_fde,
+        "steps": result.steps, "best_step": result.best_step,
+        "best_val_ade": result.best_val_ade, "best_val_fde": result.best_val_fde,
         "stopped_early": result.stopped_early,
         "best_checkpoint": str(result.best_checkpoint) if result.best_checkpoint else None,
         "last_checkpoint": str(result.last_checkpoint),

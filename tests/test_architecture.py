@@ -23,9 +23,11 @@ LAYERS = {  # docs/architecture.md §1: a module may import its own layer or a l
     "prediction": 5, "scoring": 6, "model": 6, "stages": 7, "entry": 8, "cli": 9,
 }
 MODEL_LAYERS = {  # docs/architecture.md §1, model/__init__.py: a package imports its own layer or a lower one
-    "training": 0, "checkpoint": 1, "kinematic": 1, "zhu2020": 2, "residual": 2, "top": 3,
+    "training": 0, "checkpoint": 1, "kinematic": 1, "zhu2020": 2, "residual": 2, "social_lstm": 2, "social_gan": 2,
+    "top": 3,
 }
-MODEL_FAMILIES = {"zhu2020", "residual"}  # predictor families: a family never imports another one
+# predictor families: a family never imports another one
+MODEL_FAMILIES = {"zhu2020", "residual", "social_lstm", "social_gan"}
 MAX_TOP_MODEL_MODULES = 8
 ENTRY_POINTS = {"api", "options", "inspect", "verify"}  # logpipe/<name>.py: the commands' Python side
 

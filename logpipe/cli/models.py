@@ -47,7 +47,8 @@ def train(  # noqa: PLR0913  typer command: one parameter per CLI option
     seed: Annotated[int | None, typer.Option("--seed", help="Override train.seed.")] = None,
     preset: Annotated[str | None, typer.Option(
         "--preset", help="Train a row of the paper's tables instead: full, v1..v4, baseline (Noise-LSTM) or lstm; "
-        "or no_position (the full model without PF, eqs. 1-2).")
+        "or no_position (the full model without PF, eqs. 1-2); or a social baseline: social_lstm, social_gan_20v, "
+        "social_gan_20vp (its settings from the [social_lstm] / [social_gan] table of --config).")
     ] = None,
     resume: Annotated[bool, typer.Option("--resume", help="Continue from OUT/last.")] = False,
     raster_run: Annotated[str | None, typer.Option(

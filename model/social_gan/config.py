@@ -1,0 +1,81 @@
+"""Social-GAN's settings (``SocialGanConfig``) and its two published variants, ``social_gan_20v`` (no pooling) and
+``social_gan_20vp`` (the pooling module); where each figure comes from is in the package docstring."""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from logpipe.errors import LogpipeError
+
+from ..training.config_table import read_table, typed_config
+
+MODEL_KIND = "social_gan"
+PRESETS = ("social_gan_20v", "social_gan_20vp")
+
+
+@dataclass(frozen=True)
+class SocialGanConfig:
+    """Network, losses and schedule (see the package docstring for the source of each value)."""
+
+    pooling: bool = False
+    embedding_dim: int = 16
+    encoder_h_dim: int = 16
+    decoder_h_dim: int = 32
+    discriminator_h_dim: int = 64
+    mlp_dim: int = 64
+    bottleneck_dim: int = 32
+    pool_hidden_dim: int = 512
+    noise_dim: int = 8
+    best_k: int = 20
+    l2_loss_weight: float = 1.0
+    g_learning_rate: float = 1e-3
+    d_learning_rate: float = 1e-3
+    g_steps: int = 1
+    d_steps: int = 2
+    clipping_threshold_g: float = 1.5
+    clipping_threshold_d: float = 0.0
+    batch_size: int = 64
+    steps: int = 20000
+    val_every: int = 250
+    val_windows: int = 400
+    patience: int = 8
+    time_budget_s: float = 0.0
+    seed: int = 0
+    obs_len: int = 8
+    pred_len: int = 12
+
+    def to_dict(self) -> dict[str, Any]:
+        """The ``config`` block of ``meta.json`` (and the TOML table's keys)."""
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any], where: str) -> SocialGanConfig:
+        """Parse a config table; an unknown key or a value of the wrong type is an error naming ``where``."""
+        return _typed(cls, data, where)
+
+
+def preset_config(name: str) -> SocialGanConfig:
+    """The config of a published variant: 20V-20 (no pooling) or 20VP-20 (pooling)."""
+    if name not in PRESETS:
+        raise LogpipeError(f"unknown Social-GAN preset {name!r}; presets: {', '.join(PRESETS)}")
+    return SocialGanConfig(pooling=name == "social_gan_20vp")
+
+
+def load_config(name: str, config_path: Path | None, overrides: dict[str, Any] | None) -> SocialGanConfig:
+    """The preset, then the ``[social_gan]`` table of ``config_path`` (if any), then ``overrides``."""
+    config = preset_config(name)
+    table = read_table(config_path, MODEL_KIND)
+    merged = {**config.to_dict(), **table, **(overrides or {})}
+    return SocialGanConfig.from_dict(merged, str(config_path or "--preset " + name))
+
+
+def _typed(cls: type[SocialGanConfig], data: dict[str, Any], where: str) -> SocialGanConfig:
+    config = typed_config(cls, data, where, "Social-GAN")
+    if min(config.best_k, config.batch_size, config.steps, config.val_every, config.obs_len, config.pred_len) < 1:
+        raise LogpipeError(f"{where}: best_k, batch_size, steps, val_every, obs_len and pred_len must be >= 1")
+    if config.noise_dim >= config.decoder_h_dim:
+        raise LogpipeError(f"{where}: noise_dim must be below decoder_h_dim (the noise fills part of its state)")
+    return config
