@@ -191,6 +191,10 @@ def prune_journal(root: Path, present: Iterable[Path], *, keep_empty: bool = Fal
             return
     tmp = root / f"{JOURNAL}.new"
     fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC | os.O_NOFOLLOW | os.O_CLOEXEC, 0o644)
-    with os.fdopen(fd, "w", encoding="utf-8") as fh:
-        fh.write(text)
-    os.replace(tmp, path)
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as fh:
+            fh.write(text)
+        os.replace(tmp, path)
+    except BaseException:  # a failed rewrite leaves the old journal and no temp beside it
+        tmp.unlink(missing_ok=True)
+        raise

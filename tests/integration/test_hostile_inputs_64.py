@@ -4,6 +4,7 @@ nothing outside the output folder touched and nothing logpipe did not write dele
 
 from __future__ import annotations
 
+import json
 import os
 import shutil
 import subprocess
@@ -250,7 +251,10 @@ def test_the_hotel_file_cut_at_1985_bytes_is_quarantined(tmp_path: Path) -> None
     assert not cut.read_bytes().endswith(b"\n") and cut.read_bytes().endswith(b"10.3")
     _one_error_line(_cli("ingest", cut, "--out", tmp_path / "a"), "uni_examples_val.txt:50", "truncated record")
     skipped = _cli("ingest", cut, "--out", tmp_path / "b", "--on-error", "skip", "--json")
-    assert skipped.returncode == 0 and "truncated record" in skipped.stdout, skipped.stdout + skipped.stderr
+    # Quarantined and named; with every input quarantined the run fails (exit 2) after committing (issue 65).
+    summary = json.loads(skipped.stdout)
+    assert skipped.returncode == 2 and summary["inputs_ingested"] == 0, skipped.stdout + skipped.stderr
+    assert "truncated record" in json.dumps(summary["quarantined"])
     whole = _cli("ingest", source, "--out", tmp_path / "c")
     assert whole.returncode == 0, whole.stderr
 

@@ -24,6 +24,7 @@ from logpipe.stages.ingest import IngestOptions, ingest
 from logpipe.stages.predict import predict_dataset
 from logpipe.stages.score import score
 from logpipe.storage.folder_lock import LOCK_FILE, FolderLock
+from logpipe.storage.write_journal import JOURNAL
 
 REPO = Path(__file__).resolve().parents[2]
 BUNDLED = REPO / "tests" / "data"
@@ -52,8 +53,10 @@ predict_dataset(Path(sys.argv[1]), Path(sys.argv[2]), predictor="cv_sampler",
 
 
 def _files(root: Path) -> dict[str, bytes]:
-    """Every file under ``root`` (relative POSIX path -> bytes)."""
-    return {p.relative_to(root).as_posix(): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()}
+    """Every file under ``root`` (relative POSIX path -> bytes), but the write journal: it records the files' inodes
+    and times, which no two runs share (``logpipe.storage.write_journal``)."""
+    return {p.relative_to(root).as_posix(): p.read_bytes() for p in sorted(root.rglob("*"))
+            if p.is_file() and p.name != JOURNAL}
 
 
 @pytest.fixture(scope="module")
