@@ -13,17 +13,15 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any, cast
 
-import pyarrow as pa
-import pyarrow.compute as pc
-
 from logpipe.dataset.reader import Dataset
-from logpipe.errors import DatasetError, LogpipeError
+from logpipe.errors import LogpipeError
 from logpipe.storage.io import sha256_file
 from logpipe.summaries import TrainSummary
 from logpipe.types import SceneSample
 
 from .checkpoint.format import TrainingData, combined_kind, combined_manifest_hash
 from .checkpoint.weights_folder import WeightsMeta
+from .training.scene_stream import logs_filter, split_logs
 
 SOCIAL_PRESETS = ("social_lstm", "social_gan_20v", "social_gan_20vp")
 SOCIAL_KINDS = ("social_lstm", "social_gan")
@@ -32,20 +30,11 @@ SOCIAL_KINDS = ("social_lstm", "social_gan")
 
 def split_samples(datasets: Sequence[Dataset], split: str) -> tuple[list[SceneSample], list[list[str]]]:
     """The samples of ``split`` in each dataset (a dataset where it selects no log adds none) and its logs."""
+    logs = split_logs(datasets, split)
     samples: list[SceneSample] = []
-    logs: list[list[str]] = []
-    for ds in datasets:
-        try:
-            ids = ds.logs_in_split(split)
-        except DatasetError:
-            if len(datasets) == 1:
-                raise
-            ids = []
-        logs.append(ids)
+    for ds, ids in zip(datasets, logs, strict=True):
         if ids:
-            samples += ds.iter_scene_samples(pc.is_in(pc.field("log_id"), value_set=pa.array(ids)))
-    if not any(logs):
-        raise DatasetError(f"no log of split {split!r} in {', '.join(str(d.root) for d in datasets)}")
+            samples += ds.iter_scene_samples(logs_filter(ids))
     return samples, logs
 
 

@@ -120,8 +120,9 @@ def read_weights_meta(folder: Path, model_kinds: tuple[str, ...]) -> WeightsMeta
         raise CheckpointError(f"{path}: malformed checkpoint metadata: {exc}") from None
 
 
-def load_weights(folder: Path, meta: WeightsMeta) -> dict[str, torch.Tensor]:
-    """The weights of ``folder``, checked against ``meta``'s sha256 and for finite values.
+def load_weights(folder: Path, weights_sha256: str) -> dict[str, torch.Tensor]:
+    """The weights of ``folder``, checked against the sha256 its ``meta.json`` names and for finite values (every
+    family's loader: safetensors only, never a pickle).
 
     Raises:
         CheckpointError: missing, another sha256, unreadable or not finite.
@@ -131,7 +132,7 @@ def load_weights(folder: Path, meta: WeightsMeta) -> dict[str, torch.Tensor]:
     from safetensors.torch import load_file
 
     weights = folder / WEIGHTS
-    if not weights.is_file() or sha256_file(weights) != meta.weights_sha256:
+    if not weights.is_file() or sha256_file(weights) != weights_sha256:
         raise CheckpointError(f"{weights}: missing or does not match the sha256 in meta.json")
     try:
         state = load_file(str(weights))

@@ -13,14 +13,13 @@ import shutil
 import time
 from pathlib import Path
 
-import torch
-from safetensors import SafetensorError
-from safetensors.torch import load_file, save_file
+from safetensors.torch import save_file
 
 from logpipe.storage.folder_swap import recover_folder, replace_folder, staging_folder_for
 from logpipe.storage.io import sha256_file
 
 from ..checkpoint.format import CheckpointError, logpipe_version
+from ..checkpoint.weights_folder import load_weights
 from .meta import META, WEIGHTS, ResidualMeta, read_residual_meta
 from .net import ResidualNet
 
@@ -53,15 +52,7 @@ def load_residual(folder: Path) -> tuple[ResidualNet, ResidualMeta]:
     """
     meta = read_residual_meta(folder)
     weights = folder / WEIGHTS
-    if not weights.is_file() or sha256_file(weights) != meta.weights_sha256:
-        raise CheckpointError(f"{weights}: missing or does not match the sha256 in meta.json")
-    try:
-        state = load_file(str(weights))
-    except (SafetensorError, OSError) as exc:
-        raise CheckpointError(f"{weights}: unreadable weights: {exc}") from None
-    bad = sorted(k for k, v in state.items() if v.is_floating_point() and not bool(torch.isfinite(v).all()))
-    if bad:
-        raise CheckpointError(f"{weights}: non-finite values in {bad[:3]}")
+    state = load_weights(folder, meta.weights_sha256)
     net = ResidualNet(meta.config)
     try:
         net.load_state_dict(state)

@@ -108,15 +108,21 @@ FALLBACK_GRID = tuple((q, r) for q in (0.003, 0.01, 0.03, 0.1, 0.3) for r in (0.
 """Candidate (accel_std m/step^2, meas_std m) of the fallback Kalman filter, chosen on the training targets."""
 
 
-def tune_fallback(inputs: TargetInputs, max_targets: int = 20_000, seed: int = 0) -> dict[str, float]:
-    """The Kalman filter's noise with the lowest mean FDE on (at most ``max_targets`` of) the training targets."""
+def _training_subset(inputs: TargetInputs, max_targets: int, seed: int) -> tuple[TargetInputs, NDArrayFloat]:
+    """At most ``max_targets`` training targets (a seeded draw, in order) and their true futures in world metres."""
     assert inputs.truth is not None
     rows = np.arange(len(inputs))
     if len(rows) > max_targets:
         rows = np.sort(np.random.default_rng(seed).choice(rows, max_targets, replace=False))
     part = inputs.take(rows)
     assert part.truth is not None
-    truth = part.prior + np.einsum("nji,ntj->nti", part.rotation, part.truth * part.scale[:, None, None])
+    truth: NDArrayFloat = part.prior + np.einsum("nji,ntj->nti", part.rotation, part.truth * part.scale[:, None, None])
+    return part, truth
+
+
+def tune_fallback(inputs: TargetInputs, max_targets: int = 20_000, seed: int = 0) -> dict[str, float]:
+    """The Kalman filter's noise with the lowest mean FDE on (at most ``max_targets`` of) the training targets."""
+    part, truth = _training_subset(inputs, max_targets, seed)
     pred_len = truth.shape[1]
 
     def fde(q: float, r: float) -> float:
@@ -157,13 +163,7 @@ def tune_spread(inputs: TargetInputs, kalman: dict[str, float], modes: int = 6, 
                 seed: int = 0) -> dict[str, float]:
     """The spread with the lowest minFDE@``modes`` of the Kalman fallback on (at most ``max_targets`` of) the
     training targets."""
-    assert inputs.truth is not None
-    rows = np.arange(len(inputs))
-    if len(rows) > max_targets:
-        rows = np.sort(np.random.default_rng(seed).choice(rows, max_targets, replace=False))
-    part = inputs.take(rows)
-    assert part.truth is not None
-    truth = part.prior + np.einsum("nji,ntj->nti", part.rotation, part.truth * part.scale[:, None, None])
+    part, truth = _training_subset(inputs, max_targets, seed)
     base = KalmanCV(pred_len=truth.shape[1], accel_std=kalman["accel_std"],
                     meas_std=kalman["meas_std"]).filter_tracks(part.observed)
 

@@ -16,11 +16,8 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any, cast
 
-import pyarrow as pa
-import pyarrow.compute as pc
-
 from logpipe.dataset.reader import Dataset
-from logpipe.errors import DatasetError, LogpipeError
+from logpipe.errors import LogpipeError
 from logpipe.raster.runs import find_raster_run
 from logpipe.storage.io import sha256_file
 from logpipe.summaries import TrainSummary
@@ -28,6 +25,7 @@ from logpipe.types import SceneSample
 
 from ..checkpoint.format import TrainingData, combined_kind, combined_manifest_hash
 from ..training.run_folder import run_folder
+from ..training.scene_stream import logs_filter, split_logs
 from .config import load_residual_config
 from .fit import collect, fit_residual
 
@@ -35,29 +33,19 @@ from .fit import collect, fit_residual
 def _split_samples(datasets: Sequence[Dataset], split: str, raster_run: str | None, environment: bool
                    ) -> tuple[list[SceneSample], list[list[str]]]:
     """Samples (with rasters when the environment net is on) of ``split`` in each dataset, and its logs."""
+    logs = split_logs(datasets, split)
     samples: list[SceneSample] = []
-    logs: list[list[str]] = []
-    for ds in datasets:
-        try:
-            ids = ds.logs_in_split(split)
-        except DatasetError:
-            if len(datasets) == 1:
-                raise
-            ids = []
-        logs.append(ids)
+    for ds, ids in zip(datasets, logs, strict=True):
         if not ids:
             continue
         run = find_raster_run(ds.root, raster_run, None) if environment else None
         if environment and run is None:
             raise LogpipeError(f"{ds.root}: no raster run; the residual model's environment net needs one (`logpipe "
                                "rasterise DS --rotate`), or set environment = false in the config")
-        keep = pc.is_in(pc.field("log_id"), value_set=pa.array(ids))
-        for sample in ds.iter_scene_samples(keep):
+        for sample in ds.iter_scene_samples(logs_filter(ids)):
             if run is not None:
                 sample.raster, sample.world_to_raster = run.get(sample.sample_id)
             samples.append(sample)
-    if not any(logs):
-        raise DatasetError(f"no log of split {split!r} in {', '.join(str(d.root) for d in datasets)}")
     return samples, logs
 
 

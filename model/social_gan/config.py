@@ -3,21 +3,20 @@
 
 from __future__ import annotations
 
-import dataclasses
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 from logpipe.errors import LogpipeError
 
-from ..training.config_table import read_table, typed_config
+from ..training.config_table import WindowSchedule, read_table, typed_config
 
 MODEL_KIND = "social_gan"
 PRESETS = ("social_gan_20v", "social_gan_20vp")
 
 
 @dataclass(frozen=True)
-class SocialGanConfig:
+class SocialGanConfig(WindowSchedule):
     """Network, losses and schedule (see the package docstring for the source of each value)."""
 
     pooling: bool = False
@@ -38,18 +37,6 @@ class SocialGanConfig:
     clipping_threshold_g: float = 1.5
     clipping_threshold_d: float = 0.0
     batch_size: int = 64
-    steps: int = 20000
-    val_every: int = 250
-    val_windows: int = 400
-    patience: int = 8
-    time_budget_s: float = 0.0
-    seed: int = 0
-    obs_len: int = 8
-    pred_len: int = 12
-
-    def to_dict(self) -> dict[str, Any]:
-        """The ``config`` block of ``meta.json`` (and the TOML table's keys)."""
-        return dataclasses.asdict(self)
 
     @classmethod
     def from_dict(cls, data: dict[str, Any], where: str) -> SocialGanConfig:

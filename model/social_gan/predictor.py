@@ -29,7 +29,7 @@ def load_generator(folder: Path) -> tuple[Generator, WeightsMeta]:
         config = SocialGanConfig.from_dict(meta.config, str(folder / "meta.json"))
     except LogpipeError as exc:
         raise CheckpointError(str(exc)) from None
-    state = load_weights(folder, meta)
+    state = load_weights(folder, meta.weights_sha256)
     generator = Generator(config)
     prefix = "generator."
     load_into(generator, {k[len(prefix):]: v for k, v in state.items() if k.startswith(prefix)}, folder)

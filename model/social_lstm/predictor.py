@@ -28,7 +28,7 @@ def load_net(folder: Path) -> tuple[SocialLstm, WeightsMeta]:
     except LogpipeError as exc:
         raise CheckpointError(str(exc)) from None
     net = SocialLstm(config)
-    load_into(net, load_weights(folder, meta), folder)
+    load_into(net, load_weights(folder, meta.weights_sha256), folder)
     return net.eval(), meta
 
 

@@ -13,6 +13,28 @@ from logpipe.errors import LogpipeError
 T = TypeVar("T")
 
 
+@dataclasses.dataclass(frozen=True)
+class WindowSchedule:
+    """The schedule every window-trained family shares (subclasses add their network's settings and may give
+    ``batch_size`` another default): steps, validation every ``val_every`` steps on ``val_windows`` windows, early
+    stop after ``patience`` validations without progress or after ``time_budget_s`` seconds (0: none), the seed and
+    the protocol's observed and predicted steps."""
+
+    batch_size: int = 64
+    steps: int = 20000
+    val_every: int = 250
+    val_windows: int = 400
+    patience: int = 8
+    time_budget_s: float = 0.0
+    seed: int = 0
+    obs_len: int = 8
+    pred_len: int = 12
+
+    def to_dict(self) -> dict[str, Any]:
+        """The ``config`` block of ``meta.json`` (and the TOML table's keys)."""
+        return dataclasses.asdict(self)
+
+
 def read_table(config_path: Path | None, table: str) -> dict[str, Any]:
     """The ``[table]`` of a TOML file (empty without a file or without the table)."""
     if config_path is None:
