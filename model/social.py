@@ -21,7 +21,7 @@ from logpipe.types import SceneSample
 
 from .checkpoint.format import TrainingData, combined_kind, combined_manifest_hash
 from .checkpoint.weights_folder import WeightsMeta
-from .training.scene_stream import logs_filter, split_logs
+from .training.splits import logs_filter, split_logs
 
 SOCIAL_PRESETS = ("social_lstm", "social_gan_20v", "social_gan_20vp")
 SOCIAL_KINDS = ("social_lstm", "social_gan")

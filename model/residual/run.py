@@ -25,7 +25,7 @@ from logpipe.types import SceneSample
 
 from ..checkpoint.format import TrainingData, combined_kind, combined_manifest_hash
 from ..training.run_folder import run_folder
-from ..training.scene_stream import logs_filter, split_logs
+from ..training.splits import logs_filter, split_logs
 from .config import load_residual_config
 from .fit import collect, fit_residual
 

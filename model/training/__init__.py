@@ -5,6 +5,7 @@
   batch mates (together: a forecast depends only on checkpoint, settings, seed and sample);
 * ``loss``: the best-of-H loss (eq. 23 of Zhu et al.; Social-GAN's variety loss is the same) and displacement errors;
 * ``data_parallel``: DDP under ``torchrun``; ``scene_stream``: a ``DataLoader`` over a dataset's shards;
+  ``splits``: a split's logs in several datasets;
   ``run_folder``: a training run's folder lock, device and chained sample streams.
 * ``social_batch`` (windows of whole tracks stacked, with their within-window pairs), ``window_loop`` (the social
   baselines' training loop) and ``config_table`` (a family's settings from a TOML table).

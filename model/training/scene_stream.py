@@ -16,7 +16,6 @@ import pyarrow.compute as pc
 from torch.utils.data import DataLoader, IterableDataset, get_worker_info
 
 from logpipe.dataset.reader import Dataset, scene_sample
-from logpipe.errors import DatasetError
 from logpipe.types import SceneSample
 
 
@@ -76,24 +75,3 @@ def scene_loader(
         collate_fn=_as_is,
         persistent_workers=False,
     )
-
-
-def split_logs(datasets: Sequence[Dataset], split: str) -> list[list[str]]:
-    """The logs of ``split`` in each dataset, in order: one a split selects nothing of adds none (an unknown split
-    is an error only in a lone dataset), and a split that selects no log in any is an error."""
-    logs: list[list[str]] = []
-    for ds in datasets:
-        try:
-            logs.append(ds.logs_in_split(split))
-        except DatasetError:
-            if len(datasets) == 1:
-                raise
-            logs.append([])
-    if not any(logs):
-        raise DatasetError(f"no log of split {split!r} in {', '.join(str(d.root) for d in datasets)}")
-    return logs
-
-
-def logs_filter(ids: Sequence[str]) -> pc.Expression:
-    """The sample filter of these logs."""
-    return pc.is_in(pc.field("log_id"), value_set=pa.array(ids))
