@@ -16,7 +16,7 @@ import shutil
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Protocol
 
 from logpipe.storage.folder_swap import recover_folder, replace_folder, staging_folder_for
 from logpipe.storage.io import sha256_file
@@ -67,8 +67,22 @@ class WeightsMeta:
         return stamped_meta(body)
 
 
-def save_weights_folder(folder: Path, state: dict[str, torch.Tensor], meta: WeightsMeta) -> Path:
-    """Write ``state`` and ``meta`` into ``folder`` (replacing one that is there), ``meta.json`` last."""
+class FolderMeta(Protocol):
+    """What ``save_weights_folder`` stamps and writes of a family's ``meta.json`` (``WeightsMeta``,
+    ``residual.meta.ResidualMeta``)."""
+
+    weights_sha256: str
+    logpipe_version: str
+    created_unix: float
+
+    def to_dict(self) -> dict[str, Any]:
+        """The JSON document."""
+        ...
+
+
+def save_weights_folder(folder: Path, state: dict[str, torch.Tensor], meta: FolderMeta) -> Path:
+    """Write ``state`` and ``meta`` into ``folder`` (replacing one that is there), ``meta.json`` last, naming the
+    weights' sha256; the folder is swapped in whole, so a crash leaves the old folder or the new one."""
     from safetensors.torch import save_file
 
     recover_folder(folder)

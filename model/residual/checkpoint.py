@@ -7,40 +7,17 @@ and only finite weights are accepted.
 
 from __future__ import annotations
 
-import json
-import os
-import shutil
-import time
 from pathlib import Path
 
-from safetensors.torch import save_file
-
-from logpipe.storage.folder_swap import recover_folder, replace_folder, staging_folder_for
-from logpipe.storage.io import sha256_file
-
-from ..checkpoint.format import CheckpointError, logpipe_version
-from ..checkpoint.weights_folder import load_weights
-from .meta import META, WEIGHTS, ResidualMeta, read_residual_meta
+from ..checkpoint.format import CheckpointError
+from ..checkpoint.weights_folder import load_weights, save_weights_folder
+from .meta import WEIGHTS, ResidualMeta, read_residual_meta
 from .net import ResidualNet
 
 
 def save_residual(folder: Path, net: ResidualNet, meta: ResidualMeta) -> Path:
     """Write the checkpoint folder (replacing one that is there), ``meta.json`` last, naming the weights' sha256."""
-    recover_folder(folder)
-    staging = staging_folder_for(folder)
-    try:
-        staging.mkdir(parents=True, exist_ok=True)
-        weights = staging / WEIGHTS
-        save_file({k: v.detach().cpu().contiguous().clone() for k, v in net.state_dict().items()}, str(weights))
-        meta.weights_sha256 = sha256_file(weights)
-        meta.logpipe_version, meta.created_unix = logpipe_version(), time.time()
-        tmp = staging / (META + ".tmp")
-        tmp.write_text(json.dumps(meta.to_dict(), indent=2, sort_keys=True) + "\n", encoding="utf-8")
-        os.replace(tmp, staging / META)
-        replace_folder(staging, folder)
-    finally:
-        shutil.rmtree(staging, ignore_errors=True)
-    return folder
+    return save_weights_folder(folder, net.state_dict(), meta)
 
 
 def load_residual(folder: Path) -> tuple[ResidualNet, ResidualMeta]:
