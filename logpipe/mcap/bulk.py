@@ -52,7 +52,6 @@ from mcap.records import (
 from mcap.writer import LIBRARY_IDENTIFIER
 
 from logpipe import __version__
-from logpipe.storage.write_journal import record_written
 
 MAGIC = b"\x89MCAP0\r\n"
 LIBRARY = f"logpipe {__version__} ({LIBRARY_IDENTIFIER})"
@@ -217,14 +216,14 @@ class BulkMcap:
         return max((s.id for s in self._copied_schemas), default=0) + 1
 
     def write(self, target: Path) -> tuple[int, str]:
-        """Write the file (``target`` in a folder nobody reads yet, or a temp path); its size and sha256."""
+        """Write the file (``target`` in a folder nobody reads yet, or a temp path); its size and sha256. A file
+        written in place is the caller's to record in the write journal (``atomic_path`` records its own)."""
         blob = self.to_bytes()
         target.parent.mkdir(parents=True, exist_ok=True)
         try:
             target.write_bytes(blob)
         except OSError as err:  # a failed write() names no file (a full disk): say which one
             raise OSError(err.errno, err.strerror, str(target)) from None
-        record_written(target)  # written in place (in staging): the proof a later cleanup needs
         return len(blob), hashlib.sha256(blob).hexdigest()
 
     def to_bytes(self) -> bytes:

@@ -46,6 +46,7 @@ from logpipe.mcap import foxglove as fx
 from logpipe.mcap.bulk import BulkMcap, Pieces
 from logpipe.mcap.map_scene import MAP_TOPIC, map_scene_update
 from logpipe.storage.io import as_numpy
+from logpipe.storage.write_journal import record_written
 from logpipe.types import LogMeta, Role
 
 AGENTS_TOPIC = "/logpipe/agents"
@@ -255,6 +256,7 @@ def _write_logs(rows: LogRows, runs: list[tuple[str, int, int]], targets: dict[s
             writer.log(map_channel, t0, [map_scene_update(store, WORLD_FRAME, t) for t in t0])
             count += len(t0)
         size, digest = writer.write(targets[log_id])
+        record_written(targets[log_id])  # written in place (in staging): the proof a later cleanup needs
         written[targets[log_id]] = (count, size, digest)
     return written
 
