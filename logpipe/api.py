@@ -335,7 +335,7 @@ def predict(  # noqa: PLR0913  public API: keyword options mirror `logpipe predi
     backend: str = "local",
     workers: int = 0,
     allow_blank_rasters: bool = False,
-    out_of_distribution: str = "warn",
+    out_of_distribution: str = "auto",
 ) -> dict[str, Any]:
     """``logpipe predict``: run a checkpoint (default: the shipped one for the dataset kind) or a baseline
     (``predictor="cv"|"linear"|"kalman"|"cv_sampler"|"adaptive_cv"``) on every selected sample into the run folder
@@ -353,8 +353,8 @@ def predict(  # noqa: PLR0913  public API: keyword options mirror `logpipe predi
         backend: ``local`` or ``ray`` (forecasts on ``workers`` Ray actors, 0 = one per GPU, else per CPU; the
             dataset must be on a file system every node shares); the same output bytes at the same ``threads``.
         allow_blank_rasters: run a network's environment net even where selected samples' rasters are blank.
-        out_of_distribution: ``warn``, ``fallback`` (Kalman) or ``refuse`` for targets outside a residual
-            checkpoint's training data (see ``PredictOptions``).
+        out_of_distribution: ``auto`` (physics at K = 1 on roads a residual checkpoint never trained on),
+            ``warn``, ``fallback`` or ``refuse`` (``model.residual.ood``).
 
     Raises:
         LogpipeError: a bad option or filter, a checkpoint that does not fit the dataset, missing or blank rasters.

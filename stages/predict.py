@@ -113,8 +113,8 @@ def predict_dataset(dataset_dir: Path, out_dir: Path, options: PredictOptions | 
     if summary.targets_out_of_distribution:
         summary.warnings.append(f"{summary.targets_out_of_distribution} of {summary.targets} targets are outside the "
                                 f"checkpoint's training data (column ood_flag; --out-of-distribution "
-                                f"{opts.out_of_distribution}: {summary.targets_fallback} got the Kalman fallback "
-                                "as mode 0 and a spread of it as the others)")
+                                f"{opts.out_of_distribution}: {summary.targets_fallback} got the best kinematic "
+                                "baseline of its training as mode 0, the model's own modes after it)")
     summary.shards = len(shards)
     summary.rows_total = sum(int(s["rows"]) for s in shards)
     summary.samples_total = sum(int(s["samples"]) for s in shards)

@@ -114,10 +114,10 @@ def train(  # noqa: PLR0913  stage entry: keyword options mirror `logpipe train`
         from logpipe.model.residual.fleet import train_fleet
 
         paper_only = [name for name, given in (("--steps", "steps" in (overrides or {})), ("--resume", resume), (
-            "--loader-workers", loader_workers > 0), ("--init-from", init_from is not None)) if given]
+            "--loader-workers", loader_workers > 0)) if given]
         return cast(TrainSummary, train_fleet(
             datasets, out_dir, shipped=recipe, train_split=train_split, val_split=val_split, raster_run=raster_run,
-            paper_only=paper_only, seed=(overrides or {}).get("seed"), progress=callback))
+            paper_only=paper_only, seed=(overrides or {}).get("seed"), init_from=init_from, progress=callback))
     train_split, val_split = train_split or "hash/train", val_split if train_split else "hash/val"
     summary: TrainSummary | None = None
     if preset is not None and preset.startswith("social_"):  # Social-LSTM / Social-GAN baselines (issue 63)

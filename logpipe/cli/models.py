@@ -61,7 +61,8 @@ def train(  # noqa: PLR0913  typer command: one parameter per CLI option
     init_from: Annotated[Path | None, typer.Option(
         "--init-from", help="Start from this checkpoint folder: the parameters it has are copied (a Noise-LSTM "
         "checkpoint warm-starts the full model, whose feature inputs start at zero); the rest keep their "
-        "initialisation. Ignored with --resume.")] = None,
+        "initialisation. Ignored with --resume. On driving data without --config: the residual checkpoint to "
+        "fine-tune from instead of the shipped model (e.g. a fleet's earlier run).")] = None,
     device: DeviceOpt = "auto",
     as_json: JsonOpt = False,
 ) -> None:
@@ -159,9 +160,11 @@ def predict(  # noqa: PLR0913  typer command: one parameter per CLI option
         "(no map for their log, or the centre off it); refused by default.")] = False,
     out_of_distribution: Annotated[str, typer.Option(
         "--out-of-distribution", help="For a checkpoint that records its training data (the residual driving "
-        "model): targets outside it are flagged (warn, the default), get the Kalman filter's forecast as mode 0 and "
-        "a spread of it as the other modes, marked in the fallback column (fallback), or stop the run (refuse).")
-    ] = "warn",
+        "model): on roads it never trained on, mode 0 (the K = 1 forecast) is the best kinematic baseline of its "
+        "training and the model's own modes follow (auto, the default: its corrections did harm on unseen roads); "
+        "targets outside its training data are only flagged (warn: no fallback at all), all get that fallback "
+        "(fallback), or stop the run (refuse). Column fallback marks each replaced target.")
+    ] = "auto",
     as_json: JsonOpt = False,
 ) -> None:
     """Run a checkpoint (or a baseline) on every sample and write predictions as Parquet and, per log, an MCAP

@@ -66,6 +66,24 @@ def location_counts(logs: pa.Table, samples: pa.Table) -> dict[str, dict[str, in
     return {loc: {k: c[k] for k in ("logs", "tracks", "windows", "targets")} for loc, c in sorted(counts.items())}
 
 
+def log_locations(logs: pa.Table) -> dict[str, str | None]:
+    """Log id -> its location (``log_location``) for every log of a logs table."""
+    return {str(log_id): log_location(a, m) for log_id, a, m in zip(
+        logs.column("log_id").to_pylist(), logs.column("attributes").to_pylist(), logs.column("map_id").to_pylist(),
+        strict=True)}
+
+
+def window_locations(logs: Iterable[pa.Table], window_log_ids: Iterable[str]) -> dict[str, int]:
+    """Windows per location, sorted, of windows whose logs are ``window_log_ids`` (one entry per window) in the
+    logs tables ``logs``: what a model trained on them has seen; windows of a log without a location are not
+    counted ({} when none has one)."""
+    where: dict[str, str | None] = {}
+    for table in logs:
+        where |= log_locations(table)
+    counts = Counter(where.get(log_id) for log_id in window_log_ids)
+    return {str(loc): n for loc, n in sorted(counts.items(), key=lambda item: str(item[0])) if loc}
+
+
 @dataclass(frozen=True)
 class _Track:
     """One track's positions at a regular period (metres, world frame of its log; ns)."""

@@ -69,9 +69,10 @@ class PredictOptions:
         allow_blank_rasters: let the environment net run on selected samples whose raster is blank (no map, or
             the centre off it); refused by default, since the net would read an empty road as a fact.
         out_of_distribution: for a checkpoint that records its training data's distribution (the residual driving
-            model): ``warn`` (flag the targets outside it, keep the network's forecasts), ``fallback`` (their
-            forecast is the Kalman filter's, marked in the ``fallback`` column) or ``refuse`` (an error at the
-            first batch with one; shards committed before it stay).
+            model): ``auto`` (flag the targets outside it; on roads it never trained on, mode 0 is the best
+            kinematic baseline of its training and the model's modes follow, marked in the ``fallback`` column),
+            ``warn`` (flag only), ``fallback`` (every flagged target falls back) or ``refuse`` (an error at the
+            first batch with one; shards committed before it stay). ``model.residual.ood`` says why.
     """
 
     checkpoint: Path | None = None
@@ -93,7 +94,7 @@ class PredictOptions:
     backend: str = "local"
     workers: int = 0
     allow_blank_rasters: bool = False
-    out_of_distribution: str = "warn"
+    out_of_distribution: str = "auto"
 
     def check(self, modes: int) -> None:
         """Refuse settings no run can use, ``modes`` being the K resolved for the run.
@@ -105,8 +106,8 @@ class PredictOptions:
             raise LogpipeError(f"--modes and --batch-size must be >= 1, got {modes} and {self.batch_size}")
         if self.backend not in ("local", "ray"):
             raise LogpipeError(f"--backend must be local or ray, got {self.backend!r}")
-        if self.out_of_distribution not in ("warn", "fallback", "refuse"):
-            raise LogpipeError(f"--out-of-distribution must be warn, fallback or refuse, got "
+        if self.out_of_distribution not in ("auto", "warn", "fallback", "refuse"):
+            raise LogpipeError(f"--out-of-distribution must be auto, warn, fallback or refuse, got "
                                f"{self.out_of_distribution!r}")
 
     def forecast_processes(self, samples: int, *, on_cpu: bool, environment_net: bool) -> int:

@@ -4,7 +4,9 @@
   (a best-of-K floor);
 * ``kalman``: the constant-velocity Kalman filter (the paper's KF row);
 * ``adaptive_prior``: the adaptive constant-velocity prior (least squares over a window each track chooses), the
-  residual driving model's prior and ``--predictor adaptive_cv``.
+  residual driving model's prior and ``--predictor adaptive_cv``;
+* ``best_baseline``: the best of those four, each over its own grid, chosen on training targets: what the driving
+  model is compared with and falls back to.
 
 Imports: core (``logpipe.types``) and ``model.training`` (per-sample seeds) only; every predictor family may import
 this package, and it imports no family. ``CLASSICAL`` names them for ``model.registry``. The LSTM and Noise-LSTM rows

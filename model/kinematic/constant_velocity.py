@@ -77,26 +77,28 @@ class LinearFit:
     def predict(self, samples: Sequence[SceneSample], num_modes: int, seed: int) -> list[NDArrayFloat]:
         """Deterministic: the forecast repeated ``num_modes`` times."""
         del seed
-        out = []
-        for s in samples:
-            obs, ok = observed_targets(s)
-            t_obs = obs.shape[1]
-            t = np.arange(t_obs, dtype=np.float64)
-            if self.history is not None:
-                ok = ok & (t >= t_obs - self.history)[None]
-            w = ok.astype(np.float64)
-            n = np.maximum(w.sum(axis=1), 1.0)
-            t_mean = (w * t).sum(axis=1) / n
-            p = np.nan_to_num(obs)
-            p_mean = (w[..., None] * p).sum(axis=1) / n[:, None]
-            dt = (t[None] - t_mean[:, None]) * w
-            var = (dt**2).sum(axis=1)
-            cov = (dt[..., None] * (p - p_mean[:, None])).sum(axis=1)
-            slope = np.where(var[:, None] > 0, cov / np.where(var > 0, var, 1.0)[:, None], 0.0)
-            t_fut = np.arange(t_obs, t_obs + self.pred_len, dtype=np.float64)
-            fut = p_mean[:, None] + slope[:, None] * (t_fut[None, :, None] - t_mean[:, None, None])
-            out.append(np.repeat(fut[:, None], num_modes, axis=1))
-        return out
+        return [np.repeat(self.fit_tracks(observed_targets(s)[0])[:, None], num_modes, axis=1) for s in samples]
+
+    def fit_tracks(self, observed: NDArrayFloat) -> NDArrayFloat:
+        """(N, pred_len, 2) forecasts of N tracks (N, T_obs, 2) world metres, NaN where unobserved (a track
+        without two observed steps in the window stands still at its mean position)."""
+        ok = np.all(np.isfinite(observed), axis=-1)
+        t_obs = observed.shape[1]
+        t = np.arange(t_obs, dtype=np.float64)
+        if self.history is not None:
+            ok = ok & (t >= t_obs - self.history)[None]
+        w = ok.astype(np.float64)
+        n = np.maximum(w.sum(axis=1), 1.0)
+        t_mean = (w * t).sum(axis=1) / n
+        p = np.nan_to_num(observed)
+        p_mean = (w[..., None] * p).sum(axis=1) / n[:, None]
+        dt = (t[None] - t_mean[:, None]) * w
+        var = (dt**2).sum(axis=1)
+        cov = (dt[..., None] * (p - p_mean[:, None])).sum(axis=1)
+        slope = np.where(var[:, None] > 0, cov / np.where(var > 0, var, 1.0)[:, None], 0.0)
+        t_fut = np.arange(t_obs, t_obs + self.pred_len, dtype=np.float64)
+        fut: NDArrayFloat = p_mean[:, None] + slope[:, None] * (t_fut[None, :, None] - t_mean[:, None, None])
+        return fut
 
 
 @dataclass

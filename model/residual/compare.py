@@ -1,14 +1,15 @@
 """A trained residual model against the kinematic baselines on the same held-out targets: what ``logpipe train``
 on driving data reports (summary, ``--json``, the run folder's ``MODEL_CARD.md``).
 
-K = 1 (FDE and ADE at the protocol's horizon): constant velocity (the last displacement), a constant-velocity
-Kalman filter (noise chosen on the training targets, ``ood.tune_fallback``), the adaptive prior alone (the model's
-own prior) and the model's mean head. K = ``K`` (minFDE per agent): the model's mean head and its best-scored heads
-against the CV sampler, whose mode 0 is plain CV (so it is never worse than CV) and whose heading and speed noise
-are chosen on the training targets from a grid that reaches far below and above every choice seen
-(``SAMPLER_HEADINGS``, ``SAMPLER_SPEEDS``; the record says when the choice lies on the grid's upper edge, and no
-noise is the lower bound). The best kinematic baseline at K = 1 is the one with the lowest FDE on the training
-targets; the verdict names every baseline the model does not beat on validation.
+K = 1 (FDE and ADE at the protocol's horizon): constant velocity (the last displacement), least-squares CV, a
+constant-velocity Kalman filter and the adaptive prior, each with its setting chosen on the training targets
+(``model.kinematic.best_baseline``), the model's own prior as it trains on, and the model's mean head. K = ``K``
+(minFDE per agent): the model's mean head and its best-scored heads against the CV sampler, whose mode 0 is plain
+CV (so it is never worse than CV) and whose heading and speed noise are chosen on the training targets from a grid
+that reaches far below and above every choice seen (``SAMPLER_HEADINGS``, ``SAMPLER_SPEEDS``; the record says when
+the choice lies on the grid's upper edge, and no noise is the lower bound). The best kinematic baseline at K = 1 is
+the one with the lowest FDE on the training targets (the same choice as the model's fallback,
+``ood.tune_baselines``); the verdict names every baseline the model does not beat on validation.
 """
 
 from __future__ import annotations
@@ -19,8 +20,8 @@ import numpy as np
 
 from logpipe.types import NDArrayFloat
 
-from ..kinematic.constant_velocity import ConstantVelocity, last_velocity
-from ..kinematic.kalman import KalmanCV
+from ..kinematic import best_baseline
+from ..kinematic.constant_velocity import last_velocity
 from .fit import forecast
 from .inputs import TargetInputs
 from .net import ResidualNet
@@ -34,7 +35,7 @@ SAMPLER_SPEEDS = (0.0, 0.0125, 0.025, 0.05, 0.1, 0.2, 0.4, 0.8)
 """Relative speed noise candidates of the CV sampler (0: a heading spread alone)."""
 TUNE_TARGETS = 5_000
 """At most this many training targets choose the sampler's noise (drawn by the seed)."""
-K1_BASELINES = ("cv", "kalman", "adaptive_prior")
+K1_BASELINES = ("cv", "least_squares_cv", "kalman", "adaptive_prior")
 
 
 def world_truth(inputs: TargetInputs) -> NDArrayFloat:
@@ -83,13 +84,11 @@ def tune_sampler(train: TargetInputs, seed: int = 0) -> dict[str, Any]:
             "chosen_on": "training targets", "train_min_fde": round(scores[(h, s)], 4)}
 
 
-def kinematic_k1(inputs: TargetInputs, kalman: dict[str, float]) -> dict[str, NDArrayFloat]:
-    """(N, T, 2) K = 1 forecasts of the kinematic baselines."""
+def kinematic_k1(inputs: TargetInputs, baselines: dict[str, dict[str, Any]]) -> dict[str, NDArrayFloat]:
+    """(N, T, 2) K = 1 forecasts of the kinematic baselines with their chosen settings, and the model's own prior."""
     pred_len = inputs.prior.shape[1]
-    return {"cv": ConstantVelocity(pred_len=pred_len).predict_tracks(inputs.observed, 1)[:, 0],
-            "kalman": KalmanCV(pred_len=pred_len, accel_std=kalman["accel_std"],
-                               meas_std=kalman["meas_std"]).filter_tracks(inputs.observed),
-            "adaptive_prior": inputs.prior}
+    out = {name: best_baseline.forecast(baselines[name], inputs.observed, pred_len) for name in K1_BASELINES}
+    return out | {"model_prior": inputs.prior}
 
 
 def _k1(path: NDArrayFloat, truth: NDArrayFloat) -> dict[str, float]:
@@ -97,12 +96,14 @@ def _k1(path: NDArrayFloat, truth: NDArrayFloat) -> dict[str, float]:
     return {"fde": round(float(dist[:, -1].mean()), 4), "ade": round(float(dist.mean()), 4)}
 
 
-def compare(net: ResidualNet, val: TargetInputs, train: TargetInputs, kalman: dict[str, float], *,
+def compare(net: ResidualNet, val: TargetInputs, train: TargetInputs, baselines: dict[str, dict[str, Any]], *,
             shipped: ResidualNet | None = None, seed: int = 0) -> dict[str, Any]:
-    """The comparison record (see the module docstring); ``shipped``: the shipped model as it is, a row of its own."""
+    """The comparison record (see the module docstring); ``baselines``: each kinematic method's setting chosen on
+    the training targets (the checkpoint's ``ood["baselines"]``); ``shipped``: the shipped model as it is, a row of
+    its own."""
     truth = world_truth(val)
     model = forecast(net, val, K)
-    k1 = {name: _k1(path, truth) for name, path in kinematic_k1(val, kalman).items()}
+    k1 = {name: _k1(path, truth) for name, path in kinematic_k1(val, baselines).items()}
     k1["model"] = _k1(model[:, 0], truth)
     sampler = tune_sampler(train, seed)
     k6 = {"cv_sampler": round(_min_fde(cv_sampler(val.observed, truth.shape[1], K, sampler["heading_std_rad"],
@@ -112,9 +113,7 @@ def compare(net: ResidualNet, val: TargetInputs, train: TargetInputs, kalman: di
         theirs = forecast(shipped, val, K)
         k1["shipped_model"] = _k1(theirs[:, 0], truth)
         k6["shipped_model"] = round(_min_fde(theirs, truth), 4)
-    train_truth = world_truth(train)
-    on_train = {name: _k1(path, train_truth)["fde"] for name, path in kinematic_k1(train, kalman).items()}
-    best = min(on_train, key=lambda name: on_train[name])
+    best = best_baseline.choose(baselines)["method"]
     cv_fde = k1["cv"]["fde"]
     losses = [f"{name} (FDE {k1[name]['fde']:.2f} m against the model's {k1['model']['fde']:.2f})"
               for name in K1_BASELINES if k1["model"]["fde"] >= k1[name]["fde"]]
@@ -122,7 +121,7 @@ def compare(net: ResidualNet, val: TargetInputs, train: TargetInputs, kalman: di
         losses.append(f"the CV sampler at K = {K} (minFDE {k6['cv_sampler']:.2f} m against {k6['model']:.2f})")
     verdict = ("the trained model beats every kinematic baseline on the validation data" if not losses else
                "the trained model does NOT beat " + "; ".join(losses) + " on the validation data")
-    return {"targets": len(val), "k": K, "k1": k1, f"min_fde_{K}": k6, "kalman": kalman, "cv_sampler": sampler,
+    return {"targets": len(val), "k": K, "k1": k1, f"min_fde_{K}": k6, "baselines": baselines, "cv_sampler": sampler,
             "best_kinematic": best, "best_kinematic_chosen_on": "training targets (K = 1 FDE)",
             "model_fde_to_cv": round(k1["model"]["fde"] / cv_fde, 4) if cv_fde else None,
             "model_fde_to_best_kinematic": round(k1["model"]["fde"] / k1[best]["fde"], 4) if k1[best]["fde"] else None,

@@ -29,7 +29,7 @@ from .config import ResidualConfig
 from .inputs import CROP_UNIT, TargetInputs, concat, target_inputs
 from .meta import ResidualMeta
 from .net import ResidualNet, training_loss
-from .ood import training_distribution, tune_fallback, tune_spread
+from .ood import training_distribution, tune_baselines
 
 LOG = "train_log.jsonl"
 
@@ -130,10 +130,12 @@ def _epoch_rows(windows: np.ndarray, cap: int, rng: np.random.Generator) -> np.n
 def fit_residual(  # noqa: PLR0913  the run's data, config and where it goes
     train: TargetInputs, windows: np.ndarray, val: TargetInputs | None, config: ResidualConfig, out_dir: Path, *,
     dataset_kind: str, manifest_hash: str, training_data: TrainingData | None = None, init_from: Path | None = None,
-    progress: Callable[[int], None] | None = None,
+    locations: dict[str, int] | None = None, progress: Callable[[int], None] | None = None,
 ) -> ResidualFitResult:
     """Train on ``train`` (validating on ``val``), writing ``best/``, ``last/`` and ``train_log.jsonl`` into
-    ``out_dir``; ``init_from`` starts from a checkpoint of the same architecture (pre-training → fine-tuning)."""
+    ``out_dir``; ``init_from`` starts from a checkpoint of the same architecture (pre-training → fine-tuning);
+    ``locations``: the training windows per location (``logpipe.dataset.locations.window_locations``), which the
+    checkpoint records so that predict knows the roads it has evidence for (None: not known)."""
     assert train.truth is not None
     torch.set_num_threads(config.num_threads)
     torch.manual_seed(config.seed)
@@ -143,9 +145,7 @@ def fit_residual(  # noqa: PLR0913  the run's data, config and where it goes
         net.load_state_dict(load_residual(init_from)[0].state_dict())
     opt = torch.optim.Adam(net.parameters(), lr=config.lr, weight_decay=config.weight_decay)
     truth, scale = torch.from_numpy(train.truth), torch.from_numpy(train.scale.astype(np.float32))
-    kalman = tune_fallback(train, seed=config.seed)
-    ood = training_distribution(train) | {"fallback_kalman": kalman,
-                                          "fallback_spread": tune_spread(train, kalman, seed=config.seed)}
+    ood = training_distribution(train, locations) | tune_baselines(train, seed=config.seed)
     meta = ResidualMeta(config, dataset_kind, manifest_hash, 0, {}, ood, training_data=training_data)
     best_score, best_epoch, best_metrics, bad, seen, clock = math.inf, 0, {}, 0, 0, 0.0
     steps = best_step = 0

@@ -23,6 +23,7 @@ import pyarrow as pa
 import pyarrow.compute as pc
 
 from logpipe.dataset.holdout import Holdout, choose_holdout
+from logpipe.dataset.locations import window_locations
 from logpipe.dataset.reader import Dataset
 from logpipe.errors import LogpipeError
 from logpipe.raster.runs import RasterShards, find_raster_run
@@ -89,17 +90,17 @@ def _given_splits(datasets: Sequence[Dataset], train_split: str, val_split: str)
     return Holdout("given", train_ids, val_ids, val_logs, 0)
 
 
-def _candidates(config: ResidualConfig, shipped: Path | None) -> tuple[dict[str, Path | None], str]:
-    """The starts to try (``scratch``, and ``finetune`` from the shipped model when its architecture fits) and,
-    when fine-tuning is not tried, why."""
-    if shipped is None:
+def _candidates(config: ResidualConfig, start: Path | None) -> tuple[dict[str, Path | None], str]:
+    """The starts to try (``scratch``, and ``finetune`` from ``start``, the shipped model or ``--init-from``, when
+    its architecture fits) and, when fine-tuning is not tried, why."""
+    if start is None:
         return {"scratch": None}, "no shipped driving model to fine-tune"
-    theirs = read_residual_meta(shipped).config
+    theirs = read_residual_meta(start).config
     if replace(theirs, **_training_keys(config)) != config:
-        return {"scratch": None}, (f"the shipped model's inputs differ ({theirs.obs_len}+{theirs.pred_len} steps, "
+        return {"scratch": None}, (f"the start's inputs differ ({theirs.obs_len}+{theirs.pred_len} steps, "
                                    f"environment net {theirs.environment}; here {config.obs_len}+{config.pred_len}, "
                                    f"{config.environment}): trained from scratch only")
-    return {"scratch": None, "finetune": shipped}, ""
+    return {"scratch": None, "finetune": start}, ""
 
 
 def _training_keys(config: ResidualConfig) -> dict[str, Any]:
@@ -111,11 +112,13 @@ def _training_keys(config: ResidualConfig) -> dict[str, Any]:
 def train_fleet(  # noqa: PLR0913  the command's options one to one
     datasets: Sequence[Dataset], out_dir: Path, *, shipped: Path | None, train_split: str | None,
     val_split: str | None, raster_run: str | None = None, seed: int | None = None, paper_only: Sequence[str] = (),
-    progress: Callable[[int], None] | None = None,
+    init_from: Path | None = None, progress: Callable[[int], None] | None = None,
 ) -> DrivingTrainSummary:
     """Train the driving recipe on ``datasets`` into ``out_dir`` (see the module docstring); ``shipped``: the
-    shipped residual checkpoint (its config is the recipe, its weights the fine-tuning start); ``seed``: the
-    recipe's seed replaced; ``paper_only``: options given that only the paper's network takes (an error).
+    shipped residual checkpoint (its config is the recipe, its weights the fine-tuning start); ``init_from``:
+    another residual checkpoint to fine-tune from instead (a fleet's earlier run, or a model that never saw these
+    roads); ``seed``: the recipe's seed replaced; ``paper_only``: options given that only the paper's network takes
+    (an error).
 
     Raises:
         LogpipeError: such options, a training split without a validation split, no validation windows.
@@ -141,23 +144,25 @@ def train_fleet(  # noqa: PLR0913  the command's options one to one
                            "chooses between fine-tuning and training from scratch on them")
     train, windows = collect(_samples(datasets, runs, holdout.train_ids), config)
     val = collect(_samples(datasets, runs, holdout.val_ids), config)[0]
-    starts, why_not = _candidates(config, shipped)
+    starts, why_not = _candidates(config, init_from or shipped)
     train_logs = [sorted({s.rsplit(":", 1)[0] for s in ids}) for ids in holdout.train_ids]
     training_data = TrainingData.of_logs(list(zip(datasets, train_logs, holdout.val_logs, strict=True)),
                                          train_split or f"auto ({holdout.how})", val_split or f"auto ({holdout.how})")
     manifests = combined_manifest_hash([sha256_file(d.root / "manifest.json") for d in datasets])
     kind = combined_kind([d.kind for d in datasets])
+    locations = window_locations([d.logs() for d in datasets],
+                                 [s.rsplit(":", 1)[0] for ids in holdout.train_ids for s in ids])
     with run_folder(out_dir):
         fits = {name: fit_residual(train, windows, val, config, out_dir / "candidates" / name, dataset_kind=kind,
                                    manifest_hash=manifests, training_data=training_data, init_from=start,
-                                   progress=progress)
+                                   locations=locations, progress=progress)
                 for name, start in starts.items()}
         scores = {name: r.best_metrics["fde"] + r.best_metrics[f"min_fde_{config.modes + 1}"]
                   for name, r in fits.items()}
         chosen = min(scores, key=lambda name: scores[name])
         net, meta = load_residual(fits[chosen].best_checkpoint)
         shipped_net = load_residual(shipped)[0] if "finetune" in starts and shipped is not None else None
-        comparison = compare(net, val, train, meta.ood["fallback_kalman"], shipped=shipped_net, seed=config.seed)
+        comparison = compare(net, val, train, meta.ood["baselines"], shipped=shipped_net, seed=config.seed)
         if shipped_net is not None and shipped is not None:
             comparison["shipped_model_saw_validation_logs"] = _seen_by(shipped, datasets, holdout.val_logs)
         save_residual(out_dir / "best", net, meta)
@@ -166,7 +171,8 @@ def train_fleet(  # noqa: PLR0913  the command's options one to one
             log.write((out_dir / "candidates" / chosen / LOG).read_text())
         start_record = {"chosen": chosen, "validation_scores": {k: round(v, 4) for k, v in scores.items()},
                         "score": f"K = 1 FDE + minFDE@{config.modes + 1} on the validation targets (m)",
-                        "finetune_not_tried": why_not or None}
+                        "finetune_not_tried": why_not or None,
+                        "finetune_from": str(init_from or shipped) if "finetune" in starts else None}
         summary: dict[str, Any] = dict(_summary(datasets, out_dir, holdout, fits[chosen], config, started,
                                                 train_split, val_split))
         summary |= {"recipe": "residual driving model (the shipped default's config)", "validation": holdout.record(),

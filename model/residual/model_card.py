@@ -7,8 +7,17 @@ from __future__ import annotations
 from typing import Any
 
 LABELS = {"model": "trained model (mean head)", "shipped_model": "shipped driving model, as shipped",
-          "cv": "constant velocity (last displacement)", "kalman": "Kalman CV filter (noise chosen on training)",
-          "adaptive_prior": "adaptive prior alone (the model's prior)"}
+          "cv": "constant velocity (last displacement)",
+          "least_squares_cv": "least-squares CV (window chosen on training)",
+          "kalman": "Kalman CV filter (noise chosen on training)",
+          "adaptive_prior": "adaptive prior (its constants chosen on training)",
+          "model_prior": "the model's own prior alone (constants fixed since issue 57)"}
+
+
+def _settings(record: dict[str, Any]) -> str:
+    shown = {k: v for k, v in record.items() if k not in ("method", "train_fde", "on_grid_edge")}
+    return (", ".join(f"{k} {v}" for k, v in shown.items()) or "none") + (
+        " (on its grid's edge)" if record.get("on_grid_edge") else "")
 
 
 def comparison_lines(s: dict[str, Any]) -> list[str]:
@@ -73,7 +82,8 @@ def model_card(s: dict[str, Any]) -> str:
               "chosen on the training targets by minFDE"
               + ("; the choice lies on the grid's edge, so a better one may lie beyond it" if sampler["on_grid_edge"]
                  else " (an interior point of the grid)"),
-              f"- Kalman filter noise (chosen on the training targets): {c['kalman']}",
+              "- settings chosen on the training targets: " + "; ".join(
+                  f"{name} {_settings(record)}" for name, record in c["baselines"].items()),
               *([f"- the shipped model was trained or validated on {c['shipped_model_saw_validation_logs']} of the "
                  "validation recordings: its rows are not held-out figures"]
                 if c.get("shipped_model_saw_validation_logs") else []),

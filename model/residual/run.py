@@ -16,6 +16,7 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any, cast
 
+from logpipe.dataset.locations import window_locations
 from logpipe.dataset.reader import Dataset
 from logpipe.errors import LogpipeError
 from logpipe.raster.runs import find_raster_run
@@ -69,7 +70,9 @@ def train_residual(  # noqa: PLR0913  the command's options one to one
     with run_folder(out_dir):
         result = fit_residual(train, windows, val, config, out_dir,
                               dataset_kind=combined_kind([d.kind for d in datasets]), manifest_hash=manifests,
-                              training_data=training_data, init_from=init_from, progress=progress)
+                              training_data=training_data, init_from=init_from, progress=progress,
+                              locations=window_locations([d.logs() for d in datasets],
+                                                         [s.log_id for s in train_samples]))
     several = len(datasets) > 1
     k = config.modes + 1
     return cast(TrainSummary, {

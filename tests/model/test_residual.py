@@ -16,8 +16,8 @@ from logpipe.dataset.reader import Dataset
 from logpipe.errors import LogpipeError
 from logpipe.maps import MapSource
 from logpipe.model.checkpoint.format import CheckpointError
+from logpipe.model.kinematic import best_baseline
 from logpipe.model.kinematic.adaptive_prior import adaptive_fit
-from logpipe.model.kinematic.kalman import KalmanCV
 from logpipe.model.residual.checkpoint import load_residual, save_residual
 from logpipe.model.residual.compare import compare
 from logpipe.model.residual.config import ResidualConfig, ResidualConfigError, load_residual_config
@@ -25,7 +25,7 @@ from logpipe.model.residual.fit import collect, evaluate, fit_residual, forecast
 from logpipe.model.residual.inputs import CROP_CHANNELS, CROP_UNIT, target_inputs
 from logpipe.model.residual.meta import ResidualMeta
 from logpipe.model.residual.net import ResidualNet
-from logpipe.model.residual.ood import OodCheck, ood_scores, training_distribution, tune_fallback
+from logpipe.model.residual.ood import OodCheck, ood_scores, training_distribution, tune_baselines
 from logpipe.model.residual.predictor import ResidualPredictor
 from logpipe.raster.runs import find_raster_run
 from logpipe.stages.ingest import IngestOptions, ingest
@@ -100,10 +100,13 @@ def test_an_untrained_net_is_the_prior(scenes: list[SceneSample]) -> None:
 def test_the_comparison_says_plainly_when_the_model_does_not_beat_the_baselines(scenes: list[SceneSample]) -> None:
     inputs, _ = collect(scenes, SMALL)
     # Untrained, the mean head is the adaptive prior (above): it cannot beat it, and the verdict must say so.
-    result = compare(ResidualNet(SMALL).eval(), inputs, inputs, tune_fallback(inputs))
-    assert result["targets"] == len(inputs) and result["k1"]["model"] == result["k1"]["adaptive_prior"]
+    result = compare(ResidualNet(SMALL).eval(), inputs, inputs, tune_baselines(inputs)["baselines"])
+    assert result["targets"] == len(inputs) and result["k1"]["model"] == result["k1"]["model_prior"]
+    # the prior with its constants chosen on these targets is at least as good as the model's fixed ones
+    assert result["k1"]["adaptive_prior"]["fde"] <= result["k1"]["model_prior"]["fde"]
     assert not result["beats"]["adaptive_prior"] and "does NOT beat" in result["verdict"]
     assert "adaptive_prior (FDE" in result["verdict"]
+    assert set(result["beats"]) == {"cv", "least_squares_cv", "kalman", "adaptive_prior", "cv_sampler"}
     assert result["min_fde_6"]["cv_sampler"] <= result["k1"]["cv"]["fde"]  # plain CV is one of the sampler's modes
     assert result["cv_sampler"]["chosen_on"] == "training targets" and result["best_kinematic"] in result["k1"]
 
@@ -163,7 +166,7 @@ def test_config_files_refuse_typos(tmp_path: Path) -> None:
 
 def test_out_of_distribution_targets_are_flagged_and_handled(scenes: list[SceneSample]) -> None:
     inputs, _ = collect(scenes, SMALL)
-    ood = training_distribution(inputs) | {"fallback_kalman": tune_fallback(inputs)}
+    ood = training_distribution(inputs) | tune_baselines(inputs)
     _, flags, _ = ood_scores(inputs, ood)
     assert flags.mean() < 0.02  # the training targets themselves are inside
     fast = _straight(40.0)  # faster than any car of the samples
@@ -173,19 +176,41 @@ def test_out_of_distribution_targets_are_flagged_and_handled(scenes: list[SceneS
     forecasts = ResidualPredictor(ResidualNet(SMALL), ResidualMeta(SMALL, "x", "h", 1, {}, ood)).predict(
         [fast, scenes[0]], 3, 0)
     checked, rows = OodCheck(ood, SMALL, "fallback")([fast, scenes[0]], forecasts)
-    kalman = KalmanCV(pred_len=30, **ood["fallback_kalman"]).predict([fast], 1, 0)[0]
+    assert ood["fallback_k1"]["method"] in ("cv", "least_squares_cv", "kalman", "adaptive_prior")
+    physics = best_baseline.forecast(ood["fallback_k1"], fast.positions[np.asarray(fast.target_mask, bool), :20], 30)
     assert rows[0][2].all() and not rows[1][2].any()
-    np.testing.assert_allclose(checked[0][:, 0], kalman[:, 0])  # K = 1: the Kalman forecast
-    assert checked[0].shape[1] == 3  # fallback keeps the K modes: the prior plus a spread, never one mode
-    ends = checked[0][:, :, -1]
-    assert (np.linalg.norm(ends[:, 1:] - ends[:, :1], axis=-1) > 0.1).all()
-    assert (np.linalg.norm(ends[:, 1] - ends[:, 2], axis=-1) > 0.1).all()
+    np.testing.assert_allclose(checked[0][:, 0], physics)  # K = 1: the best kinematic baseline of training
+    assert checked[0].shape[1] == 3  # fallback keeps the K modes: the model's own first two follow
+    np.testing.assert_array_equal(checked[0][:, 1:], forecasts[0][:, :2])
     np.testing.assert_array_equal(checked[1], forecasts[1])  # inside: the network's forecast, untouched
     warned, rows = OodCheck(ood, SMALL, "warn")([fast], forecasts[:1])
     assert rows[0][1].all() and not rows[0][2].any()
     np.testing.assert_array_equal(warned[0], forecasts[0])
+    auto, rows = OodCheck(ood, SMALL, "auto")([fast], forecasts[:1])  # flagged, but on no unknown road: marked only
+    assert rows[0][1].all() and not rows[0][2].any()
+    np.testing.assert_array_equal(auto[0], forecasts[0])
     with pytest.raises(LogpipeError, match="outside the checkpoint's training data"):
         OodCheck(ood, SMALL, "refuse")([fast], forecasts[:1])
+
+
+def test_roads_the_model_never_trained_on_get_physics_at_k1(scenes: list[SceneSample]) -> None:
+    inputs, _ = collect(scenes, SMALL)
+    ood = training_distribution(inputs, {"USA_Peach": len(scenes)}) | tune_baselines(inputs)
+    forecasts = ResidualPredictor(ResidualNet(SMALL), ResidualMeta(SMALL, "x", "h", 1, {}, ood)).predict(
+        scenes[:2], 4, 0)
+    log_a, log_b = scenes[0].log_id, scenes[1].log_id
+    check = OodCheck(ood, SMALL, "auto", locations={log_a: "USA_Peach", log_b: "DEU_Unseen"})
+    checked, rows = check(scenes[:2], forecasts)
+    np.testing.assert_array_equal(checked[0], forecasts[0])  # a road it trained on: the model, untouched
+    assert not rows[0][2].any() and rows[1][2].all() and rows[1][1].all()
+    observed = scenes[1].positions[np.asarray(scenes[1].target_mask, bool), :20]
+    np.testing.assert_allclose(checked[1][:, 0], best_baseline.forecast(ood["fallback_k1"], observed, 30))
+    np.testing.assert_array_equal(checked[1][:, 1:], forecasts[1][:, :3])
+    _, _, reasons = ood_scores(target_inputs(scenes[1], SMALL), ood, location="DEU_Unseen")
+    assert "not trained on this road (DEU_Unseen; trained on USA_Peach)" in reasons[0]
+    no_record = training_distribution(inputs) | tune_baselines(inputs)  # older checkpoints: no road judged
+    _, flags, _ = ood_scores(target_inputs(scenes[1], SMALL), no_record, location="DEU_Unseen")
+    assert flags.mean() < 0.5
 
 
 def test_unlabelled_types_and_resampled_input_are_flagged(scenes: list[SceneSample]) -> None:

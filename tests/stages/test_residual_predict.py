@@ -14,6 +14,7 @@ import pytest
 from logpipe import api
 from logpipe.dataset.reader import Dataset
 from logpipe.errors import LogpipeError
+from logpipe.model.kinematic import best_baseline
 from logpipe.model.residual.meta import read_residual_meta
 
 DATA = Path(__file__).resolve().parents[1] / "data" / "commonroad"
@@ -67,7 +68,7 @@ def trained(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
     return work / "ds", work / "run" / "best"
 
 
-def test_fast_targets_get_the_kalman_fallback_and_say_so(trained: tuple[Path, Path], tmp_path: Path) -> None:
+def test_fast_targets_get_the_physics_fallback_and_say_so(trained: tuple[Path, Path], tmp_path: Path) -> None:
     dataset, checkpoint = trained
     summary = api.predict(dataset, out=tmp_path / "pred", checkpoint=checkpoint, filters=[f"log={FAST}"],
                           mcap=False, modes=4, out_of_distribution="fallback")
@@ -77,14 +78,20 @@ def test_fast_targets_get_the_kalman_fallback_and_say_so(trained: tuple[Path, Pa
     flagged = int(per_target.flag.sum())
     assert flagged > 0 and summary["targets_out_of_distribution"] == flagged == summary["targets_fallback"]
     assert any("outside the checkpoint's training data" in w for w in summary["warnings"])
-    assert set(read_residual_meta(checkpoint).ood["fallback_kalman"]) == {"accel_std", "meas_std"}
+    ood = read_residual_meta(checkpoint).ood
+    assert set(ood["fallback_kalman"]) == {"accel_std", "meas_std"}
+    assert ood["fallback_k1"] == best_baseline.choose(ood["baselines"]) and set(ood["locations"]) == {"USA_Peach"}
+    api.predict(dataset, out=tmp_path / "warned", checkpoint=checkpoint, filters=[f"log={FAST}"], mcap=False,
+                modes=4, out_of_distribution="warn")
+    model = pq.read_table(tmp_path / "warned" / "predictions").to_pandas().set_index(["sample_id", "track_id", "mode"])
     fell = table[table.fallback]
-    assert set(read_residual_meta(checkpoint).ood["fallback_spread"]) == {"heading_step_rad", "speed_step_frac"}
-    for _, rows in fell.groupby(["sample_id", "track_id"]):
+    for (sample, track), rows in fell.groupby(["sample_id", "track_id"]):
         ordered = rows.sort_values("mode")
-        ends = np.stack([np.stack(ordered.x.to_list())[:, -1], np.stack(ordered.y.to_list())[:, -1]], -1)
-        assert len(ends) == 4  # the K modes kept: the Kalman forecast (mode 0) and a spread of it, never one mode
-        assert len({tuple(np.round(e, 3)) for e in ends}) == 4
+        assert ordered["mode"].tolist() == [0, 1, 2, 3]  # the K modes kept, never one
+        for mode in (1, 2, 3):  # after physics, the model's own modes 0..2
+            theirs = model.loc[(sample, track, mode - 1)]
+            np.testing.assert_array_equal(ordered.x.iloc[mode], theirs.x)
+        assert not np.array_equal(ordered.x.iloc[0], model.loc[(sample, track, 0)].x)  # mode 0: physics
     settings = json.loads((tmp_path / "pred" / "manifest.json").read_text())["settings"]
     assert settings["out_of_distribution"] == "fallback"
     with pytest.raises(LogpipeError, match="outside the checkpoint's training data"):
