@@ -22,8 +22,8 @@ from logpipe.dataset.locations import window_locations
 from logpipe.dataset.reader import Dataset
 from logpipe.model.checkpoint.format import TrainingData
 from logpipe.model.residual.checkpoint import load_residual
-from logpipe.model.residual.meta import META
 from logpipe.model.residual.fit import collect
+from logpipe.model.residual.meta import META
 from logpipe.model.residual.ood import tune_baselines
 from logpipe.model.training.splits import logs_filter, split_logs
 from logpipe.storage.io import atomic_open
@@ -36,7 +36,8 @@ def refresh(checkpoint: Path, datasets: list[Dataset], train_split: str) -> dict
     found = TrainingData.of_logs([(ds, ids, []) for ds, ids in zip(datasets, logs, strict=True)], train_split, None)
     if meta.training_data is None or set(found.train_sources) != set(meta.training_data.train_sources):
         raise SystemExit(f"{checkpoint}: these datasets' {train_split} is not the checkpoint's training data")
-    samples = [s for ds, ids in zip(datasets, logs, strict=True) if ids for s in ds.iter_scene_samples(logs_filter(ids))]
+    samples = [s for ds, ids in zip(datasets, logs, strict=True) if ids
+               for s in ds.iter_scene_samples(logs_filter(ids))]
     inputs, _ = collect(samples, replace(meta.config, environment=False))  # the record reads no map crop
     if len(inputs) != meta.ood.get("targets"):
         raise SystemExit(f"{checkpoint}: {len(inputs)} training targets here, {meta.ood.get('targets')} recorded")
