@@ -17,6 +17,7 @@ import json
 import sys
 from dataclasses import replace
 from pathlib import Path
+from typing import Any
 
 from logpipe.dataset.locations import window_locations
 from logpipe.dataset.reader import Dataset
@@ -29,7 +30,7 @@ from logpipe.model.training.splits import logs_filter, split_logs
 from logpipe.storage.io import atomic_open
 
 
-def refresh(checkpoint: Path, datasets: list[Dataset], train_split: str) -> dict[str, object]:
+def refresh(checkpoint: Path, datasets: list[Dataset], train_split: str) -> dict[str, Any]:
     """Rewrite ``checkpoint``'s ``meta.json`` with the record's new fields; returns them."""
     _, meta = load_residual(checkpoint)
     logs = split_logs(datasets, train_split)
