@@ -42,7 +42,7 @@ def refresh(checkpoint: Path, datasets: list[Dataset], train_split: str) -> dict
     inputs, _ = collect(samples, replace(meta.config, environment=False))  # the record reads no map crop
     if len(inputs) != meta.ood.get("targets"):
         raise SystemExit(f"{checkpoint}: {len(inputs)} training targets here, {meta.ood.get('targets')} recorded")
-    added = tune_baselines(inputs, seed=meta.config.seed) | {
+    added: dict[str, Any] = tune_baselines(inputs, seed=meta.config.seed) | {
         "locations": window_locations([ds.logs() for ds in datasets], [s.log_id for s in samples])}
     fresh = replace(meta, ood=meta.ood | added)  # the weights, their sha256, version and date as they were
     with atomic_open(checkpoint / META, "w") as out:
