@@ -29,10 +29,11 @@ from typing import Any
 
 import numpy as np
 
+from logpipe.model.kinematic import best_baseline
 from logpipe.model.residual.checkpoint import load_residual
 from logpipe.model.residual.config import ResidualConfig, load_residual_config
 from logpipe.model.residual.fit import fit_residual, forecast
-from scripts.driving_lolo import CONFIG, K, choose, errors, targets_and_baselines
+from scripts.driving_lolo import CONFIG, K, errors, targets
 from scripts.driving_targets import Targets
 from scripts.locations import REPO
 
@@ -93,14 +94,14 @@ def markdown(results: dict[str, Any]) -> str:
         f"of US-101's recording clusters by hash ({results['test_targets']} targets, clusters "
         f"{', '.join(results['test_clusters'])}), never trained on. Each row trains the full residual model "
         "(`configs/driving_residual.toml`) on the data named; the epoch is chosen on the other five locations' "
-        "validation clusters. K = 1 FDE at 3 s in metres; ratios to the best kinematic baseline on the same targets "
-        f"(Kalman, noise chosen on the other locations: {base['kalman_choice']}).", "",
-        f"Baselines on these targets: constant velocity {base['cv']:.2f}, Kalman {base['kalman']:.2f}.", "",
+        "validation clusters. K = 1 FDE at 3 s in metres; ratios to the best kinematic baseline "
+        f"(`model.kinematic.best_baseline`, chosen on the other locations: {base['best_choice']}).", "",
+        f"Baselines on these targets: constant velocity {base['cv']:.2f}, the best kinematic {base['best']:.2f}.", "",
         "| training data | train targets | US-101 targets in training | K=1 FDE | × best baseline | × CV | minFDE@6 "
         "| core-hours |",
         "|---|---|---|---|---|---|---|---|",
     ]
-    best = min(base["cv"], base["kalman"])
+    best = base["best"]
     for point in results["points"]:
         r = results["points"][point]
         lines.append(f"| {r['label']} | {r['cost']['train_targets']} | {r['us101_train_targets']} | "
@@ -127,17 +128,20 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--train-only", action="store_true", help="train the points' models, write no results")
     args = ap.parse_args(argv)
     config = load_residual_config(args.config)
-    real, classical = targets_and_baselines(args, config)
+    real = targets(args, config)
     test_clusters, addable = held_clusters(real)
     test = np.flatnonzero(np.isin(real.cluster, test_clusters))
     train_locs = np.flatnonzero(real.location != HELD)
-    kalman = choose(classical, "kalman:", train_locs, "fde")
+    observed, pred_len = real.inputs.observed, config.pred_len
+    choice = best_baseline.choose(best_baseline.choose_per_method(observed[train_locs], real.future[train_locs]))
+    cv_fde = errors(best_baseline.forecast({"method": "cv"}, observed[test], pred_len)[:, None], real.future[test])
+    best_fde = errors(best_baseline.forecast(choice, observed[test], pred_len)[:, None], real.future[test])
     results: dict[str, Any] = {
         "protocol": "K=1 FDE at 3 s (mean head) and per-agent minFDE@6; 20 + 30 steps at 10 Hz; real targets only",
         "held_location": HELD, "test_clusters": test_clusters, "addable_clusters": addable,
-        "test_targets": len(test), "baselines": {"cv": float(classical["cv"]["fde"][test].mean()),
-                                                 "kalman": float(classical[kalman]["fde"][test].mean()),
-                                                 "kalman_choice": kalman}, "points": {}}
+        "test_targets": len(test), "baselines": {"cv": float(cv_fde["fde"].mean()),
+                                                 "best": float(best_fde["fde"].mean()),
+                                                 "best_choice": best_baseline.label(choice)}, "points": {}}
     for point in args.points:
         rows = training_rows(real, point, addable)
         best, cost = point_model(replace(config, environment=True), real, rows, args.work / "curve" / point,

@@ -1,20 +1,22 @@
-"""Leave-one-location-out evaluation of the residual driving model (issue 57, item 5).
+"""Leave-one-location-out evaluation of the residual driving model (issue 57, item 5; honest baselines, issue 62).
 
 For each of the six real locations (``scripts.driving_targets.LOCATIONS``): train on the other five (their
-training clusters; ``VAL_SHARE`` of each location's recording clusters validate, choosing the epoch), optionally
-pre-trained first on SYNTHETIC traffic of the other five locations' maps, then test on the held-out location. The
-full model and the same without the environment net (EN) are trained alike. Beside them, on the same targets:
-constant velocity (the last displacement), constant velocity fitted by least squares over the last n steps and a
-constant-velocity Kalman filter (n and the filter's noise chosen on the training locations), the CV sampler (its
-noise chosen on the training locations by minFDE@6) and the adaptive prior alone. K = 1 (mode 0: the mean head)
-and K = 6 per agent (minFDE@6 over mode 0 and the 5 best-scored heads); 95 % bootstrap intervals over recording
-clusters, resampled within each location::
+training clusters; ``VAL_SHARE`` of each location's recording clusters validate, choosing the epoch), then test on
+the held-out location. The full model and the same without the environment net (EN) are trained alike. Beside
+them, on the same targets, every kinematic baseline with its settings chosen on the training locations
+(``model.kinematic.best_baseline``: CV, least-squares CV, Kalman and the adaptive prior, whose constants are chosen
+here too; the model's own prior keeps the constants frozen since issue 57) and the best of them (chosen there);
+the CV sampler with plain CV as mode 0 and its noise chosen there by minFDE@6 on a grid with room on both sides
+(``model.residual.compare``); and the model as ``logpipe predict`` runs it by default (``auto``): on a road it never
+trained on, mode 0 is the best kinematic baseline of its own training targets and its modes follow. K = 1 (mode
+0) and K = 6 per agent (minFDE@6); 95 % bootstrap intervals over recording clusters, resampled within each
+location::
 
-    python -m scripts.driving_lolo [--synthetic DS ...] [--locations AV2 ...] [--epochs N]
+    python -m scripts.driving_lolo [--locations AV2 ...] [--epochs N]
 
-Writes ``docs/results/driving_lolo.json`` and ``.md``; the fold checkpoints stay in ``out/driving_lolo/`` (not
-shipped), and a fold whose training finished (its ``cost.json``) is reused by the next run, so an interrupted run
-resumes and a rerun only evaluates.
+Writes ``docs/results/driving_lolo.json`` (then ``python -m scripts.driving_report``); the fold checkpoints stay in
+``out/driving_lolo/`` (not shipped), and a fold whose training finished (its ``cost.json``) is reused by the next
+run, so an interrupted run resumes and a rerun only evaluates.
 """
 
 from __future__ import annotations
@@ -23,17 +25,16 @@ import argparse
 import json
 import sys
 import time
-from collections.abc import Sequence
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from logpipe.model.kinematic.adaptive_prior import AdaptiveConstantVelocity
-from logpipe.model.kinematic.constant_velocity import ConstantVelocity, ConstantVelocitySampler, LinearFit
-from logpipe.model.kinematic.kalman import KalmanCV
+from logpipe.model.kinematic import best_baseline
+from logpipe.model.kinematic.adaptive_prior import adaptive_fit
 from logpipe.model.residual.checkpoint import load_residual
+from logpipe.model.residual.compare import SAMPLER_HEADINGS, SAMPLER_SPEEDS, TUNE_TARGETS, cv_sampler
 from logpipe.model.residual.config import ResidualConfig, load_residual_config
 from logpipe.model.residual.fit import fit_residual, forecast
 from logpipe.types import NDArrayFloat
@@ -50,29 +51,7 @@ from scripts.locations import REPO
 
 K = 6
 CONFIG = REPO / "configs" / "driving_residual.toml"
-LS_WINDOWS = (2, 3, 4, 5, 6, 8, 10, 12, 15)
-KALMAN_GRID = tuple((q, r) for q in (0.003, 0.01, 0.03, 0.1, 0.3) for r in (0.01, 0.03, 0.1, 0.3, 1.0))
-SAMPLER_GRID = tuple((h, s) for h in (0.02, 0.05, 0.1, 0.2, 0.3) for s in (0.05, 0.1, 0.2, 0.3, 0.5))
 BOOTSTRAP = 2000
-
-
-def _stack(forecasts: Sequence[NDArrayFloat]) -> NDArrayFloat:
-    return np.concatenate(list(forecasts))
-
-
-def classical_forecasts(targets: Targets, pred_len: int) -> dict[str, NDArrayFloat]:
-    """Every classical candidate's (N, K, T, 2) forecasts of the targets (grids included; chosen per fold)."""
-    samples = targets.samples
-    out = {"cv": _stack(ConstantVelocity(pred_len=pred_len).predict(samples, 1, 0)),
-           "adaptive_cv": _stack(AdaptiveConstantVelocity(pred_len=pred_len).predict(samples, 1, 0))}
-    for n in LS_WINDOWS:
-        out[f"ls:{n}"] = _stack(LinearFit(pred_len=pred_len, history=n).predict(samples, 1, 0))
-    for q, r in KALMAN_GRID:
-        out[f"kalman:{q}:{r}"] = _stack(KalmanCV(pred_len=pred_len, accel_std=q, meas_std=r).predict(samples, 1, 0))
-    for h, s in SAMPLER_GRID:
-        out[f"sampler:{h}:{s}"] = _stack(ConstantVelocitySampler(pred_len=pred_len, heading_std_rad=h,
-                                                                 speed_std_frac=s).predict(samples, K, 0))
-    return out
 
 
 def errors(forecasts: NDArrayFloat, future: NDArrayFloat) -> dict[str, NDArrayFloat]:
@@ -82,10 +61,50 @@ def errors(forecasts: NDArrayFloat, future: NDArrayFloat) -> dict[str, NDArrayFl
             "min_fde": dist[:, :, -1].min(axis=1)}
 
 
-def choose(candidates: dict[str, dict[str, NDArrayFloat]], prefix: str, rows: np.ndarray, key: str) -> str:
-    """The candidate of a family with the lowest mean ``key`` error over ``rows`` (the training locations)."""
-    family = [name for name in candidates if name.startswith(prefix)]
-    return min(family, key=lambda name: float(candidates[name][key][rows].mean()))
+def sampler_forecasts(targets: Targets, rows: np.ndarray, pred_len: int) -> tuple[NDArrayFloat, dict[str, Any]]:
+    """The CV sampler's (N, K, T, 2) forecasts of every target, its noise chosen on (at most ``TUNE_TARGETS`` of)
+    ``rows`` by minFDE@K, and the choice."""
+    pick = rows if len(rows) <= TUNE_TARGETS else np.sort(np.random.default_rng(0).choice(rows, TUNE_TARGETS,
+                                                                                             replace=False))
+    observed = targets.inputs.observed
+
+    def min_fde(h: float, s: float) -> float:
+        paths = cv_sampler(observed[pick], pred_len, K, h, s, 0)
+        return float(errors(paths, targets.future[pick])["min_fde"].mean())
+
+    scores = {(h, s): min_fde(h, s) for h in SAMPLER_HEADINGS for s in SAMPLER_SPEEDS}
+    h, s = min(scores, key=lambda g: scores[g])
+    edge = h == SAMPLER_HEADINGS[-1] or s == SAMPLER_SPEEDS[-1]
+    return (cv_sampler(observed, pred_len, K, h, s, 0),
+            {"heading_std_rad": h, "speed_std_frac": s, "includes_cv": True, "on_grid_edge": edge})
+
+
+def kinematic_rows(targets: Targets, held: str, pred_len: int) -> tuple[dict[str, NDArrayFloat], dict[str, Any]]:
+    """Per baseline (N, K, T, 2) forecasts of every target (settings chosen on the locations other than ``held``)
+    and the choices."""
+    train_locs = np.flatnonzero(targets.location != held)
+    observed = targets.inputs.observed
+    per_method = best_baseline.choose_per_method(observed[train_locs], targets.future[train_locs])
+    best = best_baseline.choose(per_method)
+    out = {name: best_baseline.forecast(record, observed, pred_len)[:, None] for name, record in per_method.items()}
+    out["best_kinematic"] = best_baseline.forecast(best, observed, pred_len)[:, None]
+    out["model_prior"] = adaptive_fit(observed).forecast(pred_len)[:, None]
+    out["cv_sampler"], sampler = sampler_forecasts(targets, train_locs, pred_len)
+    return out, {"baselines": per_method, "best_kinematic": best, "cv_sampler": sampler}
+
+
+def as_shipped(targets: Targets, held: str, model: NDArrayFloat, rows: np.ndarray, pred_len: int
+               ) -> tuple[NDArrayFloat, dict[str, Any]]:
+    """``logpipe predict``'s default (``auto``) on ``rows``, a road the model never trained on, given its
+    forecasts ``model`` of them: mode 0 the best kinematic baseline of the fold model's own training targets (as
+    ``fit_residual`` records it), modes 1.. its own."""
+    train_rows = np.flatnonzero((targets.location != held) & ~targets.validation())
+    observed = targets.inputs.observed
+    fallback = best_baseline.choose(best_baseline.choose_per_method(observed[train_rows], targets.future[train_rows]))
+    out = np.empty_like(model)
+    out[:, 0] = best_baseline.forecast(fallback, observed[rows], pred_len)
+    out[:, 1:] = model[:, :-1]
+    return out, fallback
 
 
 def train_variant(config: ResidualConfig, real: Targets, synthetic: Targets | None, held: str, out: Path,
@@ -139,24 +158,14 @@ def bootstrap(values: dict[str, NDArrayFloat], location: np.ndarray, cluster: np
     return {k: [float(np.percentile(m, 2.5)), float(np.percentile(m, 97.5))] for k, m in means.items()}
 
 
-def targets_and_baselines(args: argparse.Namespace, config: ResidualConfig
-                          ) -> tuple[Targets, dict[str, dict[str, NDArrayFloat]]]:
-    """The real targets (with crops) and every classical candidate's errors on them, cached in ``--work``
-    by the input settings (the data and the baselines do not change between runs)."""
+def targets(args: argparse.Namespace, config: ResidualConfig) -> Targets:
+    """The real targets (with crops), cached in ``--work`` by the input settings."""
     cache = args.work / f"targets-{config_key(config)}.npz"
     if cache.is_file():
-        real, extra = load_targets(cache)
-    else:
-        datasets = build_datasets(args.shared, args.work / "data")
-        real = real_targets(datasets, replace(config, environment=True))
-        extra = {f"{name}|{key}": v for name, f in classical_forecasts(real, config.pred_len).items()
-                 for key, v in errors(f, real.future).items()}
-        save_targets(real, extra, cache)
-    classical: dict[str, dict[str, NDArrayFloat]] = {}
-    for key, values in extra.items():
-        name, metric = key.split("|")
-        classical.setdefault(name, {})[metric] = values
-    return real, classical
+        return load_targets(cache)[0]
+    real = real_targets(build_datasets(args.shared, args.work / "data"), replace(config, environment=True))
+    save_targets(real, {}, cache)
+    return real
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -170,30 +179,31 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     started = time.perf_counter()
     config = load_residual_config(args.config, {"epochs": args.epochs} if args.epochs else None)
-    real, classical = targets_and_baselines(args, config)
+    real = targets(args, config)
     print(f"{len(real.inputs)} real targets", file=sys.stderr)
     results: dict[str, Any] = {"config": config.to_dict(), "folds": {}, "targets": len(real.inputs)}
     per_target: dict[str, NDArrayFloat] = {}
+
+    def record(label: str, forecasts: NDArrayFloat, rows: np.ndarray) -> None:
+        for key, v in errors(forecasts, real.future[rows]).items():
+            per_target.setdefault(f"{label}.{key}", np.full(len(real.inputs), np.nan))[rows] = v
+
     for held in args.locations:
         test = np.flatnonzero(real.location == held)
-        train_locs = np.flatnonzero(real.location != held)
         fold: dict[str, Any] = {"targets": len(test), "turning": int(real.turning[test].sum())}
-        chosen = {"ls": choose(classical, "ls:", train_locs, "fde"), "kalman": choose(classical, "kalman:", train_locs,
-                  "fde"), "sampler": choose(classical, "sampler:", train_locs, "min_fde")}
-        fold["chosen_on_training_locations"] = chosen
-        for label, name in (("cv", "cv"), ("adaptive_cv", "adaptive_cv"), ("ls_cv", chosen["ls"]),
-                            ("kalman", chosen["kalman"]), ("cv_sampler", chosen["sampler"])):
-            for key, v in classical[name].items():
-                per_target.setdefault(f"{label}.{key}", np.full(len(real.inputs), np.nan))[test] = v[test]
+        kinematic, fold["chosen_on_training_locations"] = kinematic_rows(real, held, config.pred_len)
+        for label, forecasts in kinematic.items():
+            record(label, forecasts[test], test)
         for variant, en in (("full", True), ("no_en", False)):
             cfg = replace(config, environment=en)
             inputs = real if en else replace(real, inputs=replace(real.inputs, crops=None))
             best, cost = fold_model(cfg, inputs, held, args.work / held / variant)
             net, _ = load_residual(best)
             world = forecast(net, inputs.inputs.take(test), K)
-            for key, v in errors(world, real.future[test]).items():
-                per_target.setdefault(f"{variant}.{key}", np.full(len(real.inputs), np.nan))[test] = v
-            fold[variant] = cost
+            record(variant, world, test)
+            shipped, fallback = as_shipped(real, held, world, test, config.pred_len)
+            record(f"{variant}_auto", shipped, test)
+            fold[variant] = cost | {"fallback_k1": fallback}
             print(held, variant, cost, file=sys.stderr)
         results["folds"][held] = fold
     # Millimetres: the bootstrap needs every target's error, not its float64 noise (a third of the bytes).

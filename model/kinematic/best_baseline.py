@@ -25,13 +25,15 @@ from .kalman import KalmanCV
 
 LS_HISTORIES = (3, 4, 5, 6, 8, 10, 12, 15)
 """Fit windows (steps) of least-squares CV (2 steps is plain CV, a method of its own)."""
-KALMAN_GRID = tuple((q, r) for q in (0.003, 0.01, 0.03, 0.1, 0.3, 1.0) for r in (0.01, 0.03, 0.1, 0.3, 1.0, 3.0))
-"""(accel_std m/step^2, meas_std m) of the Kalman filter: a grid wider than any choice seen on the driving data
-(0.01-0.3 each), so a choice on its edge says the data wants more."""
-PRIOR_GRID = tuple((h, b) for h in (1, 2, 3, 5) for b in (4, 8, 12, 16))
+KALMAN_GRID = tuple((q, r) for q in (0.003, 0.01, 0.03, 0.1, 0.3, 1.0, 3.0, 10.0)
+                    for r in (0.01, 0.03, 0.1, 0.3, 1.0, 3.0, 10.0))
+"""(accel_std m/step^2, meas_std m) of the Kalman filter: a grid far wider than any choice seen on the driving data
+(0.01-1.0 each), so a choice on its edge says the data wants more."""
+PRIOR_GRID = tuple((h, b) for h in (1, 2, 3, 5) for b in (4, 8, 12, 16, 18))
 """(backtest horizon, backtest steps) of the adaptive prior; (3, 8) is the residual model's own prior, frozen since
 issue 57 (it was settled while looking at driving results), so the baseline row chooses its own here. A horizon of
-1 step is the domain's bound, not an edge of the grid."""
+1 step is the domain's bound, not an edge of the grid, and so is a backtest over every observed step it can use
+(``obs_len - 2``)."""
 MAX_TARGETS = 20_000
 """At most this many training targets choose (a seeded draw)."""
 
@@ -95,8 +97,8 @@ def choose_per_method(observed: NDArrayFloat, truth: NDArrayFloat, seed: int = 0
         method = candidate["method"]
         if method not in best or fde < best[method]["train_fde"]:
             edge = (candidate.get("accel_std") == KALMAN_GRID[-1][0] or candidate.get("meas_std") == KALMAN_GRID[-1][1]
-                    or candidate.get("history") == LS_HISTORIES[-1] or candidate.get("backtest") == PRIOR_GRID[-1][1]
-                    or candidate.get("horizon") == PRIOR_GRID[-1][0])
+                    or candidate.get("history") == LS_HISTORIES[-1] or candidate.get("horizon") == PRIOR_GRID[-1][0]
+                    or candidate.get("backtest") == PRIOR_GRID[-1][1] < observed.shape[1] - 2)
             best[method] = dict(candidate) | {"train_fde": fde, "on_grid_edge": bool(edge)}
     for record in best.values():
         record["train_fde"] = round(record["train_fde"], 4)

@@ -31,7 +31,7 @@ K = 6
 SAMPLER_HEADINGS = (0.0, 0.00125, 0.0025, 0.005, 0.01, 0.02, 0.04, 0.08, 0.16, 0.32)
 """Heading noise candidates of the CV sampler, radians: from none (a speed spread alone, the domain's bound, not an
 edge of the grid) to 0.32, far around the 0.02 at which the leave-one-location-out grid's edge stopped."""
-SAMPLER_SPEEDS = (0.0, 0.0125, 0.025, 0.05, 0.1, 0.2, 0.4, 0.8)
+SAMPLER_SPEEDS = (0.0, 0.0125, 0.025, 0.05, 0.1, 0.2, 0.4, 0.8, 1.6)
 """Relative speed noise candidates of the CV sampler (0: a heading spread alone)."""
 TUNE_TARGETS = 5_000
 """At most this many training targets choose the sampler's noise (drawn by the seed)."""
