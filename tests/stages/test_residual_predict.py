@@ -21,6 +21,7 @@ DATA = Path(__file__).resolve().parents[1] / "data" / "commonroad"
 SCENARIO = DATA / "USA_Peach-4_8_T-1.xml"
 FAST = "USA_Peach-9_9_T-1"
 SLOW = "USA_Peach-9_8_T-1"
+ELSEWHERE = "DEU_Elsewhere-1_1_T-1"
 
 
 def _faster_copy(target: Path, factor: float = 3.0) -> None:
@@ -50,6 +51,13 @@ def _five_hz_copy(target: Path) -> None:
     tree.write(target)
 
 
+def _renamed_copy(target: Path, benchmark_id: str) -> None:
+    """The scenario under another benchmark id: the same traffic, recorded (by its id) at another location."""
+    tree = ET.parse(SCENARIO)
+    tree.getroot().set("benchmarkID", benchmark_id)
+    tree.write(target)
+
+
 @pytest.fixture(scope="module")
 def trained(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
     work = tmp_path_factory.mktemp("residual_predict")
@@ -58,6 +66,7 @@ def trained(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
     (inputs / SCENARIO.name).write_bytes(SCENARIO.read_bytes())
     _faster_copy(inputs / "fast.xml")
     _five_hz_copy(inputs / "slow.xml")
+    _renamed_copy(inputs / "elsewhere.xml", ELSEWHERE)
     api.ingest(inputs, out=work / "ds", mcap=False)
     api.rasterise(work / "ds", rotate=True)
     config = work / "residual.toml"
@@ -115,3 +124,30 @@ def test_input_resampled_from_a_rate_training_never_had_is_flagged(trained: tupl
     same_rate = api.predict(dataset, out=tmp_path / "own", checkpoint=checkpoint,
                             filters=["log=USA_Peach-4_8_T-1"], mcap=False)
     assert same_rate["targets_out_of_distribution"] == 0
+
+
+def test_a_road_the_model_never_trained_on_gets_physics_at_k1_by_default(trained: tuple[Path, Path],
+                                                                        tmp_path: Path) -> None:
+    dataset, checkpoint = trained
+    ood = read_residual_meta(checkpoint).ood
+    assert "DEU_Elsewhere" not in ood["locations"]
+    summary = api.predict(dataset, out=tmp_path / "auto", checkpoint=checkpoint, filters=[f"log={ELSEWHERE}"],
+                          mcap=False, modes=4)  # the default: --out-of-distribution auto
+    api.predict(dataset, out=tmp_path / "warn", checkpoint=checkpoint, filters=[f"log={ELSEWHERE}"], mcap=False,
+                modes=4, out_of_distribution="warn")
+    auto = pq.read_table(tmp_path / "auto" / "predictions").to_pandas().sort_values(["sample_id", "track_id", "mode"])
+    warn = pq.read_table(tmp_path / "warn" / "predictions").to_pandas().sort_values(["sample_id", "track_id", "mode"])
+    assert summary["targets"] > 0 and summary["targets_fallback"] == summary["targets"] and auto.fallback.all()
+    assert any("best kinematic baseline" in w for w in summary["warnings"])
+    # the same traffic as the training log, so only the road's name tells them apart
+    own = api.predict(dataset, out=tmp_path / "own", checkpoint=checkpoint, filters=["log=USA_Peach-4_8_T-1"],
+                      mcap=False, modes=4)
+    assert own["targets_fallback"] == 0
+    same = pq.read_table(tmp_path / "own" / "predictions").to_pandas().sort_values(["sample_id", "track_id", "mode"])
+    for (sample, track), rows in auto.groupby(["sample_id", "track_id"]):
+        theirs = warn[(warn.sample_id == sample) & (warn.track_id == track)]
+        for mode in (1, 2, 3):  # after physics, the model's modes 0..2
+            np.testing.assert_array_equal(rows.x.iloc[mode], theirs.x.iloc[mode - 1])
+        assert not np.array_equal(rows.x.iloc[0], theirs.x.iloc[0])  # mode 0: physics (checked exactly in
+        # tests/model/test_residual.py), not the mean head
+    assert len(same) == len(auto)  # the same traffic, the same number of forecasts
