@@ -12,6 +12,9 @@ Two ways, whichever the data allows:
   that straddle the cut are used for neither (no validation window overlaps a training one in time). A log of one
   window cannot be cut and trains.
 
+When neither is possible (one recording too short to cut without overlap), nothing validates (``how`` ``none``):
+every window trains, and the run says so (``logpipe train`` then keeps physics as the K = 1 forecast).
+
 Nothing here reads tracks: the logs table and the sample index are enough.
 """
 
@@ -27,7 +30,6 @@ import numpy as np
 import pyarrow as pa
 
 from logpipe.dataset.reader import hash_fraction
-from logpipe.errors import DatasetError
 
 MIN_GROUPS = 5
 """Fewer groups of logs than this validate on the later part of each recording instead of whole recordings."""
@@ -59,6 +61,9 @@ class Holdout:
     def describe(self) -> str:
         """One line for the summary."""
         n_train, n_val = sum(map(len, self.train_ids)), sum(map(len, self.val_ids))
+        if self.how == "none":
+            return (f"none: {self.groups} recording(s) of {n_train} window(s), too short to hold out a later part "
+                    "without overlapping the training windows; all of them train")
         if self.how == "recordings":
             logs = sum(map(len, self.val_logs))
             return (f"{logs} whole recording(s) of {self.groups} groups (recordings sharing tracks kept on one side): "
@@ -103,11 +108,7 @@ def log_groups(logs: Sequence[pa.Table]) -> list[list[tuple[int, str]]]:
 
 
 def choose_holdout(logs: Sequence[pa.Table], samples: Sequence[pa.Table]) -> Holdout:
-    """The validation split of datasets with these logs tables and sample indexes (see the module docstring).
-
-    Raises:
-        DatasetError: nothing to validate on (one recording, too short to cut).
-    """
+    """The validation split of datasets with these logs tables and sample indexes (see the module docstring)."""
     groups = log_groups(logs)
     windows = {(n, str(log_id)) for n, table in enumerate(samples) for log_id in table.column("log_id").to_pylist()}
     groups = [g for g in groups if any(key in windows for key in g)]  # logs without windows count for nothing
@@ -118,10 +119,8 @@ def choose_holdout(logs: Sequence[pa.Table], samples: Sequence[pa.Table]) -> Hol
         return cut
     if len(groups) >= 2:  # recordings of a single window each cannot be cut in time; hold out whole ones
         return _by_recordings(groups, samples)
-    windows_of = sum(t.num_rows for t in samples)
-    raise DatasetError(f"one recording of {windows_of} window(s), too short to hold out its later part without "
-                       "overlapping the training windows: nothing to validate on; give more recordings or longer ones "
-                       "(or --train-split and --val-split)")
+    every = [[str(i) for i in t.column("sample_id").to_pylist()] for t in samples]
+    return Holdout("none", every, [[] for _ in samples], [[] for _ in samples], len(groups))
 
 
 def _by_recordings(groups: list[list[tuple[int, str]]], samples: Sequence[pa.Table]) -> Holdout:

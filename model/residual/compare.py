@@ -128,3 +128,24 @@ def compare(net: ResidualNet, val: TargetInputs, train: TargetInputs, baselines:
             f"model_min_fde_{K}_to_cv_fde": round(k6["model"] / cv_fde, 4) if cv_fde else None,
             "beats": {name: k1["model"]["fde"] < k1[name]["fde"] for name in K1_BASELINES}
             | {"cv_sampler": k6["model"] < k6["cv_sampler"]}, "verdict": verdict}
+
+
+def not_compared(why: str) -> dict[str, Any]:
+    """The comparison record of a run with no validation data."""
+    return {"targets": 0, "k": K, "beats": {}, "verdict": f"not compared with the kinematic baselines: no validation "
+            f"data ({why})"}
+
+
+def k1_source(comparison: dict[str, Any]) -> dict[str, str]:
+    """What ``logpipe predict`` forecasts at K = 1 with the trained checkpoint (its ``ood["k1_source"]``): the
+    model's mean head only where validation showed it beats the best kinematic baseline, else that baseline."""
+    if not comparison["targets"]:
+        return {"source": "physics", "reason": "no validation data showed that the model beats the best kinematic "
+                "baseline at K = 1"}
+    best = comparison["best_kinematic"]
+    mine, theirs = comparison["k1"]["model"]["fde"], comparison["k1"][best]["fde"]
+    if mine < theirs:
+        return {"source": "model", "reason": f"on validation its K = 1 FDE {mine:.2f} m beats the best kinematic "
+                f"baseline's ({best}) {theirs:.2f} m"}
+    return {"source": "physics", "reason": f"on validation its K = 1 FDE {mine:.2f} m does not beat the best "
+            f"kinematic baseline's ({best}) {theirs:.2f} m"}

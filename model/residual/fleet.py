@@ -34,7 +34,7 @@ from logpipe.types import SceneSample
 from ..checkpoint.format import TrainingData, combined_kind, combined_manifest_hash
 from ..training.run_folder import run_folder
 from .checkpoint import load_residual, save_residual
-from .compare import compare
+from .compare import compare, k1_source, not_compared
 from .config import ResidualConfig
 from .fit import LOG, collect, fit_residual
 from .meta import read_residual_meta
@@ -121,7 +121,7 @@ def train_fleet(  # noqa: PLR0913  the command's options one to one
     (an error).
 
     Raises:
-        LogpipeError: such options, a training split without a validation split, no validation windows.
+        LogpipeError: such options, a training split without a validation split.
     """
     started = time.perf_counter()
     if paper_only:
@@ -139,12 +139,11 @@ def train_fleet(  # noqa: PLR0913  the command's options one to one
         holdout = choose_holdout([ds.logs() for ds in datasets], [ds.samples() for ds in datasets])
     else:
         holdout = _given_splits(datasets, train_split, str(val_split))
-    if not sum(map(len, holdout.val_ids)):
-        raise LogpipeError(f"{', '.join(str(d.root) for d in datasets)}: no validation windows; the driving recipe "
-                           "chooses between fine-tuning and training from scratch on them")
     train, windows = collect(_samples(datasets, runs, holdout.train_ids), config)
-    val = collect(_samples(datasets, runs, holdout.val_ids), config)[0]
+    val = collect(_samples(datasets, runs, holdout.val_ids), config)[0] if holdout.how != "none" else None
     starts, why_not = _candidates(config, init_from or shipped)
+    if val is None:  # nothing to choose on: the start trained on more data, when there is one
+        starts = {"finetune": starts["finetune"]} if "finetune" in starts else starts
     train_logs = [sorted({s.rsplit(":", 1)[0] for s in ids}) for ids in holdout.train_ids]
     training_data = TrainingData.of_logs(list(zip(datasets, train_logs, holdout.val_logs, strict=True)),
                                          train_split or f"auto ({holdout.how})", val_split or f"auto ({holdout.how})")
@@ -158,11 +157,14 @@ def train_fleet(  # noqa: PLR0913  the command's options one to one
                                    locations=locations, progress=progress)
                 for name, start in starts.items()}
         scores = {name: r.best_metrics["fde"] + r.best_metrics[f"min_fde_{config.modes + 1}"]
-                  for name, r in fits.items()}
-        chosen = min(scores, key=lambda name: scores[name])
+                  for name, r in fits.items() if val is not None}
+        chosen = min(scores, key=lambda name: scores[name]) if scores else next(iter(fits))
         net, meta = load_residual(fits[chosen].best_checkpoint)
         shipped_net = load_residual(shipped)[0] if "finetune" in starts and shipped is not None else None
-        comparison = compare(net, val, train, meta.ood["baselines"], shipped=shipped_net, seed=config.seed)
+        comparison = (compare(net, val, train, meta.ood["baselines"], shipped=shipped_net, seed=config.seed)
+                      if val is not None else not_compared(holdout.describe()))
+        k1 = k1_source(comparison)
+        meta.ood |= {"k1_source": k1["source"], "k1_reason": k1["reason"]}
         if shipped_net is not None and shipped is not None:
             comparison["shipped_model_saw_validation_logs"] = _seen_by(shipped, datasets, holdout.val_logs)
         save_residual(out_dir / "best", net, meta)
@@ -177,7 +179,7 @@ def train_fleet(  # noqa: PLR0913  the command's options one to one
                                                 train_split, val_split))
         summary |= {"recipe": "residual driving model (the shipped default's config)", "validation": holdout.record(),
                     "start": start_record, "comparison": comparison, "notes": notes,
-                    "train_targets": len(train), "val_targets": len(val),
+                    "train_targets": len(train), "val_targets": len(val) if val is not None else 0, "k1": k1,
                     "model_card": str(out_dir / "MODEL_CARD.md"), "seconds": round(time.perf_counter() - started, 1)}
         summary["report"] = [*comparison_lines(summary), f"  model card: {out_dir / 'MODEL_CARD.md'}"]
         with atomic_open(out_dir / "MODEL_CARD.md", "w") as card:

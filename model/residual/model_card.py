@@ -20,9 +20,19 @@ def _settings(record: dict[str, Any]) -> str:
         " (on its grid's edge)" if record.get("on_grid_edge") else "")
 
 
+def _k1_line(s: dict[str, Any]) -> str:
+    k1 = s["k1"]
+    return (f"K = 1 in `logpipe predict`: the trained model's mean head ({k1['reason']})" if k1["source"] == "model"
+            else f"K = 1 in `logpipe predict`: the best kinematic baseline of its training, its modes after it "
+            f"({k1['reason']})")
+
+
 def comparison_lines(s: dict[str, Any]) -> list[str]:
     """The comparison as plain lines (the command's human summary)."""
     c = s["comparison"]
+    if not c["targets"]:
+        return [f"  validation: {s['validation']['description']}", f"  start: {s['start']['chosen']}",
+                f"  verdict: {c['verdict']}", f"  {_k1_line(s)}"] + [f"  note: {n}" for n in s.get("notes", [])]
     k = c["k"]
     k1 = c["k1"]
     sampler = c["cv_sampler"]
@@ -39,7 +49,7 @@ def comparison_lines(s: dict[str, Any]) -> list[str]:
              f"  model / CV: K = 1 FDE {c['model_fde_to_cv']}x, minFDE@{k} {c[f'model_min_fde_{k}_to_cv_fde']}x CV's "
              f"K = 1 FDE; best kinematic baseline ({c['best_kinematic']}, chosen on training): "
              f"{c['model_fde_to_best_kinematic']}x",
-             f"  verdict: {c['verdict']}"]
+             f"  verdict: {c['verdict']}", f"  {_k1_line(s)}"]
     if c.get("shipped_model_saw_validation_logs"):
         seen = c["shipped_model_saw_validation_logs"]
         lines.append(f"  note: the shipped model was trained or validated on {seen} of the validation recordings: "
@@ -63,13 +73,18 @@ def model_card(s: dict[str, Any]) -> str:
              f"- environment net (map crops): {'on' if s['environment_net'] else 'off'}",
              *[f"- note: {n}" for n in s.get("notes", [])], "",
              "## Training", "",
-             f"- start: **{s['start']['chosen']}** (lowest {s['start']['score']}: "
-             + ", ".join(f"{n} {v:.3f}" for n, v in s["start"]["validation_scores"].items()) + ")"
+             f"- start: **{s['start']['chosen']}** ("
+             + (f"lowest {s['start']['score']}: " + ", ".join(
+                 f"{n} {v:.3f}" for n, v in s["start"]["validation_scores"].items()) if s["start"]["validation_scores"]
+                else "nothing to validate on: the only start tried") + ")"
              + (f"; {s['start']['finetune_not_tried']}" if s["start"]["finetune_not_tried"] else ""),
              f"- best epoch's step {s['best_step']} of {s['steps']}; {s['seconds']} s wall time on the CPU", "",
              f"## Against the kinematic baselines, on the {c['targets']} validation targets", "",
-             f"**Verdict: {c['verdict']}.**", "",
-             "| method | K = 1 FDE (m) | K = 1 ADE (m) |", "|---|---|---|"]
+             f"**Verdict: {c['verdict']}.**", "", f"**{_k1_line(s)}.**", ""]
+    if not c["targets"]:
+        return "\n".join([*lines, f"Use it: `logpipe predict DATASET --checkpoint {s['best_checkpoint']} --out PRED`.",
+                          ""])
+    lines += ["| method | K = 1 FDE (m) | K = 1 ADE (m) |", "|---|---|---|"]
     lines += [f"| {LABELS.get(n, n)} | {v['fde']:.3f} | {v['ade']:.3f} |" for n, v in c["k1"].items()]
     sampler = c["cv_sampler"]
     lines += ["", f"| method | minFDE@{k} (m) |", "|---|---|"]

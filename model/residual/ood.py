@@ -22,8 +22,10 @@ keeps the K modes: mode 0 (the K = 1 forecast) becomes the best kinematic baseli
 modes (its mean head first), so best-of-K keeps what the model learnt while K = 1 is physics. ``auto``, the default,
 falls back where the model has no evidence for a correction: on roads it was never trained on (the
 leave-one-location-out run measured that its corrections do harm there: ``docs/results/driving_lolo.md``); other
-flags are only marked. ``fallback`` falls back on every flagged target. A checkpoint trained before ``fallback_k1``
-falls back to its Kalman filter (``fallback_kalman``).
+flags are only marked. ``fallback`` falls back on every flagged target. A checkpoint whose training run could not
+show on its validation data that the model beats that baseline at K = 1 (``k1_source`` ``physics``: ``logpipe
+train`` on driving data decides) falls back on every target, except with ``warn``. A checkpoint trained before
+``fallback_k1`` falls back to its Kalman filter (``fallback_kalman``).
 """
 
 from __future__ import annotations
@@ -198,10 +200,11 @@ class OodCheck:
                                    f"training data (--out-of-distribution refuse), e.g. "
                                    f"{sample.track_ids[int(np.flatnonzero(sample.target_mask)[first])]}: "
                                    f"{reasons[first]}")
+            physics_k1 = self.ood.get("k1_source") == "physics" and self.action != "warn"
             if self.action == "fallback":
-                replaced = flags
+                replaced = flags | physics_k1
             elif self.action == "auto":
-                replaced = np.full(len(flags), unseen_location(self.ood, location))
+                replaced = np.full(len(flags), unseen_location(self.ood, location) or physics_k1)
             else:
                 replaced = np.zeros(len(flags), bool)
             future = np.array(given, np.float64, copy=True)

@@ -19,7 +19,7 @@ from logpipe.model.checkpoint.format import CheckpointError
 from logpipe.model.kinematic import best_baseline
 from logpipe.model.kinematic.adaptive_prior import adaptive_fit
 from logpipe.model.residual.checkpoint import load_residual, save_residual
-from logpipe.model.residual.compare import compare
+from logpipe.model.residual.compare import compare, k1_source
 from logpipe.model.residual.config import ResidualConfig, ResidualConfigError, load_residual_config
 from logpipe.model.residual.fit import collect, evaluate, fit_residual, forecast
 from logpipe.model.residual.inputs import CROP_CHANNELS, CROP_UNIT, target_inputs
@@ -107,6 +107,9 @@ def test_the_comparison_says_plainly_when_the_model_does_not_beat_the_baselines(
     assert not result["beats"]["adaptive_prior"] and "does NOT beat" in result["verdict"]
     assert "adaptive_prior (FDE" in result["verdict"]
     assert set(result["beats"]) == {"cv", "least_squares_cv", "kalman", "adaptive_prior", "cv_sampler"}
+    assert k1_source(result)["source"] == "physics"  # predict keeps physics at K = 1 for such a model
+    won = result | {"k1": result["k1"] | {"model": {"fde": 0.5 * result["k1"][result["best_kinematic"]]["fde"]}}}
+    assert k1_source(won)["source"] == "model" and "beats the best kinematic" in k1_source(won)["reason"]
     assert result["min_fde_6"]["cv_sampler"] <= result["k1"]["cv"]["fde"]  # plain CV is one of the sampler's modes
     assert result["cv_sampler"]["chosen_on"] == "training targets" and result["best_kinematic"] in result["k1"]
 

@@ -104,16 +104,23 @@ def test_predict_uses_the_trained_run(fleet_run: tuple[Path, dict], tmp_path: Pa
     assert run["checkpoint"] == str(work / "run" / "best")
 
 
-def test_ros_vehicles_get_the_recipe_and_a_too_short_recording_is_one_clear_error(tmp_path: Path) -> None:
+def test_ros_vehicles_get_the_recipe_and_a_too_short_recording_trains_with_physics_at_k1(tmp_path: Path) -> None:
     bag = Path(__file__).resolve().parents[1] / "data" / "rosbags" / "datmo" / "intersection.bag"
     api.ingest(bag, out=tmp_path / "ros", mcap=False)
     assert Dataset.open(tmp_path / "ros").kind == "rosbag"
-    short = runner.invoke(app, ["train", str(tmp_path / "ros"), "--out", str(tmp_path / "run")])
-    assert short.exit_code == 2
-    assert "one recording of 2 window(s), too short to hold out its later part" in short.output
-    assert "Traceback" not in short.output and not (tmp_path / "run").exists()
-    paper = runner.invoke(app, ["train", str(tmp_path / "ros"), "--out", str(tmp_path / "run"), "--steps", "3"])
+    short = runner.invoke(app, ["train", str(tmp_path / "ros"), "--out", str(tmp_path / "run"), "--json"])
+    assert short.exit_code == 0, short.output
+    summary = json.loads(short.stdout)
+    assert summary["validation"]["how"] == "none" and summary["val_targets"] == 0
+    assert "too short to hold out a later part" in summary["validation"]["description"]
+    assert summary["k1"]["source"] == "physics" and "no validation data" in summary["comparison"]["verdict"]
+    ood = read_residual_meta(tmp_path / "run" / "best").ood
+    assert ood["k1_source"] == "physics" and "K = 1 in `logpipe predict`" in (tmp_path / "run" / "MODEL_CARD.md"
+                                                                            ).read_text()
+    pred = api.predict(tmp_path / "ros", out=tmp_path / "pred", checkpoint=tmp_path / "run" / "best", mcap=False)
+    assert pred["targets"] > 0 and pred["targets_fallback"] == pred["targets"]  # physics at K = 1 everywhere
+    paper = runner.invoke(app, ["train", str(tmp_path / "ros"), "--out", str(tmp_path / "run2"), "--steps", "3"])
     assert paper.exit_code == 2 and "--steps: only for the paper's network" in paper.output
-    unvalidated = runner.invoke(app, ["train", str(tmp_path / "ros"), "--out", str(tmp_path / "run"),
+    unvalidated = runner.invoke(app, ["train", str(tmp_path / "ros"), "--out", str(tmp_path / "run2"),
                                       "--train-split", "all"])
     assert unvalidated.exit_code == 2 and "give --val-split too" in unvalidated.output
