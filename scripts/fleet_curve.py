@@ -122,10 +122,9 @@ def location_curve(real: Targets, datasets: dict[str, Dataset], location: str, w
     out: dict[str, Any] = {"test_clusters": len(test_clusters), "test_targets": len(test), "pool": len(pool),
                            "cv": _fde(best_baseline.forecast({"method": "cv"}, observed, pred_len)[:, None], truth),
                            "start": _fde(zero, truth), "points": {}}
-    for n in AV1_POINTS if location.startswith("AV1") else POINTS:
+    points = AV1_POINTS if location.startswith("AV1") else (*(n for n in POINTS if n < len(pool)), 0)
+    for n in points:  # 0: the whole pool (a location with fewer than 5 pooled recordings ends there)
         clusters = pool[: n or len(pool)]
-        if n > len(pool):
-            continue
         train, val, how = recipe_rows(real, datasets[_dataset(location)], clusters)
         point = run_point(real, (train, val), start, work / "fleet" / location / str(n or "all"))
         net = load_residual(Path(point["best"]))[0]
