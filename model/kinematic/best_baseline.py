@@ -67,9 +67,13 @@ def forecast(choice: Mapping[str, Any], observed: NDArrayFloat, pred_len: int) -
     raise ValueError(f"unknown kinematic baseline {method!r}")
 
 
+SETTINGS = ("history", "accel_std", "meas_std", "horizon", "backtest")
+"""The settings a choice may carry, in the order ``label`` names them."""
+
+
 def label(choice: Mapping[str, Any]) -> str:
-    """A short name of a choice: ``kalman(0.3, 0.3)``, ``least_squares_cv(8)``, ``cv``."""
-    args = [str(v) for k, v in choice.items() if k not in ("method", "train_fde", "chosen_on", "on_grid_edge")]
+    """A short name of a choice: ``kalman(accel_std 0.3, meas_std 0.3)``, ``least_squares_cv(history 8)``, ``cv``."""
+    args = [f"{key} {choice[key]}" for key in SETTINGS if key in choice]
     return f"{choice['method']}({', '.join(args)})" if args else str(choice["method"])
 
 
