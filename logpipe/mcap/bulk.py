@@ -258,10 +258,10 @@ class BulkMcap:
             chunk_indexes.append(_place(out, _end(record), _message_indexes(body.headers, body.offsets), (
                 body.start, body.end, chunk.compression, len(chunk.data), chunk.uncompressed_size)))
         metadata_indexes = []
-        for record in self._metadata:
+        for metadata in self._metadata:
             start = out.count
-            record.write(out)
-            metadata_indexes.append(MetadataIndex(offset=start, length=out.count - start, name=record.name))
+            metadata.write(out)
+            metadata_indexes.append(MetadataIndex(offset=start, length=out.count - start, name=metadata.name))
         data = _end(out)
         data_end = RecordBuilder()
         DataEnd(zlib.crc32(data)).write(data_end)
