@@ -291,7 +291,7 @@ def agent_scene_pieces(agents: LogAgents, frame: str, log_starts: NDArrayInt | N
     changes = np.diff(agents.steps) != 0
     starts = np.concatenate([[0], np.flatnonzero(changes) + 1])
     step = np.concatenate([[0], np.cumsum(changes)]).astype(np.int64)  # index of the row's message
-    stamps = _stamp_table(agents.ts[starts])
+    stamps = stamp_table(agents.ts[starts])
     steps = np.arange(len(starts))
     step_parts = concatenated([(concatenated([(stamps, steps)], field_key(SceneEntity.TIMESTAMP_FIELD_NUMBER)), steps),
                                (ByteTable.of_items([serialize(SceneEntity(frame_id=frame))]), np.zeros_like(steps))])
@@ -366,7 +366,7 @@ def _departures(track: NDArrayInt, step: NDArrayInt, stamps: ByteTable, names: l
     return at.astype(np.int64), records.tolist()
 
 
-def _stamp_table(ns: NDArrayInt) -> ByteTable:
+def stamp_table(ns: NDArrayInt) -> ByteTable:
     """``timestamp_bytes`` of each of ``ns``, by numpy (before the epoch: by the ``Timestamp`` class)."""
     if len(ns) and int(np.min(ns)) < 0:
         return ByteTable.of_items([timestamp_bytes(t) for t in np.asarray(ns).tolist()])
@@ -421,7 +421,7 @@ def _posed_rows(template: Callable[[bool], Template], message_class: Any, ts: ND
         blocks.append((rows, template(flag).fill([px, py, qz[rows], qw[rows]] if flag else [px, py])))
     # Each message: its timestamp field (numpy-encoded), then its template row.
     rows = np.arange(len(ts))
-    stamp = concatenated([(_stamp_table(ts), rows)], field_key(message_class.TIMESTAMP_FIELD_NUMBER))
+    stamp = concatenated([(stamp_table(ts), rows)], field_key(message_class.TIMESTAMP_FIELD_NUMBER))
     messages, _ = concatenated([(stamp, rows), (ByteTable.of_rows(len(ts), blocks), rows)]).objects()
     out: list[bytes] = messages.tolist()
     return out
