@@ -158,7 +158,7 @@ def forecast_scene_updates(forecasts: TargetForecasts, frames: Sequence[str], no
     names, name_of = np.unique(np.asarray(list(f.track_ids), object), return_inverse=True)
     types, type_of = np.unique(np.asarray(list(f.object_types), object), return_inverse=True)
     history, truth = _observed_lines(f.history, f.truth, current)
-    entities, lengths = concatenated([
+    entities, _ = concatenated([
         (stamp_frame, sample_of),
         (ByteTable.of_items([_string_field(SceneEntity.ID_FIELD_NUMBER, str(t)) for t in names]), name_of),
         (lifetime, sample_of), (sample_pairs, sample_of),
@@ -168,10 +168,9 @@ def forecast_scene_updates(forecasts: TargetForecasts, frames: Sequence[str], no
         (history, np.arange(n)), (truth, np.arange(n)),
         (ByteTable.of_rows(n, [(np.arange(n), _mode_lines(current, f.futures, f.scores))]), np.arange(n)),
     ], _ENTITIES_KEY).objects()
-    # One join of every entity in sample order, cut at the samples' bounds.
-    blob = b"".join(entities.tolist())
-    ends = np.concatenate([[0], np.cumsum(lengths)])[bounds].tolist()
-    return [blob[a:b] for a, b in itertools.pairwise(ends)]
+    # A join per sample of its entities (joining all and cutting would copy every byte twice).
+    rows = entities.tolist()
+    return [b"".join(rows[a:b]) for a, b in itertools.pairwise(bounds.tolist())]
 
 
 def legend_scene(frame: str, now_ns: int, at: tuple[float, float]) -> bytes:
@@ -264,20 +263,28 @@ def _mode_lines(current: NDArrayFloat, futures: NDArrayFloat, scores: NDArrayFlo
     n, k, t = futures.shape[:3]
     if n * k == 0:
         return np.zeros((n, 0), np.uint8)
-    modes = np.empty((n, k, t + 1, 2))
-    modes[:, :, 0] = current[:, None]
-    modes[:, :, 1:] = futures
-    points = snap(modes.reshape(-1, 2), POSITION_QUANTUM)
-    filled = _point_template().fill([points[:, 0], points[:, 1]]).reshape(n * k, -1)
     top = np.maximum(scores.max(axis=1, keepdims=True), 1e-12)
     alpha = np.rint(100 * (0.25 + 0.75 * np.clip(scores / top, 0.0, 1.0))).astype(np.int64)  # 1% steps
     levels, which = np.unique(alpha, return_inverse=True)
     colours = [_line_colour((*MODE_RGB, a / 100)) for a in levels.tolist()]
     if len({len(c) for c in colours}) != 1:  # every channel is nonzero, so every colour has the same fields
         raise RuntimeError("mode colours differ in size")
-    colour_rows = np.frombuffer(b"".join(colours), np.uint8).reshape(len(colours), -1)[which.ravel()]
-    head = _line_head(0.08)
-    body = len(head) + filled.shape[1] + colour_rows.shape[1]
-    prefix = np.frombuffer(_LINES_KEY + varint(body) + head, np.uint8)
-    records = np.concatenate([np.broadcast_to(prefix, (n * k, len(prefix))), filled, colour_rows], axis=1)
+    template = _point_template()
+    head, points_size, colour_size = _line_head(0.08), (t + 1) * template.size, len(colours[0])
+    prefix = np.frombuffer(_LINES_KEY + varint(len(head) + points_size + colour_size) + head, np.uint8)
+    # The records are written in place (no per-point array filled and then copied in): prefix, points, colour.
+    records = np.empty((n * k, len(prefix) + points_size + colour_size), np.uint8)
+    records[:, : len(prefix)] = prefix
+    points = records[:, len(prefix) : len(prefix) + points_size]
+    points.shape = (n * k, t + 1, template.size)  # a view of the records (assigning a shape never copies)
+    points[:] = np.frombuffer(template.data, np.uint8)
+    for axis, offsets in enumerate(template.offsets):
+        values = np.empty((n, k, t + 1))
+        values[:, :, 0] = current[:, None, axis]
+        values[:, :, 1:] = futures[..., axis]
+        raw = snap(values, POSITION_QUANTUM).astype("<f8").view(np.uint8).reshape(n * k, t + 1, 8)
+        for at in offsets:
+            points[:, :, at : at + 8] = raw
+    records[:, len(prefix) + points_size :] = np.frombuffer(b"".join(colours), np.uint8).reshape(
+        len(colours), -1)[which.ravel()]
     return records.reshape(n, -1)

@@ -153,7 +153,9 @@ class ByteTable:
         out = np.empty(len(self.lengths), object)
         for width, table in self.tables.items():
             items = np.flatnonzero(self.lengths == width)
-            out[items] = _row_bytes(np.ascontiguousarray(table[self.slot[items]]))
+            slots = self.slot[items]
+            in_order = len(slots) == len(table) and bool((slots == np.arange(len(slots))).all())
+            out[items] = _row_bytes(np.ascontiguousarray(table if in_order else table[slots]))
         return out, self.lengths
 
 
