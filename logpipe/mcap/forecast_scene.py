@@ -26,7 +26,16 @@ from foxglove_schemas_protobuf.TextPrimitive_pb2 import TextPrimitive
 from foxglove_schemas_protobuf.Vector3_pb2 import Vector3
 
 from logpipe.mcap.foxglove import AGENT_SHAPES, POSITION_QUANTUM, TYPE_COLOURS, rgba, snap, stamp_table, timestamp
-from logpipe.mcap.protobuf_splice import ByteTable, Template, concatenated, field_key, serialize, timestamps, varint
+from logpipe.mcap.protobuf_splice import (
+    ByteTable,
+    Template,
+    concatenated,
+    field_key,
+    put_doubles,
+    serialize,
+    timestamps,
+    varint,
+)
 from logpipe.types import OBJECT_TYPES, NDArrayByte, NDArrayFloat, NDArrayInt, SceneSample
 
 HISTORY_RGBA = (0.6, 0.6, 0.6, 0.9)
@@ -282,9 +291,9 @@ def _mode_lines(current: NDArrayFloat, futures: NDArrayFloat, scores: NDArrayFlo
         values = np.empty((n, k, t + 1))
         values[:, :, 0] = current[:, None, axis]
         values[:, :, 1:] = futures[..., axis]
-        raw = snap(values, POSITION_QUANTUM).astype("<f8").view(np.uint8).reshape(n * k, t + 1, 8)
+        raw = snap(values, POSITION_QUANTUM).astype("<f8").reshape(n * k, t + 1, 1)
         for at in offsets:
-            points[:, :, at : at + 8] = raw
+            put_doubles(points[:, :, at : at + 8], raw)
     records[:, len(prefix) + points_size :] = np.frombuffer(b"".join(colours), np.uint8).reshape(
         len(colours), -1)[which.ravel()]
     return records.reshape(n, -1)
