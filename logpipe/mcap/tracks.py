@@ -46,7 +46,7 @@ from logpipe.mcap import foxglove as fx
 from logpipe.mcap.bulk import BackgroundWrites, BulkMcap, Pieces
 from logpipe.mcap.map_scene import MAP_TOPIC, map_scene_update
 from logpipe.storage.io import as_numpy
-from logpipe.storage.write_journal import record_written
+from logpipe.storage.write_journal import record_written_files
 from logpipe.types import LogMeta, Role
 
 AGENTS_TOPIC = "/logpipe/agents"
@@ -201,10 +201,10 @@ def write_log_mcap(log_id: str, tracks: pa.Table | LogRows, target: Path, map_id
     per-file temp-and-rename would cost more than the MCAP itself at millions of small logs.
     """
     rows = tracks if isinstance(tracks, LogRows) else LogRows.of(tracks)
-    with BackgroundWrites(record_written) as files:
+    with BackgroundWrites() as files:
         counts = _write_logs(rows, [(log_id, 0, len(rows))], {log_id: target}, {log_id: map_id},
                              {log_id: lanes} if lanes is not None else {}, files)
-        files.finish()
+        record_written_files(files.finish())  # written in place (in staging): the proof a later cleanup needs
     return counts[target]
 
 
@@ -235,7 +235,7 @@ def write_log_mcap_files(tracks: pa.Table, metas: list[LogMeta], folder: Path,
     targets = {log_id: folder / f"{log_id}.mcap" for log_id, _, _ in runs}
     counts: dict[Path, int] = {}
     json_heading = tracks.column("heading").null_count < tracks.num_rows
-    with BackgroundWrites(record_written) as files:
+    with BackgroundWrites() as files:
         group: list[tuple[str, int, int]] = []
         for k, run in enumerate(runs):
             group.append(run)
@@ -248,6 +248,7 @@ def write_log_mcap_files(tracks: pa.Table, metas: list[LogMeta], folder: Path,
                                   files)
             group = []
         written = files.finish()
+    record_written_files(written)  # written in place (in staging): the proof a later cleanup needs
     return {target: (counts[target], *written[target]) for target in counts}
 
 
@@ -280,7 +281,6 @@ def _write_logs(rows: LogRows, runs: list[tuple[str, int, int]], targets: dict[s
             map_channel = _register_protobuf(writer, MAP_TOPIC, SceneUpdate)
             writer.log(map_channel, t0, [map_scene_update(store, WORLD_FRAME, t) for t in t0])
             count += len(t0)
-        # Written in place (in staging); ``files`` journals each once written: the proof a later cleanup needs.
         files.submit(writer.prepare(), targets[log_id])
         written[targets[log_id]] = count
     return written
