@@ -17,6 +17,11 @@ What a file written here always has (as ``logpipe.mcap.native`` did, so readers 
   ``CHUNK_BYTES`` uncompressed (one chunk per ingest log); the first chunk carries the schema and channel records.
 
 ``add_chunks`` copies another file's chunks and message indexes byte for byte (``logpipe.mcap.chunk_copy``).
+
+``BulkMcap.prepare`` does the part that holds the GIL (ordering, headers, joining each chunk's body);
+``Prepared.write`` the rest (zstd, CRCs, framing, the write, sha256), which ``BackgroundWrites`` runs on a thread of
+the same worker while the next files are built. Chunk compression is zstd level 1 (``COMPRESSION_LEVEL``; lz4 is
+there to be measured against it, ``make bench``'s ``mcap_writers``).
 """
 
 from __future__ import annotations

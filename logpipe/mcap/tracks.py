@@ -16,10 +16,12 @@ Message log times are the true timestamps of the steps; the ``logpipe`` metadata
 and the centre. What each channel is for and costs, and why both the JSON and the scene stay: ``docs/formats.md``
 (MCAP outputs).
 
-Speed: every log of an ingest batch is built at once (``_BatchMessages``: one pass of numpy over the batch's rows
-for the scenes, the JSON, the ego's poses and transforms; tracks coded apart per log), each message left as
-pieces (``bulk.Pieces``) that are joined only into its log's chunk, and each file is laid out whole by
-``logpipe.mcap.bulk`` (``make bench``'s ``mcap_channels`` measures each channel's share).
+Speed: the logs of an ingest batch are built a group at a time (``GROUP_ROWS``; ``_BatchMessages``: one pass of
+numpy over the group's rows for the scenes, the JSON, the ego's poses and transforms; tracks coded apart per log),
+each message left as pieces (``bulk.Pieces``: a scene row is one piece, cut out of a numpy block) that are joined
+only into its log's chunk, and each file is laid out whole by ``logpipe.mcap.bulk``, compressed and written on a
+thread while the next group is built (``bulk.BackgroundWrites``); ``make bench``'s ``mcap_channels`` measures each
+channel's share.
 """
 
 from __future__ import annotations
