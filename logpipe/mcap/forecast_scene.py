@@ -111,7 +111,7 @@ class TargetForecasts:
         current = self.history[:, -1]
         columns = {"current_x": current[:, 0], "current_y": current[:, 1], "score": self.scores,
                    "x": self.futures[..., 0], "y": self.futures[..., 1]}
-        return {k: np.ascontiguousarray(v) for k, v in columns.items()}
+        return {k: _contiguous(v) for k, v in columns.items()}
 
     @classmethod
     def of_sample(cls, sample: SceneSample, targets: NDArrayInt, futures: NDArrayFloat,
@@ -129,6 +129,16 @@ class TargetForecasts:
                                self.track_ids[a:b], self.object_types[a:b], self.history[a:b], self.truth[a:b],
                                self.futures[a:b], self.scores[a:b],
                                None if self.columns is None else {k: v[a:b] for k, v in self.columns.items()})
+
+
+def _contiguous(values: NDArrayFloat) -> NDArrayFloat:
+    """``values`` C-contiguous; except forecasts whose K modes are one mode broadcast (constant velocity's), which
+    stay broadcast over a contiguous copy of that mode, so the ``logpipe.Predictions`` JSON formats it once
+    (``prediction.mcap_logs.array_json``) instead of copying and formatting it K times."""
+    if values.ndim == 3 and values.shape[1] > 1 and values.strides[1] == 0:
+        one: NDArrayFloat = np.broadcast_to(np.ascontiguousarray(values[:, :1]), values.shape)
+        return one
+    return np.ascontiguousarray(values)
 
 
 def forecast_scene_updates(forecasts: TargetForecasts, frames: Sequence[str], now_ns: Sequence[int],

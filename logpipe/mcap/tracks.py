@@ -322,7 +322,14 @@ class _BatchMessages:
         log_steps = np.searchsorted(starts, [lo for _, lo, _ in runs] + [n]).tolist()
         # Tracks coded apart per log: a track id that recurs in another log of the batch is another agent.
         width = max(len(rows.track_names), 1)
-        tracks_local, track_index = np.unique(log_of_row * width + rows.track_codes, return_inverse=True)
+        tracks_local, first_row, track_index = np.unique(log_of_row * width + rows.track_codes, return_index=True,
+                                                         return_inverse=True)
+        # Each log's tracks numbered in the order they first appear in it (what orders a step's deletions), so a
+        # log's bytes do not depend on which other logs share its batch or group.
+        by_first = np.argsort(first_row, kind="stable")
+        rank = np.empty(len(by_first), np.int64)
+        rank[by_first] = np.arange(len(by_first))
+        tracks_local, track_index = tracks_local[by_first], rank[track_index.reshape(-1)]
         yaw, has_heading = fx.display_headings(track_index, rows.ts, rows.x, rows.y, rows.heading_values)
         names = [rows.track_names[c % width] for c in tracks_local.tolist()]
         agents = fx.LogAgents(steps=step, ts=rows.ts, x=rows.x, y=rows.y, yaw=yaw, has_heading=has_heading,
