@@ -6,8 +6,9 @@ Candidates: the pure-Python ``mcap`` writer as the stages used it (zstd, 1 MiB c
 with the least per-record work it allows (no CRCs, no indexes: not a file we could ship, only how far that writer
 goes); the Rust writer of ``foxglove-sdk`` as ``logpipe.mcap.native`` drives it (a ``Context`` per file, channels
 from ``Context._create_channel``), and through the public ``foxglove.Channel`` wrapper; ``logpipe.mcap.bulk`` (each
-channel's messages handed over as one list, the file laid out whole) at zstd levels -1, 1, 3 and 5, with the bytes
-each writes (how ``bulk.COMPRESSION_LEVEL`` was chosen: size against CPU).
+channel's messages handed over as one list, the file laid out whole) at zstd levels -5, -3, -1, 1, 3 and 5 and with
+lz4 chunks (the format's other compression), with the bytes each writes (how ``bulk.COMPRESSION_LEVEL`` was chosen:
+size against CPU).
 """
 
 from __future__ import annotations
@@ -73,12 +74,13 @@ def candidates() -> dict[str, Callable[[Path, list[Any]], None]]:
         "foxglove-sdk, logpipe.mcap.native (the stages' writer until issue 66)": rewrite_native,
         "foxglove-sdk, public foxglove.Channel": _public_channel,
         **{f"logpipe.mcap.bulk, zstd level {level}{' (the stages)' if level == COMPRESSION_LEVEL else ''}":
-           partial(_bulk, level=level) for level in (-1, 1, 3, 5)},
+           partial(_bulk, level=level) for level in (-5, -3, -1, 1, 3, 5)},
+        "logpipe.mcap.bulk, lz4 (frame, level 0)": partial(_bulk, level=0, compression="lz4"),
     }
 
 
-def _bulk(target: Path, records: list[Any], level: int) -> None:
-    rewrite_bulk(target, records, level=level)
+def _bulk(target: Path, records: list[Any], level: int, compression: str = "zstd") -> None:
+    rewrite_bulk(target, records, level=level, compression=compression)
 
 
 def run(quick: bool = False) -> dict[str, Any]:

@@ -95,7 +95,8 @@ def rewrite_as_stage(target: Path, records: list[Any], compression_threads: int 
         rewrite_mcap(Writer(fh, compression=CompressionType.ZSTD), records)
 
 
-def rewrite_bulk(target: Path, records: list[Any], skip_channels: int = 0, level: int | None = None) -> None:
+def rewrite_bulk(target: Path, records: list[Any], skip_channels: int = 0, level: int | None = None,
+                 compression: str = "zstd") -> None:
     """Write already-read MCAP records again through ``logpipe.mcap.bulk`` as ingest does: its channels, then each
     channel's messages as one list, then its metadata (channels numbered ``skip_channels`` and below are left out)."""
     from mcap.records import Channel, Header, Message, Metadata, Schema
@@ -110,7 +111,7 @@ def rewrite_bulk(target: Path, records: list[Any], skip_channels: int = 0, level
     from logpipe.mcap.bulk import COMPRESSION_LEVEL
 
     writer = BulkMcap(next((str(r.profile) for r in records if isinstance(r, Header)), ""),
-                      COMPRESSION_LEVEL if level is None else level)
+                      COMPRESSION_LEVEL if level is None else level, compression)
     for r in records:
         if isinstance(r, Schema):
             schemas[r.id] = (r.name, r.encoding, bytes(r.data))

@@ -17,6 +17,11 @@ What a file written here always has (as ``logpipe.mcap.native`` did, so readers 
   ``CHUNK_BYTES`` uncompressed (one chunk per ingest log); the first chunk carries the schema and channel records.
 
 ``add_chunks`` copies another file's chunks and message indexes byte for byte (``logpipe.mcap.chunk_copy``).
+
+``BulkMcap.prepare`` does the part that holds the GIL (ordering, headers, joining each chunk's body);
+``Prepared.write`` the rest (zstd, CRCs, framing, the write, sha256), which ``BackgroundWrites`` runs on a thread of
+the same worker while the next files are built. Chunk compression is zstd level 1 (``COMPRESSION_LEVEL``; lz4 is
+there to be measured against it, ``make bench``'s ``mcap_writers``).
 """
 
 from __future__ import annotations
@@ -26,9 +31,11 @@ import itertools
 import struct
 import threading
 import zlib
-from collections.abc import Sequence
+from collections import deque
+from collections.abc import Callable, Sequence
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
-from functools import lru_cache
+from functools import lru_cache, partial
 from pathlib import Path
 from typing import Any
 
@@ -69,7 +76,12 @@ _compressors = threading.local()
 _INDEX_HEAD = struct.Struct("<BQHI")
 
 
-def _compress(data: bytes, level: int) -> bytes:
+def _compress(data: bytes, level: int, compression: str = "zstd") -> bytes:
+    if compression == "lz4":  # the MCAP format's other chunk compression: an LZ4 frame
+        import lz4.frame  # imported here: a measured candidate only (mcap itself depends on lz4)
+
+        framed: bytes = lz4.frame.compress(data, compression_level=level)
+        return framed
     # A compressor per thread: zstandard's are not safe to share between threads, and one per chunk costs ~50 us.
     compressors = _compressors.__dict__.setdefault("zstd", {})
     compressor = compressors.get(level)
@@ -153,9 +165,13 @@ class _Channel:
 class BulkMcap:
     """One MCAP built in memory: add schemas and channels, then each channel's messages as lists, then ``write``."""
 
-    def __init__(self, profile: str = "", compression_level: int = COMPRESSION_LEVEL) -> None:
+    def __init__(self, profile: str = "", compression_level: int = COMPRESSION_LEVEL,
+                 compression: str = "zstd") -> None:
+        if compression not in ("zstd", "lz4"):
+            raise ValueError(f"chunk compression {compression!r} is not zstd or lz4")
         self.profile = profile
         self.compression_level = compression_level
+        self.compression = compression
         self._schemas: dict[tuple[str, str, bytes], Schema] = {}
         self._channels: list[_Channel] = []
         self._metadata: list[Metadata] = []
@@ -218,23 +234,16 @@ class BulkMcap:
     def write(self, target: Path) -> tuple[int, str]:
         """Write the file (``target`` in a folder nobody reads yet, or a temp path); its size and sha256. A file
         written in place is the caller's to record in the write journal (``atomic_path`` records its own)."""
-        blob = self.to_bytes()
-        target.parent.mkdir(parents=True, exist_ok=True)
-        try:
-            target.write_bytes(blob)
-        except OSError as err:  # a failed write() names no file (a full disk): say which one
-            raise OSError(err.errno, err.strerror, str(target)) from None
-        return len(blob), hashlib.sha256(blob).hexdigest()
+        return self.prepare().write(target)
 
     def to_bytes(self) -> bytes:
         """The whole file."""
-        out = RecordBuilder()
-        out.write(MAGIC)
-        Header(profile=self.profile, library=LIBRARY).write(out)
-        chunk_indexes: list[ChunkIndex] = []
-        for c in self._copied:
-            chunk_indexes.append(_place(out, c.record, c.indexes, (c.start, c.end, c.compression, c.compressed_size,
-                                                                  c.uncompressed_size)))
+        return self.prepare().to_bytes()
+
+    def prepare(self) -> Prepared:
+        """The messages ordered and joined into their chunks' bodies: the part of laying the file out that holds
+        the GIL. What is left (``Prepared.write``: compressing, CRCs, the framing records, the write, the digest)
+        is mostly native work that releases it, so it can run on a thread while the next file is built."""
         times, order, pieces, channel_of = self._ordered()
         counts = dict(self._copied_counts)
         for ch in self._channels:
@@ -243,12 +252,31 @@ class BulkMcap:
                 counts[ch.record.id] = n
         prefix = b"".join([*map(_record_bytes, self._schemas.values()),
                            *(_record_bytes(c.record) for c in self._channels)])
-        chunk_indexes += self._chunks(out, prefix, times, order, pieces, channel_of)
+        return Prepared(partial(self._finish, _bodies(prefix, times, order, pieces, channel_of), counts))
+
+    def _finish(self, bodies: list[_Body], counts: dict[int, int]) -> bytes:
+        """The whole file, of its joined chunk bodies and its message count per channel."""
+        out = RecordBuilder()
+        out.write(MAGIC)
+        Header(profile=self.profile, library=LIBRARY).write(out)
+        chunk_indexes: list[ChunkIndex] = []
+        for c in self._copied:
+            chunk_indexes.append(_place(out, c.record, c.indexes, (c.start, c.end, c.compression, c.compressed_size,
+                                                                  c.uncompressed_size)))
+        for body in bodies:
+            chunk = Chunk(compression=self.compression, data=_compress(body.data, self.compression_level,
+                                                                       self.compression),
+                          message_start_time=body.start, message_end_time=body.end,
+                          uncompressed_crc=zlib.crc32(body.data), uncompressed_size=len(body.data))
+            record = RecordBuilder()
+            chunk.write(record)
+            chunk_indexes.append(_place(out, _end(record), _message_indexes(body.headers, body.offsets), (
+                body.start, body.end, chunk.compression, len(chunk.data), chunk.uncompressed_size)))
         metadata_indexes = []
-        for record in self._metadata:
+        for metadata in self._metadata:
             start = out.count
-            record.write(out)
-            metadata_indexes.append(MetadataIndex(offset=start, length=out.count - start, name=record.name))
+            metadata.write(out)
+            metadata_indexes.append(MetadataIndex(offset=start, length=out.count - start, name=metadata.name))
         data = _end(out)
         data_end = RecordBuilder()
         DataEnd(zlib.crc32(data)).write(data_end)
@@ -274,51 +302,6 @@ class BulkMcap:
         pieces = Pieces(np.concatenate([p.objects for _, _, p in parts]),
                         np.concatenate([p.lengths for _, _, p in parts]), bounds.astype(np.int64))
         return times, np.argsort(times, kind="stable"), pieces, np.stack([ids, sequences])
-
-    def _chunks(self, out: RecordBuilder, prefix: bytes, times: np.ndarray, order: np.ndarray, pieces: Pieces,
-                channel_of: np.ndarray) -> list[ChunkIndex]:
-        """The added messages as chunks of at most ``CHUNK_BYTES`` (the first led by ``prefix``)."""
-        n = len(order)
-        if n == 0:
-            return []
-        sizes = pieces.sizes()[order]
-        headers = np.empty(n, _HEADER)
-        headers["op"] = int(Opcode.MESSAGE)
-        headers["length"] = sizes + 22
-        headers["channel"] = channel_of[0][order]
-        headers["sequence"] = channel_of[1][order]
-        headers["log_time"] = headers["publish_time"] = times[order]
-        raw = headers.tobytes()
-        heads = np.empty(n, object)
-        heads[:] = [raw[i : i + 31] for i in range(0, 31 * n, 31)]
-        # Each message's header, then its pieces, in log-time order: one index array, one join per chunk.
-        counts = np.diff(pieces.bounds)[order]
-        block = np.cumsum(counts + 1)
-        objects = np.concatenate([pieces.objects, heads])
-        index = np.empty(int(block[-1]), np.int64)
-        index[block - counts - 1] = len(pieces.objects) + np.arange(n)
-        is_piece = np.ones(len(index), bool)
-        is_piece[block - counts - 1] = False
-        index[is_piece] = np.arange(int(counts.sum())) + np.repeat(pieces.bounds[:-1][order] - (np.cumsum(counts)
-                                                                                                - counts), counts)
-        ends = np.cumsum(sizes + 31)
-        cut = np.searchsorted(ends, np.arange(1, int(ends[-1]) // CHUNK_BYTES + 1) * CHUNK_BYTES, side="right")
-        bounds = [0, *sorted({int(c) for c in cut if 0 < c < n}), n]
-        indexes = []
-        for lo, hi in itertools.pairwise(bounds):
-            lead = prefix if lo == 0 else b""
-            first_piece = int(block[lo - 1]) if lo else 0
-            body = lead + b"".join(objects[index[first_piece : int(block[hi - 1])]].tolist())
-            offsets = len(lead) + np.concatenate([[0], ends[lo : hi - 1] - (ends[lo - 1] if lo else 0)])
-            chunk = Chunk(compression="zstd", data=_compress(body, self.compression_level),
-                          message_start_time=int(times[order[lo]]), message_end_time=int(times[order[hi - 1]]),
-                          uncompressed_crc=zlib.crc32(body), uncompressed_size=len(body))
-            record = RecordBuilder()
-            chunk.write(record)
-            indexes.append(_place(out, _end(record), _message_indexes(headers[lo:hi], offsets), (
-                chunk.message_start_time, chunk.message_end_time, chunk.compression, len(chunk.data),
-                chunk.uncompressed_size)))
-        return indexes
 
     def _summary(self, start: int, chunk_indexes: list[ChunkIndex], metadata_indexes: list[MetadataIndex],
                  counts: dict[int, int]) -> bytes:
@@ -358,6 +341,117 @@ class BulkMcap:
         body = _end(summary)
         crc = zlib.crc32(head, zlib.crc32(body))
         return body + head + crc.to_bytes(4, "little") + MAGIC
+
+
+@dataclass(frozen=True)
+class _Body:
+    """A chunk's uncompressed bytes, its messages' headers and offsets in it, and its first and last log time."""
+
+    data: bytes
+    headers: np.ndarray
+    offsets: np.ndarray
+    start: int
+    end: int
+
+
+def _bodies(prefix: bytes, times: np.ndarray, order: np.ndarray, pieces: Pieces,
+            channel_of: np.ndarray) -> list[_Body]:
+    """The added messages as chunk bodies of at most ``CHUNK_BYTES`` (the first led by ``prefix``)."""
+    n = len(order)
+    if n == 0:
+        return []
+    sizes = pieces.sizes()[order]
+    headers = np.empty(n, _HEADER)
+    headers["op"] = int(Opcode.MESSAGE)
+    headers["length"] = sizes + 22
+    headers["channel"] = channel_of[0][order]
+    headers["sequence"] = channel_of[1][order]
+    headers["log_time"] = headers["publish_time"] = times[order]
+    raw = headers.tobytes()
+    heads = np.empty(n, object)
+    heads[:] = [raw[i : i + 31] for i in range(0, 31 * n, 31)]
+    # Each message's header, then its pieces, in log-time order: one index array, one join per chunk.
+    counts = np.diff(pieces.bounds)[order]
+    block = np.cumsum(counts + 1)
+    objects = np.concatenate([pieces.objects, heads])
+    index = np.empty(int(block[-1]), np.int64)
+    index[block - counts - 1] = len(pieces.objects) + np.arange(n)
+    is_piece = np.ones(len(index), bool)
+    is_piece[block - counts - 1] = False
+    index[is_piece] = np.arange(int(counts.sum())) + np.repeat(pieces.bounds[:-1][order] - (np.cumsum(counts)
+                                                                                            - counts), counts)
+    ends = np.cumsum(sizes + 31)
+    cut = np.searchsorted(ends, np.arange(1, int(ends[-1]) // CHUNK_BYTES + 1) * CHUNK_BYTES, side="right")
+    bounds = [0, *sorted({int(c) for c in cut if 0 < c < n}), n]
+    out = []
+    for lo, hi in itertools.pairwise(bounds):
+        lead = prefix if lo == 0 else b""
+        first_piece = int(block[lo - 1]) if lo else 0
+        body = lead + b"".join(objects[index[first_piece : int(block[hi - 1])]].tolist())
+        offsets = len(lead) + np.concatenate([[0], ends[lo : hi - 1] - (ends[lo - 1] if lo else 0)])
+        out.append(_Body(body, headers[lo:hi], offsets, int(times[order[lo]]), int(times[order[hi - 1]])))
+    return out
+
+
+class Prepared:
+    """A ``BulkMcap`` whose chunk bodies are joined (``BulkMcap.prepare``): ``write`` or ``to_bytes`` finish it."""
+
+    def __init__(self, finish: Callable[[], bytes]) -> None:
+        self._finish = finish
+
+    def to_bytes(self) -> bytes:
+        """The whole file."""
+        return self._finish()
+
+    def write(self, target: Path) -> tuple[int, str]:
+        """``BulkMcap.write``."""
+        blob = self._finish()
+        target.parent.mkdir(parents=True, exist_ok=True)
+        try:
+            target.write_bytes(blob)
+        except OSError as err:  # a failed write() names no file (a full disk): say which one
+            raise OSError(err.errno, err.strerror, str(target)) from None
+        return len(blob), hashlib.sha256(blob).hexdigest()
+
+
+class BackgroundWrites:
+    """Prepared files finished and written on one thread, in the order given, while the caller builds the next:
+    zstd, the CRCs, the write and sha256 release the GIL, so on a machine with a core to spare the writing
+    overlaps the building within one worker process. At most ``queued`` files wait (bounded memory); an error
+    of a write is raised here, in the caller's thread, by the next ``submit`` or by ``finish``.
+
+    ``on_written(target)`` runs in the caller's thread for each file once it is written (the write journal)."""
+
+    def __init__(self, on_written: Callable[[Path], None] = lambda target: None, queued: int = 8) -> None:
+        self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="logpipe-mcap-write")
+        self._pending: deque[tuple[Path, Future[tuple[int, str]]]] = deque()
+        self._on_written, self._queued = on_written, queued
+        self.written: dict[Path, tuple[int, str]] = {}
+
+    def submit(self, prepared: Prepared, target: Path) -> None:
+        """Queue ``prepared`` to be written to ``target``."""
+        while len(self._pending) >= self._queued:
+            self._collect()
+        self._pending.append((target, self._pool.submit(prepared.write, target)))
+
+    def finish(self) -> dict[Path, tuple[int, str]]:
+        """Wait for every queued file; (bytes, sha256) per file written."""
+        while self._pending:
+            self._collect()
+        self._pool.shutdown()
+        return self.written
+
+    def _collect(self) -> None:
+        target, future = self._pending.popleft()
+        self.written[target] = future.result()
+        self._on_written(target)
+
+    def __enter__(self) -> BackgroundWrites:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        # On an error, the queued files are not wanted (their folder is staging): stop without writing them.
+        self._pool.shutdown(wait=True, cancel_futures=True)
 
 
 def _record_bytes(record: Schema | Channel) -> bytes:

@@ -7,6 +7,7 @@ log's clock. ``legend_scene`` is the legend entity naming these colours.
 
 from __future__ import annotations
 
+import itertools
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from functools import cache, lru_cache
@@ -23,11 +24,19 @@ from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
 from foxglove_schemas_protobuf.SpherePrimitive_pb2 import SpherePrimitive
 from foxglove_schemas_protobuf.TextPrimitive_pb2 import TextPrimitive
 from foxglove_schemas_protobuf.Vector3_pb2 import Vector3
-from google.protobuf.duration_pb2 import Duration
 
-from logpipe.mcap.foxglove import AGENT_SHAPES, POSITION_QUANTUM, TYPE_COLOURS, rgba, snap, timestamp
-from logpipe.mcap.protobuf_splice import Template, field_key, serialize, varint
-from logpipe.types import OBJECT_TYPES, NDArrayFloat, NDArrayInt, SceneSample
+from logpipe.mcap.foxglove import AGENT_SHAPES, POSITION_QUANTUM, TYPE_COLOURS, rgba, snap, stamp_table, timestamp
+from logpipe.mcap.protobuf_splice import (
+    ByteTable,
+    Template,
+    concatenated,
+    field_key,
+    put_doubles,
+    serialize,
+    timestamps,
+    varint,
+)
+from logpipe.types import OBJECT_TYPES, NDArrayByte, NDArrayFloat, NDArrayInt, SceneSample
 
 HISTORY_RGBA = (0.6, 0.6, 0.6, 0.9)
 """Colour of a forecast target's observed history (RGBA 0..1)."""
@@ -43,6 +52,8 @@ _LINE_Z = 0.05  # metres above the ground, so lines are not hidden in a raster d
 _LINES_KEY = field_key(SceneEntity.LINES_FIELD_NUMBER)
 _METADATA_KEY = field_key(SceneEntity.METADATA_FIELD_NUMBER)
 _ENTITIES_KEY = field_key(SceneUpdate.ENTITIES_FIELD_NUMBER)
+_STAMP_KEY = field_key(SceneEntity.TIMESTAMP_FIELD_NUMBER)
+_LIFETIME_KEY = field_key(SceneEntity.LIFETIME_FIELD_NUMBER)
 _varint = lru_cache(maxsize=1 << 12)(varint)  # record lengths recur
 
 
@@ -100,7 +111,7 @@ class TargetForecasts:
         current = self.history[:, -1]
         columns = {"current_x": current[:, 0], "current_y": current[:, 1], "score": self.scores,
                    "x": self.futures[..., 0], "y": self.futures[..., 1]}
-        return {k: np.ascontiguousarray(v) for k, v in columns.items()}
+        return {k: _contiguous(v) for k, v in columns.items()}
 
     @classmethod
     def of_sample(cls, sample: SceneSample, targets: NDArrayInt, futures: NDArrayFloat,
@@ -120,6 +131,16 @@ class TargetForecasts:
                                None if self.columns is None else {k: v[a:b] for k, v in self.columns.items()})
 
 
+def _contiguous(values: NDArrayFloat) -> NDArrayFloat:
+    """``values`` C-contiguous; except forecasts whose K modes are one mode broadcast (constant velocity's), which
+    stay broadcast over a contiguous copy of that mode, so the ``logpipe.Predictions`` JSON formats it once
+    (``prediction.mcap_logs.array_json``) instead of copying and formatting it K times."""
+    if values.ndim == 3 and values.shape[1] > 1 and values.strides[1] == 0:
+        one: NDArrayFloat = np.broadcast_to(np.ascontiguousarray(values[:, :1]), values.shape)
+        return one
+    return np.ascontiguousarray(values)
+
+
 def forecast_scene_updates(forecasts: TargetForecasts, frames: Sequence[str], now_ns: Sequence[int],
                            lifetimes_ns: Sequence[int]) -> list[bytes]:
     """A serialized ``foxglove.SceneUpdate`` per sample of ``forecasts`` (in ``frames``, at ``now_ns``, living
@@ -128,35 +149,47 @@ def forecast_scene_updates(forecasts: TargetForecasts, frames: Sequence[str], no
     position (the last observed step) and one line per mode, more opaque the higher its score (relative to the
     target's best); metres.
 
-    Built from parts (``logpipe.mcap.protobuf_splice``): what a sample's entities share serialized once, every
-    target's sphere, observed lines and K mode lines by numpy for all the samples at once.
+    Built from parts (``logpipe.mcap.protobuf_splice``) by numpy for all the samples at once: what a sample's
+    entities share and what a track's share encoded once, every target's sphere, observed lines and K mode lines
+    filled in blocks of equal-width rows, each entity cut out as one bytes object (``concatenated``): no Python
+    per target.
     """
     f = forecasts
-    n = len(f.futures)
+    n, samples = len(f.futures), len(f.sample_ids)
+    if n == 0:
+        return [b""] * samples
+    bounds = np.asarray(f.bounds, np.int64)
+    sample_of = np.repeat(np.arange(samples), np.diff(bounds))
     current = f.history[:, -1]  # (N, 2)
-    spheres = _spheres(f.object_types, snap(current, POSITION_QUANTUM))
-    observed = _observed_lines(f.history, f.truth, current)
-    modes = _mode_lines(current, f.futures, f.scores)
-    width, mode_view = (len(modes) // n if n else 0), memoryview(modes)
-    updates = []
-    for s, sample_id in enumerate(f.sample_ids):
-        life = max(lifetimes_ns[s], 0)
-        # Fields 1-2, 4 and the first metadata pair of field 6 are the same for every entity of the sample.
-        stamp_frame = serialize(SceneEntity(timestamp=timestamp(now_ns[s]), frame_id=frames[s]))
-        lifetime = serialize(SceneEntity(lifetime=Duration(seconds=life // 1_000_000_000, nanos=life % 1_000_000_000)))
-        sample_pair = serialize(SceneEntity(metadata=[KeyValuePair(key="sample_id", value=sample_id)]))
-        shared = len(stamp_frame) + len(lifetime) + len(sample_pair) + width
-        pieces: list[bytes | memoryview] = []
-        for j in range(f.bounds[s], f.bounds[s + 1]):
-            # One join per sample: each entity's key and length, then its parts (the modes a view, not a copy).
-            name = f.track_ids[j]
-            parts = (_string_field(SceneEntity.ID_FIELD_NUMBER, name), _pair("track_id", name),
-                     _pair("object_type", f.object_types[j]), spheres[j], observed[j])
-            size = shared + sum(map(len, parts))
-            pieces += [_ENTITIES_KEY + _varint(size), stamp_frame, parts[0], lifetime, sample_pair, *parts[1:],
-                       mode_view[j * width : (j + 1) * width]]
-        updates.append(b"".join(pieces))
-    return updates
+    # What a sample's entities share: timestamp and frame, lifetime, its id (metadata); numpy-encoded times.
+    frame_codes: dict[str, int] = {}
+    frame_of = np.array([frame_codes.setdefault(name, len(frame_codes)) for name in frames], np.int64)
+    each = np.arange(samples)
+    stamp_frame = concatenated([
+        (concatenated([(stamp_table(np.asarray(now_ns, np.int64)), each)], _STAMP_KEY), each),
+        (ByteTable.of_items([_string_field(SceneEntity.FRAME_ID_FIELD_NUMBER, name) for name in frame_codes]),
+         frame_of)])
+    # A Duration is serialized as a Timestamp is (seconds 1, nanos 2); lifetimes are clipped at 0.
+    lives = np.maximum(np.asarray(lifetimes_ns, np.int64), 0)
+    lifetime = concatenated([(timestamps(lives), each)], _LIFETIME_KEY)
+    sample_pairs = ByteTable.of_items([_uncached_pair("sample_id", sample_id) for sample_id in f.sample_ids])
+    # Per target: its id and track_id pair (per distinct id), type pair, sphere, lines.
+    names, name_of = np.unique(np.asarray(list(f.track_ids), object), return_inverse=True)
+    types, type_of = np.unique(np.asarray(list(f.object_types), object), return_inverse=True)
+    history, truth = _observed_lines(f.history, f.truth, current)
+    entities, _ = concatenated([
+        (stamp_frame, sample_of),
+        (ByteTable.of_items([_string_field(SceneEntity.ID_FIELD_NUMBER, str(t)) for t in names]), name_of),
+        (lifetime, sample_of), (sample_pairs, sample_of),
+        (ByteTable.of_items([_pair("track_id", str(t)) for t in names]), name_of),
+        (ByteTable.of_items([_pair("object_type", str(t)) for t in types]), type_of),
+        (_spheres(types, type_of, snap(current, POSITION_QUANTUM)), np.arange(n)),
+        (history, np.arange(n)), (truth, np.arange(n)),
+        (ByteTable.of_rows(n, [(np.arange(n), _mode_lines(current, f.futures, f.scores))]), np.arange(n)),
+    ], _ENTITIES_KEY).objects()
+    # A join per sample of its entities (joining all and cutting would copy every byte twice).
+    rows = entities.tolist()
+    return [b"".join(rows[a:b]) for a, b in itertools.pairwise(bounds.tolist())]
 
 
 def legend_scene(frame: str, now_ns: int, at: tuple[float, float]) -> bytes:
@@ -178,11 +211,15 @@ def _string_field(number: int, text: str) -> bytes:
     return field_key(number) + _varint(len(data)) + data if data else b""
 
 
-@lru_cache(maxsize=1 << 16)  # track ids recur in the samples of a log's sliding windows
-def _pair(key: str, value: str) -> bytes:
+def _uncached_pair(key: str, value: str) -> bytes:
     """A ``SceneEntity.metadata`` record of one ``KeyValuePair``."""
-    pair = _string_field(KeyValuePair.KEY_FIELD_NUMBER, key) + _string_field(KeyValuePair.VALUE_FIELD_NUMBER, value)
+    data = value.encode()
+    pair = _string_field(KeyValuePair.KEY_FIELD_NUMBER, key) + (
+        field_key(KeyValuePair.VALUE_FIELD_NUMBER) + _varint(len(data)) + data if data else b"")
     return _METADATA_KEY + _varint(len(pair)) + pair
+
+
+_pair = lru_cache(maxsize=1 << 16)(_uncached_pair)  # track ids recur in the samples of a log's sliding windows
 
 
 @cache
@@ -195,17 +232,16 @@ def _sphere_template(object_type: str) -> Template:
         size=Vector3(x=diameter, y=diameter, z=diameter), color=colour)]), 2)
 
 
-def _spheres(object_types: Sequence[str], at: NDArrayFloat) -> list[bytes]:
-    """Each target's sphere record at ``at`` (N, 2) metres."""
-    out = [b""] * len(object_types)
-    for object_type in set(object_types):
-        rows = [j for j, t in enumerate(object_types) if t == object_type]
-        for j, record in zip(rows, _sphere_template(object_type).rows([at[rows, 0], at[rows, 1]]), strict=True):
-            out[j] = record
-    return out
+def _spheres(types: np.ndarray, type_of: NDArrayInt, at: NDArrayFloat) -> ByteTable:
+    """Each target's sphere record at ``at`` (N, 2) metres, its type ``types[type_of]``."""
+    blocks = []
+    for code, object_type in enumerate(types.tolist()):
+        rows = np.flatnonzero(type_of == code)
+        blocks.append((rows, _sphere_template(str(object_type)).fill([at[rows, 0], at[rows, 1]])))
+    return ByteTable.of_rows(len(type_of), blocks)
 
 
-def _observed_lines(history: NDArrayFloat, truth: NDArrayFloat, current: NDArrayFloat) -> list[bytes]:
+def _observed_lines(history: NDArrayFloat, truth: NDArrayFloat, current: NDArrayFloat) -> tuple[ByteTable, ByteTable]:
     """Each target's history line (its finite observed points, when there are 2) and true-future line (the
     current point and the finite future ones, when there are any), as ``SceneEntity.lines`` records."""
     seen = np.asarray(np.isfinite(history).all(axis=2), bool)
@@ -213,49 +249,61 @@ def _observed_lines(history: NDArrayFloat, truth: NDArrayFloat, current: NDArray
     ahead = np.asarray(np.isfinite(truth).all(axis=2), bool)
     future = np.concatenate([np.asarray(ahead.any(axis=1), bool)[:, None], ahead], axis=1)
     drawn = np.concatenate([current[:, None], truth], axis=1)
-    past = _line_records(history[seen], seen.sum(axis=1), 0.05, HISTORY_RGBA)
-    coming = _line_records(drawn[future], future.sum(axis=1), 0.1, TRUTH_RGBA)
-    return [a + b for a, b in zip(past, coming, strict=True)]
+    return (_line_records(history[seen], seen.sum(axis=1), 0.05, HISTORY_RGBA),
+            _line_records(drawn[future], future.sum(axis=1), 0.1, TRUTH_RGBA))
 
 
 def _line_records(points: NDArrayFloat, counts: NDArrayInt, thickness: float,
-                  colour: tuple[float, float, float, float]) -> list[bytes]:
+                  colour: tuple[float, float, float, float]) -> ByteTable:
     """A ``SceneEntity.lines`` record per target of its ``counts`` points (consecutive in ``points``; b"" where
-    it has none)."""
+    it has none): the records of targets with as many points are one numpy block."""
     snapped = snap(points, POSITION_QUANTUM)
-    blob, size = _point_template().fill([snapped[:, 0], snapped[:, 1]]).tobytes(), _point_template().size
-    head, tail = _line_head(thickness), _line_colour(colour)
-    out, at = [], 0
-    for count in counts.tolist():
-        if count:
-            body = head + blob[at * size : (at + count) * size] + tail
-            out.append(_LINES_KEY + _varint(len(body)) + body)
-            at += count
-        else:
-            out.append(b"")
-    return out
+    filled, size = _point_template().fill([snapped[:, 0], snapped[:, 1]]), _point_template().size
+    head, tail = np.frombuffer(_line_head(thickness), np.uint8), np.frombuffer(_line_colour(colour), np.uint8)
+    starts = np.cumsum(counts) - counts
+    blocks = []
+    for count in np.unique(counts).tolist():
+        rows = np.flatnonzero(counts == count)
+        if count == 0:
+            blocks.append((rows, np.zeros((len(rows), 0), np.uint8)))
+            continue
+        key = np.frombuffer(_LINES_KEY + varint(len(head) + count * size + len(tail)), np.uint8)
+        block = np.empty((len(rows), len(key) + len(head) + count * size + len(tail)), np.uint8)
+        block[:, : len(key)], block[:, len(key) : len(key) + len(head)], block[:, -len(tail) :] = key, head, tail
+        block[:, len(key) + len(head) : -len(tail)] = filled[starts[rows][:, None] + np.arange(count)].reshape(
+            len(rows), count * size)
+        blocks.append((rows, block))
+    return ByteTable.of_rows(len(counts), blocks)
 
 
-def _mode_lines(current: NDArrayFloat, futures: NDArrayFloat, scores: NDArrayFloat) -> bytes:
-    """The ``SceneEntity.lines`` records of every target's K modes (each from the current point), target by
-    target: records of equal length (one head, T + 1 points, a colour of fixed size), so numpy lays them out."""
+def _mode_lines(current: NDArrayFloat, futures: NDArrayFloat, scores: NDArrayFloat) -> NDArrayByte:
+    """(N, width) the ``SceneEntity.lines`` records of every target's K modes (each from the current point):
+    records of equal length (one head, T + 1 points, a colour of fixed size), so numpy lays them out."""
     n, k, t = futures.shape[:3]
     if n * k == 0:
-        return b""
-    modes = np.empty((n, k, t + 1, 2))
-    modes[:, :, 0] = current[:, None]
-    modes[:, :, 1:] = futures
-    points = snap(modes.reshape(-1, 2), POSITION_QUANTUM)
-    filled = _point_template().fill([points[:, 0], points[:, 1]]).reshape(n * k, -1)
+        return np.zeros((n, 0), np.uint8)
     top = np.maximum(scores.max(axis=1, keepdims=True), 1e-12)
     alpha = np.rint(100 * (0.25 + 0.75 * np.clip(scores / top, 0.0, 1.0))).astype(np.int64)  # 1% steps
     levels, which = np.unique(alpha, return_inverse=True)
     colours = [_line_colour((*MODE_RGB, a / 100)) for a in levels.tolist()]
     if len({len(c) for c in colours}) != 1:  # every channel is nonzero, so every colour has the same fields
         raise RuntimeError("mode colours differ in size")
-    colour_rows = np.frombuffer(b"".join(colours), np.uint8).reshape(len(colours), -1)[which.ravel()]
-    head = _line_head(0.08)
-    body = len(head) + filled.shape[1] + colour_rows.shape[1]
-    prefix = np.frombuffer(_LINES_KEY + varint(body) + head, np.uint8)
-    records = np.concatenate([np.broadcast_to(prefix, (n * k, len(prefix))), filled, colour_rows], axis=1)
-    return records.tobytes()
+    template = _point_template()
+    head, points_size, colour_size = _line_head(0.08), (t + 1) * template.size, len(colours[0])
+    prefix = np.frombuffer(_LINES_KEY + varint(len(head) + points_size + colour_size) + head, np.uint8)
+    # The records are written in place (no per-point array filled and then copied in): prefix, points, colour.
+    records = np.empty((n * k, len(prefix) + points_size + colour_size), np.uint8)
+    records[:, : len(prefix)] = prefix
+    points = records[:, len(prefix) : len(prefix) + points_size]
+    points.shape = (n * k, t + 1, template.size)  # a view of the records (assigning a shape never copies)
+    points[:] = np.frombuffer(template.data, np.uint8)
+    for axis, offsets in enumerate(template.offsets):
+        values = np.empty((n, k, t + 1))
+        values[:, :, 0] = current[:, None, axis]
+        values[:, :, 1:] = futures[..., axis]
+        raw = snap(values, POSITION_QUANTUM).astype("<f8").reshape(n * k, t + 1, 1)
+        for at in offsets:
+            put_doubles(points[:, :, at : at + 8], raw)
+    records[:, len(prefix) + points_size :] = np.frombuffer(b"".join(colours), np.uint8).reshape(
+        len(colours), -1)[which.ravel()]
+    return records.reshape(n, -1)

@@ -64,7 +64,16 @@ from mcap_protobuf.schema import build_file_descriptor_set
 
 from logpipe.mcap.bulk import Pieces
 from logpipe.mcap.merge import NewChannel
-from logpipe.mcap.protobuf_splice import Template, field_key, serialize, varint
+from logpipe.mcap.protobuf_splice import (
+    ByteTable,
+    Template,
+    concatenated,
+    field_key,
+    length_delimited_rows,
+    serialize,
+    timestamps,
+    varint,
+)
 from logpipe.types import OBJECT_TYPES, NDArrayBool, NDArrayFloat, NDArrayInt
 
 SCHEMA_ENCODING = "protobuf"
@@ -272,9 +281,9 @@ def agent_scene_pieces(agents: LogAgents, frame: str, log_starts: NDArrayInt | N
     an agent of the log before it. Built for a batch of logs at once, the numpy work is per batch, not per log.
 
     A message is its deletions, then per row the entity's key and length, the step's timestamp and frame, the
-    track's id and metadata and the row's geometry. Each distinct part is serialized once; numpy orders
-    references to them (an object array) and one ``bytes.join`` copies them, so no Python runs per row
-    beyond cutting the geometry rows out of numpy's buffer.
+    track's id and metadata and the row's geometry. Each distinct part is serialized once; numpy copies them into
+    blocks of rows whose parts have the same lengths (``protobuf_splice.length_delimited_rows``) and each row's
+    entity is cut out of its block as one bytes object, so no Python runs per row or per part.
     """
     n = len(agents.ts)
     if n == 0:
@@ -282,16 +291,14 @@ def agent_scene_pieces(agents: LogAgents, frame: str, log_starts: NDArrayInt | N
     changes = np.diff(agents.steps) != 0
     starts = np.concatenate([[0], np.flatnonzero(changes) + 1])
     step = np.concatenate([[0], np.cumsum(changes)]).astype(np.int64)  # index of the row's message
-    step_ts = agents.ts[starts].tolist()
-    pool = _Pool()
-    frame_part, stamp_key = serialize(SceneEntity(frame_id=frame)), field_key(SceneEntity.TIMESTAMP_FIELD_NUMBER)
-    stamps = [timestamp_bytes(t) for t in step_ts]
-    step_id = pool.add([stamp_key + varint(len(t)) + t + frame_part for t in stamps])
+    stamps = stamp_table(agents.ts[starts])
+    steps = np.arange(len(starts))
+    step_parts = concatenated([(concatenated([(stamps, steps)], field_key(SceneEntity.TIMESTAMP_FIELD_NUMBER)), steps),
+                               (ByteTable.of_items([serialize(SceneEntity(frame_id=frame))]), np.zeros_like(steps))])
     last_steps = np.zeros(len(starts), bool)
     if log_starts is not None and len(log_starts):
         last_steps[np.asarray(log_starts, np.int64)[np.asarray(log_starts) > 0] - 1] = True
     del_step, deletions = _departures(agents.track, step, stamps, agents.track_names, last_steps)
-    del_id = pool.add(deletions)
 
     # One part per distinct (track, kind): its id and metadata.
     per_track = max(len(agents.kinds), 1)
@@ -303,62 +310,43 @@ def agent_scene_pieces(agents: LogAgents, frame: str, log_starts: NDArrayInt | N
         track_parts.append(serialize(SceneEntity(id=name, metadata=[
             KeyValuePair(key="track_id", value=name), KeyValuePair(key="object_type", value=object_type),
             KeyValuePair(key="role", value=role)])))
-    track_id = pool.add(track_parts)
 
     # Geometry rows: one template per (object type, arrow or not), filled by numpy.
     qz, qw = _half_angles(np.where(agents.has_heading, agents.yaw, 0.0))
-    geo_id = np.zeros(n, np.int64)
     type_code = [OBJECT_TYPES.index(t if t in AGENT_SHAPES else "unknown") for t, _ in agents.kinds]
     variant = np.asarray(type_code, np.int64)[agents.kind] * 2 + agents.has_heading.astype(np.int64)
+    geometry = []
     for v in np.unique(variant).tolist():
         rows = np.flatnonzero(variant == v)
         arrow = bool(v % 2)
         x, y = snap(agents.x[rows], POSITION_QUANTUM), snap(agents.y[rows], POSITION_QUANTUM)
-        columns = [x, y, qz[rows], qw[rows]] if arrow else [x, y]
-        geo_id[rows] = pool.add(_agent_template(OBJECT_TYPES[v // 2], arrow).rows(columns))
+        geometry.append((rows, _agent_template(OBJECT_TYPES[v // 2], arrow).fill(
+            [x, y, qz[rows], qw[rows]] if arrow else [x, y])))
+    # Each row's entity (its key and length, the step's timestamp and frame, the track's part, its geometry) is
+    # one bytes object, cut out of numpy blocks of the rows whose parts have the same lengths.
+    entities, entity_lengths = length_delimited_rows(field_key(SceneUpdate.ENTITIES_FIELD_NUMBER), [
+        (step_parts, step), (ByteTable.of_items(track_parts), combo.reshape(-1)),
+        (ByteTable.of_rows(n, geometry), np.arange(n))])
 
-    lengths = pool.lengths()
-    body = lengths[step_id[step]] + lengths[track_id[combo]] + lengths[geo_id]
-    key = field_key(SceneUpdate.ENTITIES_FIELD_NUMBER)
-    unique_body, body_code = np.unique(body, return_inverse=True)
-    head_id = pool.add([key + varint(m) for m in unique_body.tolist()])[body_code]
-
-    # Pieces in message order: per step its deletions, then per row its four parts.
+    # Pieces in message order: per step its deletions, then its rows' entities.
     dels = np.bincount(del_step, minlength=len(starts))
-    block = np.cumsum(dels + 4 * np.diff(np.append(starts, n)))
+    block = np.cumsum(dels + np.diff(np.append(starts, n)))
     block_start = np.concatenate([[0], block[:-1]])
-    order = np.empty(int(block[-1]), np.int64)
+    objects = np.empty(int(block[-1]), object)
     rank = np.arange(len(del_step)) - (np.cumsum(dels) - dels)[del_step]  # del_step is sorted
-    order[block_start[del_step] + rank] = del_id
-    at_row = block_start[step] + dels[step] + 4 * (np.arange(n) - starts[step])
-    order[at_row], order[at_row + 1], order[at_row + 2], order[at_row + 3] = (
-        head_id, step_id[step], track_id[combo], geo_id)
-    return Pieces(pool.objects()[order], pool.lengths()[order], np.append(block_start, len(order)))
+    at_deletion = block_start[del_step] + rank
+    deletion_objects = np.empty(len(deletions), object)
+    deletion_objects[:] = deletions  # bytes as they are (a list would become a fixed-width array first)
+    objects[at_deletion] = deletion_objects
+    at_row = block_start[step] + dels[step] + (np.arange(n) - starts[step])
+    objects[at_row] = entities
+    lengths = np.empty(len(objects), np.int64)
+    lengths[at_deletion] = np.fromiter(map(len, deletions), np.int64, len(deletions))
+    lengths[at_row] = entity_lengths
+    return Pieces(objects, lengths, np.append(block_start, len(objects)))
 
 
-class _Pool:
-    """Distinct byte strings, numbered in the order added."""
-
-    def __init__(self) -> None:
-        self._items: list[bytes] = []
-
-    def add(self, items: list[bytes]) -> NDArrayInt:
-        """Append ``items``; their numbers."""
-        first = len(self._items)
-        self._items.extend(items)
-        return np.arange(first, len(self._items), dtype=np.int64)
-
-    def lengths(self) -> NDArrayInt:
-        return np.fromiter(map(len, self._items), np.int64, len(self._items))
-
-    def objects(self) -> Any:
-        """The items as a numpy object array (fancy indexing copies references, not bytes)."""
-        out = np.empty(len(self._items), object)
-        out[:] = self._items
-        return out
-
-
-def _departures(track: NDArrayInt, step: NDArrayInt, stamps: list[bytes], names: list[str],
+def _departures(track: NDArrayInt, step: NDArrayInt, stamps: ByteTable, names: list[str],
                 last_steps: NDArrayBool) -> tuple[NDArrayInt, list[bytes]]:
     """The serialized ``deletions`` records of agents seen at a step and absent at the next one (unless the step
     is its log's last, ``last_steps``), and the (sorted) index of the step whose message carries each; ``stamps``:
@@ -366,18 +354,23 @@ def _departures(track: NDArrayInt, step: NDArrayInt, stamps: list[bytes], names:
     order = np.lexsort((step, track))
     t_s, s_s = track[order], step[order]
     continues = (t_s[1:] == t_s[:-1]) & (s_s[1:] == s_s[:-1] + 1)
-    leaving = np.flatnonzero(~np.concatenate([continues, [False]]) & (s_s + 1 < len(stamps)) & ~last_steps[s_s])
+    steps = len(stamps.lengths)
+    leaving = np.flatnonzero(~np.concatenate([continues, [False]]) & (s_s + 1 < steps) & ~last_steps[s_s])
     at = s_s[leaving] + 1
     by_step = np.argsort(at, kind="stable")
     leaving, at = leaving[by_step], at[by_step]
     # SceneUpdate.deletions = [{timestamp, type MATCHING_ID (0, so not written), id}], spliced per the wire format.
-    ids = [_ID_KEY + varint(len(b)) + b for b in (n.encode() for n in names)]
-    stamped = [_STAMP_KEY + varint(len(t)) + t for t in stamps]
-    records = []
-    for a, t in zip(at.tolist(), t_s[leaving].tolist(), strict=True):
-        body = stamped[a] + ids[t]
-        records.append(_DELETIONS_KEY + varint(len(body)) + body)
-    return at.astype(np.int64), records
+    ids = ByteTable.of_items([_ID_KEY + varint(len(b)) + b for b in (n.encode() for n in names)])
+    stamped = concatenated([(stamps, np.arange(steps))], _STAMP_KEY)
+    records, _ = concatenated([(stamped, at), (ids, t_s[leaving])], _DELETIONS_KEY).objects()
+    return at.astype(np.int64), records.tolist()
+
+
+def stamp_table(ns: NDArrayInt) -> ByteTable:
+    """``timestamp_bytes`` of each of ``ns``, by numpy (before the epoch: by the ``Timestamp`` class)."""
+    if len(ns) and int(np.min(ns)) < 0:
+        return ByteTable.of_items([timestamp_bytes(t) for t in np.asarray(ns).tolist()])
+    return timestamps(ns)
 
 
 def timestamp_bytes(ns: int) -> bytes:
@@ -421,14 +414,17 @@ def _posed_rows(template: Callable[[bool], Template], message_class: Any, ts: ND
     by ``yaw`` about z (identity where NaN)."""
     turned = np.isfinite(yaw)
     qz, qw = _half_angles(np.where(turned, yaw, 0.0))
-    bodies: list[bytes] = [b""] * len(ts)
+    blocks = []
     for flag in (True, False):
         rows = np.flatnonzero(turned == flag)
         px, py = snap(x[rows], POSITION_QUANTUM), snap(y[rows], POSITION_QUANTUM)
-        columns = [px, py, qz[rows], qw[rows]] if flag else [px, py]
-        for i, body in zip(rows.tolist(), template(flag).rows(columns) if len(rows) else [], strict=True):
-            bodies[i] = body
-    return [serialize(message_class(timestamp=timestamp(t))) + b for t, b in zip(ts.tolist(), bodies, strict=True)]
+        blocks.append((rows, template(flag).fill([px, py, qz[rows], qw[rows]] if flag else [px, py])))
+    # Each message: its timestamp field (numpy-encoded), then its template row.
+    rows = np.arange(len(ts))
+    stamp = concatenated([(stamp_table(ts), rows)], field_key(message_class.TIMESTAMP_FIELD_NUMBER))
+    messages, _ = concatenated([(stamp, rows), (ByteTable.of_rows(len(ts), blocks), rows)]).objects()
+    out: list[bytes] = messages.tolist()
+    return out
 
 
 def poses_in_frame(frame: str, ts: NDArrayInt, x: NDArrayFloat, y: NDArrayFloat,

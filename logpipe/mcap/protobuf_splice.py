@@ -9,6 +9,11 @@ its fields' records in any order, the concatenation of two serializations of one
 (repeated fields append), and a length-delimited field is its key, the varint length and the payload. Parts
 are joined in field-number order, so the bytes equal the class's own serialization except that a double
 that is exactly 0 is written rather than left out (both parse to the same message).
+
+For whole batches, ``ByteTable`` holds parts grouped by length as 2-D uint8 tables, ``varints`` and ``timestamps``
+encode arrays of integers by numpy, and ``concatenated`` builds a row per message (or entity) from one part of each
+table per row: rows whose parts have equal lengths form one block that numpy fills column range by column range,
+and each row is cut out of its block as one bytes object in C, so no Python runs per row or per part.
 """
 
 from __future__ import annotations
@@ -45,6 +50,17 @@ def serialize(message: Any) -> bytes:
 def _sentinels(count: int, base: int) -> list[float]:
     # Subnormal doubles: exact, nonzero (so the field is written) and never a real size, colour or position.
     return [struct.unpack("<d", struct.pack("<Q", 0x000A_5E47_0000_0000 + base + i))[0] for i in range(count)]
+
+
+_DOUBLE = np.dtype("V8")
+"""8 raw bytes: doubles copied as one unit each (their places in a record are not 8-byte aligned, and copying them
+as eight single bytes each is several times slower)."""
+
+
+def put_doubles(target: NDArrayByte, doubles: np.ndarray) -> None:
+    """Write ``doubles`` (shape ``target.shape[:-1] + (1,)``, dtype ``_DOUBLE`` or ``<f8``) into ``target``, a
+    uint8 array whose last axis is 8 contiguous bytes (a view into records)."""
+    target.view(_DOUBLE)[...] = doubles.view(_DOUBLE) if doubles.dtype != _DOUBLE else doubles
 
 
 class Template:
@@ -88,17 +104,147 @@ class Template:
         n = len(columns[0]) if columns else 0
         out = np.tile(np.frombuffer(self.data, np.uint8), (n, 1))
         for values, offsets in zip(columns, self.offsets, strict=True):
-            raw = np.ascontiguousarray(values, dtype="<f8").view(np.uint8).reshape(n, 8)
+            raw = np.ascontiguousarray(values, dtype="<f8").reshape(n, 1).view(_DOUBLE)
             for at in offsets:
-                out[:, at : at + 8] = raw
+                put_doubles(out[:, at : at + 8], raw)
         return out
 
     def rows(self, columns: Sequence[NDArrayFloat]) -> list[bytes]:
         """``fill`` as one bytes object per row."""
-        filled, size = self.fill(columns), self.size
-        if len(filled) and (filled[:, -1] != 0).all():
-            # numpy's fixed-width bytes make the objects in C; they drop trailing NUL bytes, hence the check.
-            rows: list[bytes] = filled.view(f"S{size}").ravel().tolist()
-            return rows
-        blob = filled.tobytes()
-        return [blob[i : i + size] for i in range(0, len(blob), size)]
+        return _row_bytes(self.fill(columns))
+
+
+class ByteTable:
+    """Byte strings grouped by length into 2-D uint8 tables, so that numpy copies whole items (``take``) instead of
+    Python handling one object per use.
+
+    Attributes:
+        lengths: (items,) each item's length; ``slot``: (items,) its row in the table of its length.
+    """
+
+    def __init__(self, tables: dict[int, NDArrayByte], slot: np.ndarray, lengths: np.ndarray) -> None:
+        self.tables, self.slot, self.lengths = tables, slot, lengths
+
+    @classmethod
+    def of_items(cls, items: Sequence[bytes]) -> ByteTable:
+        """The table of these byte strings."""
+        lengths = np.fromiter(map(len, items), np.int64, len(items))
+        slot = np.zeros(len(items), np.int64)
+        tables = {}
+        for width in np.unique(lengths).tolist():
+            which = np.flatnonzero(lengths == width)
+            slot[which] = np.arange(len(which))
+            tables[width] = np.frombuffer(b"".join([items[i] for i in which.tolist()]), np.uint8).reshape(
+                len(which), width)
+        return cls(tables, slot, lengths)
+
+    @classmethod
+    def of_rows(cls, count: int, blocks: Sequence[tuple[np.ndarray, NDArrayByte]]) -> ByteTable:
+        """``count`` items given as blocks (item indexes, (len(indexes), width) uint8 rows), every item in one
+        block (e.g. ``Template.fill`` per template)."""
+        lengths = np.zeros(count, np.int64)
+        slot = np.zeros(count, np.int64)
+        parts: dict[int, list[NDArrayByte]] = {}
+        for items, rows in blocks:
+            width = rows.shape[1]
+            lengths[items] = width
+            slot[items] = sum(len(p) for p in parts.get(width, [])) + np.arange(len(items))
+            parts.setdefault(width, []).append(rows)
+        return cls({w: np.concatenate(p) if len(p) > 1 else p[0] for w, p in parts.items()}, slot, lengths)
+
+    def take(self, codes: np.ndarray, width: int) -> NDArrayByte:
+        """(len(codes), width) rows of items ``codes``, all ``width`` long."""
+        rows: NDArrayByte = self.tables[width][self.slot[codes]]
+        return rows
+
+    def masked(self, keep: np.ndarray, empty: ByteTable) -> ByteTable:
+        """These items where ``keep``, else b"" (``empty``: a table holding only b"")."""
+        lengths = np.where(keep, self.lengths, 0)
+        tables = dict(self.tables)
+        tables.setdefault(0, empty.tables[0])
+        return ByteTable(tables, np.where(keep, self.slot, 0), lengths)
+
+    def objects(self) -> tuple[np.ndarray, np.ndarray]:
+        """Each item as bytes, in an object array, and the (items,) lengths."""
+        out = np.empty(len(self.lengths), object)
+        for width, table in self.tables.items():
+            items = np.flatnonzero(self.lengths == width)
+            slots = self.slot[items]
+            in_order = len(slots) == len(table) and bool((slots == np.arange(len(slots))).all())
+            out[items] = _row_bytes(np.ascontiguousarray(table if in_order else table[slots]))
+        return out, self.lengths
+
+
+def concatenated(parts: Sequence[tuple[ByteTable, np.ndarray]], key: bytes | None = None) -> ByteTable:
+    """Per row i the concatenation of each part's item ``codes[i]`` (parts as (table, (rows,) codes)); with a
+    ``key``, as a length-delimited field: the key, the varint length, then that concatenation.
+
+    Rows whose parts have the same lengths form a block that numpy fills column range by column range: no Python
+    per row or per part."""
+    n = len(parts[0][1]) if parts else 0
+    widths_of_row = np.stack([table.lengths[codes] for table, codes in parts], axis=1) if n else np.zeros((0, 1))
+    # One integer per combination of widths (np.unique over rows sorts far slower than over integers).
+    combined = np.zeros(n, np.int64)
+    for column in widths_of_row.T:
+        combined = combined * (int(column.max(initial=0)) + 1) + column
+    _, first, cls_of_row = np.unique(combined, return_index=True, return_inverse=True)
+    blocks = []
+    for k, widths in enumerate(widths_of_row[first].astype(np.int64).tolist()):
+        rows = np.flatnonzero(cls_of_row == k)
+        head = b"" if key is None else key + varint(sum(widths))
+        block = np.empty((len(rows), len(head) + sum(widths)), np.uint8)
+        block[:, : len(head)] = np.frombuffer(head, np.uint8)
+        at = len(head)
+        for (table, codes), width in zip(parts, widths, strict=True):
+            block[:, at : at + width] = table.take(codes[rows], width)
+            at += width
+        blocks.append((rows, block))
+    return ByteTable.of_rows(n, blocks)
+
+
+def length_delimited_rows(key: bytes, parts: Sequence[tuple[ByteTable, np.ndarray]]) -> tuple[np.ndarray, np.ndarray]:
+    """``concatenated(parts, key)`` as an object array of bytes and their (rows,) lengths."""
+    return concatenated(parts, key).objects()
+
+
+def varints(values: np.ndarray) -> ByteTable:
+    """The base-128 varint of each non-negative integer (< 2**63), encoded by numpy."""
+    values = np.asarray(values, np.uint64)
+    size = np.ones(len(values), np.int64)
+    for k in range(1, 10):
+        size += values >= np.uint64(1 << (7 * k))
+    blocks = []
+    for width in np.unique(size).tolist():
+        rows = np.flatnonzero(size == width)
+        shifts = np.arange(width, dtype=np.uint64) * np.uint64(7)
+        digits = ((values[rows, None] >> shifts) & np.uint64(0x7F)).astype(np.uint8)
+        digits[:, :-1] |= 0x80
+        blocks.append((rows, digits))
+    return ByteTable.of_rows(len(values), blocks)
+
+
+def timestamps(ns: np.ndarray) -> ByteTable:
+    """Each ``google.protobuf.Timestamp`` of ns since the epoch, serialized (fields left out where 0, as the
+    class does), by numpy; ``ns`` >= 0."""
+    ns = np.asarray(ns, np.int64)
+    if len(ns) and int(ns.min()) < 0:
+        raise ValueError("timestamps before the epoch are serialized by the Timestamp class")
+    seconds, nanos = np.divmod(ns, 1_000_000_000)
+    empty, rows = ByteTable.of_items([b""]), np.arange(len(ns))
+    return concatenated([(ByteTable.of_items([b"", b"\x08"]), (seconds > 0).astype(np.int64)),
+                         (varints(seconds).masked(seconds > 0, empty), rows),
+                         (ByteTable.of_items([b"", b"\x10"]), (nanos > 0).astype(np.int64)),
+                         (varints(nanos).masked(nanos > 0, empty), rows)])
+
+
+def _row_bytes(block: NDArrayByte) -> list[bytes]:
+    """Each row of a C-contiguous (n, size) uint8 array as bytes."""
+    size = block.shape[1]
+    if size == 0:
+        return [b""] * len(block)
+    if len(block) and (block[:, -1] != 0).all():
+        # numpy's fixed-width bytes make the objects in C; they drop trailing NUL bytes, hence the check.
+        rows: list[bytes] = block.view(f"S{size}").ravel().tolist()
+        return rows
+    blob = block.tobytes()
+    return [blob[i : i + size] for i in range(0, len(blob), size)]

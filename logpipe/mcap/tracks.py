@@ -16,10 +16,12 @@ Message log times are the true timestamps of the steps; the ``logpipe`` metadata
 and the centre. What each channel is for and costs, and why both the JSON and the scene stay: ``docs/formats.md``
 (MCAP outputs).
 
-Speed: every log of an ingest batch is built at once (``_BatchMessages``: one pass of numpy over the batch's rows
-for the scenes, the JSON, the ego's poses and transforms; tracks coded apart per log), each message left as
-pieces (``bulk.Pieces``) that are joined only into its log's chunk, and each file is laid out whole by
-``logpipe.mcap.bulk`` (``make bench``'s ``mcap_channels`` measures each channel's share).
+Speed: the logs of an ingest batch are built a group at a time (``GROUP_ROWS``; ``_BatchMessages``: one pass of
+numpy over the group's rows for the scenes, the JSON, the ego's poses and transforms; tracks coded apart per log),
+each message left as pieces (``bulk.Pieces``: a scene row is one piece, cut out of a numpy block) that are joined
+only into its log's chunk, and each file is laid out whole by ``logpipe.mcap.bulk``, compressed and written on a
+thread while the next group is built (``bulk.BackgroundWrites``); ``make bench``'s ``mcap_channels`` measures each
+channel's share.
 """
 
 from __future__ import annotations
@@ -43,10 +45,10 @@ from logpipe.contracts import json_schema
 from logpipe.dataset.shards import log_runs
 from logpipe.maps import MapStore
 from logpipe.mcap import foxglove as fx
-from logpipe.mcap.bulk import BulkMcap, Pieces
+from logpipe.mcap.bulk import BackgroundWrites, BulkMcap, Pieces
 from logpipe.mcap.map_scene import MAP_TOPIC, map_scene_update
 from logpipe.storage.io import as_numpy
-from logpipe.storage.write_journal import record_written
+from logpipe.storage.write_journal import record_written_files
 from logpipe.types import LogMeta, Role
 
 AGENTS_TOPIC = "/logpipe/agents"
@@ -162,8 +164,9 @@ class LogRows:
     kinds: list[tuple[str, str]]
 
     @classmethod
-    def of(cls, tracks: pa.Table) -> LogRows:
-        """The rows of ``tracks`` (canonical track-table columns)."""
+    def of(cls, tracks: pa.Table, json_heading: bool | None = None) -> LogRows:
+        """The rows of ``tracks`` (canonical track-table columns); ``json_heading``: whether the JSON carries
+        ``heading`` (None: unless the column is all null in ``tracks``)."""
         heading_col = tracks.column("heading")
         x, y = as_numpy(tracks.column("x")), as_numpy(tracks.column("y"))
         track_codes, track_names = _codes(tracks.column("track_id"))
@@ -176,7 +179,7 @@ class LogRows:
                    "object_type": JsonColumn.of_codes(type_codes, type_names),
                    "role": JsonColumn.of_codes(role_codes, role_names),
                    "x": JsonColumn.of_floats(x), "y": JsonColumn.of_floats(y)}
-        if heading_col.null_count < len(heading_col):
+        if heading_col.null_count < len(heading_col) if json_heading is None else json_heading:
             null = np.isnan(heading)
             texts = _json_floats(np.where(null, 0.0, heading))
             for i in np.flatnonzero(null).tolist():
@@ -200,9 +203,11 @@ def write_log_mcap(log_id: str, tracks: pa.Table | LogRows, target: Path, map_id
     per-file temp-and-rename would cost more than the MCAP itself at millions of small logs.
     """
     rows = tracks if isinstance(tracks, LogRows) else LogRows.of(tracks)
-    files = _write_logs(rows, [(log_id, 0, len(rows))], {log_id: target}, {log_id: map_id},
-                        {log_id: lanes} if lanes is not None else {})
-    return files[target][0]
+    with BackgroundWrites() as files:
+        counts = _write_logs(rows, [(log_id, 0, len(rows))], {log_id: target}, {log_id: map_id},
+                             {log_id: lanes} if lanes is not None else {}, files)
+        record_written_files(files.finish())  # written in place (in staging): the proof a later cleanup needs
+    return counts[target]
 
 
 def write_log_mcaps(tracks: pa.Table, metas: list[LogMeta], folder: Path,
@@ -213,25 +218,48 @@ def write_log_mcaps(tracks: pa.Table, metas: list[LogMeta], folder: Path,
     return sum(n for n, _, _ in write_log_mcap_files(tracks, metas, folder, lanes).values())
 
 
+GROUP_ROWS = 32_768
+"""Rows of the logs built at once. A batch's logs are built a group at a time (still one numpy pass per group, not
+per log) so that the files of one group are compressed and written on the writing thread while the next group is
+built, instead of all the writing waiting for all the building."""
+
+
 def write_log_mcap_files(tracks: pa.Table, metas: list[LogMeta], folder: Path,
                          lanes: dict[str, MapStore] | None = None) -> dict[Path, tuple[int, int, str]]:
     """``write_log_mcaps``, returning (messages, bytes, sha256) per file written (what the manifest records, so
     nobody reads the files back to hash them)."""
-    # Log boundaries from the log codes (no string per row), every column converted once for the batch.
+    # Log boundaries from the log codes (no string per row), every column converted once per group of logs.
     logs = pc.dictionary_encode(tracks.column("log_id")).combine_chunks()
     codes, names = as_numpy(logs.indices), logs.dictionary.to_pylist()
     starts, ends = log_runs(codes)
     runs = [(str(names[codes[lo]]), lo, hi) for lo, hi in zip(starts.tolist(), ends.tolist(), strict=True)]
     maps = {m.log_id: m.map_id for m in metas}
     targets = {log_id: folder / f"{log_id}.mcap" for log_id, _, _ in runs}
-    return _write_logs(LogRows.of(tracks), runs, targets, maps, lanes or {})
+    counts: dict[Path, int] = {}
+    json_heading = tracks.column("heading").null_count < tracks.num_rows
+    with BackgroundWrites() as files:
+        group: list[tuple[str, int, int]] = []
+        for k, run in enumerate(runs):
+            group.append(run)
+            if k + 1 < len(runs) and runs[k + 1][2] - group[0][1] <= GROUP_ROWS:
+                continue
+            lo, hi = group[0][1], group[-1][2]
+            # Whether the JSON has ``heading`` stays the batch's choice, as when the batch was built at once.
+            rows = LogRows.of(tracks.slice(lo, hi - lo), json_heading)
+            counts |= _write_logs(rows, [(i, a - lo, b - lo) for i, a, b in group], targets, maps, lanes or {},
+                                  files)
+            group = []
+        written = files.finish()
+    record_written_files(written)  # written in place (in staging): the proof a later cleanup needs
+    return {target: (counts[target], *written[target]) for target in counts}
 
 
 def _write_logs(rows: LogRows, runs: list[tuple[str, int, int]], targets: dict[str, Path],
-                maps: dict[str, str | None], lanes: dict[str, MapStore]) -> dict[Path, tuple[int, int, str]]:
-    """Every log's MCAP, its messages built for all the logs at once (``_BatchMessages``) and cut per log."""
+                maps: dict[str, str | None], lanes: dict[str, MapStore], files: BackgroundWrites) -> dict[Path, int]:
+    """Every log's MCAP, its messages built for all the logs at once (``_BatchMessages``) and cut per log, handed
+    to ``files`` to be finished and written; the number of messages per file."""
     batch = _BatchMessages.of(rows, runs)
-    written = {}
+    written: dict[Path, int] = {}
     for i, (log_id, lo, hi) in enumerate(runs):
         a, b = batch.log_steps[i], batch.log_steps[i + 1]
         e, f = batch.log_ego[i], batch.log_ego[i + 1]
@@ -255,9 +283,8 @@ def _write_logs(rows: LogRows, runs: list[tuple[str, int, int]], targets: dict[s
             map_channel = _register_protobuf(writer, MAP_TOPIC, SceneUpdate)
             writer.log(map_channel, t0, [map_scene_update(store, WORLD_FRAME, t) for t in t0])
             count += len(t0)
-        size, digest = writer.write(targets[log_id])
-        record_written(targets[log_id])  # written in place (in staging): the proof a later cleanup needs
-        written[targets[log_id]] = (count, size, digest)
+        files.submit(writer.prepare(), targets[log_id])
+        written[targets[log_id]] = count
     return written
 
 
@@ -295,7 +322,14 @@ class _BatchMessages:
         log_steps = np.searchsorted(starts, [lo for _, lo, _ in runs] + [n]).tolist()
         # Tracks coded apart per log: a track id that recurs in another log of the batch is another agent.
         width = max(len(rows.track_names), 1)
-        tracks_local, track_index = np.unique(log_of_row * width + rows.track_codes, return_inverse=True)
+        tracks_local, first_row, track_index = np.unique(log_of_row * width + rows.track_codes, return_index=True,
+                                                         return_inverse=True)
+        # Each log's tracks numbered in the order they first appear in it (what orders a step's deletions), so a
+        # log's bytes do not depend on which other logs share its batch or group.
+        by_first = np.argsort(first_row, kind="stable")
+        rank = np.empty(len(by_first), np.int64)
+        rank[by_first] = np.arange(len(by_first))
+        tracks_local, track_index = tracks_local[by_first], rank[track_index.reshape(-1)]
         yaw, has_heading = fx.display_headings(track_index, rows.ts, rows.x, rows.y, rows.heading_values)
         names = [rows.track_names[c % width] for c in tracks_local.tolist()]
         agents = fx.LogAgents(steps=step, ts=rows.ts, x=rows.x, y=rows.y, yaw=yaw, has_heading=has_heading,

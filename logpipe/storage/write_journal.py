@@ -93,6 +93,23 @@ def record_written(path: Path) -> None:
         _append(root, [json.dumps([path.relative_to(root).as_posix(), *found]) + "\n"])
 
 
+def record_written_files(paths: Iterable[Path]) -> None:
+    """``record_written`` of many files at once: each folder's artifact root looked up once, one append per root
+    (ingest writes a thousand small MCAPs per batch into one staging folder)."""
+    roots: dict[Path, Path | None] = {}
+    lines: dict[Path, list[str]] = {}
+    for path in paths:
+        if path.name in _RESERVED:
+            continue
+        if path.parent not in roots:
+            roots[path.parent] = _artifact_root(path)
+        root, found = roots[path.parent], identity(path)
+        if root is not None and found is not None:
+            lines.setdefault(root, []).append(json.dumps([path.relative_to(root).as_posix(), *found]) + "\n")
+    for root, entries in lines.items():
+        _append(root, entries)
+
+
 def record_committed(root: Path, files: dict[str, Any]) -> None:
     """Record files a commit of ``root`` just named, by content (``{rel: {"bytes", "sha256"}}``, as logpipe itself
     computed them when writing): these entries are the same on every run that writes the same files."""

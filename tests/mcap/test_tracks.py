@@ -8,6 +8,7 @@ import math
 from pathlib import Path
 
 import pyarrow as pa
+import pytest
 from mcap.reader import make_reader
 
 from logpipe.contracts import conform, tracks_schema
@@ -118,3 +119,33 @@ def test_json_columns_cut_to_each_rows_json_dumps() -> None:
             assert text == ",".join(json.dumps(v) for v in values[lo:hi].tolist())
     names = JsonColumn.of_codes(np.array([2, 0, 2, 1]), ["a", 'q"uote', "é"])
     assert names.text[: names.offsets[4] - 1].decode() == ",".join(json.dumps(v) for v in ["é", "a", "é", 'q"uote'])
+
+
+def test_a_logs_file_does_not_depend_on_the_logs_built_with_it(tmp_path: Path,
+                                                              monkeypatch: pytest.MonkeyPatch) -> None:
+    # Two agents leave log L at the same step, so its scene there deletes both: the deletions follow the order the
+    # agents first appear in L, whatever log K (built with it, the same track ids in another order) holds.
+    import logpipe.mcap.tracks as tracks_module
+    from logpipe.types import LogMeta
+
+    def log(log_id: str, steps: list[list[str]]) -> pa.Table:
+        rows = [(s, t) for s, names in enumerate(steps) for t in names]
+        return conform(pa.table({
+            "log_id": [log_id] * len(rows), "timestamp_ns": pa.array([100 * s for s, _ in rows], pa.int64()),
+            "step": pa.array([s for s, _ in rows], pa.int32()), "track_id": [t for _, t in rows],
+            "object_type": ["pedestrian"] * len(rows), "role": ["other"] * len(rows),
+            "x": [float(i) for i in range(len(rows))], "y": [0.5] * len(rows),
+            "heading": pa.array([None] * len(rows), pa.float64()), "source_type": ["X"] * len(rows)}), tracks_schema())
+
+    k, lone = log("K", [["b", "a"], ["c"], ["c"]]), log("L", [["a", "b", "c"], ["c"], ["c"]])
+    metas = [LogMeta(i, "ethucy", f"{i}.txt", str(n) * 64, None, 10.0) for n, i in enumerate("KL")]
+    write_log_mcap("L", lone, tmp_path / "L.mcap", None)
+    for group_rows in (1, 1 << 20):  # each log a group of its own, and both logs in one group
+        monkeypatch.setattr(tracks_module, "GROUP_ROWS", group_rows)
+        folder = tmp_path / f"batch-{group_rows}"
+        tracks_module.write_log_mcaps(pa.concat_tables([k, lone]), metas, folder)
+        assert (folder / "L.mcap").read_bytes() == (tmp_path / "L.mcap").read_bytes()
+    with (tmp_path / "L.mcap").open("rb") as fh:
+        scenes = [m.data for _, c, m in make_reader(fh).iter_messages() if c.topic == SCENE_TOPIC]
+    update = fx.MESSAGE_CLASSES["foxglove.SceneUpdate"].FromString(scenes[1])
+    assert [d.id for d in update.deletions] == ["a", "b"]
