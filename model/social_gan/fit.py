@@ -86,13 +86,26 @@ def discriminator_step(gan: Gan, batch: SocialBatch) -> float:
 
 def generator_step(gan: Gan, batch: SocialBatch) -> tuple[float, float]:
     """One generator update: the adversarial loss of one sample plus ``l2_loss_weight`` x the variety loss over
-    ``best_k`` samples; returns (adversarial, variety) losses."""
+    ``best_k`` samples; returns (adversarial, variety) losses.
+
+    The variety loss is a minimum, so its gradient flows through each window's best sample alone: the ``best_k``
+    samples are decoded without autograd, then only the chosen ones and the adversarial sample are decoded again
+    with it (the same value and gradient as backpropagating through all ``best_k``, at 2/``best_k`` of the
+    decoder's backward; ``tests/model/test_social_speed.py`` checks it against the direct form)."""
     config = gan.config
     obs, obs_rel, fut_rel = _split(batch, config.obs_len)
-    fake_rel = gan.generator.sample(obs, obs_rel, batch.pair_i, batch.pair_j, _noise(config, batch, config.best_k))
-    errors = ((fake_rel - fut_rel.unsqueeze(0)) ** 2).sum(dim=(1, 3))  # (K, N)
-    best, _ = variety_loss(errors, batch.scene_of, batch.num_scenes)
-    l2 = best / (errors.shape[1] * config.pred_len)
+    noise = _noise(config, batch, config.best_k)
+    context = gan.generator.encode(obs, obs_rel, batch.pair_i, batch.pair_j)
+    n = context.shape[0]
+    with torch.no_grad():
+        candidates = gan.generator.decode_samples(context, noise, obs_rel[-1])
+        errors = ((candidates - fut_rel.unsqueeze(0)) ** 2).sum(dim=(1, 3))  # (K, N)
+        _, chosen = variety_loss(errors, batch.scene_of, batch.num_scenes)
+    picked = noise[chosen[batch.scene_of], torch.arange(n)]
+    # sample 0 for the discriminator, each window's best sample for the variety loss, as one batch
+    fake_rel = gan.generator.decode_samples(context, torch.stack([noise[0], picked]), obs_rel[-1])
+    best_errors = ((fake_rel[1] - fut_rel) ** 2).sum()
+    l2 = best_errors / (n * config.pred_len)
     scores = gan.discriminator(torch.cat([obs_rel, fake_rel[0]]))
     adversarial = functional.binary_cross_entropy_with_logits(scores, smoothed_labels(scores.shape[0], True))
     loss = adversarial + config.l2_loss_weight * l2

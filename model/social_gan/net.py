@@ -105,9 +105,12 @@ class Generator(nn.Module):
                noise: torch.Tensor) -> torch.Tensor:
         """(K, T_pred, N, 2) predicted steps for noise (K, N, noise_dim): the encoder and pooling run once, the
         decoder once per noise draw."""
-        context = self.encode(obs, obs_rel, pair_i, pair_j)
+        return self.decode_samples(self.encode(obs, obs_rel, pair_i, pair_j), noise, obs_rel[-1])
+
+    def decode_samples(self, context: torch.Tensor, noise: torch.Tensor, last_rel: torch.Tensor) -> torch.Tensor:
+        """(K, T_pred, N, 2) predicted steps for contexts (N, ·) and noise (K, N, noise_dim), one batch."""
         k, n = noise.shape[:2]
-        steps = self.decode(context.repeat(k, 1), noise.reshape(k * n, -1), obs_rel[-1].repeat(k, 1))
+        steps = self.decode(context.repeat(k, 1), noise.reshape(k * n, -1), last_rel.repeat(k, 1))
         return steps.reshape(self.config.pred_len, k, n, 2).permute(1, 0, 2, 3)
 
 
