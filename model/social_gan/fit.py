@@ -7,6 +7,7 @@ from __future__ import annotations
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -14,7 +15,7 @@ from torch.nn import functional
 
 from logpipe.types import NDArrayFloat, SceneSample
 
-from ..checkpoint.weights_folder import WeightsMeta, save_weights_folder
+from ..checkpoint.weights_folder import WeightsMeta, load_into, load_resumable, save_weights_folder
 from ..training.seeding import sample_seed
 from ..training.social_batch import SocialBatch, evenly, predict_scene, stack, window_tracks
 from ..training.window_loop import LoopResult, LoopSettings, NextBatch, run_loop
@@ -161,9 +162,10 @@ def validate(generator: Generator, val: Sequence[NDArrayFloat], config: SocialGa
 
 
 def train_social_gan(train: Sequence[SceneSample], val: Sequence[SceneSample], config: SocialGanConfig,
-                     out_dir: Path, meta: WeightsMeta, progress: Callable[[int], None] | None = None) -> LoopResult:
-    """Train into ``out_dir`` (``best/``, ``last/``, ``train_log.jsonl``); ``meta`` gives what every checkpoint
-    records beside its weights (kind, dataset, training data)."""
+                     out_dir: Path, meta: WeightsMeta, progress: Callable[[int], None] | None = None, *,
+                     resume: bool = False) -> LoopResult:
+    """Train into ``out_dir`` (``best/``, ``last/``, ``train_log.jsonl``), or with ``resume`` go on from its
+    ``last/``; ``meta`` gives what every checkpoint records beside its weights (kind, dataset, training data)."""
     torch.manual_seed(config.seed)
     gan = Gan.new(config)
     tracks = window_tracks(train)
@@ -171,14 +173,24 @@ def train_social_gan(train: Sequence[SceneSample], val: Sequence[SceneSample], c
     settings = LoopSettings(config.steps, config.batch_size, config.val_every, config.patience, config.seed,
                             config.time_budget_s)
 
-    def save(folder: Path, step: int, metrics: dict[str, float]) -> None:
+    meta.model_kind, meta.config = MODEL_KIND, config.to_dict()
+
+    def save(folder: Path, step: int, metrics: dict[str, float], train_state: bytes | None) -> None:
         state = {f"generator.{k}": v for k, v in gan.generator.state_dict().items()}
         state |= {f"discriminator.{k}": v for k, v in gan.discriminator.state_dict().items()}
-        meta.step, meta.metrics, meta.model_kind, meta.config = step, metrics, MODEL_KIND, config.to_dict()
-        save_weights_folder(folder, state, meta)
+        meta.step, meta.metrics = step, metrics
+        save_weights_folder(folder, state, meta, train_state)
+
+    def restore(folder: Path) -> dict[str, Any]:
+        weights, train_state = load_resumable(folder, meta)
+        for name, net in (("generator", gan.generator), ("discriminator", gan.discriminator)):
+            load_into(net, {k[len(name) + 1:]: v for k, v in weights.items() if k.startswith(name + ".")}, folder)
+        return train_state
 
     return run_loop(tracks, settings, out_dir, step=lambda nb: iteration(gan, nb),
-                    validate=lambda: validate(gan.generator, val_tracks, config), save=save, progress=progress)
+                    validate=lambda: validate(gan.generator, val_tracks, config), save=save, progress=progress,
+                    optimizers={"generator": gan.g_optimizer, "discriminator": gan.d_optimizer},
+                    restore=restore if resume else None)
 
 
 def scene_forecasts(generator: Generator, samples: Sequence[SceneSample], num_modes: int,
