@@ -27,6 +27,8 @@ class SocialGanConfig(WindowSchedule):
     mlp_dim: int = 64
     bottleneck_dim: int = 32
     pool_hidden_dim: int = 512
+    pool_batch_norm: bool = False
+    context_batch_norm: bool = False
     noise_dim: int = 8
     best_k: int = 20
     l2_loss_weight: float = 1.0
