@@ -66,7 +66,8 @@ def test_the_pooling_module_max_pools_over_relative_positions_and_hidden_states(
     assert torch.equal(pooled, torch.tensor([[4.0, 5.0], [0.0, 9.0]]))
 
     torch.manual_seed(0)
-    config = replace(preset_config("social_gan_20vp"), encoder_h_dim=4, bottleneck_dim=6, pool_hidden_dim=8)
+    config = replace(preset_config("social_gan_20vp"), encoder_h_dim=4, bottleneck_dim=6, pool_hidden_dim=8,
+                     pool_batch_norm=False)  # the published MLP: each pair's vector its own (no batch statistics)
     pool = PoolingModule(config)
     hidden = torch.randn(5, 4)
     end = torch.tensor([[0.0, 0.0], [1.0, 0.5], [-2.0, 1.0], [3.0, 3.0], [7.0, 7.0]])

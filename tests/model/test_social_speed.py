@@ -55,5 +55,8 @@ def test_select_then_backprop_gives_the_variety_losss_value_and_gradients() -> N
         for (name, a), b in zip(gan.generator.named_parameters(), twin.generator.parameters(), strict=True):
             assert a.grad is not None and b.grad is not None
             torch.testing.assert_close(a.grad, b.grad, rtol=1e-4, atol=1e-6, msg=f"{preset}: {name}")
-            torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-5, msg=f"{preset}: {name} after the update")
+            # Adam's first step is ~lr x sign(grad): compared where the gradient is above rounding (a bias before a
+            # batch norm has none: the norm removes it)
+            clear = b.grad.abs() > 1e-6
+            torch.testing.assert_close(a[clear], b[clear], rtol=1e-4, atol=1e-5, msg=f"{preset}: {name} updated")
         assert any(float(p.grad.abs().sum()) > 0 for p in gan.generator.decoder.parameters() if p.grad is not None)
