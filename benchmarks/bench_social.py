@@ -5,19 +5,22 @@ The direct forms are the first round's code, kept here as the reference: Social-
 generator update backpropagating through all ``best_k`` decoded samples, where the model decodes them without
 autograd and backpropagates through each window's best sample only. Same maths (``tests/model/test_social_speed.py``
 checks outputs and gradients); ``speedup`` = direct / model seconds per iteration, medians of alternating rounds,
-single-threaded, on the same synthetic batches (windows of 2-40 pedestrians on a 12 m square, like ETH/UCY's crowds).
+single-threaded, on the same synthetic batches (windows of 2-40 pedestrians on a 12 m square, like ETH/UCY's crowds)
+or, with ``--dataset``, on six real training batches.
 
-Run: ``OMP_NUM_THREADS=1 .venv/bin/python -m benchmarks.bench_social [--quick]`` (prints JSON).
+Run: ``OMP_NUM_THREADS=1 .venv/bin/python -m benchmarks.bench_social [--quick] [--rounds N] [--dataset out/ethucy
+--split zara1/train]`` (prints JSON; with ``--dataset``, six real training batches of the split).
 """
 
 from __future__ import annotations
 
+import argparse
 import json
 import statistics
-import sys
 import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
+from pathlib import Path
 from typing import Any
 from unittest import mock
 
@@ -105,15 +108,32 @@ def _seconds(step: Callable[[], object], direct: Callable[[], Any], rounds: int)
     return statistics.median(model_s), statistics.median(direct_s)
 
 
-def run(quick: bool = False) -> dict[str, Any]:
-    """Seconds per training iteration of each model and its direct form (see the module docstring)."""
+def real_batches(dataset: Path, split: str, batch_size: int) -> list[SocialBatch]:
+    """Six training batches of ``split`` drawn as a run draws them (seed 0)."""
+    from logpipe.dataset.reader import Dataset
+    from logpipe.model.social import split_samples
+    from logpipe.model.training.social_batch import window_tracks
+    from logpipe.model.training.window_loop import batches
+
+    samples, _ = split_samples([Dataset.open(dataset)], split)
+    source = batches(window_tracks(samples), batch_size, np.random.default_rng(0))
+    return [source() for _ in range(6)]
+
+
+def run(quick: bool = False, rounds: int = 7, dataset: Path | None = None, split: str = "") -> dict[str, Any]:
+    """Seconds per training iteration of each model and its direct form (see the module docstring); with
+    ``dataset``, on six real batches of ``split`` instead of the synthetic ones."""
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
-    rounds = 2 if quick else 7
+    rounds = 2 if quick else rounds
     try:
-        results: dict[str, Any] = {"threads": 1, "rounds": rounds}
-        lstm_batches = [stack(synthetic_tracks(32, seed)) for seed in range(3)]
-        gan_batches = [stack(synthetic_tracks(64, 10 + seed)) for seed in range(3)]
+        results: dict[str, Any] = {"threads": 1, "rounds": rounds, "batches": f"{dataset}:{split}" if dataset
+                                   else "synthetic"}
+        if dataset is not None:
+            lstm_batches, gan_batches = real_batches(dataset, split, 32), real_batches(dataset, split, 64)
+        else:
+            lstm_batches = [stack(synthetic_tracks(32, seed)) for seed in range(3)]
+            gan_batches = [stack(synthetic_tracks(64, 10 + seed)) for seed in range(3)]
         torch.manual_seed(0)
         config = SocialLstmConfig(obs_len=8, pred_len=12)
         net = lstm_net.SocialLstm(config)
@@ -140,4 +160,10 @@ def run(quick: bool = False) -> dict[str, Any]:
 
 
 if __name__ == "__main__":
-    print(json.dumps(run(quick="--quick" in sys.argv), indent=2))
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--quick", action="store_true")
+    parser.add_argument("--rounds", type=int, default=7)
+    parser.add_argument("--dataset", type=Path, help="an ingested dataset: time its real batches")
+    parser.add_argument("--split", default="zara1/train")
+    args = parser.parse_args()
+    print(json.dumps(run(args.quick, args.rounds, args.dataset, args.split), indent=2))
