@@ -17,7 +17,8 @@ from logpipe.storage.io import sha256_file
 REPO = Path(__file__).resolve().parents[2]
 SHIPPED = REPO / "model" / "checkpoints" / "ethucy" / "zara1"
 RESULTS = REPO / "docs" / "results" / "ethucy_social.md"
-SHIPPED_PRESETS = ["social_lstm"]  # the ones better than the first round's (docs/results/ethucy_social.md)
+# the ones better than the first round's (docs/results/ethucy_social.md)
+SHIPPED_PRESETS = ["social_lstm", "social_gan_20vp"]
 LABELS = {"social_lstm": "Social-LSTM", "social_gan_20v": "Social-GAN 20V-20", "social_gan_20vp": "Social-GAN 20VP-20"}
 runner = CliRunner()
 
