@@ -161,7 +161,9 @@ train-ethucy/%:
 # each left-out scene, ONE training at a time (each is single-threaded: OMP_NUM_THREADS=1), then predict + score of
 # S/test (Social-GAN's windows, --min-agents 2; K = 20, and K = 1 for Social-LSTM's mean). Runs in
 # $(RUNS)/ethucy-social/<scene>/<preset>, scores beside them. SOCIAL_CONFIG: the published schedule by default
-# (20,000 iterations, early stopping on S/val); configs/ethucy_social_budget.toml stops each run on a time budget.
+# (20,000 iterations, early stopping on S/val); configs/ethucy_social_budget.toml (round one) and
+# configs/ethucy_social_round2.toml stop each run on a time budget. A run stopped early goes on with
+# `logpipe train ... --resume` into the same folder (this target starts every run afresh).
 SOCIAL_PRESETS := social_lstm social_gan_20v social_gan_20vp
 SOCIAL_CONFIG ?=
 SOCIAL := $(RUNS)/ethucy-social

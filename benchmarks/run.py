@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import Any
 
 BENCHMARKS = ["bench_mcap_writers", "bench_mcap_channels", "bench_ingest", "bench_rosbag", "bench_raster",
-              "bench_model", "bench_train", "bench_predict"]
+              "bench_model", "bench_train", "bench_predict", "bench_social"]
 
 
 def render_targets(results: dict[str, Any], command: str) -> str:

@@ -293,9 +293,9 @@ def train(  # noqa: PLR0913  public API: keyword options mirror `logpipe train` 
                            "(e.g. the held-out logs) or 'none'")
     chosen_val = val_split or ("none" if chosen_train == "all" else chosen_train.rsplit("/", 1)[0] + "/val")
     social = preset is not None and preset.startswith("social_")
-    if social and (resume or init_from is not None or raster_run is not None or loader_workers):
-        raise LogpipeError(f"--preset {preset} trains afresh from the tracks alone: --resume, --init-from, "
-                           "--raster-run and --loader-workers do not apply")
+    if social and (init_from is not None or raster_run is not None or loader_workers):
+        raise LogpipeError(f"--preset {preset} trains from the tracks alone: --init-from, --raster-run and "
+                           "--loader-workers do not apply")
     overrides: dict[str, Any] = {}
     if steps is not None:
         overrides["steps"] = steps

@@ -43,9 +43,10 @@ kinematic baselines in every table of docs/results (Argoverse 1: 6.90 m, CV 7.57
 3.01, 3.52; ETH/UCY: 1.13, 1.14, 1.23)."""
 
 # Shipped baselines and ablations live in folders named after their method (``ethucy/eth/lstm``,
-# ``apolloscape/noise_lstm``, ``ethucy/eth/no_position``); they are there for the reproduction tables, never the
-# default model.
-COMPARISON_FOLDERS = frozenset({"lstm", "noise_lstm", "no_position", "paper"})
+# ``apolloscape/noise_lstm``, ``ethucy/eth/no_position``, the social baselines' ``ethucy/zara1/social_lstm``); they
+# are there for the reproduction tables, never the default model.
+COMPARISON_FOLDERS = frozenset({"lstm", "noise_lstm", "no_position", "paper", "social_lstm", "social_gan_20v",
+                                "social_gan_20vp"})
 
 # Dataset kinds whose shipped model lives under another folder: one driving model serves the Argoverse formats and
 # CommonRoad (it is trained on all three; its ``meta.json`` kind is ``argoverse1+argoverse2+commonroad``).

@@ -38,12 +38,13 @@ def split_samples(datasets: Sequence[Dataset], split: str) -> tuple[list[SceneSa
     return samples, logs
 
 
-def train_social(
+def train_social(  # noqa: PLR0913  keyword options mirror `logpipe train` one to one
     preset: str, datasets: Sequence[Dataset], out_dir: Path, *, train_split: str, val_split: str | None,
     config_path: Path | None = None, overrides: dict[str, Any] | None = None,
-    progress: Callable[[int], None] | None = None,
+    progress: Callable[[int], None] | None = None, resume: bool = False,
 ) -> TrainSummary:
-    """Train the baseline ``preset`` (see the module docstring); returns ``logpipe train``'s summary."""
+    """Train the baseline ``preset`` (see the module docstring), or with ``resume`` go on from ``out_dir/last``
+    (``model.training.window_loop``); returns ``logpipe train``'s summary."""
     started = time.perf_counter()
     protocol = datasets[0].protocol
     lengths = {"obs_len": protocol.obs_len, "pred_len": protocol.pred_len}
@@ -64,13 +65,13 @@ def train_social(
             from .social_lstm.fit import train_social_lstm
 
             result = train_social_lstm(train, val, lstm_config(preset, config_path, {**(overrides or {}), **lengths}),
-                                       out_dir, meta, progress)
+                                       out_dir, meta, progress, resume=resume)
         elif preset in SOCIAL_PRESETS:
             from .social_gan.config import load_config as gan_config
             from .social_gan.fit import train_social_gan
 
             result = train_social_gan(train, val, gan_config(preset, config_path, {**(overrides or {}), **lengths}),
-                                      out_dir, meta, progress)
+                                      out_dir, meta, progress, resume=resume)
         else:
             raise LogpipeError(f"unknown social preset {preset!r}; presets: {', '.join(SOCIAL_PRESETS)}")
     several = len(datasets) > 1
@@ -84,6 +85,8 @@ def train_social(
         "last_checkpoint": str(result.last_checkpoint), "train_samples_per_s": round(result.windows_per_s, 1),
         "raster_run": None, "init_from": None, "environment_net": False, "device": "cpu",
         "seconds": round(time.perf_counter() - started, 1), "preset": preset,
+        **({"resumed_at_step": result.resumed_at_step, "seconds_total": round(result.total_seconds, 1)}
+           if result.resumed_at_step is not None else {}),
     })
 
 

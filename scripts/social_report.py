@@ -90,8 +90,9 @@ def _rows(data: dict[str, Any]) -> list[str]:
                     ade = float(cell.split("/")[0])
                     verdict = "yes" if abs(ade - printed[col][0]) <= TOLERANCE * printed[col][0] else "**no**"
                 shown = f"{printed[col][0]:.2f}/{printed[col][1]:.2f}" if k == 0 else "-"  # printed: one rule
+                seconds = s.get("seconds_total", s["seconds"])  # a resumed run: all its parts
                 lines.append(f"| {label} | {rule} | {scene.upper()} | {cell} | {shown} | {verdict} | "
-                             f"{s['steps']:,} (best at {s['best_step']:,}) | {s['seconds']:.0f} s |")
+                             f"{s['steps']:,} (best at {s['best_step']:,}) | {seconds:.0f} s |")
     return lines
 
 

@@ -122,7 +122,7 @@ def train(  # noqa: PLR0913  stage entry: keyword options mirror `logpipe train`
     summary: TrainSummary | None = None
     if preset is not None and preset.startswith("social_"):  # Social-LSTM / Social-GAN baselines (issue 63)
         summary = train_social(preset, datasets, out_dir, train_split=train_split, val_split=val_split,
-                               config_path=config_path, overrides=overrides, progress=callback)
+                               config_path=config_path, overrides=overrides, progress=callback, resume=resume)
     elif config_path is not None and is_residual_config(config_path):  # the residual driving model (our extension)
         summary = train_residual(datasets, out_dir, config_path, train_split=train_split, val_split=val_split,
                                  overrides=overrides, raster_run=raster_run, init_from=init_from, progress=callback)

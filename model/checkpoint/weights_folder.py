@@ -6,6 +6,10 @@ pickle, the folder replaced whole (``logpipe.storage.folder_swap``) so a crash l
 kind, manifest hash, window lengths, what it was trained on (``TrainingData``), validation metrics, the weights'
 sha256 and the ``checksum`` of all the rest (``stamped_meta``). Weights load only when their sha256 is that one, as
 safetensors (no code runs), and only finite ones.
+
+A resumable ``last/`` also holds ``train_state.pt`` (optimiser states, counters, random states: ``model.training.
+window_loop``), named by its sha256 in ``meta.json`` and read by ``torch.load(weights_only=True)`` (tensors and
+plain containers only, never arbitrary objects), only when that sha256 matches.
 """
 
 from __future__ import annotations
@@ -35,6 +39,9 @@ if TYPE_CHECKING:  # meta.json is read without torch (predict of a baseline neve
 
 WEIGHTS = "weights.safetensors"
 META = "meta.json"
+TRAIN_STATE = "train_state.pt"
+RESUMABLE_KEYS = ("steps", "time_budget_s", "patience")
+"""Config keys a resumed run may change (how long it goes on); any other change would not continue the run."""
 FORMAT_VERSION = 1
 
 
@@ -54,6 +61,7 @@ class WeightsMeta:
     weights_sha256: str = ""
     logpipe_version: str = ""
     created_unix: float = 0.0
+    train_state_sha256: str = ""
 
     def to_dict(self) -> dict[str, Any]:
         """The JSON document with its checksum."""
@@ -64,6 +72,8 @@ class WeightsMeta:
                 "created_unix": self.created_unix}
         if self.training_data is not None:
             body["training_data"] = self.training_data.to_dict()
+        if self.train_state_sha256:
+            body["train_state_sha256"] = self.train_state_sha256
         return stamped_meta(body)
 
 
@@ -80,15 +90,22 @@ class FolderMeta(Protocol):
         ...
 
 
-def save_weights_folder(folder: Path, state: dict[str, torch.Tensor], meta: FolderMeta) -> Path:
+def save_weights_folder(folder: Path, state: dict[str, torch.Tensor], meta: FolderMeta,
+                        train_state: bytes | None = None) -> Path:
     """Write ``state`` and ``meta`` into ``folder`` (replacing one that is there), ``meta.json`` last, naming the
-    weights' sha256; the folder is swapped in whole, so a crash leaves the old folder or the new one."""
+    weights' sha256; the folder is swapped in whole, so a crash leaves the old folder or the new one. With
+    ``train_state`` (a ``WeightsMeta`` only) the folder is resumable: ``train_state.pt`` beside, its sha256 named."""
     from safetensors.torch import save_file
 
     recover_folder(folder)
     staging = staging_folder_for(folder)
     try:
         staging.mkdir(parents=True, exist_ok=True)
+        if train_state is not None and isinstance(meta, WeightsMeta):
+            (staging / TRAIN_STATE).write_bytes(train_state)
+            meta.train_state_sha256 = sha256_file(staging / TRAIN_STATE)
+        elif isinstance(meta, WeightsMeta):
+            meta.train_state_sha256 = ""
         weights = staging / WEIGHTS
         save_file({k: v.detach().cpu().contiguous().clone() for k, v in state.items()}, str(weights))
         meta.weights_sha256 = sha256_file(weights)
@@ -129,7 +146,8 @@ def read_weights_meta(folder: Path, model_kinds: tuple[str, ...]) -> WeightsMeta
             step=int(data["step"]), metrics={str(k): float(v) for k, v in dict(data.get("metrics", {})).items()},
             training_data=None if training is None else TrainingData.from_dict(training, path),
             weights_sha256=str(data["weights_sha256"]), logpipe_version=str(data.get("logpipe_version", "")),
-            created_unix=float(data.get("created_unix", 0.0)))
+            created_unix=float(data.get("created_unix", 0.0)),
+            train_state_sha256=str(data.get("train_state_sha256", "")))
     except (KeyError, TypeError, ValueError) as exc:
         raise CheckpointError(f"{path}: malformed checkpoint metadata: {exc}") from None
 
@@ -165,3 +183,37 @@ def load_into(module: torch.nn.Module, state: dict[str, torch.Tensor], where: Pa
     except RuntimeError as exc:
         raise CheckpointError(f"{where / WEIGHTS}: weights do not fit the config in meta.json: "
                               f"{str(exc).splitlines()[0]}") from None
+
+
+def load_resumable(folder: Path, expected: WeightsMeta) -> tuple[dict[str, torch.Tensor], dict[str, Any]]:
+    """The weights and training state of a resumable ``folder`` (a run's ``last/``) that continues the run
+    ``expected`` describes: the same kind, dataset and config but for ``RESUMABLE_KEYS``.
+
+    Raises:
+        CheckpointError: not a checkpoint of that kind, another dataset or config, no (or a damaged) training
+            state, or unreadable weights.
+    """
+    import io
+    import pickle
+
+    import torch
+
+    meta = read_weights_meta(folder, (expected.model_kind,))
+    if meta.manifest_hash != expected.manifest_hash:
+        raise CheckpointError(f"{folder / META}: cannot resume: trained on another dataset (manifest hash)")
+    changed = sorted(k for k in {*meta.config, *expected.config} - set(RESUMABLE_KEYS)
+                     if meta.config.get(k) != expected.config.get(k))
+    if changed:
+        key = changed[0]
+        raise CheckpointError(f"{folder / META}: cannot resume: config {key} is {meta.config.get(key)!r}, this run "
+                              f"gives {expected.config.get(key)!r} (only {', '.join(RESUMABLE_KEYS)} may change)")
+    path = folder / TRAIN_STATE
+    if not meta.train_state_sha256 or not path.is_file() or sha256_file(path) != meta.train_state_sha256:
+        raise CheckpointError(f"{path}: cannot resume: missing or does not match the sha256 in meta.json")
+    try:
+        state = torch.load(io.BytesIO(path.read_bytes()), weights_only=True)
+    except (pickle.UnpicklingError, RuntimeError, ValueError, EOFError) as exc:  # weights_only: no other objects
+        raise CheckpointError(f"{path}: unreadable training state: {str(exc).splitlines()[0]}") from None
+    if not isinstance(state, dict):
+        raise CheckpointError(f"{path}: unreadable training state: not a table")
+    return load_weights(folder, meta.weights_sha256), state

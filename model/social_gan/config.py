@@ -27,6 +27,8 @@ class SocialGanConfig(WindowSchedule):
     mlp_dim: int = 64
     bottleneck_dim: int = 32
     pool_hidden_dim: int = 512
+    pool_batch_norm: bool = False
+    context_batch_norm: bool = False
     noise_dim: int = 8
     best_k: int = 20
     l2_loss_weight: float = 1.0
@@ -45,10 +47,12 @@ class SocialGanConfig(WindowSchedule):
 
 
 def preset_config(name: str) -> SocialGanConfig:
-    """The config of a published variant: 20V-20 (no pooling) or 20VP-20 (pooling)."""
+    """The config of a published variant: 20V-20 (no pooling) or 20VP-20 (pooling, with batch norm in the
+    generator's MLPs: a labelled deviation, see the package docstring)."""
     if name not in PRESETS:
         raise LogpipeError(f"unknown Social-GAN preset {name!r}; presets: {', '.join(PRESETS)}")
-    return SocialGanConfig(pooling=name == "social_gan_20vp")
+    pooling = name == "social_gan_20vp"
+    return SocialGanConfig(pooling=pooling, pool_batch_norm=pooling, context_batch_norm=pooling)
 
 
 def load_config(name: str, config_path: Path | None, overrides: dict[str, Any] | None) -> SocialGanConfig:

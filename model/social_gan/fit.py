@@ -7,6 +7,7 @@ from __future__ import annotations
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -14,7 +15,7 @@ from torch.nn import functional
 
 from logpipe.types import NDArrayFloat, SceneSample
 
-from ..checkpoint.weights_folder import WeightsMeta, save_weights_folder
+from ..checkpoint.weights_folder import WeightsMeta, load_into, load_resumable, save_weights_folder
 from ..training.seeding import sample_seed
 from ..training.social_batch import SocialBatch, evenly, predict_scene, stack, window_tracks
 from ..training.window_loop import LoopResult, LoopSettings, NextBatch, run_loop
@@ -86,13 +87,26 @@ def discriminator_step(gan: Gan, batch: SocialBatch) -> float:
 
 def generator_step(gan: Gan, batch: SocialBatch) -> tuple[float, float]:
     """One generator update: the adversarial loss of one sample plus ``l2_loss_weight`` x the variety loss over
-    ``best_k`` samples; returns (adversarial, variety) losses."""
+    ``best_k`` samples; returns (adversarial, variety) losses.
+
+    The variety loss is a minimum, so its gradient flows through each window's best sample alone: the ``best_k``
+    samples are decoded without autograd, then only the chosen ones and the adversarial sample are decoded again
+    with it (the same value and gradient as backpropagating through all ``best_k``, at 2/``best_k`` of the
+    decoder's backward; ``tests/model/test_social_speed.py`` checks it against the direct form)."""
     config = gan.config
     obs, obs_rel, fut_rel = _split(batch, config.obs_len)
-    fake_rel = gan.generator.sample(obs, obs_rel, batch.pair_i, batch.pair_j, _noise(config, batch, config.best_k))
-    errors = ((fake_rel - fut_rel.unsqueeze(0)) ** 2).sum(dim=(1, 3))  # (K, N)
-    best, _ = variety_loss(errors, batch.scene_of, batch.num_scenes)
-    l2 = best / (errors.shape[1] * config.pred_len)
+    noise = _noise(config, batch, config.best_k)
+    context = gan.generator.encode(obs, obs_rel, batch.pair_i, batch.pair_j)
+    n = context.shape[0]
+    with torch.no_grad():
+        candidates = gan.generator.decode_samples(context, noise, obs_rel[-1])
+        errors = ((candidates - fut_rel.unsqueeze(0)) ** 2).sum(dim=(1, 3))  # (K, N)
+        _, chosen = variety_loss(errors, batch.scene_of, batch.num_scenes)
+    picked = noise[chosen[batch.scene_of], torch.arange(n)]
+    # sample 0 for the discriminator, each window's best sample for the variety loss, as one batch
+    fake_rel = gan.generator.decode_samples(context, torch.stack([noise[0], picked]), obs_rel[-1])
+    best_errors = ((fake_rel[1] - fut_rel) ** 2).sum()
+    l2 = best_errors / (n * config.pred_len)
     scores = gan.discriminator(torch.cat([obs_rel, fake_rel[0]]))
     adversarial = functional.binary_cross_entropy_with_logits(scores, smoothed_labels(scores.shape[0], True))
     loss = adversarial + config.l2_loss_weight * l2
@@ -148,9 +162,10 @@ def validate(generator: Generator, val: Sequence[NDArrayFloat], config: SocialGa
 
 
 def train_social_gan(train: Sequence[SceneSample], val: Sequence[SceneSample], config: SocialGanConfig,
-                     out_dir: Path, meta: WeightsMeta, progress: Callable[[int], None] | None = None) -> LoopResult:
-    """Train into ``out_dir`` (``best/``, ``last/``, ``train_log.jsonl``); ``meta`` gives what every checkpoint
-    records beside its weights (kind, dataset, training data)."""
+                     out_dir: Path, meta: WeightsMeta, progress: Callable[[int], None] | None = None, *,
+                     resume: bool = False) -> LoopResult:
+    """Train into ``out_dir`` (``best/``, ``last/``, ``train_log.jsonl``), or with ``resume`` go on from its
+    ``last/``; ``meta`` gives what every checkpoint records beside its weights (kind, dataset, training data)."""
     torch.manual_seed(config.seed)
     gan = Gan.new(config)
     tracks = window_tracks(train)
@@ -158,14 +173,24 @@ def train_social_gan(train: Sequence[SceneSample], val: Sequence[SceneSample], c
     settings = LoopSettings(config.steps, config.batch_size, config.val_every, config.patience, config.seed,
                             config.time_budget_s)
 
-    def save(folder: Path, step: int, metrics: dict[str, float]) -> None:
+    meta.model_kind, meta.config = MODEL_KIND, config.to_dict()
+
+    def save(folder: Path, step: int, metrics: dict[str, float], train_state: bytes | None) -> None:
         state = {f"generator.{k}": v for k, v in gan.generator.state_dict().items()}
         state |= {f"discriminator.{k}": v for k, v in gan.discriminator.state_dict().items()}
-        meta.step, meta.metrics, meta.model_kind, meta.config = step, metrics, MODEL_KIND, config.to_dict()
-        save_weights_folder(folder, state, meta)
+        meta.step, meta.metrics = step, metrics
+        save_weights_folder(folder, state, meta, train_state)
+
+    def restore(folder: Path) -> dict[str, Any]:
+        weights, train_state = load_resumable(folder, meta)
+        for name, net in (("generator", gan.generator), ("discriminator", gan.discriminator)):
+            load_into(net, {k[len(name) + 1:]: v for k, v in weights.items() if k.startswith(name + ".")}, folder)
+        return train_state
 
     return run_loop(tracks, settings, out_dir, step=lambda nb: iteration(gan, nb),
-                    validate=lambda: validate(gan.generator, val_tracks, config), save=save, progress=progress)
+                    validate=lambda: validate(gan.generator, val_tracks, config), save=save, progress=progress,
+                    optimizers={"generator": gan.g_optimizer, "discriminator": gan.d_optimizer},
+                    restore=restore if resume else None)
 
 
 def scene_forecasts(generator: Generator, samples: Sequence[SceneSample], num_modes: int,

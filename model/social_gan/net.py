@@ -17,13 +17,14 @@ from torch import nn
 from .config import SocialGanConfig
 
 
-def mlp(dims: list[int], *, last_activation: bool) -> nn.Sequential:
-    """Linear layers with ReLU between them (and after the last when ``last_activation``)."""
+def mlp(dims: list[int], *, last_activation: bool, batch_norm: bool = False) -> nn.Sequential:
+    """Linear layers with ReLU between them (and after the last when ``last_activation``); with ``batch_norm``
+    each ReLU follows a batch norm, as the published ``make_mlp`` builds it with ``batch_norm`` 1."""
     layers: list[nn.Module] = []
     for k, (a, b) in enumerate(itertools.pairwise(dims)):
         layers.append(nn.Linear(a, b))
         if last_activation or k < len(dims) - 2:
-            layers.append(nn.ReLU())
+            layers += [nn.BatchNorm1d(b), nn.ReLU()] if batch_norm else [nn.ReLU()]
     return nn.Sequential(*layers)
 
 
@@ -43,7 +44,7 @@ class PoolingModule(nn.Module):
         super().__init__()
         self.spatial_embedding = nn.Linear(2, config.embedding_dim)
         self.mlp_pre_pool = mlp([config.embedding_dim + config.encoder_h_dim, config.pool_hidden_dim,
-                                 config.bottleneck_dim], last_activation=True)
+                                 config.bottleneck_dim], last_activation=True, batch_norm=config.pool_batch_norm)
 
     def forward(self, hidden: torch.Tensor, end_pos: torch.Tensor, pair_i: torch.Tensor,
                 pair_j: torch.Tensor) -> torch.Tensor:
@@ -75,7 +76,8 @@ class Generator(nn.Module):
         self.encoder = TrackEncoder(config.embedding_dim, config.encoder_h_dim)
         self.pool = PoolingModule(config) if config.pooling else None
         context_in = config.encoder_h_dim + (config.bottleneck_dim if config.pooling else 0)
-        self.context = mlp([context_in, config.mlp_dim, config.decoder_h_dim - config.noise_dim], last_activation=True)
+        self.context = mlp([context_in, config.mlp_dim, config.decoder_h_dim - config.noise_dim], last_activation=True,
+                           batch_norm=config.context_batch_norm)
         self.decoder_embedding = nn.Linear(2, config.embedding_dim)
         self.decoder = nn.LSTMCell(config.embedding_dim, config.decoder_h_dim)
         self.hidden2pos = nn.Linear(config.decoder_h_dim, 2)
@@ -105,9 +107,12 @@ class Generator(nn.Module):
                noise: torch.Tensor) -> torch.Tensor:
         """(K, T_pred, N, 2) predicted steps for noise (K, N, noise_dim): the encoder and pooling run once, the
         decoder once per noise draw."""
-        context = self.encode(obs, obs_rel, pair_i, pair_j)
+        return self.decode_samples(self.encode(obs, obs_rel, pair_i, pair_j), noise, obs_rel[-1])
+
+    def decode_samples(self, context: torch.Tensor, noise: torch.Tensor, last_rel: torch.Tensor) -> torch.Tensor:
+        """(K, T_pred, N, 2) predicted steps for contexts (N, ·) and noise (K, N, noise_dim), one batch."""
         k, n = noise.shape[:2]
-        steps = self.decode(context.repeat(k, 1), noise.reshape(k * n, -1), obs_rel[-1].repeat(k, 1))
+        steps = self.decode(context.repeat(k, 1), noise.reshape(k * n, -1), last_rel.repeat(k, 1))
         return steps.reshape(self.config.pred_len, k, n, 2).permute(1, 0, 2, 3)
 
 

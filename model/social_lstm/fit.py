@@ -6,13 +6,14 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
 
 from logpipe.types import NDArrayFloat, SceneSample
 
-from ..checkpoint.weights_folder import WeightsMeta, save_weights_folder
+from ..checkpoint.weights_folder import WeightsMeta, load_into, load_resumable, save_weights_folder
 from ..training.seeding import sample_seed
 from ..training.social_batch import SocialBatch, evenly, predict_scene, replicate, stack, window_tracks
 from ..training.window_loop import LoopResult, LoopSettings, NextBatch, run_loop
@@ -73,9 +74,10 @@ def validate(net: SocialLstm, val: Sequence[NDArrayFloat]) -> dict[str, float]:
 
 
 def train_social_lstm(train: Sequence[SceneSample], val: Sequence[SceneSample], config: SocialLstmConfig,
-                      out_dir: Path, meta: WeightsMeta, progress: Callable[[int], None] | None = None) -> LoopResult:
-    """Train into ``out_dir`` (``best/``, ``last/``, ``train_log.jsonl``); ``meta`` gives what every checkpoint
-    records beside its weights."""
+                      out_dir: Path, meta: WeightsMeta, progress: Callable[[int], None] | None = None, *,
+                      resume: bool = False) -> LoopResult:
+    """Train into ``out_dir`` (``best/``, ``last/``, ``train_log.jsonl``), or with ``resume`` go on from its
+    ``last/``; ``meta`` gives what every checkpoint records beside its weights."""
     torch.manual_seed(config.seed)
     net = SocialLstm(config)
     optimizer = torch.optim.RMSprop(net.parameters(), lr=config.learning_rate)
@@ -84,12 +86,20 @@ def train_social_lstm(train: Sequence[SceneSample], val: Sequence[SceneSample], 
     settings = LoopSettings(config.steps, config.batch_size, config.val_every, config.patience, config.seed,
                             config.time_budget_s)
 
-    def save(folder: Path, step: int, metrics: dict[str, float]) -> None:
-        meta.step, meta.metrics, meta.model_kind, meta.config = step, metrics, MODEL_KIND, config.to_dict()
-        save_weights_folder(folder, dict(net.state_dict()), meta)
+    meta.model_kind, meta.config = MODEL_KIND, config.to_dict()
+
+    def save(folder: Path, step: int, metrics: dict[str, float], train_state: bytes | None) -> None:
+        meta.step, meta.metrics = step, metrics
+        save_weights_folder(folder, dict(net.state_dict()), meta, train_state)
+
+    def restore(folder: Path) -> dict[str, Any]:
+        weights, train_state = load_resumable(folder, meta)
+        load_into(net, weights, folder)
+        return train_state
 
     return run_loop(tracks, settings, out_dir, step=lambda nb: train_step(net, optimizer, nb),
-                    validate=lambda: validate(net, val_tracks), save=save, progress=progress)
+                    validate=lambda: validate(net, val_tracks), save=save, progress=progress,
+                    optimizers={"rmsprop": optimizer}, restore=restore if resume else None)
 
 
 def scene_forecasts(net: SocialLstm, samples: Sequence[SceneSample], num_modes: int,

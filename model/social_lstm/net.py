@@ -41,6 +41,29 @@ def social_tensor(hidden: torch.Tensor, positions: torch.Tensor, pair_i: torch.T
     return pooled.reshape(n, cells * h)
 
 
+def embedded_social_tensor(hidden: torch.Tensor, positions: torch.Tensor, pair_i: torch.Tensor,
+                           pair_j: torch.Tensor, config: SocialLstmConfig, layer: nn.Linear) -> torch.Tensor:
+    """``layer(social_tensor(...))`` (N, E) without building the social tensor, which is mostly zeros (few
+    neighbours fall in a 2 m grid): each in-grid neighbour's hidden state goes through the block of ``layer`` its
+    cell reads, one matrix product per occupied cell, and each agent sums its neighbours'. The same sum, at the
+    cost of the occupied cells only."""
+    n, h = hidden.shape
+    other = pair_i != pair_j
+    i, j = pair_i[other], pair_j[other]
+    cell, inside = grid_cells(positions[j] - positions[i], config.neighbourhood_m, config.grid_size)
+    order = torch.argsort(cell[inside], stable=True)
+    i, j, cell = i[inside][order], j[inside][order], cell[inside][order]
+    out = layer.bias.expand(n, -1)
+    if not len(cell):
+        return out
+    occupied, counts = torch.unique_consecutive(cell, return_counts=True)
+    # (H, E) per cell; unbind, not indexing, so the backward stacks the blocks' gradients once
+    blocks = layer.weight.reshape(-1, config.grid_size**2, h).permute(1, 2, 0).unbind(0)
+    neighbours = torch.split(hidden[j], counts.tolist())
+    parts = [rows @ blocks[c] for c, rows in zip(occupied.tolist(), neighbours, strict=True)]
+    return out.index_add(0, i, torch.cat(parts))
+
+
 def gaussian(params: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """(mean (..., 2), standard deviations (..., 2), correlation (...)) of the raw output (..., 5)."""
     return params[..., :2], torch.exp(params[..., 2:4]), torch.tanh(params[..., 4])
@@ -79,9 +102,9 @@ class SocialLstm(nn.Module):
              pair_i: torch.Tensor, pair_j: torch.Tensor) -> tuple[tuple[torch.Tensor, torch.Tensor], torch.Tensor]:
         """New (h, c) and the Gaussian's raw parameters (N, 5) of the next step, from the agents' positions and
         last steps (N, 2) now and their hidden states before."""
-        social = social_tensor(state[0], positions, pair_i, pair_j, self.config)
+        social = embedded_social_tensor(state[0], positions, pair_i, pair_j, self.config, self.social_embedding)
         embedded = functional.relu(self.input_embedding(step))
-        x = torch.cat([embedded, functional.relu(self.social_embedding(social))], dim=1)
+        x = torch.cat([embedded, functional.relu(social)], dim=1)
         h, c = self.cell(x, state)
         return (h, c), self.output(h)
 

@@ -66,7 +66,8 @@ def test_the_pooling_module_max_pools_over_relative_positions_and_hidden_states(
     assert torch.equal(pooled, torch.tensor([[4.0, 5.0], [0.0, 9.0]]))
 
     torch.manual_seed(0)
-    config = replace(preset_config("social_gan_20vp"), encoder_h_dim=4, bottleneck_dim=6, pool_hidden_dim=8)
+    config = replace(preset_config("social_gan_20vp"), encoder_h_dim=4, bottleneck_dim=6, pool_hidden_dim=8,
+                     pool_batch_norm=False)  # the published MLP: each pair's vector its own (no batch statistics)
     pool = PoolingModule(config)
     hidden = torch.randn(5, 4)
     end = torch.tensor([[0.0, 0.0], [1.0, 0.5], [-2.0, 1.0], [3.0, 3.0], [7.0, 7.0]])
@@ -255,10 +256,13 @@ def test_train_predict_and_score_through_the_cli(preset: str, cli_dataset: Path,
     k20 = method["overall"]["k20"]
     assert 0 < k20["ade"] <= k20["ade_joint"] and math.isfinite(k20["fde_joint"])
 
-    # options of the paper's network do not apply to these runs and checkpoints
+    # options of the paper's network do not apply to these runs and checkpoints; a run is not overwritten
     result = runner.invoke(app, ["-q", "train", str(dataset), "--train-split", "eth/train", "--val-split", "none",
-                                 "--preset", preset, "--resume", "--out", str(run)])
-    assert result.exit_code == 2 and "--resume" in result.output
+                                 "--preset", preset, "--loader-workers", "1", "--out", str(run)])
+    assert result.exit_code == 2 and "--loader-workers" in result.output
+    result = runner.invoke(app, ["-q", "train", str(dataset), "--train-split", "eth/train", "--val-split", "none",
+                                 "--preset", preset, "--config", str(config), "--steps", "4", "--out", str(run)])
+    assert result.exit_code == 2 and "--resume" in result.output and result.output.count("\n") == 1
     result = runner.invoke(app, ["-q", "predict", str(dataset), "--checkpoint", str(run / "best"), "--noise-scale",
                                  "2", "--out", str(tmp_path / "p2")])
     assert result.exit_code == 2 and "not to a" in result.output
@@ -304,13 +308,15 @@ def test_the_loop_keeps_the_best_validation_and_stops_when_it_no_longer_improves
                                                                seed=0), tmp_path,
                       step=lambda next_batch: {"loss": float(next_batch().positions.shape[1])},
                       validate=lambda: {"ade": next(ades)},
-                      save=lambda folder, step, m: saved.append((folder.name, step, m.get("ade", -1.0))))
+                      save=lambda folder, step, m, _: saved.append((folder.name, step, m.get("ade", -1.0))))
     assert result.stopped_early and result.steps == 50 and result.best_step == 20
-    assert saved == [("best", 10, 3.0), ("best", 20, 2.0), ("last", 50, 2.7)]
+    # last/ at every validation (resumable), best/ when it improves
+    assert saved == [("best", 10, 3.0), ("last", 10, 3.0), ("best", 20, 2.0), ("last", 20, 2.0), ("last", 30, 2.5),
+                     ("last", 40, 2.6), ("last", 50, 2.7)]
     log = [json.loads(line) for line in (tmp_path / "train_log.jsonl").read_text().splitlines()]
     assert [r["step"] for r in log] == [10, 20, 30, 40, 50] and log[0]["loss"] == 4.0  # 2 windows of 2 agents
     budget = run_loop([np.zeros((20, 1, 2))], LoopSettings(steps=100, batch_size=1, val_every=5, patience=0, seed=0,
                                                           time_budget_s=1e-9), tmp_path,
                       step=lambda next_batch: {"loss": 0.0}, validate=lambda: {"ade": 1.0},
-                      save=lambda folder, step, m: None)
+                      save=lambda folder, step, m, _: None)
     assert budget.stopped_early and budget.steps == 5  # stops at the first validation past the budget
