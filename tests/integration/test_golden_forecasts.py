@@ -28,9 +28,9 @@ import pytest
 from typer.testing import CliRunner
 
 from logpipe.cli import app
-from logpipe.model.registry import RESIDUAL_KIND
 from logpipe.model.residual.meta import model_kind
 from logpipe.model.zhu2020.backbone import backbone_runs_bf16
+from logpipe.model.zhu2020.meta import MODEL_KIND as ZHU2020_KIND
 from logpipe.model.zhu2020.meta import read_meta
 from logpipe.prediction.runs import PredictionRun
 
@@ -108,9 +108,9 @@ def test_shipped_checkpoints_predict_the_pinned_forecasts(datasets: dict[str, tu
 
 
 def _arithmetic(checkpoint: Path) -> str:
-    """``@bf16`` where the checkpoint's backbone runs in bf16 on this CPU, else '' (the residual model has no
-    backbone: fp32 everywhere)."""
-    if model_kind(SHIPPED / checkpoint) == RESIDUAL_KIND:
+    """``@bf16`` where the checkpoint's backbone runs in bf16 on this CPU, else '' (only the paper's network has
+    one: the residual model and the social baselines run fp32 everywhere)."""
+    if model_kind(SHIPPED / checkpoint) != ZHU2020_KIND:
         return ""
     return "@bf16" if backbone_runs_bf16(read_meta(SHIPPED / checkpoint).config.model) else ""
 
