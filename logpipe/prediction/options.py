@@ -30,6 +30,10 @@ forecasting: ~150 samples of the full AV1 model (~20 a second on a core), ~1,200
 """
 
 
+OUT_OF_DISTRIBUTION_ACTIONS = ("auto", "warn", "fallback", "refuse")
+"""``--out-of-distribution`` (``model.residual.ood`` says what each does)."""
+
+
 @dataclass(frozen=True)
 class PredictOptions:
     """The options of one predict run (the arguments of ``predict_dataset`` after the folders).
@@ -106,8 +110,9 @@ class PredictOptions:
             raise LogpipeError(f"--modes and --batch-size must be >= 1, got {modes} and {self.batch_size}")
         if self.backend not in ("local", "ray"):
             raise LogpipeError(f"--backend must be local or ray, got {self.backend!r}")
-        if self.out_of_distribution not in ("auto", "warn", "fallback", "refuse"):
-            raise LogpipeError(f"--out-of-distribution must be auto, warn, fallback or refuse, got "
+        if self.out_of_distribution not in OUT_OF_DISTRIBUTION_ACTIONS:
+            *others, last = OUT_OF_DISTRIBUTION_ACTIONS
+            raise LogpipeError(f"--out-of-distribution must be {', '.join(others)} or {last}, got "
                                f"{self.out_of_distribution!r}")
 
     def forecast_processes(self, samples: int, *, on_cpu: bool, environment_net: bool) -> int:
