@@ -130,12 +130,15 @@ def _epoch_rows(windows: np.ndarray, cap: int, rng: np.random.Generator) -> np.n
 def fit_residual(  # noqa: PLR0913  the run's data, config and where it goes
     train: TargetInputs, windows: np.ndarray, val: TargetInputs | None, config: ResidualConfig, out_dir: Path, *,
     dataset_kind: str, manifest_hash: str, training_data: TrainingData | None = None, init_from: Path | None = None,
-    locations: dict[str, int] | None = None, progress: Callable[[int], None] | None = None,
+    locations: dict[str, int] | None = None, baselines: dict[str, Any] | None = None,
+    progress: Callable[[int], None] | None = None,
 ) -> ResidualFitResult:
     """Train on ``train`` (validating on ``val``), writing ``best/``, ``last/`` and ``train_log.jsonl`` into
     ``out_dir``; ``init_from`` starts from a checkpoint of the same architecture (pre-training → fine-tuning);
     ``locations``: the training windows per location (``logpipe.dataset.locations.window_locations``), which the
-    checkpoint records so that predict knows the roads it has evidence for (None: not known)."""
+    checkpoint records so that predict knows the roads it has evidence for (None: not known); ``baselines``:
+    ``ood.tune_baselines`` of ``train`` when the caller already has it (candidates trained on the same targets
+    choose once)."""
     assert train.truth is not None
     torch.set_num_threads(config.num_threads)
     torch.manual_seed(config.seed)
@@ -145,7 +148,8 @@ def fit_residual(  # noqa: PLR0913  the run's data, config and where it goes
         net.load_state_dict(load_residual(init_from)[0].state_dict())
     opt = torch.optim.Adam(net.parameters(), lr=config.lr, weight_decay=config.weight_decay)
     truth, scale = torch.from_numpy(train.truth), torch.from_numpy(train.scale.astype(np.float32))
-    ood = training_distribution(train, locations) | tune_baselines(train, seed=config.seed)
+    ood = training_distribution(train, locations) | (
+        baselines if baselines is not None else tune_baselines(train, seed=config.seed))
     meta = ResidualMeta(config, dataset_kind, manifest_hash, 0, {}, ood, training_data=training_data)
     best_score, best_epoch, best_metrics, bad, seen, clock = math.inf, 0, {}, 0, 0, 0.0
     steps = best_step = 0

@@ -39,6 +39,7 @@ from .config import ResidualConfig
 from .fit import LOG, collect, fit_residual
 from .meta import read_residual_meta
 from .model_card import comparison_lines, model_card
+from .ood import tune_baselines
 
 
 def _runs(datasets: Sequence[Dataset], raster_run: str | None, config: ResidualConfig
@@ -151,10 +152,11 @@ def train_fleet(  # noqa: PLR0913  the command's options one to one
     kind = combined_kind([d.kind for d in datasets])
     locations = window_locations([d.logs() for d in datasets],
                                  [s.rsplit(":", 1)[0] for ids in holdout.train_ids for s in ids])
+    baselines = tune_baselines(train, seed=config.seed)  # the same training targets for every candidate
     with run_folder(out_dir):
         fits = {name: fit_residual(train, windows, val, config, out_dir / "candidates" / name, dataset_kind=kind,
                                    manifest_hash=manifests, training_data=training_data, init_from=start,
-                                   locations=locations, progress=progress)
+                                   locations=locations, baselines=baselines, progress=progress)
                 for name, start in starts.items()}
         scores = {name: r.best_metrics["fde"] + r.best_metrics[f"min_fde_{config.modes + 1}"]
                   for name, r in fits.items() if val is not None}
