@@ -34,9 +34,10 @@ import numpy as np
 from logpipe.model.kinematic import best_baseline
 from logpipe.model.kinematic.adaptive_prior import adaptive_fit
 from logpipe.model.residual.checkpoint import load_residual
-from logpipe.model.residual.compare import SAMPLER_HEADINGS, SAMPLER_SPEEDS, TUNE_TARGETS, cv_sampler
+from logpipe.model.residual.compare import cv_sampler, tune_sampler
 from logpipe.model.residual.config import ResidualConfig, load_residual_config
 from logpipe.model.residual.fit import fit_residual, forecast
+from logpipe.model.residual.ood import fallback_forecasts, tune_baselines
 from logpipe.types import NDArrayFloat
 from scripts.driving_targets import (
     LOCATIONS,
@@ -61,24 +62,6 @@ def errors(forecasts: NDArrayFloat, future: NDArrayFloat) -> dict[str, NDArrayFl
             "min_fde": dist[:, :, -1].min(axis=1)}
 
 
-def sampler_forecasts(targets: Targets, rows: np.ndarray, pred_len: int) -> tuple[NDArrayFloat, dict[str, Any]]:
-    """The CV sampler's (N, K, T, 2) forecasts of every target, its noise chosen on (at most ``TUNE_TARGETS`` of)
-    ``rows`` by minFDE@K, and the choice."""
-    pick = rows if len(rows) <= TUNE_TARGETS else np.sort(np.random.default_rng(0).choice(rows, TUNE_TARGETS,
-                                                                                             replace=False))
-    observed = targets.inputs.observed
-
-    def min_fde(h: float, s: float) -> float:
-        paths = cv_sampler(observed[pick], pred_len, K, h, s, 0)
-        return float(errors(paths, targets.future[pick])["min_fde"].mean())
-
-    scores = {(h, s): min_fde(h, s) for h in SAMPLER_HEADINGS for s in SAMPLER_SPEEDS}
-    h, s = min(scores, key=lambda g: scores[g])
-    edge = h == SAMPLER_HEADINGS[-1] or s == SAMPLER_SPEEDS[-1]
-    return (cv_sampler(observed, pred_len, K, h, s, 0),
-            {"heading_std_rad": h, "speed_std_frac": s, "includes_cv": True, "on_grid_edge": edge})
-
-
 def kinematic_rows(targets: Targets, held: str, pred_len: int) -> tuple[dict[str, NDArrayFloat], dict[str, Any]]:
     """Per baseline (N, K, T, 2) forecasts of every target (settings chosen on the locations other than ``held``)
     and the choices."""
@@ -89,7 +72,8 @@ def kinematic_rows(targets: Targets, held: str, pred_len: int) -> tuple[dict[str
     out = {name: best_baseline.forecast(record, observed, pred_len)[:, None] for name, record in per_method.items()}
     out["best_kinematic"] = best_baseline.forecast(best, observed, pred_len)[:, None]
     out["model_prior"] = adaptive_fit(observed).forecast(pred_len)[:, None]
-    out["cv_sampler"], sampler = sampler_forecasts(targets, train_locs, pred_len)
+    sampler = tune_sampler(targets.inputs.take(train_locs))
+    out["cv_sampler"] = cv_sampler(observed, pred_len, K, sampler["heading_std_rad"], sampler["speed_std_frac"], 0)
     return out, {"baselines": per_method, "best_kinematic": best, "cv_sampler": sampler}
 
 
@@ -99,12 +83,8 @@ def as_shipped(targets: Targets, held: str, model: NDArrayFloat, rows: np.ndarra
     forecasts ``model`` of them: mode 0 the best kinematic baseline of the fold model's own training targets (as
     ``fit_residual`` records it), modes 1.. its own."""
     train_rows = np.flatnonzero((targets.location != held) & ~targets.validation())
-    observed = targets.inputs.observed
-    fallback = best_baseline.choose(best_baseline.choose_per_method(observed[train_rows], targets.future[train_rows]))
-    out = np.empty_like(model)
-    out[:, 0] = best_baseline.forecast(fallback, observed[rows], pred_len)
-    out[:, 1:] = model[:, :-1]
-    return out, fallback
+    ood = tune_baselines(targets.inputs.take(train_rows))
+    return fallback_forecasts(ood, targets.inputs.observed[rows], model), ood["fallback_k1"]
 
 
 def train_variant(config: ResidualConfig, real: Targets, synthetic: Targets | None, held: str, out: Path,

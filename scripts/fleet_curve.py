@@ -37,6 +37,7 @@ from logpipe.model.kinematic import best_baseline
 from logpipe.model.residual.checkpoint import load_residual
 from logpipe.model.residual.config import load_residual_config
 from logpipe.model.residual.fit import fit_residual, forecast
+from logpipe.model.residual.ood import fallback_forecasts
 from logpipe.types import NDArrayFloat
 from scripts.driving_lolo import CONFIG, K, errors, targets
 from scripts.driving_targets import LOCATIONS, Targets
@@ -132,9 +133,8 @@ def location_curve(real: Targets, datasets: dict[str, Dataset], location: str, w
         physics = best_baseline.forecast(fallback, observed, pred_len)[:, None]
         world = forecast(net, real.inputs.take(test), K)
         k1 = _k1_source(real, net, fallback, val)
-        shipped = world.copy()
-        if k1 == "physics":  # predict's default then: physics at K = 1, the model's modes after it
-            shipped[:, 0], shipped[:, 1:] = physics[:, 0], world[:, :-1]
+        # predict's default with a physics K = 1: physics as mode 0, the model's modes after it
+        shipped = fallback_forecasts({"fallback_k1": fallback}, observed, world) if k1 == "physics" else world
         out["points"][str(n or len(pool))] = point | {
             "clusters": len(clusters), "validation": how, "model": _fde(world, truth), "k1_source": k1,
             "as_predict_runs_it": _fde(shipped, truth),
