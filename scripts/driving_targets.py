@@ -26,6 +26,7 @@ from typing import Any
 import numpy as np
 
 from logpipe.api import ingest, rasterise
+from logpipe.dataset.locations import track_sharing_groups
 from logpipe.dataset.reader import Dataset, hash_fraction
 from logpipe.model.residual.config import ResidualConfig
 from logpipe.model.residual.fit import collect
@@ -92,23 +93,6 @@ def _location(kind: str, attributes: dict[str, Any], map_id: str | None) -> str:
     return str(attributes.get("location"))
 
 
-def _clusters(logs: list[dict[str, Any]]) -> dict[str, str]:
-    """Log id → cluster id: logs sharing tracks (``attributes.shared_tracks``) joined, transitively."""
-    parent = {r["log_id"]: r["log_id"] for r in logs}
-
-    def root(x: str) -> str:
-        while parent[x] != x:
-            parent[x] = parent[parent[x]]
-            x = parent[x]
-        return x
-
-    for r in logs:
-        for other in json.loads(r["attributes"] or "{}").get("shared_tracks", {}):
-            if other in parent:
-                parent[root(r["log_id"])] = root(other)
-    return {log: root(log) for log in parent}
-
-
 def turning(observed: NDArrayFloat, future: NDArrayFloat) -> np.ndarray:
     """(N,) whether each target's future turns by more than ``TURN_DEG`` (see the module docstring)."""
     before = observed[:, -1] - observed[:, -5]
@@ -125,7 +109,7 @@ def dataset_targets(kind: str, ds: Dataset, config: ResidualConfig, window_offse
     run = find_raster_run(ds.root, None, None)
     logs = ds.logs().to_pylist()
     meta = {r["log_id"]: (json.loads(r["attributes"] or "{}"), r["map_id"]) for r in logs}
-    clusters = _clusters(logs)
+    clusters = track_sharing_groups([r["log_id"] for r in logs], [r["attributes"] for r in logs])
     samples = scene_samples(ds, "all", rasters=run)
     inputs, windows = collect(samples, config)
     per = [int(np.sum(s.target_mask)) for s in samples]

@@ -20,7 +20,6 @@ Nothing here reads tracks: the logs table and the sample index are enough.
 
 from __future__ import annotations
 
-import json
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -29,6 +28,7 @@ from typing import Any
 import numpy as np
 import pyarrow as pa
 
+from logpipe.dataset.locations import track_sharing_groups
 from logpipe.dataset.reader import hash_fraction
 
 MIN_GROUPS = 5
@@ -80,30 +80,14 @@ class Holdout:
 
 
 def log_groups(logs: Sequence[pa.Table]) -> list[list[tuple[int, str]]]:
-    """Groups of (dataset number, log id): logs of one dataset that share tracks are one group (union of the
-    pairs ``attributes["shared_tracks"]`` names), every other log a group of its own; in dataset and log order."""
-    parent: dict[tuple[int, str], tuple[int, str]] = {}
-
-    def root(key: tuple[int, str]) -> tuple[int, str]:
-        while parent[key] != key:
-            parent[key] = parent[parent[key]]
-            key = parent[key]
-        return key
-
-    order: list[tuple[int, str]] = []
+    """Groups of (dataset number, log id): logs of one dataset that share tracks are one group
+    (``logpipe.dataset.locations.track_sharing_groups``), every other log a group of its own; in dataset and log
+    order."""
+    groups: dict[tuple[int, str], list[tuple[int, str]]] = {}
     for number, table in enumerate(logs):
         ids = [str(i) for i in table.column("log_id").to_pylist()]
-        for log_id in ids:
-            parent[(number, log_id)] = (number, log_id)
-            order.append((number, log_id))
-        for log_id, text in zip(ids, table.column("attributes").to_pylist(), strict=True):
-            shared = json.loads(text or "{}").get("shared_tracks", {}) if text and "shared_tracks" in text else {}
-            for earlier in shared:
-                if (number, str(earlier)) in parent:
-                    parent[root((number, log_id))] = root((number, str(earlier)))
-    groups: dict[tuple[int, str], list[tuple[int, str]]] = {}
-    for key in order:
-        groups.setdefault(root(key), []).append(key)
+        for log_id, first in track_sharing_groups(ids, table.column("attributes").to_pylist()).items():
+            groups.setdefault((number, first), []).append((number, log_id))
     return list(groups.values())
 
 

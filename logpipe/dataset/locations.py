@@ -20,7 +20,7 @@ from __future__ import annotations
 import itertools
 import json
 from collections import Counter, defaultdict
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -237,3 +237,27 @@ def dataset_shared_tracks(logs: pa.Table, shard_files: dict[str, Path]) -> dict[
     rows = rows.set_column(0, "log_id", pc.cast(rows.column("log_id"), pa.string()))
     return shared_tracks(rows.set_column(1, "track_id", pc.cast(rows.column("track_id"), pa.string())), ids,
                          locations)
+
+
+def track_sharing_groups(log_ids: Sequence[str], attributes: Sequence[str | None]) -> dict[str, str]:
+    """Log id → the first log (in ``log_ids`` order) of its group: logs joined, transitively, by the pairs their
+    ``attributes["shared_tracks"]`` name; a log that shares no track is its own group. One agent is never on both
+    sides of a split made by group (``Dataset.logs_in_split``'s ``hash/...``, ``logpipe.dataset.holdout``)."""
+    first = {log_id: log_id for log_id in log_ids}
+
+    def root(log_id: str) -> str:
+        while first[log_id] != log_id:
+            first[log_id] = first[first[log_id]]
+            log_id = first[log_id]
+        return log_id
+
+    order = {log_id: i for i, log_id in enumerate(log_ids)}
+    for log_id, text in zip(log_ids, attributes, strict=True):
+        if not text or "shared_tracks" not in text:
+            continue
+        for other in json.loads(text).get("shared_tracks", {}):
+            if str(other) in first:
+                a, b = root(log_id), root(str(other))
+                if a != b:  # the earlier root stays the group's name
+                    first[max(a, b, key=order.__getitem__)] = min(a, b, key=order.__getitem__)
+    return {log_id: root(log_id) for log_id in log_ids}

@@ -40,6 +40,7 @@ from typing import Any
 import pyarrow as pa
 
 from logpipe.contracts import decode_dictionaries
+from logpipe.dataset.locations import track_sharing_groups
 from logpipe.dataset.shards import log_slices
 from logpipe.dataset.windows import LogWindows
 from logpipe.errors import DatasetError
@@ -173,7 +174,8 @@ class Dataset:
         """Log ids of a split, in log-table order.
 
         A split is a folder membership (``eth/train``, from the ETH/UCY layout), ``hash/train``, ``hash/val``,
-        ``hash/test`` (70/15/15 by log, see ``HASH_SPLITS``), ``all`` or a log id; or such terms joined by ``+``
+        ``hash/test`` (70/15/15 by log, see ``HASH_SPLITS``; logs that share tracks go together, by the hash of
+        their group's first log), ``all`` or a log id; or such terms joined by ``+``
         (union) and ``-`` (difference), read left to right. A split that is exactly one log id or membership is
         that term even when it contains a ``-`` (CommonRoad ids do); in a longer expression such ids cannot be
         named. ``eth/train-biwi_hotel_train`` is the ETH fold's
@@ -186,13 +188,14 @@ class Dataset:
         logs = self.logs()
         ids = logs.column("log_id").to_pylist()
         memberships = logs.column("memberships").to_pylist()
+        groups = track_sharing_groups(ids, logs.column("attributes").to_pylist())
         # A whole log id or membership is one term even with a - in it (CommonRoad ids: USA_Peach-4_8_T-1).
-        whole = self._term_logs(split.strip(), ids, memberships)
+        whole = self._term_logs(split.strip(), ids, memberships, groups)
         parts = [split.strip()] if whole else _SPLIT_OPERATOR.split(split.strip())
         chosen: set[str] = set()
         for i in range(0, len(parts), 2):
             term = parts[i].strip()
-            picked = self._term_logs(term, ids, memberships)
+            picked = self._term_logs(term, ids, memberships, groups)
             if not picked:
                 known = sorted({m for ms in memberships for m in ms})
                 raise DatasetError(f"{self.root}: no log in split {term!r}"
@@ -205,13 +208,13 @@ class Dataset:
         return [i for i in ids if i in chosen]
 
     @staticmethod
-    def _term_logs(term: str, ids: list[str], memberships: list[list[str]]) -> set[str]:
-        """Log ids of one split term (membership, ``hash/...``, ``all`` or a log id)."""
+    def _term_logs(term: str, ids: list[str], memberships: list[list[str]], groups: dict[str, str]) -> set[str]:
+        """Log ids of one split term (membership, ``hash/...`` by ``groups``, ``all`` or a log id)."""
         if term == "all":
             return set(ids)
         if term.startswith("hash/") and term[5:] in HASH_SPLITS:
             lo, hi = HASH_SPLITS[term[5:]]
-            return {i for i in ids if lo <= hash_fraction(i) < hi}
+            return {i for i in ids if lo <= hash_fraction(groups[i]) < hi}
         return {i for i, m in zip(ids, memberships, strict=True) if term in m or term == i}
 
     def samples(self) -> pa.Table:
