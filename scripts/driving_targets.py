@@ -29,7 +29,7 @@ from logpipe.api import ingest, rasterise
 from logpipe.dataset.locations import track_sharing_groups
 from logpipe.dataset.reader import Dataset, hash_fraction
 from logpipe.model.residual.config import ResidualConfig
-from logpipe.model.residual.fit import collect
+from logpipe.model.residual.fit import at_most, collect
 from logpipe.model.residual.inputs import INPUTS_VERSION, TargetInputs, concat
 from logpipe.raster.runs import find_raster_run
 from logpipe.stages.train import scene_samples
@@ -104,13 +104,15 @@ def turning(observed: NDArrayFloat, future: NDArrayFloat) -> np.ndarray:
     return turns
 
 
-def dataset_targets(kind: str, ds: Dataset, config: ResidualConfig, window_offset: int) -> Targets:
-    """Every target of a dataset (its only raster run feeds the environment net's crops)."""
+def dataset_targets(kind: str, ds: Dataset, config: ResidualConfig, window_offset: int, per_window: int = 0
+                    ) -> Targets:
+    """Every target of a dataset (its only raster run feeds the environment net's crops), or at most ``per_window``
+    of each window (``model.residual.fit.at_most``)."""
     run = find_raster_run(ds.root, None, None)
     logs = ds.logs().to_pylist()
     meta = {r["log_id"]: (json.loads(r["attributes"] or "{}"), r["map_id"]) for r in logs}
     clusters = track_sharing_groups([r["log_id"] for r in logs], [r["attributes"] for r in logs])
-    samples = scene_samples(ds, "all", rasters=run)
+    samples = [at_most(s, per_window, 0, n) for n, s in enumerate(scene_samples(ds, "all", rasters=run))]
     inputs, windows = collect(samples, config)
     per = [int(np.sum(s.target_mask)) for s in samples]
     log = np.repeat([s.log_id for s in samples], per)

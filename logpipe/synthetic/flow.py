@@ -35,7 +35,10 @@ class FlowConfig:
         speed_factor: each driver's desired speed = lane limit x a draw from this range (capped at v_cap).
         v_cap: top speed of anyone (35 m/s = 126 km/h). a_max, b_comfort: IDM acceleration / comfortable braking.
         b_max: hardest braking. jerk: largest change of acceleration per second (both ways).
-        headway: IDM time headway range. gap_min: IDM standstill gap. a_lat: lateral acceleration in curves.
+        headway: IDM time headway range. gap_min: IDM standstill gap. a_lat: lateral acceleration in curves,
+            whose curvature is measured over ``curve_baseline_m`` (polyline kinks are not turns).
+        enter_free: a car entering an empty lane keeps its drawn speed (else at most 3 m/s: traffic from a
+            standstill upstream).
         demand: arrivals per second per entry lane, drawn once per scene from this range.
         fill: initial vehicles per 100 m of lane. disturb_per_s: rate at which a driver brakes to a stop for no
             map reason (stop-and-go), lasting ``disturb_wait`` once stopped.
@@ -53,6 +56,8 @@ class FlowConfig:
     headway: tuple[float, float] = (0.9, 1.8)
     gap_min: float = 2.0
     a_lat: float = 2.5
+    curve_baseline_m: float = 20.0
+    enter_free: bool = False
     demand: tuple[float, float] = (0.02, 0.12)
     fill: float = 1.0
     disturb_per_s: float = 1 / 240
@@ -148,7 +153,7 @@ class Flow:
                         and not any(self.inside[p] for p in roads.pred[k])]
         self.demand = {k: float(rng.uniform(*cfg.demand)) for k in self.entries}
         self.queue = dict.fromkeys(self.entries, 0)
-        self.vcurve = _curve_limits(roads, cfg.a_lat)
+        self.vcurve = _curve_limits(roads, cfg.a_lat, cfg.curve_baseline_m)
         self.cars: list[Vehicle] = []
         self.next_id = 1
         self.t = 0
@@ -229,7 +234,8 @@ class Flow:
             if self.clear(lane, 0.0, 10.0, occ):
                 gap, v_lead = rules.first_gap(self.roads, self.cars, lane)
                 car = self.new_vehicle(lane, 0.0)
-                car.v = max(min(car.v, (gap - self.cfg.gap_min) / car.headway, v_lead + 3.0), 0.0)
+                if math.isfinite(gap) or not self.cfg.enter_free:
+                    car.v = max(min(car.v, (gap - self.cfg.gap_min) / car.headway, v_lead + 3.0), 0.0)
                 self.cars.append(car)
                 self.queue[lane] -= 1
                 occ = None
@@ -389,12 +395,12 @@ def simulate(roads: Roads, cfg: FlowConfig, rng: np.random.Generator, steps: int
                   speed=cat["v"], accel=cat["a"], sizes=flow.sizes, events=events, steps=steps)
 
 
-def _curve_limits(roads: Roads, a_lat: float) -> NDArrayFloat:
+def _curve_limits(roads: Roads, a_lat: float, baseline_m: float = 20.0) -> NDArrayFloat:
     """Per lane, the speed (m/s) its sharpest bend allows at lateral acceleration ``a_lat``."""
     out = np.zeros(len(roads))
     for k in range(len(roads)):
         h = np.unwrap(roads.heading[roads.start[k]:roads.start[k] + roads.count[k]])
-        w = max(round(10.0 / max(roads.step[k], 1e-3)), 1)  # curvature over 20 m: polyline kinks are not turns
+        w = max(round(baseline_m / 2 / max(roads.step[k], 1e-3)), 1)
         if len(h) <= 2 * w:
             kappa = abs(float(h[-1] - h[0])) / max(roads.lens[k], 1.0)
         else:

@@ -52,6 +52,42 @@ FAST_FACTOR = (1.6, 2.6)
 """Range of the factor a fast scene's desired speeds are multiplied by (a 35 mph arterial becomes 56-91 mph)."""
 
 
+HIGHWAY_A_LAT = 3.0
+"""Lateral acceleration (m/s²) the highway regime's drivers accept in bends."""
+
+
+@dataclass(frozen=True)
+class Regime:
+    """How fast a set drives. The default is issue 57's mix: ``FAST_SHARE`` of its scenes multiply their drivers'
+    desired speeds by ``FAST_FACTOR`` (they still slow to 1.2 times the next lane's limit, so arterials stay below
+    ~23 m/s). With ``desired`` (issue 62, item 4: ``HIGHWAY``) every driver wants a speed drawn from that range
+    (m/s) whatever the lane's limit, and lights and stop lines are off: free-flow traffic at speeds no real training
+    location shows, on their real lane graphs (bends, merges and crossing conflicts still slow it); ``demand``
+    (arrivals per second per entry lane) replaces the location's own, light enough to flow freely."""
+
+    fast_share: float = FAST_SHARE
+    v_cap: float = FlowConfig.v_cap
+    desired: tuple[float, float] | None = None
+    demand: tuple[float, float] | None = None
+
+    def scene(self, roads: Roads, cfg: FlowConfig, rng: np.random.Generator) -> tuple[Roads, FlowConfig]:
+        """One scene's lanes and driver model."""
+        cfg = replace(cfg, v_cap=self.v_cap, demand=self.demand or cfg.demand)
+        if self.desired is not None:
+            lo, hi = self.desired
+            flat = replace(roads, limits=np.full(len(roads), hi), signals={}, stops=set())
+            # NGSIM lanelets bend in kinks, and a lane's sharpest bend caps all of it: read bends over 60 m
+            return flat, replace(cfg, speed_factor=(lo / hi, 1.0), a_lat=HIGHWAY_A_LAT, curve_baseline_m=60.0,
+                                 enter_free=True)
+        if rng.random() < self.fast_share:
+            factor = rng.uniform(*FAST_FACTOR)
+            cfg = replace(cfg, speed_factor=(cfg.speed_factor[0] * factor, cfg.speed_factor[1] * factor))
+        return roads, cfg
+
+
+HIGHWAY = Regime(v_cap=40.0, desired=(25.0, 40.0), demand=(0.03, 0.12))
+
+
 @dataclass
 class Location:
     """One location's maps (sources or the AV1 city store) and roads, built once."""
@@ -82,14 +118,12 @@ def load_locations(shared: Path, names: Sequence[str], seed: int) -> list[Locati
     return out
 
 
-def run_scene(loc: Location, n: int, rng: np.random.Generator, steps: int, out: Path) -> tuple[Tracks, int, int]:
+def run_scene(loc: Location, n: int, rng: np.random.Generator, steps: int, out: Path, regime: Regime = Regime()
+              ) -> tuple[Tracks, int, int]:
     """Simulate and write scene ``n`` of ``loc``: (recorded tracks, files written, cars dropped for overlap)."""
-    cfg = FlowConfig(demand=DEMAND.get(loc.name, FlowConfig.demand))
-    if rng.random() < FAST_SHARE:
-        factor = rng.uniform(*FAST_FACTOR)
-        cfg = replace(cfg, speed_factor=(cfg.speed_factor[0] * factor, cfg.speed_factor[1] * factor))
+    k = n % len(loc.roads)
+    roads, cfg = regime.scene(loc.roads[k], FlowConfig(demand=DEMAND.get(loc.name, FlowConfig.demand)), rng)
     if loc.kind == "av1":
-        roads = loc.roads[0]
         region = scenes.av1_region_of(roads, rng)
         tracks = simulate(roads, replace(cfg, fill=0.8), rng, steps, WARMUP, region)
         tracks, dropped = scenes.remove_overlaps(tracks)
@@ -99,8 +133,7 @@ def run_scene(loc: Location, n: int, rng: np.random.Generator, steps: int, out: 
         files = scenes.av1_windows(tracks, loc.name, f"synthetic_{loc.name}_{n:06d}", folder, rng, AV1_STRIDE,
                                    NOISE[loc.name], t0)
         return tracks, files, dropped
-    k = n % len(loc.sources)
-    src, roads = loc.sources[k], loc.roads[k]
+    src = loc.sources[k]
     tracks = simulate(roads, cfg, rng, steps, WARMUP)
     tracks, dropped = scenes.remove_overlaps(tracks)
     path = out / "commonroad" / loc.name / f"synthetic_{src.real_id}_{n}.xml.gz"
@@ -116,7 +149,8 @@ def windows_of(loc: Location, tracks: Tracks, files: int) -> int:
 
 
 def generate(shared: Path, out: Path, *, seed: int = 0, scale: float = 1.0, scene_s: float = 60.0,
-             locations: Sequence[str] | None = None, progress: bool = True) -> dict[str, object]:
+             locations: Sequence[str] | None = None, progress: bool = True, regime: Regime = Regime()
+             ) -> dict[str, object]:
     """Write the set (module docstring) and return the summary written to ``out/generation.json``.
 
     Locations take turns (the one furthest from its share goes next), so a run cut short still covers all of
@@ -138,7 +172,7 @@ def generate(shared: Path, out: Path, *, seed: int = 0, scale: float = 1.0, scen
             break
         loc = min(todo, key=lambda x: stats[x.name].windows / max(targets[x.name], 1))
         n = done[loc.name]
-        stats[loc.name].merge(scene_stats(loc, n, seed, steps, out))
+        stats[loc.name].merge(scene_stats(loc, n, seed, steps, out, regime))
         done[loc.name] += 1
         if progress and sum(done.values()) % 20 == 0:
             total = sum(x.windows for x in stats.values())
@@ -150,7 +184,7 @@ def generate(shared: Path, out: Path, *, seed: int = 0, scale: float = 1.0, scen
         "locations": {name: {**st.summary(), "scenes": done[name], "noise_sd_m": NOISE[name],
                              "maps": [r.name for r in loc.roads]}
                       for (name, st), loc in zip(stats.items(), locs, strict=True)},
-        "flow": asdict(FlowConfig()),
+        "flow": asdict(FlowConfig(v_cap=regime.v_cap)), "regime": asdict(regime),
     }
     summary["windows"] = sum(st.windows for st in stats.values())
     summary["scene_cpu_s"] = round(sum(st.cpu_s for st in stats.values()), 1)
@@ -160,7 +194,8 @@ def generate(shared: Path, out: Path, *, seed: int = 0, scale: float = 1.0, scen
     return summary
 
 
-def scene_stats(loc: Location, n: int, seed: int, steps: int, out: Path) -> dict[str, Any]:
+def scene_stats(loc: Location, n: int, seed: int, steps: int, out: Path, regime: Regime = Regime()
+                ) -> dict[str, Any]:
     """Scene ``n`` of ``loc``: its statistics from ``out/stats`` when a previous run finished it, else simulated,
     written and recorded there."""
     path = out / "stats" / loc.name / f"{n:06d}.json"
@@ -169,7 +204,7 @@ def scene_stats(loc: Location, n: int, seed: int, steps: int, out: Path) -> dict
         return found
     t0 = time.process_time()
     rng = np.random.default_rng([seed, list(SHARES).index(loc.name), n])
-    tracks, files, dropped = run_scene(loc, n, rng, steps, out)
+    tracks, files, dropped = run_scene(loc, n, rng, steps, out, regime)
     one = SceneStats()
     one.add(tracks, files, dropped, windows_of(loc, tracks, files))
     one.cpu_s = time.process_time() - t0
@@ -183,6 +218,10 @@ def scene_stats(loc: Location, n: int, seed: int, steps: int, out: Path) -> dict
     return record
 
 
+SPEED_BINS = 41
+"""Speed histogram bins, 1 m/s each; the last one counts everything from 40 m/s up."""
+
+
 @dataclass
 class SceneStats:
     """Running statistics of one location's scenes (ground-truth states, before tracking noise)."""
@@ -193,7 +232,7 @@ class SceneStats:
     car_steps: int = 0
     dropped: int = 0
     events: Counter[str] = field(default_factory=Counter)
-    speed_hist: np.ndarray = field(default_factory=lambda: np.zeros(36, dtype=np.int64))
+    speed_hist: np.ndarray = field(default_factory=lambda: np.zeros(SPEED_BINS, dtype=np.int64))
     accel_min: float = 0.0
     accel_max: float = 0.0
     jerk_max: float = 0.0
@@ -208,7 +247,7 @@ class SceneStats:
         self.cars += len(np.unique(tracks.vid))
         self.car_steps += len(tracks.vid)
         self.events.update(e[2] for e in tracks.events)
-        self.speed_hist += np.histogram(tracks.speed, bins=np.arange(37))[0]
+        self.speed_hist += np.histogram(np.minimum(tracks.speed, SPEED_BINS - 0.5), bins=np.arange(SPEED_BINS + 1))[0]
         if len(tracks.speed):
             self.speed_max = max(self.speed_max, float(tracks.speed.max()))
             self.accel_min = min(self.accel_min, float(tracks.accel.min()))
@@ -220,7 +259,8 @@ class SceneStats:
         for key in ("windows", "files", "cars", "car_steps", "dropped", "cpu_s"):
             setattr(self, key, getattr(self, key) + other[key])
         self.events.update(other["events"])
-        self.speed_hist += np.asarray(other["speed_hist"], dtype=np.int64)
+        hist = np.asarray(other["speed_hist"], dtype=np.int64)  # records of before issue 62 have 36 bins
+        self.speed_hist[: len(hist)] += hist
         self.accel_min = min(self.accel_min, float(other["accel_min"]))
         self.accel_max = max(self.accel_max, float(other["accel_max"]))
         self.jerk_max = max(self.jerk_max, float(other["jerk_max"]))
@@ -270,9 +310,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--scale", type=float, default=1.0, help="multiply every location's share of windows")
     ap.add_argument("--scene-seconds", type=float, default=60.0, help="length of one scene, s")
     ap.add_argument("--locations", nargs="*", default=None, help=f"subset of {', '.join(SHARES)}")
+    ap.add_argument("--highway", action="store_true",
+                    help="every scene fast, up to 40 m/s (issue 62: speeds no real training location shows)")
     args = ap.parse_args(argv)
     summary = generate(args.shared, args.out, seed=args.seed, scale=args.scale, scene_s=args.scene_seconds,
-                       locations=args.locations)
+                       locations=args.locations, regime=HIGHWAY if args.highway else Regime())
     print(json.dumps({"windows": summary["windows"], "scene_cpu_s": summary["scene_cpu_s"]}))
     return 0
 

@@ -16,8 +16,8 @@ from typing import Any
 from logpipe.synthetic.flow import EVENTS
 from logpipe.synthetic.pretrain import SHARES, SceneStats
 
-SPEED_BINS = ((0, 1), (1, 5), (5, 10), (10, 15), (15, 20), (20, 25), (25, 30), (30, 36))
-"""Speed bins of the tables, m/s (the histograms are kept at 1 m/s)."""
+SPEED_BINS = ((0, 1), (1, 5), (5, 10), (10, 15), (15, 20), (20, 25), (25, 30), (30, 35), (35, 41))
+"""Speed bins of the tables, m/s (the histograms are kept at 1 m/s; the last bin counts 40 m/s and up)."""
 
 
 def summarise(out: Path) -> dict[str, Any]:
@@ -40,7 +40,7 @@ def markdown(summary: dict[str, Any]) -> str:
     """The two tables: sizes and speeds by location; behaviour events by location."""
     locs = summary["locations"]
     head = "| location | scenes | windows | cars | car-steps | " + " | ".join(
-        f"{lo}-{hi if hi < 36 else 35} m/s" for lo, hi in SPEED_BINS) + " | max m/s | cars dropped |"
+        f"{lo}-{hi} m/s" if hi < 41 else f"{lo}+ m/s" for lo, hi in SPEED_BINS) + " | max m/s | cars dropped |"
     lines = [head, "|" + "---|" * (head.count("|") - 1)]
     for name, v in locs.items():
         hist = v["speed_hist_1ms"]

@@ -34,6 +34,18 @@ from .ood import training_distribution, tune_baselines
 LOG = "train_log.jsonl"
 
 
+def at_most(sample: SceneSample, per_window: int, seed: int, number: int) -> SceneSample:
+    """``sample`` with at most ``per_window`` of its targets (all with 0), drawn by ``seed`` and the window's
+    ``number``."""
+    targets = np.flatnonzero(np.asarray(sample.target_mask, bool))
+    if not per_window or len(targets) <= per_window:
+        return sample
+    picked = np.random.default_rng([seed, number]).choice(targets, per_window, replace=False)
+    mask = np.zeros(len(sample.target_mask), bool)
+    mask[picked] = True
+    return dataclasses.replace(sample, target_mask=mask)
+
+
 def collect(samples: Iterable[SceneSample], config: ResidualConfig,
             progress: Callable[[int], None] | None = None, *, per_window: int = 0,
             seed: int = 0) -> tuple[TargetInputs, np.ndarray]:
@@ -43,13 +55,7 @@ def collect(samples: Iterable[SceneSample], config: ResidualConfig,
     parts: list[TargetInputs] = []
     windows: list[np.ndarray] = []
     for number, whole in enumerate(samples):
-        targets = np.flatnonzero(np.asarray(whole.target_mask, bool))
-        sample = whole
-        if per_window and len(targets) > per_window:  # cut before the inputs: crops are their costly part
-            picked = np.random.default_rng([seed, number]).choice(targets, per_window, replace=False)
-            mask = np.zeros(len(whole.target_mask), bool)
-            mask[picked] = True
-            sample = dataclasses.replace(whole, target_mask=mask)
+        sample = at_most(whole, per_window, seed, number)  # cut before the inputs: crops are their costly part
         inputs = target_inputs(sample, config, with_truth=True)
         if len(inputs):
             parts.append(inputs)

@@ -20,7 +20,7 @@ from logpipe.stages.ingest import IngestOptions, ingest
 from logpipe.stages.rasterise import rasterise_dataset
 from logpipe.synthetic import scenes
 from logpipe.synthetic.flow import FlowConfig, Tracks, simulate
-from logpipe.synthetic.pretrain import car_jerks, main
+from logpipe.synthetic.pretrain import DEMAND, HIGHWAY, Regime, car_jerks, main
 from logpipe.synthetic.report import markdown, summarise
 from logpipe.synthetic.roads import LaneExtras, Roads, build_roads
 
@@ -218,3 +218,22 @@ def test_av1_neighbours_and_invented_lights(bundled: Path) -> None:
         greens = [t for t in np.arange(0.0, 200.0, 0.5)
                   if not roads.signals[a].is_red(t) and not roads.signals[b].is_red(t)]
         assert not greens, (a, b, greens[:3])
+
+
+def test_the_highway_regime_drives_the_real_freeway_at_speeds_no_recording_shows(
+        sources: dict[str, scenes.LaneletSource]) -> None:
+    src = sources["USA_US101"]
+    roads = build_roads(src.store, src.extras, src.default_limit, np.random.default_rng(0), src.real_id)
+    speeds = {}
+    for name, regime in (("default", Regime()), ("highway", HIGHWAY)):
+        rng = np.random.default_rng([7, 1])
+        lanes, cfg = regime.scene(roads, FlowConfig(demand=DEMAND["USA_US101"]), rng)
+        speeds[name] = simulate(lanes, cfg, rng, STEPS).speed
+    real_top = 20.2  # the fastest 1 % of US-101's recorded targets move at 20.2 m/s and below (driving_lolo)
+    fast = {name: float(np.mean(v >= 25.0)) for name, v in speeds.items()}
+    assert fast["highway"] > 1.2 * fast["default"] and np.mean(speeds["highway"] > real_top) > 0.25
+    assert speeds["highway"].max() <= HIGHWAY.v_cap + 1e-6
+    assert np.mean(speeds["highway"] < 1.0) < 0.05  # free flow: lights off, light demand, cars enter at speed
+    lanes, _ = HIGHWAY.scene(roads, CFG, np.random.default_rng(0))
+    assert not lanes.signals and not lanes.stops and len(lanes) == len(roads)
+    assert Regime().scene(roads, CFG, np.random.default_rng(0))[0] is roads  # the default set is unchanged
