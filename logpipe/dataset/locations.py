@@ -77,11 +77,16 @@ def window_locations(logs: Iterable[pa.Table], window_log_ids: Iterable[str]) ->
     """Windows per location, sorted, of windows whose logs are ``window_log_ids`` (one entry per window) in the
     logs tables ``logs``: what a model trained on them has seen; windows of a log without a location are not
     counted ({} when none has one)."""
+    counts = Counter(locations_of(logs, window_log_ids))
+    return {str(loc): n for loc, n in sorted(counts.items(), key=lambda item: str(item[0])) if loc}
+
+
+def locations_of(logs: Iterable[pa.Table], log_ids: Iterable[str]) -> list[str | None]:
+    """The location of each of ``log_ids`` (one entry per target or window) in the logs tables ``logs``."""
     where: dict[str, str | None] = {}
     for table in logs:
         where |= log_locations(table)
-    counts = Counter(where.get(log_id) for log_id in window_log_ids)
-    return {str(loc): n for loc, n in sorted(counts.items(), key=lambda item: str(item[0])) if loc}
+    return [where.get(log_id) for log_id in log_ids]
 
 
 @dataclass(frozen=True)

@@ -23,7 +23,7 @@ from logpipe.types import NDArrayFloat
 from ..kinematic import best_baseline
 from ..kinematic.constant_velocity import last_velocity
 from .fit import forecast
-from .inputs import TargetInputs
+from .inputs import TargetInputs, world_truth
 from .net import ResidualNet
 
 K = 6
@@ -36,14 +36,6 @@ SAMPLER_SPEEDS = (0.0, 0.0125, 0.025, 0.05, 0.1, 0.2, 0.4, 0.8, 1.6)
 TUNE_TARGETS = 5_000
 """At most this many training targets choose the sampler's noise (drawn by the seed)."""
 K1_BASELINES = ("cv", "least_squares_cv", "kalman", "adaptive_prior")
-
-
-def world_truth(inputs: TargetInputs) -> NDArrayFloat:
-    """(N, T, 2) true futures in world metres."""
-    assert inputs.truth is not None
-    out: NDArrayFloat = inputs.prior + np.einsum("nji,ntj->nti", inputs.rotation,
-                                                 inputs.truth * inputs.scale[:, None, None])
-    return out
 
 
 def cv_sampler(observed: NDArrayFloat, pred_len: int, modes: int, heading_std: float, speed_std: float,

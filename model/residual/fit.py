@@ -12,7 +12,7 @@ import dataclasses
 import json
 import math
 import time
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -24,12 +24,13 @@ from logpipe.storage.io import open_nofollow
 from logpipe.types import NDArrayFloat, SceneSample
 
 from ..checkpoint.format import TrainingData
+from ..kinematic import best_baseline
 from .checkpoint import load_residual, save_residual
 from .config import ResidualConfig
-from .inputs import CROP_UNIT, TargetInputs, concat, target_inputs
+from .inputs import CROP_UNIT, TargetInputs, concat, target_inputs, world_truth
 from .meta import ResidualMeta
 from .net import ResidualNet, training_loss
-from .ood import training_distribution, tune_baselines
+from .ood import k1_evidence, training_distribution, tune_baselines
 
 LOG = "train_log.jsonl"
 
@@ -97,10 +98,9 @@ def forecast(net: ResidualNet, inputs: TargetInputs, num_modes: int, batch: int 
 
 def evaluate(net: ResidualNet, inputs: TargetInputs) -> dict[str, float]:
     """K = 1 FDE/ADE and minFDE@K (K = modes + 1) on targets with their truth, metres."""
-    assert inputs.truth is not None
     k = net.config.modes + 1
     world = forecast(net, inputs, k)
-    truth = inputs.prior + np.einsum("nji,ntj->nti", inputs.rotation, inputs.truth * inputs.scale[:, None, None])
+    truth = world_truth(inputs)
     dist = np.linalg.norm(world - truth[:, None], axis=-1)  # (N, K, T)
     return {"fde": float(dist[:, 0, -1].mean()), "ade": float(dist[:, 0].mean()),
             f"min_fde_{k}": float(dist[:, :, -1].min(axis=1).mean()), "targets": float(len(inputs))}
@@ -133,18 +133,30 @@ def _epoch_rows(windows: np.ndarray, cap: int, rng: np.random.Generator) -> np.n
     return rng.permutation(order[rank < cap])
 
 
+def _record_evidence(best: Path, val: TargetInputs, val_locations: Sequence[str | None]) -> None:
+    """Add to the checkpoint in ``best`` where, by location, its K = 1 beat the best kinematic baseline on ``val``."""
+    net, meta = load_residual(best)
+    truth = world_truth(val)
+    model = forecast(net, val, 1)[:, 0, -1]
+    physics = best_baseline.forecast(meta.ood["fallback_k1"], val.observed, truth.shape[1])[:, -1]
+    meta.ood["k1_by_location"] = k1_evidence(np.linalg.norm(model - truth[:, -1], axis=-1),
+                                             np.linalg.norm(physics - truth[:, -1], axis=-1), val_locations)
+    save_residual(best, net, meta)
+
+
 def fit_residual(  # noqa: PLR0913  the run's data, config and where it goes
     train: TargetInputs, windows: np.ndarray, val: TargetInputs | None, config: ResidualConfig, out_dir: Path, *,
     dataset_kind: str, manifest_hash: str, training_data: TrainingData | None = None, init_from: Path | None = None,
     locations: dict[str, int] | None = None, baselines: dict[str, Any] | None = None,
-    progress: Callable[[int], None] | None = None,
+    val_locations: Sequence[str | None] | None = None, progress: Callable[[int], None] | None = None,
 ) -> ResidualFitResult:
     """Train on ``train`` (validating on ``val``), writing ``best/``, ``last/`` and ``train_log.jsonl`` into
     ``out_dir``; ``init_from`` starts from a checkpoint of the same architecture (pre-training → fine-tuning);
     ``locations``: the training windows per location (``logpipe.dataset.locations.window_locations``), which the
     checkpoint records so that predict knows the roads it has evidence for (None: not known); ``baselines``:
     ``ood.tune_baselines`` of ``train`` when the caller already has it (candidates trained on the same targets
-    choose once)."""
+    choose once); ``val_locations``: each validation target's location, so the best checkpoint records where its
+    K = 1 beat the best kinematic baseline (``ood.k1_evidence``; predict keeps physics elsewhere)."""
     assert train.truth is not None
     torch.set_num_threads(config.num_threads)
     torch.manual_seed(config.seed)
@@ -204,5 +216,7 @@ def fit_residual(  # noqa: PLR0913  the run's data, config and where it goes
     if val is None:  # without validation the last epoch is the one to use
         save_residual(out_dir / "best", net, meta)
         best_epoch, best_step = epoch, steps
+    elif val_locations is not None:
+        _record_evidence(out_dir / "best", val, val_locations)
     return ResidualFitResult(epoch, best_epoch, steps, best_step, best_metrics, out_dir / "best", out_dir / "last",
                              len(train), seen / clock if clock > 0 else 0.0, epoch < config.epochs)

@@ -23,7 +23,7 @@ import pyarrow as pa
 import pyarrow.compute as pc
 
 from logpipe.dataset.holdout import Holdout, choose_holdout
-from logpipe.dataset.locations import window_locations
+from logpipe.dataset.locations import locations_of, window_locations
 from logpipe.dataset.reader import Dataset
 from logpipe.errors import LogpipeError
 from logpipe.raster.runs import RasterShards, find_raster_run
@@ -141,7 +141,10 @@ def train_fleet(  # noqa: PLR0913  the command's options one to one
     else:
         holdout = _given_splits(datasets, train_split, str(val_split))
     train, windows = collect(_samples(datasets, runs, holdout.train_ids), config)
-    val = collect(_samples(datasets, runs, holdout.val_ids), config)[0] if holdout.how != "none" else None
+    val_samples = _samples(datasets, runs, holdout.val_ids) if holdout.how != "none" else []
+    val, val_windows = collect(val_samples, config) if val_samples else (None, None)
+    val_locations = None if val_windows is None else locations_of(
+        [d.logs() for d in datasets], [val_samples[w].log_id for w in val_windows])
     starts, why_not = _candidates(config, init_from or shipped)
     if val is None:  # nothing to choose on: the start trained on more data, when there is one
         starts = {"finetune": starts["finetune"]} if "finetune" in starts else starts
@@ -156,7 +159,8 @@ def train_fleet(  # noqa: PLR0913  the command's options one to one
     with run_folder(out_dir):
         fits = {name: fit_residual(train, windows, val, config, out_dir / "candidates" / name, dataset_kind=kind,
                                    manifest_hash=manifests, training_data=training_data, init_from=start,
-                                   locations=locations, baselines=baselines, progress=progress)
+                                   locations=locations, baselines=baselines, progress=progress,
+                                   val_locations=val_locations)
                 for name, start in starts.items()}
         scores = {name: r.best_metrics["fde"] + r.best_metrics[f"min_fde_{config.modes + 1}"]
                   for name, r in fits.items() if val is not None}

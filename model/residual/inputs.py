@@ -108,6 +108,14 @@ def to_world(residual: NDArrayFloat, inputs: TargetInputs) -> NDArrayFloat:
     return out
 
 
+def world_truth(inputs: TargetInputs) -> NDArrayFloat:
+    """(N, T_pred, 2) the targets' true futures in world metres (inputs with their truth)."""
+    assert inputs.truth is not None
+    out: NDArrayFloat = inputs.prior + np.einsum("nji,ntj->nti", inputs.rotation,
+                                                 inputs.truth * inputs.scale[:, None, None])
+    return out
+
+
 def target_inputs(sample: SceneSample, config: ResidualConfig, *, with_truth: bool = False) -> TargetInputs:
     """Every target of ``sample`` (its ``target_mask`` rows, in order) as the network's inputs."""
     targets = np.flatnonzero(np.asarray(sample.target_mask, bool))

@@ -21,8 +21,11 @@ keeps the K modes: mode 0 (the K = 1 forecast) becomes the best kinematic baseli
 (``model.kinematic.best_baseline``, stored as ``fallback_k1``), and modes 1..K-1 are the model's own first K - 1
 modes (its mean head first), so best-of-K keeps what the model learnt while K = 1 is physics. ``auto``, the default,
 falls back where the model has no evidence for a correction: on roads it was never trained on (the
-leave-one-location-out run measured that its corrections do harm there: ``docs/results/driving_lolo.md``); other
-flags are only marked. ``fallback`` falls back on every flagged target. A checkpoint whose training run could not
+leave-one-location-out run measured that its corrections do harm there: ``docs/results/driving_lolo.md``), and on
+roads it trained on where its validation did not show its K = 1 beating that baseline on at least
+``MIN_EVIDENCE_TARGETS`` targets (``k1_by_location``, recorded by training; a held-out Peachtree recording lost
+1.10x to physics with a model trained on five others, and no Peachtree recording validated it:
+``docs/results/driving_holdout.md``); other flags are only marked. ``fallback`` falls back on every flagged target. A checkpoint whose training run could not
 show on its validation data that the model beats that baseline at K = 1 (``k1_source`` ``physics``: ``logpipe
 train`` on driving data decides) falls back on every target, except with ``warn``. A checkpoint trained before
 ``fallback_k1`` falls back to its Kalman filter (``fallback_kalman``).
@@ -77,6 +80,38 @@ def training_distribution(inputs: TargetInputs, locations: dict[str, int] | None
             "map_share": float(np.mean(inputs.has_map)) if len(inputs) else 0.0, "targets": len(inputs),
             "flag_score": FLAG_SCORE,
             **({"locations": dict(sorted(locations.items()))} if locations is not None else {})}
+
+
+MIN_EVIDENCE_TARGETS = 30
+"""Validation targets a location needs before its K = 1 comparison counts as evidence."""
+NO_LOCATION = "(no location)"
+"""The ``k1_by_location`` key of targets whose logs name no location."""
+
+
+def k1_evidence(model_fde: NDArrayFloat, baseline_fde: NDArrayFloat, locations: Sequence[str | None]
+                ) -> dict[str, dict[str, Any]]:
+    """Per location of the validation targets (their K = 1 final errors, metres, of the model's mean head and of
+    the best kinematic baseline): the targets, both mean FDEs and the K = 1 ``source``, ``model`` only where it beat
+    the baseline on at least ``MIN_EVIDENCE_TARGETS`` targets (the checkpoint's ``ood["k1_by_location"]``)."""
+    where = np.array([loc or NO_LOCATION for loc in locations], dtype=object)
+    out = {}
+    for loc in sorted(set(where.tolist())):
+        m = where == loc
+        mine, theirs = float(model_fde[m].mean()), float(baseline_fde[m].mean())
+        source = "model" if m.sum() >= MIN_EVIDENCE_TARGETS and mine < theirs else "physics"
+        out[str(loc)] = {"targets": int(m.sum()), "model_fde": round(mine, 4), "baseline_fde": round(theirs, 4),
+                         "source": source}
+    return out
+
+
+def k1_evidenced(ood: dict[str, Any], location: str | None) -> bool:
+    """Whether the checkpoint's validation showed its K = 1 beats the best kinematic baseline at ``location``
+    (True for a checkpoint that predates the record: it cannot tell)."""
+    evidence = ood.get("k1_by_location")
+    if evidence is None:
+        return True
+    entry = evidence.get(location or NO_LOCATION)
+    return bool(entry) and entry["source"] == "model"
 
 
 def unseen_location(ood: dict[str, Any], location: str | None) -> bool:
@@ -203,7 +238,8 @@ class OodCheck:
             if self.action == "fallback":
                 replaced = flags | physics_k1
             elif self.action == "auto":
-                replaced = np.full(len(flags), unseen_location(self.ood, location) or physics_k1)
+                replaced = np.full(len(flags), unseen_location(self.ood, location) or physics_k1
+                                   or not k1_evidenced(self.ood, location))
             else:
                 replaced = np.zeros(len(flags), bool)
             future = np.array(given, np.float64, copy=True)

@@ -16,7 +16,7 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any, cast
 
-from logpipe.dataset.locations import window_locations
+from logpipe.dataset.locations import locations_of, window_locations
 from logpipe.dataset.reader import Dataset
 from logpipe.errors import LogpipeError
 from logpipe.raster.runs import find_raster_run
@@ -64,7 +64,7 @@ def train_residual(  # noqa: PLR0913  the command's options one to one
     val_samples, val_logs = (_split_samples(datasets, val_split, raster_run, config.environment) if val_split
                              else ([], [[] for _ in datasets]))
     train, windows = collect(train_samples, config)
-    val = collect(val_samples, config)[0] if val_samples else None
+    val, val_windows = collect(val_samples, config) if val_samples else (None, None)
     training_data = TrainingData.of_logs(list(zip(datasets, train_logs, val_logs, strict=True)), train_split, val_split)
     manifests = combined_manifest_hash([sha256_file(d.root / "manifest.json") for d in datasets])
     with run_folder(out_dir):
@@ -72,7 +72,9 @@ def train_residual(  # noqa: PLR0913  the command's options one to one
                               dataset_kind=combined_kind([d.kind for d in datasets]), manifest_hash=manifests,
                               training_data=training_data, init_from=init_from, progress=progress,
                               locations=window_locations([d.logs() for d in datasets],
-                                                         [s.log_id for s in train_samples]))
+                                                         [s.log_id for s in train_samples]),
+                              val_locations=None if val_windows is None else locations_of(
+                                  [d.logs() for d in datasets], [val_samples[w].log_id for w in val_windows]))
     several = len(datasets) > 1
     k = config.modes + 1
     return cast(TrainSummary, {

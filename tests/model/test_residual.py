@@ -22,10 +22,18 @@ from logpipe.model.residual.checkpoint import load_residual, save_residual
 from logpipe.model.residual.compare import compare, k1_source
 from logpipe.model.residual.config import ResidualConfig, ResidualConfigError, load_residual_config
 from logpipe.model.residual.fit import collect, evaluate, fit_residual, forecast
-from logpipe.model.residual.inputs import CROP_CHANNELS, CROP_UNIT, target_inputs
+from logpipe.model.residual.inputs import CROP_CHANNELS, CROP_UNIT, target_inputs, world_truth
 from logpipe.model.residual.meta import ResidualMeta
 from logpipe.model.residual.net import ResidualNet
-from logpipe.model.residual.ood import OodCheck, ood_scores, training_distribution, tune_baselines
+from logpipe.model.residual.ood import (
+    MIN_EVIDENCE_TARGETS,
+    NO_LOCATION,
+    OodCheck,
+    k1_evidence,
+    ood_scores,
+    training_distribution,
+    tune_baselines,
+)
 from logpipe.model.residual.predictor import ResidualPredictor
 from logpipe.raster.runs import find_raster_run
 from logpipe.stages.ingest import IngestOptions, ingest
@@ -118,15 +126,33 @@ def test_training_beats_the_prior_on_what_it_trained_on(scenes: list[SceneSample
     config = ResidualConfig(epochs=40, hidden=64, head_hidden=64, modes=3, lr=3e-3)
     inputs, windows = collect(scenes, config)
     before = evaluate(ResidualNet(config).eval(), inputs)
+    half = len(inputs) // 2  # two made-up locations, to see the evidence recorded per location
+    where = ["USA_Peach"] * half + ["USA_Lanker"] * (len(inputs) - half)
     result = fit_residual(inputs, windows, inputs, config, tmp_path / "run", dataset_kind="commonroad",
-                          manifest_hash="h")
+                          manifest_hash="h", val_locations=where)
     net, meta = load_residual(result.best_checkpoint)
     after = evaluate(net, inputs)
+    evidence = meta.ood["k1_by_location"]
+    assert set(evidence) == {"USA_Peach", "USA_Lanker"} and evidence["USA_Peach"]["targets"] == half
+    physics = best_baseline.forecast(meta.ood["fallback_k1"], inputs.observed, 30)[:, -1]
+    truth = world_truth(inputs)[:, -1]
+    assert evidence["USA_Peach"]["baseline_fde"] == pytest.approx(
+        np.linalg.norm(physics - truth, axis=-1)[:half].mean(), abs=1e-4)
     assert after["fde"] < 0.8 * before["fde"] and after["min_fde_4"] < after["fde"]
     assert meta.epoch == result.best_epoch and meta.metrics["val_fde"] == pytest.approx(after["fde"])
     lines = (tmp_path / "run" / "train_log.jsonl").read_text().splitlines()
     assert len(lines) == result.epochs and "val" in json.loads(lines[0])
     assert meta.ood["targets"] == len(inputs) and set(meta.ood["object_types"]) == {"vehicle"}
+
+
+def test_k1_evidence_is_per_location_and_needs_enough_targets() -> None:
+    model = np.r_[np.full(40, 1.0), np.full(40, 3.0), np.full(MIN_EVIDENCE_TARGETS - 1, 1.0)]
+    physics = np.full(len(model), 2.0)
+    where = ["A"] * 40 + ["B"] * 40 + ["C"] * (MIN_EVIDENCE_TARGETS - 1)
+    evidence = k1_evidence(model, physics, where)
+    assert {k: v["source"] for k, v in evidence.items()} == {"A": "model", "B": "physics", "C": "physics"}
+    assert evidence["A"] == {"targets": 40, "model_fde": 1.0, "baseline_fde": 2.0, "source": "model"}
+    assert list(k1_evidence(model[:3], physics[:3], [None] * 3)) == [NO_LOCATION]
 
 
 def test_checkpoints_round_trip_and_refuse_damage(tmp_path: Path) -> None:
@@ -211,6 +237,18 @@ def test_roads_the_model_never_trained_on_get_physics_at_k1(scenes: list[SceneSa
     np.testing.assert_array_equal(checked[1][:, 1:], forecasts[1][:, :3])
     _, _, reasons = ood_scores(target_inputs(scenes[1], SMALL), ood, location="DEU_Unseen")
     assert "not trained on this road (DEU_Unseen; trained on USA_Peach)" in reasons[0]
+    # a road it trained on but whose validation never showed its K = 1 beating physics: physics at K = 1 too
+    evidenced = ood | {"k1_by_location": {"USA_Peach": {"source": "model"}, "USA_Lanker": {"source": "physics"}}}
+    both = {"USA_Peach": 5, "USA_Lanker": 5}
+    check = OodCheck(evidenced | {"locations": both}, SMALL, "auto",
+                     locations={log_a: "USA_Peach", log_b: "USA_Lanker"})
+    checked, rows = check(scenes[:2], forecasts)
+    np.testing.assert_array_equal(checked[0], forecasts[0])
+    assert rows[1][2].all() and not rows[1][1].any()  # replaced, though not flagged: the road is a training one
+    np.testing.assert_allclose(checked[1][:, 0], best_baseline.forecast(ood["fallback_k1"], observed, 30))
+    checked, _ = OodCheck(evidenced | {"locations": both}, SMALL, "warn",
+                          locations={log_a: "USA_Peach", log_b: "USA_Lanker"})(scenes[:2], forecasts)
+    np.testing.assert_array_equal(checked[1], forecasts[1])  # warn only marks
     no_record = training_distribution(inputs) | tune_baselines(inputs)  # older checkpoints: no road judged
     _, flags, _ = ood_scores(target_inputs(scenes[1], SMALL), no_record, location="DEU_Unseen")
     assert flags.mean() < 0.5

@@ -16,6 +16,7 @@ from logpipe.dataset.reader import Dataset
 from logpipe.errors import LogpipeError
 from logpipe.model.kinematic import best_baseline
 from logpipe.model.residual.meta import read_residual_meta
+from logpipe.model.residual.ood import MIN_EVIDENCE_TARGETS
 
 DATA = Path(__file__).resolve().parents[1] / "data" / "commonroad"
 SCENARIO = DATA / "USA_Peach-4_8_T-1.xml"
@@ -141,8 +142,14 @@ def test_a_road_the_model_never_trained_on_gets_physics_at_k1_by_default(trained
     assert any("best kinematic baseline" in w for w in summary["warnings"])
     # the same traffic as the training log, so only the road's name tells them apart
     own = api.predict(dataset, out=tmp_path / "own", checkpoint=checkpoint, filters=["log=USA_Peach-4_8_T-1"],
-                      mcap=False, modes=4)
+                      mcap=False, modes=4, out_of_distribution="warn")
     assert own["targets_fallback"] == 0
+    # its own road, but three epochs on ten validation targets showed no K = 1 win: physics there too by default
+    evidence = ood["k1_by_location"]["USA_Peach"]
+    assert evidence["source"] == "physics" and evidence["targets"] < MIN_EVIDENCE_TARGETS
+    by_default = api.predict(dataset, out=tmp_path / "own_auto", checkpoint=checkpoint,
+                             filters=["log=USA_Peach-4_8_T-1"], mcap=False, modes=4)
+    assert by_default["targets_fallback"] == by_default["targets"] > 0
     same = pq.read_table(tmp_path / "own" / "predictions").to_pandas().sort_values(["sample_id", "track_id", "mode"])
     for (sample, track), rows in auto.groupby(["sample_id", "track_id"]):
         theirs = warn[(warn.sample_id == sample) & (warn.track_id == track)]
