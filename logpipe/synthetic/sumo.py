@@ -37,7 +37,7 @@ import numpy as np
 from logpipe.synthetic import scenes
 from logpipe.synthetic.flow import DT_S, FlowConfig, Tracks
 from logpipe.synthetic.pretrain import NOISE, SHARES, Location, load_locations
-from logpipe.synthetic.sumo_net import V_TOP, SumoNet, convert
+from logpipe.synthetic.sumo_net import SumoNet, convert
 
 DESIRED = (25.0, 40.0)
 """Range of every car's desired speed, m/s (the highway regime the real data lacks)."""
@@ -48,11 +48,13 @@ FILL_PER_100M = 0.6
 WARMUP_S = 10.0
 HEADWAY = FlowConfig.headway
 MAX_ROUTE_EDGES = 60
-STRAIGHT_RAD = 0.35
+STRAIGHT_RAD = 0.15
 """A route continues onto a successor with weight exp(-|turn| / this): mostly straight on, as through traffic on
 a fast road does (turning into a cross street at 30 m/s is rare), yet every turn is taken now and then."""
+Sizes = dict[str, tuple[float, float, bool]]
+"""SUMO vehicle id -> (length m, width m, is a truck)."""
 SPEED_BINS = 46
-"""1 m/s bins of the speed histogram (0-45 m/s; a car's top speed is ``V_TOP`` x its speed factor, <= 40)."""
+"""1 m/s bins of the speed histogram (0-45 m/s; a car's top speed is its desired speed, <= 40)."""
 
 
 @dataclass
@@ -69,7 +71,7 @@ class NetGraph:
 
 def read_graph(net: SumoNet) -> NetGraph:
     """The non-internal edges of ``net`` and their links (``sumolib``)."""
-    import sumolib  # noqa: PLC0415  optional extra ``[sumo]``
+    import sumolib  # the optional [sumo] extra: imported where used
 
     sn = sumolib.net.readNet(str(net.path))
     edges = sorted(e.getID() for e in sn.getEdges())
@@ -99,7 +101,7 @@ def _walk(graph: NetGraph, first: str, rng: np.random.Generator) -> list[str]:
     return route
 
 
-def route_xml(graph: NetGraph, rng: np.random.Generator, horizon_s: float) -> tuple[str, dict[str, tuple]]:
+def route_xml(graph: NetGraph, rng: np.random.Generator, horizon_s: float) -> tuple[str, Sizes]:
     """The scene's cars as a SUMO route file (sorted by departure) and their sizes: id -> (length, width, truck)."""
     cfg = FlowConfig()
     starts: list[tuple[float, str, str]] = []  # (depart s, edge, departPos)
@@ -119,13 +121,13 @@ def route_xml(graph: NetGraph, rng: np.random.Generator, horizon_s: float) -> tu
         (l_lo, l_hi), (w_lo, w_hi) = cfg.truck if truck else cfg.car
         length, width = float(rng.uniform(l_lo, l_hi)), float(rng.uniform(w_lo, w_hi))
         sizes[f"v{i}"] = (length, width, truck)
-        factor = float(rng.uniform(*DESIRED)) / V_TOP
+        desired = float(rng.uniform(*DESIRED))
         rows.append(f'<vType id="t{i}" length="{length:.3f}" width="{width:.3f}" minGap="{cfg.gap_min}" '
                     f'accel="{cfg.a_max}" decel="{cfg.b_comfort}" emergencyDecel="{cfg.b_max}" '
-                    f'tau="{rng.uniform(*HEADWAY):.3f}" maxSpeed="{V_TOP + 5}" carFollowModel="IDM" '
+                    f'tau="{rng.uniform(*HEADWAY):.3f}" maxSpeed="{desired:.3f}" carFollowModel="IDM" '
                     f'laneChangeModel="LC2013" lcStrategic="1" lcSpeedGain="1" impatience="0.5"/>')
         rows.append(f'<vehicle id="v{i}" type="t{i}" depart="{depart:.1f}" departLane="best" '
-                    f'departPos="{pos}" departSpeed="{"max" if pos == "random_free" else "desired"}" speedFactor="{factor:.4f}">'
+                    f'departPos="{pos}" departSpeed="{"max" if pos == "random_free" else "desired"}" speedFactor="1">'
                     f'<route edges="{" ".join(_walk(graph, edge, rng))}"/></vehicle>')
     rows.append("</routes>")
     return "\n".join(rows) + "\n", sizes
@@ -142,7 +144,7 @@ def sumo_argv(net: SumoNet, routes: Path, seed: int, end_s: float) -> list[str]:
 
 def simulate(net: SumoNet, graph: NetGraph, rng: np.random.Generator, steps: int) -> Tracks:
     """One scene on ``net``: ``steps`` recorded steps after ``WARMUP_S`` (module docstring)."""
-    import libsumo  # noqa: PLC0415  optional extra ``[sumo]``
+    import libsumo  # the optional [sumo] extra: imported where used
 
     warm = round(WARMUP_S / DT_S)
     routes, sizes = route_xml(graph, rng, (warm + steps) * DT_S)
@@ -177,7 +179,7 @@ def simulate(net: SumoNet, graph: NetGraph, rng: np.random.Generator, steps: int
     return _tracks(rows, sizes, events, steps)
 
 
-def _tracks(rows: list[tuple[int, int, float, float, float, float, float]], sizes: dict[str, tuple],
+def _tracks(rows: list[tuple[int, int, float, float, float, float, float]], sizes: Sizes,
             events: list[tuple[int, int, str]], steps: int) -> Tracks:
     arr = np.array(rows, dtype=np.float64).reshape(-1, 7)
     return Tracks(step=arr[:, 0].astype(np.int64), vid=arr[:, 1].astype(np.int64), xy=arr[:, 2:4].copy(),

@@ -60,7 +60,7 @@ def lane_points(roads: Roads, lane: int) -> NDArrayFloat:
 def lane_speed(roads: Roads, lane: int) -> float:
     """``V_TOP`` lowered to what the lane's sharpest bend (heading change over ``CURVE_SPAN_M``) allows at ``A_LAT``."""
     h = roads.heading[roads.start[lane]:roads.start[lane] + roads.count[lane]]
-    span = max(int(round(CURVE_SPAN_M / max(float(roads.step[lane]), 1e-3))), 1)
+    span = max(round(CURVE_SPAN_M / max(float(roads.step[lane]), 1e-3)), 1)
     if len(h) <= span:
         return V_TOP
     turn = np.abs((h[span:] - h[:-span] + np.pi) % (2 * np.pi) - np.pi)
@@ -154,7 +154,7 @@ def write_plain(roads: Roads, folder: Path) -> tuple[dict[int, tuple[str, int]],
 
 def netconvert_binary() -> Path:
     """The ``netconvert`` of the installed ``eclipse-sumo`` wheel."""
-    import sumo  # noqa: PLC0415  optional extra ``[sumo]``
+    import sumo  # the optional [sumo] extra: imported where used
 
     return Path(sumo.SUMO_HOME) / "bin" / "netconvert"
 
@@ -169,8 +169,9 @@ def convert(roads: Roads, folder: Path) -> SumoNet:
         cmd = [str(netconvert_binary()), "--node-files", str(folder / "net.nod.xml"),
                "--edge-files", str(folder / "net.edg.xml"), "--connection-files", str(folder / "net.con.xml"),
                "--offset.disable-normalization", "true", "--no-turnarounds", "true", "--geometry.remove", "false",
-               "--junctions.corner-detail", "5", "--no-warnings", "true", "--output-file", str(tmp)]
-        done = subprocess.run(cmd, capture_output=True, text=True, check=False)  # noqa: S603  our own argv
+               "--junctions.corner-detail", "5", "--default.junctions.radius", "1", "--geometry.avoid-overlap", "false",
+               "--no-warnings", "true", "--output-file", str(tmp)]
+        done = subprocess.run(cmd, capture_output=True, text=True, check=False)
         if done.returncode != 0:
             last = (done.stderr.strip().splitlines() or ["no message"])[-1]
             raise RuntimeError(f"{folder}: netconvert failed: {last}")
