@@ -33,6 +33,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from lxml import etree
 
 from logpipe.synthetic import scenes
 from logpipe.synthetic.flow import DT_S, FlowConfig, Tracks
@@ -149,14 +150,13 @@ def simulate(net: SumoNet, graph: NetGraph, rng: np.random.Generator, steps: int
     warm = round(WARMUP_S / DT_S)
     routes, sizes = route_xml(graph, rng, (warm + steps) * DT_S)
     wanted = (libsumo.constants.VAR_POSITION, libsumo.constants.VAR_ANGLE, libsumo.constants.VAR_SPEED,
-              libsumo.constants.VAR_ACCELERATION, libsumo.constants.VAR_LANE_ID)
+              libsumo.constants.VAR_ACCELERATION)
     rows: list[tuple[int, int, float, float, float, float, float]] = []
-    events: list[tuple[int, int, str]] = []
-    last_lane: dict[str, str] = {}
     with tempfile.TemporaryDirectory(prefix="logpipe-sumo-") as tmp:
-        path = Path(tmp) / "scene.rou.xml"
+        path, changes = Path(tmp) / "scene.rou.xml", Path(tmp) / "lanechanges.xml"
         path.write_text(routes)
-        libsumo.start(sumo_argv(net, path, int(rng.integers(2**31 - 1)), (warm + steps + 1) * DT_S))
+        argv = sumo_argv(net, path, int(rng.integers(2**31 - 1)), (warm + steps + 1) * DT_S)
+        libsumo.start([*argv, "--lanechange-output", str(changes)])
         try:
             for k in range(warm + steps):
                 libsumo.simulationStep()
@@ -165,18 +165,26 @@ def simulate(net: SumoNet, graph: NetGraph, rng: np.random.Generator, steps: int
                 if k < warm:
                     continue
                 for vid, got in libsumo.vehicle.getAllSubscriptionResults().items():
-                    (x, y), angle, speed, accel, lane = (got[w] for w in wanted)
-                    old = last_lane.get(vid)
-                    if old is not None and old != lane and old.rsplit("_", 1)[0] == lane.rsplit("_", 1)[0]:
-                        events.append((k - warm, int(vid[1:]), "lane_change"))
-                    last_lane[vid] = lane
+                    (x, y), angle, speed, accel = (got[w] for w in wanted)
                     heading = math.radians(90.0 - angle)  # SUMO: degrees clockwise from north
                     half = sizes[vid][0] / 2  # SUMO's position is the front bumper; ours the centre
                     rows.append((k - warm, int(vid[1:]), x - half * math.cos(heading), y - half * math.sin(heading),
                                  math.remainder(heading, 2 * math.pi), speed, accel))
         finally:
             libsumo.close()
+        events = lane_changes(changes, warm, steps)
     return _tracks(rows, sizes, events, steps)
+
+
+def lane_changes(path: Path, warm: int, steps: int) -> list[tuple[int, int, str]]:
+    """(recorded step, car, ``lane_change``) of every lane change in SUMO's ``--lanechange-output`` within the
+    recording (SUMO's own log: a change that spans an edge boundary is one there, not a change of edge)."""
+    found = []
+    for el in etree.parse(str(path)).getroot().iter("change"):
+        k = round(float(el.get("time") or 0.0) / DT_S) - 1 - warm  # the step after which SUMO's clock shows it
+        if 0 <= k < steps:
+            found.append((k, int(str(el.get("id"))[1:]), "lane_change"))
+    return found
 
 
 def _tracks(rows: list[tuple[int, int, float, float, float, float, float]], sizes: Sizes,
