@@ -3,13 +3,17 @@ traffic (``logpipe.synthetic.sumo``).
 
 Plain-XML route (nodes, edges, connections) through ``netconvert`` from the ``eclipse-sumo`` wheel:
 
-* lanes: every vehicle lane of ``Roads`` is one SUMO lane whose ``shape`` is the real centerline; same-direction
+* junctions: lanelets inside an intersection (shorter than ``JUNCTION_LANE_M`` and crossing another lane) are not
+  edges: their ends and those of the lanes they cross fall on one node, and netconvert's internal lanes replace
+  them, so SUMO knows who crosses whom (a crossing mid-edge is invisible to it: cars would pass through each other).
+* lanes: every other vehicle lane of ``Roads`` is one SUMO lane whose ``shape`` is the real centerline; same-direction
   neighbours (``Roads.left``/``right``) whose starts and ends lie within ``GROUP_END_M`` of each other become the
   lanes of one edge (rightmost = SUMO index 0), so SUMO can change lanes between them; anything else is a one-lane
   edge.
 * nodes: an edge ends at the node where its lanes' successors' edges start (union of linked ends), placed at the
   mean of those ends; node type ``priority`` (no traffic lights, stop lines or all-way stops: a highway regime).
-* connections: one per real lane-to-lane successor link; netconvert adds no turnarounds.
+* connections: one per real lane-to-lane successor link (across a folded junction: to the edge lanes beyond it);
+  netconvert adds no turnarounds.
 * speeds: each lane's speed is ``V_TOP`` m/s, lowered in bends to ``sqrt(A_LAT / curvature)`` (SUMO does not slow
   cars in curved normal lanes by itself; our own generator does with the same lateral limit).
 
@@ -37,6 +41,10 @@ A_LAT = 2.5
 """Lateral acceleration a bend allows, m/s² (``FlowConfig.a_lat`` of our own generator)."""
 CURVE_SPAN_M = 15.0
 """Curvature is the heading change over this arc (m): a map's kinks between lanelet pieces are not bends."""
+JUNCTIONS = True
+"""Fold lanelets inside intersections into SUMO junctions (``junction_groups``)."""
+JUNCTION_LANE_M = 40.0
+"""Longest lanelet folded into a junction, m: a longer lane that crosses another stays an edge."""
 NODE_TYPE = "priority"
 MIN_LANE_SPEED = 8.0
 """No lane is slower than this, m/s (a hairpin in a map would otherwise stall every car)."""
@@ -49,6 +57,7 @@ class SumoNet:
     path: Path
     edge_of_lane: dict[int, tuple[str, int]]
     dropped_lanes: int
+    junction_lanes: int
 
 
 def lane_points(roads: Roads, lane: int) -> NDArrayFloat:
@@ -96,8 +105,17 @@ def _shape(pts: NDArrayFloat) -> str:
     return " ".join(f"{x:.3f},{y:.3f}" for x, y in pts)
 
 
-def _nodes(roads: Roads, groups: list[list[int]]) -> tuple[list[int], NDArrayFloat]:
-    """Union of edge ends: per end (2g = start of group g, 2g+1 its end) the node id, and node positions."""
+def junction_groups(roads: Roads, groups: list[list[int]]) -> set[int]:
+    """Groups that become part of a SUMO junction instead of an edge: short ones with a lane crossing another
+    lane (``Roads.conflicts``), i.e. the lanelets inside an intersection."""
+    return {g for g, members in enumerate(groups)
+            if any(roads.conflicts[m] for m in members) and max(roads.lens[m] for m in members) < JUNCTION_LANE_M}
+
+
+def _nodes(roads: Roads, groups: list[list[int]], inner: set[int]) -> tuple[list[int], NDArrayFloat]:
+    """Union of edge ends: per end (2g = start of group g, 2g+1 its end) the node id, and node positions. An
+    ``inner`` group's two ends and the ends of every lane it crosses fall on one node: SUMO then knows the
+    crossing (as foe links inside that junction)."""
     group_of = {lane: g for g, members in enumerate(groups) for lane in members}
     parent = list(range(2 * len(groups)))
 
@@ -111,6 +129,11 @@ def _nodes(roads: Roads, groups: list[list[int]]) -> tuple[list[int], NDArrayFlo
         for lane in members:
             for s in roads.succ[lane]:
                 parent[find(2 * g + 1)] = find(2 * group_of[s])
+        if g in inner:
+            parent[find(2 * g + 1)] = find(2 * g)
+            for lane in members:
+                for other in {c[1] for c in roads.conflicts[lane]}:
+                    parent[find(2 * group_of[other])] = find(2 * g)
     ends = np.array([lane_points(roads, m[0])[k] for m in groups for k in (0, -1)])
     roots = [find(i) for i in range(len(parent))]
     ids = {r: k for k, r in enumerate(dict.fromkeys(roots))}
@@ -121,15 +144,19 @@ def _nodes(roads: Roads, groups: list[list[int]]) -> tuple[list[int], NDArrayFlo
     return node, pos
 
 
-def write_plain(roads: Roads, folder: Path) -> tuple[dict[int, tuple[str, int]], int]:
-    """Write ``net.nod.xml``, ``net.edg.xml``, ``net.con.xml`` under ``folder``; returns lane -> (edge, index)
-    and the number of lanes left out (an edge whose both ends fell on one node: a loop netconvert refuses)."""
+def write_plain(roads: Roads, folder: Path) -> tuple[dict[int, tuple[str, int]], int, int]:
+    """Write ``net.nod.xml``, ``net.edg.xml``, ``net.con.xml`` under ``folder``; returns lane -> (edge, index),
+    the number of lanes left out (an edge whose both ends fell on one node: a loop netconvert refuses) and the
+    number folded into junctions."""
     groups = group_lanes(roads)
-    node, pos = _nodes(roads, groups)
+    inner = junction_groups(roads, groups) if JUNCTIONS else set()
+    node, pos = _nodes(roads, groups, inner)
     nodes = [f'<node id="n{k}" x="{x:.3f}" y="{y:.3f}" type="{NODE_TYPE}"/>' for k, (x, y) in enumerate(pos)]
     edges, edge_of = [], {}
     dropped = 0
     for g, members in enumerate(groups):
+        if g in inner:
+            continue
         if node[2 * g] == node[2 * g + 1]:
             dropped += len(members)
             continue
@@ -143,13 +170,27 @@ def write_plain(roads: Roads, folder: Path) -> tuple[dict[int, tuple[str, int]],
                      f'shape="{_shape(lane_points(roads, members[0]))}">' + "".join(lanes) + "</edge>")
     cons = [f'<connection from="{edge_of[a][0]}" to="{edge_of[s][0]}" fromLane="{edge_of[a][1]}" '
             f'toLane="{edge_of[s][1]}"/>'
-            for a in sorted(edge_of) for s in roads.succ[a] if s in edge_of]
+            for a in sorted(edge_of) for s in through(roads, a, edge_of)]
     folder.mkdir(parents=True, exist_ok=True)
     for name, tag, rows in (("net.nod.xml", "nodes", nodes), ("net.edg.xml", "edges", edges),
                             ("net.con.xml", "connections", cons)):
         with atomic_open(folder / name, "w") as fh:
             fh.write(f"<{tag}>\n" + "\n".join(rows) + f"\n</{tag}>\n")
-    return edge_of, dropped
+    return edge_of, dropped, sum(len(groups[g]) for g in inner)
+
+
+def through(roads: Roads, lane: int, edge_of: dict[int, tuple[str, int]]) -> list[int]:
+    """The edge lanes ``lane`` leads to: its successors, or past lanes folded into a junction, the first edge
+    lanes beyond them (a few lanelets deep)."""
+    found, todo, seen = [], [(s, 0) for s in roads.succ[lane]], set()
+    while todo:
+        s, depth = todo.pop()
+        if s in edge_of:
+            found.append(s)
+        elif s not in seen and depth < 4:
+            seen.add(s)
+            todo += [(t, depth + 1) for t in roads.succ[s]]
+    return sorted(set(found))
 
 
 def netconvert_binary() -> Path:
@@ -162,9 +203,9 @@ def netconvert_binary() -> Path:
 def convert(roads: Roads, folder: Path) -> SumoNet:
     """``roads`` as ``folder/net.net.xml`` (reused when already there: nets are built once per map)."""
     net = folder / "net.net.xml"
-    edge_of, dropped = write_plain(roads, folder)
+    edge_of, dropped, folded = write_plain(roads, folder)
     if net.exists():
-        return SumoNet(net, edge_of, dropped)
+        return SumoNet(net, edge_of, dropped, folded)
     with atomic_path(net) as tmp:
         cmd = [str(netconvert_binary()), "--node-files", str(folder / "net.nod.xml"),
                "--edge-files", str(folder / "net.edg.xml"), "--connection-files", str(folder / "net.con.xml"),
@@ -175,4 +216,4 @@ def convert(roads: Roads, folder: Path) -> SumoNet:
         if done.returncode != 0:
             last = (done.stderr.strip().splitlines() or ["no message"])[-1]
             raise RuntimeError(f"{folder}: netconvert failed: {last}")
-    return SumoNet(net, edge_of, dropped)
+    return SumoNet(net, edge_of, dropped, folded)

@@ -52,7 +52,8 @@ def test_real_lanelet_network_converts_in_the_maps_frame(lanker: tuple[scenes.La
                                                          net: sumo_net.SumoNet) -> None:
     roads = lanker[1]
     sn = sumolib.net.readNet(str(net.path))
-    assert len(net.edge_of_lane) + net.dropped_lanes == len(roads) and net.dropped_lanes == 0
+    assert len(net.edge_of_lane) + net.dropped_lanes + net.junction_lanes == len(roads)
+    assert net.junction_lanes >= 10 and net.dropped_lanes <= 0.1 * len(roads)  # the intersection became a junction
     assert max(e.getLaneNumber() for e in sn.getEdges()) >= 3  # neighbours became lanes of one edge
     gaps = []
     for lane, (edge, index) in net.edge_of_lane.items():
@@ -61,7 +62,7 @@ def test_real_lanelet_network_converts_in_the_maps_frame(lanker: tuple[scenes.La
         gaps.append(np.hypot(shape[:, None, 0] - line[None, :, 0], shape[:, None, 1] - line[None, :, 1]).min(1))
     # netconvert trims lanes back at junctions but keeps the real centerline and no offset
     assert np.quantile(np.concatenate(gaps), 0.95) < 0.5
-    links = sum(len(s) for s in roads.succ)
+    links = sum(len(sumo_net.through(roads, a, net.edge_of_lane)) for a in net.edge_of_lane)
     made = sum(len(lane.getOutgoing()) for e in sn.getEdges() for lane in e.getLanes())
     assert made >= 0.9 * links
 
@@ -72,7 +73,8 @@ def test_scene_drives_highway_speeds_on_the_lanes(lanker: tuple[scenes.LaneletSo
     cars = len(np.unique(raw.vid))
     assert cars >= 20 and set(np.unique(raw.step).tolist()) == set(range(STEPS))
     assert kept.speed.max() >= 25.0 and kept.speed.max() <= sumo.DESIRED[1] + 1.0
-    assert len(scenes.overlapping_pairs(kept)) == 0 and dropped < cars / 2
+    # crossing lanes meet in SUMO junctions (foe links), so few cars need dropping for overlaps
+    assert len(scenes.overlapping_pairs(kept)) == 0 and dropped <= 0.1 * cars
     # centres (not SUMO's front bumpers) lie on the real lanes, headings point where the cars go
     store = lanker[0].store
     near = store.distance_to(FeatureKind.LANE_CENTERLINE, kept.xy, max_dist=10.0) < 2.5
