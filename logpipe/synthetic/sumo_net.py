@@ -22,6 +22,7 @@ Coordinates stay in the map's own frame (``--offset.disable-normalization``).
 
 from __future__ import annotations
 
+import hashlib
 import subprocess
 from dataclasses import dataclass
 from pathlib import Path
@@ -33,6 +34,8 @@ from logpipe.storage.io import atomic_open, atomic_path
 from logpipe.synthetic.roads import Roads
 from logpipe.types import NDArrayFloat
 
+PLAIN = ("net.nod.xml", "net.edg.xml", "net.con.xml")
+"""The plain-XML files netconvert reads (nodes, edges, connections)."""
 GROUP_END_M = 8.0
 """Neighbour lanes whose starts (and ends) lie within this distance (m) become lanes of one edge."""
 V_TOP = 40.0
@@ -172,8 +175,7 @@ def write_plain(roads: Roads, folder: Path) -> tuple[dict[int, tuple[str, int]],
             f'toLane="{edge_of[s][1]}"/>'
             for a in sorted(edge_of) for s in through(roads, a, edge_of)]
     folder.mkdir(parents=True, exist_ok=True)
-    for name, tag, rows in (("net.nod.xml", "nodes", nodes), ("net.edg.xml", "edges", edges),
-                            ("net.con.xml", "connections", cons)):
+    for name, tag, rows in zip(PLAIN, ("nodes", "edges", "connections"), (nodes, edges, cons), strict=True):
         with atomic_open(folder / name, "w") as fh:
             fh.write(f"<{tag}>\n" + "\n".join(rows) + f"\n</{tag}>\n")
     return edge_of, dropped, sum(len(groups[g]) for g in inner)
@@ -201,14 +203,16 @@ def netconvert_binary() -> Path:
 
 
 def convert(roads: Roads, folder: Path) -> SumoNet:
-    """``roads`` as ``folder/net.net.xml`` (reused when already there: nets are built once per map)."""
+    """``roads`` as ``folder/net.net.xml`` (reused when built from the same plain files: once per map)."""
     net = folder / "net.net.xml"
     edge_of, dropped, folded = write_plain(roads, folder)
-    if net.exists():
+    key = hashlib.sha256(b"".join((folder / n).read_bytes() for n in PLAIN)).hexdigest()
+    stamp = folder / "net.sha256"  # the plain files the net was built from: a changed converter rebuilds it
+    if net.exists() and stamp.exists() and stamp.read_text() == key:
         return SumoNet(net, edge_of, dropped, folded)
     with atomic_path(net) as tmp:
-        cmd = [str(netconvert_binary()), "--node-files", str(folder / "net.nod.xml"),
-               "--edge-files", str(folder / "net.edg.xml"), "--connection-files", str(folder / "net.con.xml"),
+        cmd = [str(netconvert_binary()), "--node-files", str(folder / PLAIN[0]),
+               "--edge-files", str(folder / PLAIN[1]), "--connection-files", str(folder / PLAIN[2]),
                "--offset.disable-normalization", "true", "--no-turnarounds", "true", "--geometry.remove", "false",
                "--junctions.corner-detail", "5", "--default.junctions.radius", "1", "--geometry.avoid-overlap", "false",
                "--no-warnings", "true", "--output-file", str(tmp)]
@@ -216,4 +220,6 @@ def convert(roads: Roads, folder: Path) -> SumoNet:
         if done.returncode != 0:
             last = (done.stderr.strip().splitlines() or ["no message"])[-1]
             raise RuntimeError(f"{folder}: netconvert failed: {last}")
+    with atomic_open(stamp, "w") as fh:
+        fh.write(key)
     return SumoNet(net, edge_of, dropped, folded)

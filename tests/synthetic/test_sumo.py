@@ -62,6 +62,10 @@ def test_real_lanelet_network_converts_in_the_maps_frame(lanker: tuple[scenes.La
         gaps.append(np.hypot(shape[:, None, 0] - line[None, :, 0], shape[:, None, 1] - line[None, :, 1]).min(1))
     # netconvert trims lanes back at junctions but keeps the real centerline and no offset
     assert np.quantile(np.concatenate(gaps), 0.95) < 0.5
+    built = net.path.stat().st_mtime_ns
+    assert sumo_net.convert(roads, net.path.parent).path.stat().st_mtime_ns == built  # same map: reused
+    (net.path.parent / "net.sha256").write_text("from another converter")
+    assert sumo_net.convert(roads, net.path.parent).path.stat().st_mtime_ns != built  # rebuilt
     links = sum(len(sumo_net.through(roads, a, net.edge_of_lane)) for a in net.edge_of_lane)
     made = sum(len(lane.getOutgoing()) for e in sn.getEdges() for lane in e.getLanes())
     assert made >= 0.9 * links
