@@ -135,7 +135,8 @@ def route_xml(graph: NetGraph, rng: np.random.Generator, horizon_s: float) -> tu
 
 
 def sumo_argv(net: SumoNet, routes: Path, seed: int, end_s: float) -> list[str]:
-    """libsumo's command line: 10 Hz, seeded, continuous lane changes, no teleports, no console chatter."""
+    """libsumo's command line: 10 Hz, seeded, continuous lane changes, a car stuck 20 s removed (never teleported:
+    a jump would corrupt its track), no console chatter."""
     return ["sumo", "-n", str(net.path), "-r", str(routes), "--step-length", str(DT_S), "--seed", str(seed),
             "--begin", "0", "--end", f"{end_s:.1f}", "--lanechange.duration", "3", "--time-to-teleport", "20",
             "--time-to-teleport.remove", "true", "--ignore-junction-blocker", "5",
