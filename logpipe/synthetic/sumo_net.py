@@ -36,6 +36,10 @@ from logpipe.types import NDArrayFloat
 
 PLAIN = ("net.nod.xml", "net.edg.xml", "net.con.xml")
 """The plain-XML files netconvert reads (nodes, edges, connections)."""
+NETCONVERT = ["--offset.disable-normalization", "true", "--no-turnarounds", "true", "--geometry.remove", "false",
+              "--junctions.corner-detail", "5", "--default.junctions.radius", "1", "--geometry.avoid-overlap", "false",
+              "--no-warnings", "true"]
+"""netconvert's options: the map's own frame, no U-turns, the real shapes kept, small junctions."""
 GROUP_END_M = 8.0
 """Neighbour lanes whose starts (and ends) lie within this distance (m) become lanes of one edge."""
 V_TOP = 40.0
@@ -206,16 +210,14 @@ def convert(roads: Roads, folder: Path) -> SumoNet:
     """``roads`` as ``folder/net.net.xml`` (reused when built from the same plain files: once per map)."""
     net = folder / "net.net.xml"
     edge_of, dropped, folded = write_plain(roads, folder)
-    key = hashlib.sha256(b"".join((folder / n).read_bytes() for n in PLAIN)).hexdigest()
-    stamp = folder / "net.sha256"  # the plain files the net was built from: a changed converter rebuilds it
+    key = hashlib.sha256(b"".join((folder / n).read_bytes() for n in PLAIN) + " ".join(NETCONVERT).encode()).hexdigest()
+    stamp = folder / "net.sha256"  # the plain files and options the net was built from: a change rebuilds it
     if net.exists() and stamp.exists() and stamp.read_text() == key:
         return SumoNet(net, edge_of, dropped, folded)
     with atomic_path(net) as tmp:
         cmd = [str(netconvert_binary()), "--node-files", str(folder / PLAIN[0]),
                "--edge-files", str(folder / PLAIN[1]), "--connection-files", str(folder / PLAIN[2]),
-               "--offset.disable-normalization", "true", "--no-turnarounds", "true", "--geometry.remove", "false",
-               "--junctions.corner-detail", "5", "--default.junctions.radius", "1", "--geometry.avoid-overlap", "false",
-               "--no-warnings", "true", "--output-file", str(tmp)]
+               *NETCONVERT, "--output-file", str(tmp)]
         done = subprocess.run(cmd, capture_output=True, text=True, check=False)
         if done.returncode != 0:
             last = (done.stderr.strip().splitlines() or ["no message"])[-1]
