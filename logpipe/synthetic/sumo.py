@@ -21,6 +21,8 @@ CLI: ``python -m logpipe.synthetic.sumo --shared ../shared/data --out DIR --loca
 from __future__ import annotations
 
 import argparse
+import contextlib
+import io
 import json
 import math
 import resource
@@ -146,9 +148,19 @@ def sumo_argv(net: SumoNet, routes: Path, seed: int, end_s: float) -> list[str]:
             "--no-step-log", "true", "--no-warnings", "true", "--xml-validation", "never"]
 
 
+def _libsumo() -> Any:
+    """The optional ``[sumo]`` extra's libsumo, imported where used. Its import prints a warning to stdout when
+    pyarrow's version differs from the Arrow it was built with (1.28.0: Arrow 23; ours: 26); it does not use Arrow
+    for anything here, and the line would land in the CLI's output, so it is swallowed."""
+    with contextlib.redirect_stdout(io.StringIO()):
+        import libsumo
+
+    return libsumo
+
+
 def simulate(net: SumoNet, graph: NetGraph, rng: np.random.Generator, steps: int) -> Tracks:
     """One scene on ``net``: ``steps`` recorded steps after ``WARMUP_S`` (module docstring)."""
-    import libsumo  # the optional [sumo] extra: imported where used
+    libsumo = _libsumo()
 
     warm = round(WARMUP_S / DT_S)
     routes, sizes = route_xml(graph, rng, (warm + steps) * DT_S)
@@ -211,6 +223,9 @@ def load(shared: Path, out: Path, names: Sequence[str], seed: int) -> list[SumoL
     """The named locations' real maps, each converted to a SUMO network under ``out/nets`` once."""
     found = []
     for loc in load_locations(shared, names, seed):
+        if not loc.sources:
+            raise ValueError(f"{shared}: no lane graphs of {loc.name} (commonroad/ngsim/{loc.name}/*.xml, "
+                             "av2/**/log_map_archive_*.json)")
         nets = [convert(roads, out / "nets" / src.real_id) for src, roads in zip(loc.sources, loc.roads, strict=True)]
         found.append(SumoLocation(loc, nets, [read_graph(n) for n in nets]))
     return found

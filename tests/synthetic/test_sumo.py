@@ -120,3 +120,10 @@ def test_written_scene_ingests_as_synthetic_and_is_seeded(shared: Path, tmp_path
     assert sorted(r["log_id"] for r in logs) == ["synthetic_USA_Peach-2_1_T-1_sumo_0",
                                                  "synthetic_USA_Peach-3_1_T-1_sumo_1"]
     assert all(set(r["memberships"]) >= {"synthetic", "location/USA_Peach"} for r in logs)
+
+
+def test_missing_maps_are_one_line_and_exit_2(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    assert sumo.main(["--shared", str(tmp_path), "--out", str(tmp_path / "o"), "--windows", "1",
+                      "--locations", "USA_Peach"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "USA_Peach" in err and str(tmp_path) in err
