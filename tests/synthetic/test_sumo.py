@@ -11,10 +11,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 from lxml import etree
+from typer.testing import CliRunner
 
+from logpipe.cli import app
 from logpipe.dataset.reader import Dataset
 from logpipe.maps import FeatureKind
-from logpipe.stages.ingest import IngestOptions, ingest
 from logpipe.synthetic import scenes
 from logpipe.synthetic.flow import Tracks
 from logpipe.synthetic.roads import Roads, build_roads
@@ -114,9 +115,12 @@ def test_written_scene_ingests_as_synthetic_and_is_seeded(shared: Path, tmp_path
     assert stats.stat().st_mtime_ns == before
 
     out = tmp_path / "ds"
-    result = ingest([tmp_path / "a" / "commonroad"], IngestOptions(out=out, workers=1, write_mcap=False))
-    assert result["logs"] == 2 and result["samples"] == 16  # 12 s scenes: 8 windows each
-    logs = Dataset.open(out).logs().to_pylist()
+    cli = CliRunner().invoke(app, ["-q", "ingest", str(tmp_path / "a" / "commonroad"), "--out", str(out),
+                                   "--no-mcap", "--workers", "1"])
+    assert cli.exit_code == 0, cli.output
+    ds = Dataset.open(out)
+    assert ds.samples().num_rows == 16  # 12 s scenes: 8 windows each
+    logs = ds.logs().to_pylist()
     assert sorted(r["log_id"] for r in logs) == ["synthetic_USA_Peach-2_1_T-1_sumo_0",
                                                  "synthetic_USA_Peach-3_1_T-1_sumo_1"]
     assert all(set(r["memberships"]) >= {"synthetic", "location/USA_Peach"} for r in logs)
