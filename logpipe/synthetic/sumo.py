@@ -44,10 +44,12 @@ from logpipe.synthetic.sumo_net import SumoNet, convert
 
 DESIRED = (25.0, 40.0)
 """Range of every car's desired speed, m/s (the highway regime the real data lacks)."""
-DEMAND = (0.05, 0.3)
-"""Arrivals per second per lane of an entry edge, drawn once per scene (free flow to near capacity)."""
-FILL_PER_100M = 0.6
-"""Cars per 100 m of lane placed at the start, so the warm-up need not wait for cars to cross the map."""
+DEMAND = (0.03, 0.12)
+"""Arrivals per second per lane of an entry edge, drawn once per scene: our generator's highway regime
+(``pretrain.HIGHWAY``), light enough to flow freely."""
+FILL_PER_100M = 1.0
+"""Cars per 100 m of lane placed at the start (``FlowConfig.fill``), so the warm-up need not wait for cars to cross
+the map."""
 WARMUP_S = 10.0
 HEADWAY = FlowConfig.headway
 MAX_ROUTE_EDGES = 60

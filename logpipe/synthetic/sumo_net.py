@@ -44,10 +44,11 @@ GROUP_END_M = 8.0
 """Neighbour lanes whose starts (and ends) lie within this distance (m) become lanes of one edge."""
 V_TOP = 40.0
 """Speed of a straight lane, m/s: the top of the highway regime's desired speeds (25-40 m/s)."""
-A_LAT = 2.5
-"""Lateral acceleration a bend allows, m/s² (``FlowConfig.a_lat`` of our own generator)."""
-CURVE_SPAN_M = 15.0
-"""Curvature is the heading change over this arc (m): a map's kinks between lanelet pieces are not bends."""
+A_LAT = 3.0
+"""Lateral acceleration a bend allows, m/s²: our generator's highway regime (``pretrain.HIGHWAY_A_LAT``)."""
+CURVE_SPAN_M = 60.0
+"""Curvature is the heading change over this arc (m; a shorter lane: over all of it): a map's kinks between lanelet
+pieces are not bends. Our generator's highway regime reads bends over 60 m too."""
 JUNCTIONS = True
 """Fold lanelets inside intersections into SUMO junctions (``junction_groups``)."""
 JUNCTION_LANE_M = 40.0
@@ -76,8 +77,8 @@ def lane_points(roads: Roads, lane: int) -> NDArrayFloat:
 def lane_speed(roads: Roads, lane: int) -> float:
     """``V_TOP`` lowered to what the lane's sharpest bend (heading change over ``CURVE_SPAN_M``) allows at ``A_LAT``."""
     h = roads.heading[roads.start[lane]:roads.start[lane] + roads.count[lane]]
-    span = max(round(CURVE_SPAN_M / max(float(roads.step[lane]), 1e-3)), 1)
-    if len(h) <= span:
+    span = min(max(round(CURVE_SPAN_M / max(float(roads.step[lane]), 1e-3)), 1), len(h) - 1)
+    if span < 1:
         return V_TOP
     turn = np.abs((h[span:] - h[:-span] + np.pi) % (2 * np.pi) - np.pi)
     kappa = float(turn.max()) / (span * float(roads.step[lane]))
