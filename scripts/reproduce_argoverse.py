@@ -23,10 +23,13 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+import pyarrow as pa
+
 from logpipe.model.predictor import Predictor
 from logpipe.model.registry import RESIDUAL_KIND
 from logpipe.model.residual.meta import ResidualMeta, model_kind, read_residual_meta
-from logpipe.model.residual.predictor import ResidualPredictor
+from logpipe.model.residual.ood import ood_check_for
+from logpipe.model.residual.predictor import CheckedPredictor, ResidualPredictor
 from logpipe.model.zhu2020.meta import CheckpointMeta, read_meta
 from logpipe.model.zhu2020.predictor import NetPredictor
 from logpipe.raster.runs import find_raster_run
@@ -90,7 +93,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         if ckpt is None:
             skipped.append(f"{method}: no checkpoint at {path}")
             continue
-        net, meta = _learned(ckpt, ds.kind)
+        net, meta = _learned(ckpt, ds.kind, ds.logs())
         seen = set(meta.training_data.train_sources + meta.training_data.val_sources) if meta.training_data else set()
         unseen = [s for s in every if source[s.log_id] not in seen]
         written = write_predictions(net, unseen, 1 if method == "lstm" else K, args.seed, pred_len,
@@ -122,10 +125,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     return 0
 
 
-def _learned(ckpt: Path, kind: str) -> tuple[Predictor, ResidualMeta | CheckpointMeta]:
-    """A shipped checkpoint of either kind (the residual model or the paper's network) and its metadata."""
+def _learned(ckpt: Path, kind: str, logs: pa.Table) -> tuple[Predictor, ResidualMeta | CheckpointMeta]:
+    """A shipped checkpoint of either kind (the residual model, as ``logpipe predict`` runs it on these ``logs``
+    by default, or the paper's network) and its metadata."""
     if model_kind(ckpt) == RESIDUAL_KIND:
-        return ResidualPredictor.from_checkpoint(ckpt), read_residual_meta(ckpt)
+        check = ood_check_for(ckpt, "auto", logs)
+        return CheckedPredictor(ResidualPredictor.from_checkpoint(ckpt), check), read_residual_meta(ckpt)
     return NetPredictor.from_checkpoint(ckpt, expect_kind=kind), read_meta(ckpt)
 
 

@@ -20,6 +20,7 @@ from .fit import forecast
 from .inputs import concat, target_inputs
 from .meta import ResidualMeta
 from .net import ResidualNet
+from .ood import OodCheck
 
 
 class ResidualPredictor:
@@ -50,3 +51,19 @@ class ResidualPredictor:
         world = forecast(self.net, concat([p for p in parts if len(p)]), num_modes)
         bounds = np.cumsum([0, *counts])
         return [np.ascontiguousarray(world[a:b]) for a, b in itertools.pairwise(bounds.tolist())]
+
+
+class CheckedPredictor:
+    """A residual predictor with ``logpipe predict``'s out-of-distribution check applied to its forecasts: what
+    predict writes (``--out-of-distribution`` as the check's action), for scripts that score predictors directly.
+    """
+
+    name = "residual"
+
+    def __init__(self, inner: ResidualPredictor, check: OodCheck) -> None:
+        self.inner, self.check = inner, check
+
+    def predict(self, samples: Sequence[SceneSample], num_modes: int, seed: int) -> list[NDArrayFloat]:
+        """As ``ResidualPredictor.predict``, then the check (mode 0 physics where it falls back)."""
+        checked, _ = self.check(samples, self.inner.predict(samples, num_modes, seed))
+        return [np.asarray(f) for f in checked]

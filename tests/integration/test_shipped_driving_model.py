@@ -38,7 +38,7 @@ def test_argoverse_default_is_the_shipped_driving_model_and_reads_the_map(tmp_pa
     assert shipped.parts[-2:] == ("argoverse", "residual")
     meta = read_residual_meta(shipped)
     assert meta.config.environment and meta.ood["targets"] > 1000
-    assert meta.training_data is not None and len(meta.training_data.train_sources) == 99  # AV1, AV2, NGSIM files
+    assert meta.training_data is not None and len(meta.training_data.train_sources) == 101  # AV1, AV2, NGSIM files
 
     data = tmp_path / "av1"
     _run("ingest", str(MAPS / "20.csv"), str(MAPS / "32.csv"), "--out", str(data))
