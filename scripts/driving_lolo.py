@@ -37,6 +37,7 @@ from logpipe.model.residual.checkpoint import load_residual
 from logpipe.model.residual.compare import cv_sampler, tune_sampler
 from logpipe.model.residual.config import ResidualConfig, load_residual_config
 from logpipe.model.residual.fit import fit_residual, forecast
+from logpipe.model.residual.inputs import concat
 from logpipe.model.residual.ood import fallback_forecasts, tune_baselines
 from logpipe.types import NDArrayFloat
 from scripts.driving_targets import (
@@ -88,25 +89,29 @@ def as_shipped(targets: Targets, held: str, model: NDArrayFloat, rows: np.ndarra
 
 
 def train_variant(config: ResidualConfig, real: Targets, synthetic: Targets | None, held: str, out: Path,
-                  ) -> tuple[Path, dict[str, Any]]:
-    """One fold's model: pre-trained on synthetic traffic of the other locations (when given), then trained on the
-    other locations' training clusters, validated on their validation clusters. Returns the best checkpoint and
-    its cost."""
+                  mixed: bool = False) -> tuple[Path, dict[str, Any]]:
+    """One fold's model: trained on the other locations' training clusters, validated on their validation
+    clusters; with ``synthetic`` traffic (of locations other than ``held``), pre-trained on it first, or with
+    ``mixed`` trained on both at once. Returns the best checkpoint and its cost."""
     val = real.validation()
     train_rows = np.flatnonzero((real.location != held) & ~val)
     val_rows = np.flatnonzero((real.location != held) & val)
     started = time.perf_counter()
     init = None
     cost: dict[str, Any] = {}
+    train, windows = real.inputs.take(train_rows), real.window[train_rows]
     if synthetic is not None:
         keep = np.flatnonzero(synthetic.location != held)
-        pre = fit_residual(synthetic.inputs.take(keep), synthetic.window[keep], real.inputs.take(val_rows),
-                           replace(config, epochs=config.epochs), out / "pretrain", dataset_kind="synthetic",
-                           manifest_hash="")
-        init = pre.best_checkpoint
-        cost["pretrain_targets"] = len(keep)
-    fine = fit_residual(real.inputs.take(train_rows), real.window[train_rows], real.inputs.take(val_rows), config,
-                        out / "real", dataset_kind="real", manifest_hash="", init_from=init)
+        cost["pretrain_targets" if not mixed else "mixed_targets"] = len(keep)
+        if mixed:
+            train = concat([train, synthetic.inputs.take(keep)])
+            windows = np.concatenate([windows, synthetic.window[keep]])
+        else:
+            pre = fit_residual(synthetic.inputs.take(keep), synthetic.window[keep], real.inputs.take(val_rows),
+                               config, out / "pretrain", dataset_kind="synthetic", manifest_hash="")
+            init = pre.best_checkpoint
+    fine = fit_residual(train, windows, real.inputs.take(val_rows), config, out / "real", dataset_kind="real",
+                        manifest_hash="", init_from=init)
     seconds = time.perf_counter() - started
     cost |= {"seconds": round(seconds, 1), "core_hours": round(seconds * config.num_threads / 3600, 3),
              "best_epoch": fine.best_epoch, "train_targets": len(train_rows), "val_targets": len(val_rows)}
