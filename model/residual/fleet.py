@@ -186,6 +186,7 @@ def train_fleet(  # noqa: PLR0913  the command's options one to one
         summary |= {"recipe": "residual driving model (the shipped default's config)", "validation": holdout.record(),
                     "start": start_record, "comparison": comparison, "notes": notes,
                     "train_targets": len(train), "val_targets": len(val) if val is not None else 0, "k1": k1,
+                    "k1_by_location": meta.ood.get("k1_by_location", {}),
                     "model_card": str(out_dir / "MODEL_CARD.md"), "seconds": round(time.perf_counter() - started, 1)}
         summary["report"] = [*comparison_lines(summary), f"  model card: {out_dir / 'MODEL_CARD.md'}"]
         with atomic_open(out_dir / "MODEL_CARD.md", "w") as card:

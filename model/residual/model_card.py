@@ -22,9 +22,15 @@ def _settings(record: dict[str, Any]) -> str:
 
 def _k1_line(s: dict[str, Any]) -> str:
     k1 = s["k1"]
-    return (f"K = 1 in `logpipe predict`: the trained model's mean head ({k1['reason']})" if k1["source"] == "model"
+    line = (f"K = 1 in `logpipe predict`: the trained model's mean head ({k1['reason']})" if k1["source"] == "model"
             else f"K = 1 in `logpipe predict`: the best kinematic baseline of its training, its modes after it "
             f"({k1['reason']})")
+    roads = s.get("k1_by_location") or {}
+    if k1["source"] == "model" and roads:
+        line += "; per road, where validation showed it on at least 30 targets (elsewhere physics): " + ", ".join(
+            f"{loc} {r['source']} ({r['model_fde']:.2f} m against {r['baseline_fde']:.2f}, {r['targets']} targets)"
+            for loc, r in roads.items())
+    return line
 
 
 def comparison_lines(s: dict[str, Any]) -> list[str]:

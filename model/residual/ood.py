@@ -25,9 +25,10 @@ leave-one-location-out run measured that its corrections do harm there: ``docs/r
 roads it trained on where its validation did not show its K = 1 beating that baseline on at least
 ``MIN_EVIDENCE_TARGETS`` targets (``k1_by_location``, recorded by training; a held-out Peachtree recording lost
 1.10x to physics with a model trained on five others, and no Peachtree recording validated it:
-``docs/results/driving_holdout.md``); other flags are only marked. ``fallback`` falls back on every flagged target. A checkpoint whose training run could not
-show on its validation data that the model beats that baseline at K = 1 (``k1_source`` ``physics``: ``logpipe
-train`` on driving data decides) falls back on every target, except with ``warn``. A checkpoint trained before
+``docs/results/driving_holdout.md``); other flags are only marked. ``fallback`` falls back on every flagged
+target. A checkpoint whose training run could not show on its validation data that the model beats that baseline
+at K = 1 (``k1_source`` ``physics``: ``logpipe train`` on driving data decides) falls back on every target, except
+with ``warn``. A checkpoint trained before
 ``fallback_k1`` falls back to its Kalman filter (``fallback_kalman``).
 """
 
