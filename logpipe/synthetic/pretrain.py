@@ -20,7 +20,7 @@ import json
 import sys
 import time
 from collections import Counter
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -198,23 +198,32 @@ def scene_stats(loc: Location, n: int, seed: int, steps: int, out: Path, regime:
                 ) -> dict[str, Any]:
     """Scene ``n`` of ``loc``: its statistics from ``out/stats`` when a previous run finished it, else simulated,
     written and recorded there."""
-    path = out / "stats" / loc.name / f"{n:06d}.json"
+    def simulate_scene() -> dict[str, Any]:
+        t0 = time.process_time()
+        rng = np.random.default_rng([seed, list(SHARES).index(loc.name), n])
+        tracks, files, dropped = run_scene(loc, n, rng, steps, out, regime)
+        one = SceneStats()
+        one.add(tracks, files, dropped, windows_of(loc, tracks, files))
+        one.cpu_s = time.process_time() - t0
+        record = {k: getattr(one, k) for k in ("windows", "files", "cars", "car_steps", "dropped", "accel_min",
+                                               "accel_max", "jerk_max", "speed_max", "cpu_s")}
+        record.update(events=dict(one.events), speed_hist=one.speed_hist.tolist())
+        return record
+
+    return resumable_scene(out / "stats" / loc.name / f"{n:06d}.json", simulate_scene)
+
+
+def resumable_scene(path: Path, simulate_scene: Callable[[], dict[str, Any]]) -> dict[str, Any]:
+    """A scene's statistics record at ``path`` when a previous run finished the scene, else ``simulate_scene()``
+    (which writes the scene's files), recorded there afterwards: a scene with a record is complete."""
     if path.exists():
         found: dict[str, Any] = json.loads(path.read_text())
         return found
-    t0 = time.process_time()
-    rng = np.random.default_rng([seed, list(SHARES).index(loc.name), n])
-    tracks, files, dropped = run_scene(loc, n, rng, steps, out, regime)
-    one = SceneStats()
-    one.add(tracks, files, dropped, windows_of(loc, tracks, files))
-    one.cpu_s = time.process_time() - t0
-    record = {k: getattr(one, k) for k in ("windows", "files", "cars", "car_steps", "dropped", "accel_min",
-                                           "accel_max", "jerk_max", "speed_max", "cpu_s")}
-    record.update(events=dict(one.events), speed_hist=one.speed_hist.tolist())
+    record = simulate_scene()
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_suffix(".tmp")
     tmp.write_text(json.dumps(record))
-    tmp.replace(path)  # written after the scene's files: a scene with stats is complete
+    tmp.replace(path)
     return record
 
 

@@ -39,7 +39,7 @@ from lxml import etree
 
 from logpipe.synthetic import scenes
 from logpipe.synthetic.flow import DT_S, FlowConfig, Tracks
-from logpipe.synthetic.pretrain import NOISE, SHARES, Location, load_locations
+from logpipe.synthetic.pretrain import NOISE, SHARES, Location, load_locations, resumable_scene
 from logpipe.synthetic.sumo_net import SumoNet, convert
 
 DESIRED = (25.0, 40.0)
@@ -236,11 +236,13 @@ def load(shared: Path, out: Path, names: Sequence[str], seed: int) -> list[SumoL
 def scene_record(where: SumoLocation, n: int, seed: int, steps: int, out: Path) -> dict[str, Any]:
     """Scene ``n``'s statistics from ``out/stats`` when a previous run finished it, else simulated, written and
     recorded there (after its file: a scene with stats is complete)."""
+    return resumable_scene(out / "stats" / where.loc.name / f"{n:06d}.json",
+                           lambda: _scene(where, n, seed, steps, out))
+
+
+def _scene(where: SumoLocation, n: int, seed: int, steps: int, out: Path) -> dict[str, Any]:
+    """Simulate scene ``n`` of ``where``, write its file and return its statistics record."""
     loc = where.loc
-    path = out / "stats" / loc.name / f"{n:06d}.json"
-    if path.exists():
-        found: dict[str, Any] = json.loads(path.read_text())
-        return found
     t0 = time.process_time()
     rng = np.random.default_rng([seed, list(SHARES).index(loc.name), n])
     k = n % len(loc.sources)
@@ -258,10 +260,6 @@ def scene_record(where: SumoLocation, n: int, seed: int, steps: int, out: Path) 
               .tolist(),
               "speed_max": float(speed.max(initial=0.0)), "accel_min": float(tracks.accel.min(initial=0.0)),
               "accel_max": float(tracks.accel.max(initial=0.0)), "cpu_s": time.process_time() - t0}
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(".tmp")
-    tmp.write_text(json.dumps(record))
-    tmp.replace(path)
     return record
 
 
