@@ -49,7 +49,7 @@ def test_the_holdout_summary_pools_and_splits_by_location() -> None:
     groups = shipped_holdout.summarise([part("ngsim A", 1.0, 2.0, 3), part("ngsim B", 3.0, 3.0, 1)])
     assert groups["pooled"]["targets"] == 4 and groups["pooled"]["as predict runs it"] == 1.5
     assert groups["ngsim A"]["best kinematic baseline"] == 2.0 and groups["ngsim B"]["min_fde@6"] == 1.5
-    result = {"checkpoint": "c", "train_split": "hash/train", "windows": 2, "groups": groups}
+    result: dict[str, Any] = {"checkpoint": "c", "train_split": "hash/train", "windows": 2, "groups": groups}
     assert "Worst ratio of the default to the best kinematic baseline: 1.000" in shipped_holdout.markdown(result)
     worse = copy.deepcopy(result)
     worse["groups"]["ngsim B"]["as predict runs it"] = 3.3
