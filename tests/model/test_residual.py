@@ -209,8 +209,8 @@ def test_out_of_distribution_targets_are_flagged_and_handled(scenes: list[SceneS
     physics = best_baseline.forecast(ood["fallback_k1"], fast.positions[np.asarray(fast.target_mask, bool), :20], 30)
     assert rows[0][2].all() and not rows[1][2].any()
     np.testing.assert_allclose(checked[0][:, 0], physics)  # K = 1: the best kinematic baseline of training
-    assert checked[0].shape[1] == 3  # fallback keeps the K modes: the model's own first two follow
-    np.testing.assert_array_equal(checked[0][:, 1:], forecasts[0][:, :2])
+    assert checked[0].shape[1] == 3  # fallback keeps the K modes: the two best-scored mode heads follow
+    np.testing.assert_array_equal(checked[0][:, 1:], forecasts[0][:, 1:])
     np.testing.assert_array_equal(checked[1], forecasts[1])  # inside: the network's forecast, untouched
     warned, rows = OodCheck(ood, SMALL, "warn")([fast], forecasts[:1])
     assert rows[0][1].all() and not rows[0][2].any()
@@ -234,7 +234,7 @@ def test_roads_the_model_never_trained_on_get_physics_at_k1(scenes: list[SceneSa
     assert not rows[0][2].any() and rows[1][2].all() and rows[1][1].all()
     observed = scenes[1].positions[np.asarray(scenes[1].target_mask, bool), :20]
     np.testing.assert_allclose(checked[1][:, 0], best_baseline.forecast(ood["fallback_k1"], observed, 30))
-    np.testing.assert_array_equal(checked[1][:, 1:], forecasts[1][:, :3])
+    np.testing.assert_array_equal(checked[1][:, 1:], forecasts[1][:, 1:])
     _, _, reasons = ood_scores(target_inputs(scenes[1], SMALL), ood, location="DEU_Unseen")
     assert "not trained on this road (DEU_Unseen; trained on USA_Peach)" in reasons[0]
     # a road it trained on but whose validation never showed its K = 1 beating physics: physics at K = 1 too

@@ -98,8 +98,8 @@ def test_fast_targets_get_the_physics_fallback_and_say_so(trained: tuple[Path, P
     for (sample, track), rows in fell.groupby(["sample_id", "track_id"]):
         ordered = rows.sort_values("mode")
         assert ordered["mode"].tolist() == [0, 1, 2, 3]  # the K modes kept, never one
-        for mode in (1, 2, 3):  # after physics, the model's own modes 0..2
-            theirs = model.loc[(sample, track, mode - 1)]
+        for mode in (1, 2, 3):  # after physics, its mode heads by score (its mean head, mode 0, gives way)
+            theirs = model.loc[(sample, track, mode)]
             np.testing.assert_array_equal(ordered.x.iloc[mode], theirs.x)
         assert not np.array_equal(ordered.x.iloc[0], model.loc[(sample, track, 0)].x)  # mode 0: physics
     settings = json.loads((tmp_path / "pred" / "manifest.json").read_text())["settings"]
@@ -153,8 +153,8 @@ def test_a_road_the_model_never_trained_on_gets_physics_at_k1_by_default(trained
     same = pq.read_table(tmp_path / "own" / "predictions").to_pandas().sort_values(["sample_id", "track_id", "mode"])
     for (sample, track), rows in auto.groupby(["sample_id", "track_id"]):
         theirs = warn[(warn.sample_id == sample) & (warn.track_id == track)]
-        for mode in (1, 2, 3):  # after physics, the model's modes 0..2
-            np.testing.assert_array_equal(rows.x.iloc[mode], theirs.x.iloc[mode - 1])
+        for mode in (1, 2, 3):  # after physics, its mode heads by score
+            np.testing.assert_array_equal(rows.x.iloc[mode], theirs.x.iloc[mode])
         assert not np.array_equal(rows.x.iloc[0], theirs.x.iloc[0])  # mode 0: physics (checked exactly in
         # tests/model/test_residual.py), not the mean head
     assert len(same) == len(auto)  # the same traffic, the same number of forecasts
