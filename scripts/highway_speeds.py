@@ -27,7 +27,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import resource
 import sys
 import time
 from collections.abc import Callable
@@ -56,12 +55,6 @@ SET_LOCATIONS = ("USA_Lanker", "USA_Peach", "USA_AV2")
 WINDOWS = 3000
 
 
-def _cpu_s() -> float:
-    """CPU seconds of this process and its finished children (SUMO's netconvert)."""
-    kids = resource.getrusage(resource.RUSAGE_CHILDREN)
-    return time.process_time() + kids.ru_utime + kids.ru_stime
-
-
 def _generate_own(shared: Path, out: Path) -> None:
     scale = WINDOWS / sum(pretrain.SHARES[name] for name in SET_LOCATIONS)
     pretrain.generate(shared, out, seed=0, scale=scale, locations=SET_LOCATIONS, regime=pretrain.HIGHWAY,
@@ -87,9 +80,9 @@ def prepare(generator: str, folder: Path, shared: Path) -> dict[str, float]:
              "rasterise": lambda: api.rasterise(folder / "ds", rotate=True, workers=1)}
     cost = {}
     for name, step in steps.items():
-        before = _cpu_s()
+        before = pretrain.cpu_seconds()
         step()
-        cost[f"{name}_cpu_s"] = round(_cpu_s() - before, 1)
+        cost[f"{name}_cpu_s"] = round(pretrain.cpu_seconds() - before, 1)
     (folder / "cost.json").write_text(json.dumps(cost) + "\n")
     return cost
 

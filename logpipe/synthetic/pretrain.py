@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import resource
 import sys
 import time
 from collections import Counter
@@ -54,6 +55,13 @@ FAST_FACTOR = (1.6, 2.6)
 
 HIGHWAY_A_LAT = 3.0
 """Lateral acceleration (m/s²) the highway regime's drivers accept in bends."""
+HIGHWAY_CURVE_SPAN_M = 60.0
+"""The highway regime reads bends over this arc (m): NGSIM lanelets bend in kinks, and a lane's sharpest bend caps
+all of it."""
+HIGHWAY_DESIRED = (25.0, 40.0)
+"""The highway regime's desired speeds, m/s: the speeds no real training location shows."""
+HIGHWAY_DEMAND = (0.03, 0.12)
+"""The highway regime's arrivals per second per entry lane, light enough to flow freely."""
 
 
 @dataclass(frozen=True)
@@ -76,16 +84,15 @@ class Regime:
         if self.desired is not None:
             lo, hi = self.desired
             flat = replace(roads, limits=np.full(len(roads), hi), signals={}, stops=set())
-            # NGSIM lanelets bend in kinks, and a lane's sharpest bend caps all of it: read bends over 60 m
-            return flat, replace(cfg, speed_factor=(lo / hi, 1.0), a_lat=HIGHWAY_A_LAT, curve_baseline_m=60.0,
-                                 enter_free=True)
+            return flat, replace(cfg, speed_factor=(lo / hi, 1.0), a_lat=HIGHWAY_A_LAT,
+                                 curve_baseline_m=HIGHWAY_CURVE_SPAN_M, enter_free=True)
         if rng.random() < self.fast_share:
             factor = rng.uniform(*FAST_FACTOR)
             cfg = replace(cfg, speed_factor=(cfg.speed_factor[0] * factor, cfg.speed_factor[1] * factor))
         return roads, cfg
 
 
-HIGHWAY = Regime(v_cap=40.0, desired=(25.0, 40.0), demand=(0.03, 0.12))
+HIGHWAY = Regime(v_cap=HIGHWAY_DESIRED[1], desired=HIGHWAY_DESIRED, demand=HIGHWAY_DEMAND)
 
 
 @dataclass
@@ -211,6 +218,12 @@ def scene_stats(loc: Location, n: int, seed: int, steps: int, out: Path, regime:
         return record
 
     return resumable_scene(out / "stats" / loc.name / f"{n:06d}.json", simulate_scene)
+
+
+def cpu_seconds() -> float:
+    """CPU seconds of this process and its finished children (SUMO's netconvert): what a set cost to make."""
+    kids = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return time.process_time() + kids.ru_utime + kids.ru_stime
 
 
 def resumable_scene(path: Path, simulate_scene: Callable[[], dict[str, Any]]) -> dict[str, Any]:

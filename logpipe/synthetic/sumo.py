@@ -25,7 +25,6 @@ import contextlib
 import io
 import json
 import math
-import resource
 import sys
 import tempfile
 import time
@@ -39,14 +38,22 @@ from lxml import etree
 
 from logpipe.synthetic import scenes
 from logpipe.synthetic.flow import DT_S, FlowConfig, Tracks
-from logpipe.synthetic.pretrain import NOISE, SHARES, Location, load_locations, resumable_scene
+from logpipe.synthetic.pretrain import (
+    HIGHWAY_DEMAND,
+    HIGHWAY_DESIRED,
+    NOISE,
+    SHARES,
+    Location,
+    cpu_seconds,
+    load_locations,
+    resumable_scene,
+)
 from logpipe.synthetic.sumo_net import SumoNet, convert
 
-DESIRED = (25.0, 40.0)
-"""Range of every car's desired speed, m/s (the highway regime the real data lacks)."""
-DEMAND = (0.03, 0.12)
-"""Arrivals per second per lane of an entry edge, drawn once per scene: our generator's highway regime
-(``pretrain.HIGHWAY``), light enough to flow freely."""
+DESIRED = HIGHWAY_DESIRED
+"""Range of every car's desired speed, m/s: our generator's highway regime (the speeds the real data lacks)."""
+DEMAND = HIGHWAY_DEMAND
+"""Arrivals per second per lane of an entry edge, drawn once per scene: our generator's highway regime."""
 FILL_PER_100M = 1.0
 """Cars per 100 m of lane placed at the start (``FlowConfig.fill``), so the warm-up need not wait for cars to cross
 the map."""
@@ -263,22 +270,16 @@ def _scene(where: SumoLocation, n: int, seed: int, steps: int, out: Path) -> dic
     return record
 
 
-def _cpu_s() -> float:
-    """CPU seconds of this process and its finished children (netconvert)."""
-    kids = resource.getrusage(resource.RUSAGE_CHILDREN)
-    return time.process_time() + kids.ru_utime + kids.ru_stime
-
-
 def generate(shared: Path, out: Path, *, windows: int, seed: int = 0, scene_s: float = 60.0,
              locations: Sequence[str] = ("USA_Lanker", "USA_Peach", "USA_AV2"), progress: bool = True,
              ) -> dict[str, Any]:
     """Write ``windows`` windows (split over ``locations`` by their ``pretrain.SHARES``) and return the summary
     written to ``out/generation.json``. Locations take turns (the one furthest from its target next); re-running
     the same command resumes."""
-    t_cpu, t_wall = _cpu_s(), time.perf_counter()
+    t_cpu, t_wall = cpu_seconds(), time.perf_counter()
     names = [n for n in SHARES if n in set(locations)]
     where = load(shared, out, names, seed)
-    load_cpu = _cpu_s() - t_cpu
+    load_cpu = cpu_seconds() - t_cpu
     steps = round(scene_s / DT_S)
     total_share = sum(SHARES[n] for n in names)
     targets = {n: round(windows * SHARES[n] / total_share) for n in names}
@@ -295,7 +296,8 @@ def generate(shared: Path, out: Path, *, windows: int, seed: int = 0, scene_s: f
     summary = _summary(records, names, where)
     summary.update(synthetic=True, simulator="SUMO (libsumo)", seed=seed, scene_steps=steps,
                    warmup_s=WARMUP_S, desired_speed_ms=list(DESIRED), map_load_and_netconvert_cpu_s=round(load_cpu, 1),
-                   cpu_s_this_run=round(_cpu_s() - t_cpu, 1), wall_s_this_run=round(time.perf_counter() - t_wall, 1))
+                   cpu_s_this_run=round(cpu_seconds() - t_cpu, 1),
+                   wall_s_this_run=round(time.perf_counter() - t_wall, 1))
     out.mkdir(parents=True, exist_ok=True)
     tmp = out / "generation.json.tmp"
     tmp.write_text(json.dumps(summary, indent=1) + "\n")

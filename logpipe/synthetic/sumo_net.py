@@ -31,6 +31,7 @@ from xml.sax.saxutils import quoteattr
 import numpy as np
 
 from logpipe.storage.io import atomic_open, atomic_path
+from logpipe.synthetic.pretrain import HIGHWAY_A_LAT, HIGHWAY_CURVE_SPAN_M, HIGHWAY_DESIRED
 from logpipe.synthetic.roads import Roads
 from logpipe.types import NDArrayFloat
 
@@ -42,13 +43,13 @@ NETCONVERT = ["--offset.disable-normalization", "true", "--no-turnarounds", "tru
 """netconvert's options: the map's own frame, no U-turns, the real shapes kept, small junctions."""
 GROUP_END_M = 8.0
 """Neighbour lanes whose starts (and ends) lie within this distance (m) become lanes of one edge."""
-V_TOP = 40.0
-"""Speed of a straight lane, m/s: the top of the highway regime's desired speeds (25-40 m/s)."""
-A_LAT = 3.0
-"""Lateral acceleration a bend allows, m/s²: our generator's highway regime (``pretrain.HIGHWAY_A_LAT``)."""
-CURVE_SPAN_M = 60.0
+V_TOP = HIGHWAY_DESIRED[1]
+"""Speed of a straight lane, m/s: the top of the highway regime's desired speeds."""
+A_LAT = HIGHWAY_A_LAT
+"""Lateral acceleration a bend allows, m/s²: our generator's highway regime."""
+CURVE_SPAN_M = HIGHWAY_CURVE_SPAN_M
 """Curvature is the heading change over this arc (m; a shorter lane: over all of it): a map's kinks between lanelet
-pieces are not bends. Our generator's highway regime reads bends over 60 m too."""
+pieces are not bends, as in our generator's highway regime."""
 JUNCTIONS = True
 """Fold lanelets inside intersections into SUMO junctions (``junction_groups``)."""
 JUNCTION_LANE_M = 40.0

@@ -18,8 +18,10 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import pyarrow as pa
 import torch
 
+from logpipe.dataset.locations import locations_of
 from logpipe.storage.io import open_nofollow
 from logpipe.types import NDArrayFloat, SceneSample
 
@@ -74,6 +76,13 @@ def tensors(inputs: TargetInputs, rows: np.ndarray) -> tuple[torch.Tensor, torch
     crops = None if inputs.crops is None else torch.from_numpy(inputs.crops[rows]).float() / CROP_UNIT
     return (torch.from_numpy(inputs.features[rows]), torch.from_numpy(inputs.neighbours[rows]),
             torch.from_numpy(inputs.neighbour_mask[rows]), crops)
+
+
+def target_locations(logs: Iterable[pa.Table], samples: Sequence[SceneSample], windows: np.ndarray | None
+                     ) -> list[str | None] | None:
+    """The location of each target ``collect`` drew from ``samples`` (``windows``: its window numbers), looked up in
+    the logs tables ``logs``; None without targets."""
+    return None if windows is None else locations_of(logs, [samples[int(w)].log_id for w in windows])
 
 
 @torch.inference_mode()

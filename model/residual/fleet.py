@@ -23,7 +23,7 @@ import pyarrow as pa
 import pyarrow.compute as pc
 
 from logpipe.dataset.holdout import Holdout, choose_holdout
-from logpipe.dataset.locations import locations_of, window_locations
+from logpipe.dataset.locations import window_locations
 from logpipe.dataset.reader import Dataset
 from logpipe.errors import LogpipeError
 from logpipe.raster.runs import RasterShards, find_raster_run
@@ -36,7 +36,7 @@ from ..training.run_folder import run_folder
 from .checkpoint import load_residual, save_residual
 from .compare import compare, k1_source, not_compared
 from .config import ResidualConfig
-from .fit import LOG, collect, fit_residual
+from .fit import LOG, collect, fit_residual, target_locations
 from .meta import read_residual_meta
 from .model_card import comparison_lines, model_card
 from .ood import tune_baselines
@@ -143,8 +143,7 @@ def train_fleet(  # noqa: PLR0913  the command's options one to one
     train, windows = collect(_samples(datasets, runs, holdout.train_ids), config)
     val_samples = _samples(datasets, runs, holdout.val_ids) if holdout.how != "none" else []
     val, val_windows = collect(val_samples, config) if val_samples else (None, None)
-    val_locations = None if val_windows is None else locations_of(
-        [d.logs() for d in datasets], [val_samples[w].log_id for w in val_windows])
+    val_locations = target_locations([d.logs() for d in datasets], val_samples, val_windows)
     starts, why_not = _candidates(config, init_from or shipped)
     if val is None:  # nothing to choose on: the start trained on more data, when there is one
         starts = {"finetune": starts["finetune"]} if "finetune" in starts else starts

@@ -16,7 +16,7 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any, cast
 
-from logpipe.dataset.locations import locations_of, window_locations
+from logpipe.dataset.locations import window_locations
 from logpipe.dataset.reader import Dataset
 from logpipe.errors import LogpipeError
 from logpipe.raster.runs import find_raster_run
@@ -28,7 +28,7 @@ from ..checkpoint.format import TrainingData, combined_kind, combined_manifest_h
 from ..training.run_folder import run_folder
 from ..training.splits import logs_filter, split_logs
 from .config import load_residual_config
-from .fit import collect, fit_residual
+from .fit import collect, fit_residual, target_locations
 
 
 def _split_samples(datasets: Sequence[Dataset], split: str, raster_run: str | None, environment: bool
@@ -73,8 +73,7 @@ def train_residual(  # noqa: PLR0913  the command's options one to one
                               training_data=training_data, init_from=init_from, progress=progress,
                               locations=window_locations([d.logs() for d in datasets],
                                                          [s.log_id for s in train_samples]),
-                              val_locations=None if val_windows is None else locations_of(
-                                  [d.logs() for d in datasets], [val_samples[w].log_id for w in val_windows]))
+                              val_locations=target_locations([d.logs() for d in datasets], val_samples, val_windows))
     several = len(datasets) > 1
     k = config.modes + 1
     return cast(TrainSummary, {
