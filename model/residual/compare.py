@@ -67,11 +67,18 @@ def tune_sampler(train: TargetInputs, seed: int = 0) -> dict[str, Any]:
     if len(rows) > TUNE_TARGETS:
         rows = np.sort(np.random.default_rng(seed).choice(rows, TUNE_TARGETS, replace=False))
     part = train.take(rows)
-    truth, pred_len = world_truth(part), part.prior.shape[1]
-    scores = {(h, s): _min_fde(cv_sampler(part.observed, pred_len, K, h, s, seed), truth)
-              for h in SAMPLER_HEADINGS for s in SAMPLER_SPEEDS}
+    return choose_sampler_noise(part.observed, world_truth(part), K, seed)
+
+
+def choose_sampler_noise(observed: NDArrayFloat, truth: NDArrayFloat, modes: int, seed: int = 0, *,
+                         headings: tuple[float, ...] = SAMPLER_HEADINGS, speeds: tuple[float, ...] = SAMPLER_SPEEDS
+                         ) -> dict[str, Any]:
+    """The CV sampler's noise (``headings`` x ``speeds``, ascending) with the lowest minFDE@``modes`` on tracks
+    ``observed`` with true futures ``truth`` (world metres), and whether it lies on the grid's edge."""
+    scores = {(h, s): _min_fde(cv_sampler(observed, truth.shape[1], modes, h, s, seed), truth)
+              for h in headings for s in speeds}
     h, s = min(scores, key=lambda g: scores[g])
-    edge = h == SAMPLER_HEADINGS[-1] or s == SAMPLER_SPEEDS[-1]  # 0 is no noise at all: nothing lies beyond it
+    edge = h == headings[-1] or s == speeds[-1]  # 0 is no noise at all: nothing lies beyond it
     return {"heading_std_rad": h, "speed_std_frac": s, "includes_cv": True, "on_grid_edge": edge,
             "chosen_on": "training targets", "train_min_fde": round(scores[(h, s)], 4)}
 

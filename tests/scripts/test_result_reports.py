@@ -1,5 +1,6 @@
-"""The reports of ``scripts/highway_speeds.py`` and ``scripts/shipped_holdout.py``: the results files in
-``docs/results`` are what the scripts write from their JSON, and the figures they compute say what the numbers do."""
+"""The reports of ``scripts/highway_speeds.py``, ``scripts/shipped_holdout.py`` and ``scripts/ethucy_baselines.py``:
+the results files in ``docs/results`` are what the scripts write from their JSON, and the figures they compute say
+what the numbers do."""
 
 from __future__ import annotations
 
@@ -10,7 +11,7 @@ from typing import Any
 
 import numpy as np
 
-from scripts import highway_speeds, shipped_holdout
+from scripts import ethucy_baselines, highway_speeds, shipped_holdout
 
 RESULTS = Path(__file__).resolve().parents[2] / "docs" / "results"
 
@@ -20,6 +21,8 @@ def test_the_results_files_are_the_scripts_rendering_of_their_json() -> None:
     assert highway_speeds.markdown(highway) == (RESULTS / "highway_speeds.md").read_text()
     holdout = json.loads((RESULTS / "driving_holdout.json").read_text())
     assert shipped_holdout.markdown(holdout) == (RESULTS / "driving_holdout.md").read_text()
+    kinematic = json.loads((RESULTS / "ethucy_baselines.json").read_text())
+    assert ethucy_baselines.markdown(kinematic) == (RESULTS / "ethucy_baselines.md").read_text()
 
 
 def _arm(k1: float, k6: float, hours: float = 0.05) -> dict[str, Any]:
