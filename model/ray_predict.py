@@ -23,7 +23,7 @@ import uuid
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 import pyarrow as pa
@@ -157,10 +157,16 @@ class ForecastJob:
     seed: int
     batch_size: int
     cutter: SampleCutter
+    ranked: bool = False
+    """Forecast every mode head by score (``ResidualPredictor.predict_ranked``): the run's out-of-distribution
+    check chooses the K modes."""
 
     def forecast(self) -> Forecast:
-        """The loaded model's forecast of a batch: K modes, noise from the run's seed and each sample's id."""
+        """The loaded model's forecast of a batch: K modes (or with ``ranked`` every head), noise from the run's
+        seed and each sample's id."""
         assert self.chosen.model is not None, "load_net first"
+        if self.ranked:
+            return cast(Forecast, self.chosen.model.predict_ranked)  # type: ignore[attr-defined]
         return functools.partial(self.chosen.model.predict, num_modes=self.modes, seed=self.seed)
 
 

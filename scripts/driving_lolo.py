@@ -36,8 +36,9 @@ from logpipe.model.kinematic.adaptive_prior import adaptive_fit
 from logpipe.model.residual.checkpoint import load_residual
 from logpipe.model.residual.compare import cv_sampler, tune_sampler
 from logpipe.model.residual.config import ResidualConfig, load_residual_config
-from logpipe.model.residual.fit import fit_residual, forecast
+from logpipe.model.residual.fit import fit_residual, ranked_forecasts
 from logpipe.model.residual.inputs import concat
+from logpipe.model.residual.modes import spread_modes
 from logpipe.model.residual.ood import fallback_forecasts, tune_baselines
 from logpipe.types import NDArrayFloat
 from scripts.driving_targets import (
@@ -78,14 +79,14 @@ def kinematic_rows(targets: Targets, held: str, pred_len: int) -> tuple[dict[str
     return out, {"baselines": per_method, "best_kinematic": best, "cv_sampler": sampler}
 
 
-def as_shipped(targets: Targets, held: str, model: NDArrayFloat, rows: np.ndarray, pred_len: int
+def as_shipped(targets: Targets, held: str, ranked: NDArrayFloat, rows: np.ndarray
                ) -> tuple[NDArrayFloat, dict[str, Any]]:
-    """``logpipe predict``'s default (``auto``) on ``rows``, a road the model never trained on, given its
-    forecasts ``model`` of them: mode 0 the best kinematic baseline of the fold model's own training targets (as
-    ``fit_residual`` records it), modes 1.. its own."""
+    """``logpipe predict``'s default (``auto``) on ``rows``, a road the model never trained on, given its ranked
+    forecasts of them (``fit.ranked_forecasts``): mode 0 the best kinematic baseline of the fold model's own
+    training targets (as ``fit_residual`` records it), then its mode heads around it."""
     train_rows = np.flatnonzero((targets.location != held) & ~targets.validation())
     ood = tune_baselines(targets.inputs.take(train_rows))
-    return fallback_forecasts(ood, targets.inputs.observed[rows], model), ood["fallback_k1"]
+    return fallback_forecasts(ood, targets.inputs.observed[rows], ranked, K), ood["fallback_k1"]
 
 
 def train_variant(config: ResidualConfig, real: Targets, synthetic: Targets | None, held: str, out: Path,
@@ -184,9 +185,9 @@ def main(argv: list[str] | None = None) -> int:
             inputs = real if en else replace(real, inputs=replace(real.inputs, crops=None))
             best, cost = fold_model(cfg, inputs, held, args.work / held / variant)
             net, _ = load_residual(best)
-            world = forecast(net, inputs.inputs.take(test), K)
-            record(variant, world, test)
-            shipped, fallback = as_shipped(real, held, world, test, config.pred_len)
+            ranked = ranked_forecasts(net, inputs.inputs.take(test))
+            record(variant, spread_modes(ranked[:, 0], ranked[:, 1:], K), test)
+            shipped, fallback = as_shipped(real, held, ranked, test)
             record(f"{variant}_auto", shipped, test)
             fold[variant] = cost | {"fallback_k1": fallback}
             print(held, variant, cost, file=sys.stderr)

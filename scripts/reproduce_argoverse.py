@@ -129,7 +129,7 @@ def _learned(ckpt: Path, kind: str, logs: pa.Table) -> tuple[Predictor, Residual
     """A shipped checkpoint of either kind (the residual model, as ``logpipe predict`` runs it on these ``logs``
     by default, or the paper's network) and its metadata."""
     if model_kind(ckpt) == RESIDUAL_KIND:
-        check = ood_check_for(ckpt, "auto", logs)
+        check = ood_check_for(ckpt, "auto", K, logs)
         return CheckedPredictor(ResidualPredictor.from_checkpoint(ckpt), check), read_residual_meta(ckpt)
     return NetPredictor.from_checkpoint(ckpt, expect_kind=kind), read_meta(ckpt)
 

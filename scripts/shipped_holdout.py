@@ -32,6 +32,7 @@ from logpipe.model.kinematic import best_baseline
 from logpipe.model.residual.compare import cv_sampler, tune_sampler
 from logpipe.model.residual.fit import collect
 from logpipe.model.residual.inputs import concat
+from logpipe.model.residual.modes import spread_modes
 from logpipe.model.residual.ood import OodCheck
 from logpipe.model.residual.predictor import ResidualPredictor
 from logpipe.raster.runs import find_raster_run
@@ -50,9 +51,10 @@ def dataset_rows(name: str, ds: Any, predictor: ResidualPredictor, sampler: dict
     ``name`` and location."""
     meta = predictor.meta
     samples = scene_samples(ds, "hash/test", rasters=find_raster_run(ds.root, None, None))
-    futures = predictor.predict(samples, K, 0)
-    check = OodCheck(meta.ood, meta.config, "auto", {}, log_locations(ds.logs()))
-    shipped, _ = check(samples, futures)
+    ranked = predictor.predict_ranked(samples)
+    futures = [spread_modes(r[:, 0], r[:, 1:], K) for r in ranked]
+    check = OodCheck(meta.ood, meta.config, "auto", K, {}, log_locations(ds.logs()))
+    shipped, _ = check(samples, ranked)
     locations = check.locations
     observed = np.concatenate([s.positions[np.asarray(s.target_mask, bool), :s.obs_len] for s in samples])
     truth = np.concatenate([s.positions[np.asarray(s.target_mask, bool), s.obs_len:] for s in samples])

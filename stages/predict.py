@@ -181,8 +181,8 @@ def _prepare(dataset_dir: Path, out_dir: Path, opts: PredictOptions) -> tuple[_R
         "protocol": dataset.protocol.to_dict(), "write_mcap": opts.write_mcap,
         "raster_run": rasters.run_dir.name if rasters is not None and raster_images else None,
     }
-    ood_check = (ood_check_for(chosen.checkpoint, opts.out_of_distribution, logs_table) if chosen.name == "residual"
-                 else None)
+    ood_check = (ood_check_for(chosen.checkpoint, opts.out_of_distribution, modes, logs_table)
+                 if chosen.name == "residual" else None)
     if ood_check is not None:
         settings["out_of_distribution"] = opts.out_of_distribution
     protocol = dataset.protocol
@@ -207,7 +207,8 @@ def _prepare(dataset_dir: Path, out_dir: Path, opts: PredictOptions) -> tuple[_R
     raster_ids = frozenset(rasters.index.column("sample_id").to_pylist()) if rasters is not None else frozenset()
     cutter = SampleCutter(protocol.obs_len, sample_filter.object_types, rasters, raster_ids)
     # The job's dataset without the input list (most of a large corpus's manifest): found originals were its use.
-    run = _Run(ForecastJob(dataset.without_inputs(), chosen, modes, opts.seed, opts.batch_size, cutter), logs,
+    run = _Run(ForecastJob(dataset.without_inputs(), chosen, modes, opts.seed, opts.batch_size, cutter,
+                           ranked=ood_check is not None), logs,
                samples, meta, mcaps, ood_check)
     return run, settings, summary, torch_device
 

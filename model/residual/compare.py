@@ -4,7 +4,7 @@ on driving data reports (summary, ``--json``, the run folder's ``MODEL_CARD.md``
 K = 1 (FDE and ADE at the protocol's horizon): constant velocity (the last displacement), least-squares CV, a
 constant-velocity Kalman filter and the adaptive prior, each with its setting chosen on the training targets
 (``model.kinematic.best_baseline``), the model's own prior as it trains on, and the model's mean head. K = ``K``
-(minFDE per agent): the model's mean head and its best-scored heads against the CV sampler, whose mode 0 is plain
+(minFDE per agent): the model's mean head and its heads (``modes``) against the CV sampler, whose mode 0 is plain
 CV (so it is never worse than CV) and whose heading and speed noise are chosen on the training targets from a grid
 that reaches far below and above every choice seen (``SAMPLER_HEADINGS``, ``SAMPLER_SPEEDS``; the record says when
 the choice lies on the grid's upper edge, and no noise is the lower bound). The best kinematic baseline at K = 1 is

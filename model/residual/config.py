@@ -29,7 +29,7 @@ class ResidualConfig:
 
     Attributes:
         obs_len, pred_len: observed steps (the current one included) and predicted steps.
-        modes: mode heads (K at most this + 1: the mean forecast is mode 0, then the heads by score).
+        modes: mode heads (K at most this + 1: the mean forecast is mode 0, then the heads as ``modes`` takes them).
         environment: the environment net (EN): a CNN over each target's raster crop in its own frame.
         crop_px, crop_res_m, crop_behind_m: the crop, crop_px x crop_px cells of crop_res_m metres, its back edge
             crop_behind_m behind the target (it looks ahead: 48 px of 1 m see 36 m ahead, 12 m behind, 24 m aside).

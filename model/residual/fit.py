@@ -31,6 +31,7 @@ from .checkpoint import load_residual, save_residual
 from .config import ResidualConfig
 from .inputs import CROP_UNIT, TargetInputs, concat, target_inputs, world_truth
 from .meta import ResidualMeta
+from .modes import spread_modes
 from .net import ResidualNet, training_loss
 from .ood import k1_evidence, training_distribution, tune_baselines
 
@@ -85,24 +86,27 @@ def target_locations(logs: Iterable[pa.Table], samples: Sequence[SceneSample], w
     return None if windows is None else locations_of(logs, [samples[int(w)].log_id for w in windows])
 
 
+def forecast(net: ResidualNet, inputs: TargetInputs, num_modes: int) -> NDArrayFloat:
+    """(N, num_modes, T, 2) world forecasts: mode 0 the mean head (the K = 1 forecast), then the mode heads as
+    ``modes.spread_modes`` takes them (the mean head repeated where more are asked for than there are heads)."""
+    ranked = ranked_forecasts(net, inputs)
+    return spread_modes(ranked[:, 0], ranked[:, 1:], num_modes)
+
+
 @torch.inference_mode()
-def forecast(net: ResidualNet, inputs: TargetInputs, num_modes: int, batch: int = 1024) -> NDArrayFloat:
-    """(N, num_modes, T, 2) world forecasts: mode 0 the mean head (the K = 1 forecast), then the mode heads by
-    descending score (the mean head repeated where more are asked for than there are heads)."""
+def ranked_forecasts(net: ResidualNet, inputs: TargetInputs, batch: int = 1024) -> NDArrayFloat:
+    """(N, 1 + heads, T, 2) world forecasts: the mean head, then every mode head by descending score."""
     out = []
     for lo in range(0, len(inputs), batch):
         rows = np.arange(lo, min(lo + batch, len(inputs)))
         mean, modes, logits = (t.numpy() for t in net(*tensors(inputs, rows)))
-        order = np.argsort(-logits, axis=1, kind="stable")[:, : max(num_modes - 1, 0)]
+        order = np.argsort(-logits, axis=1, kind="stable")
         ranked = np.take_along_axis(modes, order[:, :, None, None], axis=1)
-        picked = np.concatenate([mean[:, None], ranked], axis=1)
-        if picked.shape[1] < num_modes:
-            picked = np.concatenate([picked, np.repeat(mean[:, None], num_modes - picked.shape[1], axis=1)], 1)
-        out.append(picked)
+        out.append(np.concatenate([mean[:, None], ranked], axis=1))
     from .inputs import to_world
 
-    residual = np.concatenate(out) if out else np.zeros((0, num_modes, net.config.pred_len, 2))
-    return to_world(residual.astype(np.float64), inputs)
+    empty = np.zeros((0, net.config.modes + 1, net.config.pred_len, 2))
+    return to_world((np.concatenate(out) if out else empty).astype(np.float64), inputs)
 
 
 def evaluate(net: ResidualNet, inputs: TargetInputs) -> dict[str, float]:

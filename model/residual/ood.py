@@ -18,11 +18,11 @@ reasons name the descriptors that put it there.
 
 ``OodCheck`` applies this in ``logpipe predict`` (``--out-of-distribution auto|warn|fallback|refuse``). The fallback
 keeps the K modes: mode 0 (the K = 1 forecast) becomes the best kinematic baseline chosen on the training targets
-(``model.kinematic.best_baseline``, stored as ``fallback_k1``), and modes 1..K-1 are the model's K - 1 best-scored
-mode heads, so best-of-K keeps what the model learnt while K = 1 is physics. The mean head gives way: it is a
-forecast of the same kind as physics, and on the validation targets of all six leave-one-location-out folds,
-physics + the five mode heads gave minFDE@6 0.756 m against 0.837 for physics + the mean head + four mode heads
-(turning targets 3.90 against 4.03; every fold alike). ``auto``, the default,
+(``model.kinematic.best_baseline``, stored as ``fallback_k1``), and modes 1..K-1 are the model's mode heads as
+``modes.spread_modes`` takes them around it, so best-of-K keeps what the model learnt while K = 1 is physics. The
+mean head gives way: it is a forecast of the same kind as physics, and on the validation targets of all six
+leave-one-location-out folds, physics + the five best-scored mode heads gave minFDE@6 0.756 m against 0.837 for
+physics + the mean head + four mode heads (turning targets 3.90 against 4.03; every fold alike). ``auto``, the default,
 falls back where the model has no evidence for a correction: on roads it was never trained on (the
 leave-one-location-out run measured that its corrections do harm there: ``docs/results/driving_lolo.md``), and on
 roads it trained on where its validation did not show its K = 1 beating that baseline on at least
@@ -53,6 +53,7 @@ from logpipe.types import OBJECT_TYPES, NDArrayBool, NDArrayFloat, SceneSample
 from ..kinematic import best_baseline
 from .config import ResidualConfig
 from .inputs import TargetInputs, target_inputs
+from .modes import spread_modes
 
 QUANTILES = (0.001, 0.999)
 """The range each numeric descriptor is checked against."""
@@ -193,16 +194,18 @@ def tune_baselines(inputs: TargetInputs, max_targets: int = 20_000, seed: int = 
             "fallback_kalman": {"accel_std": kalman["accel_std"], "meas_std": kalman["meas_std"]}}
 
 
-def fallback_forecasts(ood: dict[str, Any], observed: NDArrayFloat, model: NDArrayFloat) -> NDArrayFloat:
-    """(N, K, T, 2): mode 0 the checkpoint's K = 1 fallback for tracks ``observed`` (N, T_obs, 2), modes 1..K-1 the
-    model's mode heads 1..K-1 of ``model`` (N, K, T, 2: ``fit.forecast``'s mean head, then the mode heads by score;
-    see the module docstring)."""
-    pred_len = model.shape[2]
+def fallback_forecasts(ood: dict[str, Any], observed: NDArrayFloat, ranked: NDArrayFloat, num_modes: int
+                       ) -> NDArrayFloat:
+    """(N, num_modes, T, 2): mode 0 the checkpoint's K = 1 fallback for tracks ``observed`` (N, T_obs, 2), then the
+    model's mode heads of ``ranked`` (N, 1 + heads, T, 2: ``fit.ranked_forecasts``) as ``modes.spread_modes`` takes
+    them around it (see the module docstring)."""
+    return spread_modes(physics_forecast(ood, observed, ranked.shape[2]), ranked[:, 1:], num_modes)
+
+
+def physics_forecast(ood: dict[str, Any], observed: NDArrayFloat, pred_len: int) -> NDArrayFloat:
+    """(N, T, 2): the checkpoint's K = 1 fallback (``fallback_k1``, else its Kalman filter) for ``observed``."""
     choice = ood.get("fallback_k1") or {"method": "kalman", **ood.get("fallback_kalman", {})}
-    out = np.empty_like(model)
-    out[:, 0] = best_baseline.forecast(choice, observed, pred_len)
-    out[:, 1:] = model[:, 1:]
-    return out
+    return best_baseline.forecast(choice, observed, pred_len)
 
 
 @dataclass(frozen=True)
@@ -211,23 +214,26 @@ class OodCheck:
 
     Attributes:
         ood: the checkpoint's ``ood`` record; ``config``: its ``ResidualConfig`` (the inputs are computed as the
-            network's, without crops); ``action``: one of ``OUT_OF_DISTRIBUTION_ACTIONS`` (see the module docstring).
+            network's, without crops); ``action``: one of ``OUT_OF_DISTRIBUTION_ACTIONS`` (see the module docstring);
+            ``num_modes``: K, the modes it writes.
     """
 
     ood: dict[str, Any]
     config: ResidualConfig
     action: str
+    num_modes: int
     source_hz: dict[str, float] = field(default_factory=dict)
     """Log id -> the rate it was recorded at, for logs ingest resampled (the logs table's ``resampled_from_hz``)."""
     locations: dict[str, str | None] = field(default_factory=dict)
     """Log id -> its location (``logpipe.dataset.locations.log_location``)."""
 
-    def __call__(self, samples: Sequence[SceneSample], futures: Sequence[Any]
+    def __call__(self, samples: Sequence[SceneSample], ranked: Sequence[Any]
                  ) -> tuple[list[Any], list[tuple[NDArrayFloat, NDArrayBool, NDArrayBool]]]:
-        """(the forecasts to write, each sample's (scores, flags, fallback) per target)."""
+        """(the K forecasts to write, each sample's (scores, flags, fallback) per target), given each sample's
+        ``ResidualPredictor.predict_ranked`` forecasts."""
         config = replace(self.config, environment=False)
         out, rows = [], []
-        for sample, given in zip(samples, futures, strict=True):
+        for sample, given in zip(samples, ranked, strict=True):
             inputs = target_inputs(sample, config)
             log_id = sample.sample_id.rsplit(":", 1)[0]
             location = self.locations.get(log_id)
@@ -247,17 +253,18 @@ class OodCheck:
                                    or not k1_evidenced(self.ood, location))
             else:
                 replaced = np.zeros(len(flags), bool)
-            future = np.array(given, np.float64, copy=True)
+            modes = np.asarray(given, np.float64)
+            mode0 = modes[:, 0].copy()
             if replaced.any():
-                future[replaced] = fallback_forecasts(self.ood, inputs.observed[replaced], future[replaced])
-            out.append(future)
+                mode0[replaced] = physics_forecast(self.ood, inputs.observed[replaced], modes.shape[2])
+            out.append(spread_modes(mode0, modes[:, 1:], self.num_modes))
             rows.append((scores, flags, replaced))
         return out, rows
 
 
-def ood_check_for(checkpoint: Path, action: str, logs: pa.Table | None = None) -> OodCheck:
-    """The check of a residual checkpoint folder with ``--out-of-distribution`` ``action``; ``logs``: the logs
-    table of the run (each log's location and ``attributes["resampled_from_hz"]``)."""
+def ood_check_for(checkpoint: Path, action: str, num_modes: int, logs: pa.Table | None = None) -> OodCheck:
+    """The check of a residual checkpoint folder with ``--out-of-distribution`` ``action``, writing ``num_modes``
+    modes; ``logs``: the logs table of the run (each log's location and ``attributes["resampled_from_hz"]``)."""
     from .meta import read_residual_meta  # here: the check is built only for residual checkpoints
 
     meta = read_residual_meta(checkpoint)
@@ -269,4 +276,4 @@ def ood_check_for(checkpoint: Path, action: str, logs: pa.Table | None = None) -
             hz = json.loads(text or "{}").get("resampled_from_hz") if text and "resampled_from_hz" in text else None
             if hz:
                 source[str(log_id)] = float(hz)
-    return OodCheck(meta.ood, meta.config, action, source, locations)
+    return OodCheck(meta.ood, meta.config, action, num_modes, source, locations)

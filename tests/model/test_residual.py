@@ -202,52 +202,53 @@ def test_out_of_distribution_targets_are_flagged_and_handled(scenes: list[SceneS
     fast.object_types = np.array([OBJECT_TYPES.index("pedestrian")] * 3)
     _, f_flags, reasons = ood_scores(target_inputs(fast, SMALL), ood)
     assert f_flags.all() and "speed_mps" in reasons[0] and "pedestrian" in reasons[0]
-    forecasts = ResidualPredictor(ResidualNet(SMALL), ResidualMeta(SMALL, "x", "h", 1, {}, ood)).predict(
-        [fast, scenes[0]], 3, 0)
-    checked, rows = OodCheck(ood, SMALL, "fallback")([fast, scenes[0]], forecasts)
+    predictor = ResidualPredictor(ResidualNet(SMALL), ResidualMeta(SMALL, "x", "h", 1, {}, ood))
+    forecasts, ranked = predictor.predict([fast, scenes[0]], 3, 0), predictor.predict_ranked([fast, scenes[0]])
+    checked, rows = OodCheck(ood, SMALL, "fallback", 3)([fast, scenes[0]], ranked)
     assert ood["fallback_k1"]["method"] in ("cv", "least_squares_cv", "kalman", "adaptive_prior")
     physics = best_baseline.forecast(ood["fallback_k1"], fast.positions[np.asarray(fast.target_mask, bool), :20], 30)
     assert rows[0][2].all() and not rows[1][2].any()
     np.testing.assert_allclose(checked[0][:, 0], physics)  # K = 1: the best kinematic baseline of training
-    assert checked[0].shape[1] == 3  # fallback keeps the K modes: the two best-scored mode heads follow
-    np.testing.assert_array_equal(checked[0][:, 1:], forecasts[0][:, 1:])
+    assert checked[0].shape[1] == 3  # fallback keeps the K modes: two of the model's mode heads follow
+    heads = ranked[0][:, 1:]
+    for mode in range(1, 3):
+        assert np.all(np.any(np.all(checked[0][:, mode, None] == heads, axis=(2, 3)), axis=1))
     np.testing.assert_array_equal(checked[1], forecasts[1])  # inside: the network's forecast, untouched
-    warned, rows = OodCheck(ood, SMALL, "warn")([fast], forecasts[:1])
+    warned, rows = OodCheck(ood, SMALL, "warn", 3)([fast], ranked[:1])
     assert rows[0][1].all() and not rows[0][2].any()
     np.testing.assert_array_equal(warned[0], forecasts[0])
-    auto, rows = OodCheck(ood, SMALL, "auto")([fast], forecasts[:1])  # flagged, but on no unknown road: marked only
+    auto, rows = OodCheck(ood, SMALL, "auto", 3)([fast], ranked[:1])  # flagged, but on no unknown road: marked only
     assert rows[0][1].all() and not rows[0][2].any()
     np.testing.assert_array_equal(auto[0], forecasts[0])
     with pytest.raises(LogpipeError, match="outside the checkpoint's training data"):
-        OodCheck(ood, SMALL, "refuse")([fast], forecasts[:1])
+        OodCheck(ood, SMALL, "refuse", 3)([fast], ranked[:1])
 
 
 def test_roads_the_model_never_trained_on_get_physics_at_k1(scenes: list[SceneSample]) -> None:
     inputs, _ = collect(scenes, SMALL)
     ood = training_distribution(inputs, {"USA_Peach": len(scenes)}) | tune_baselines(inputs)
-    forecasts = ResidualPredictor(ResidualNet(SMALL), ResidualMeta(SMALL, "x", "h", 1, {}, ood)).predict(
-        scenes[:2], 4, 0)
+    predictor = ResidualPredictor(ResidualNet(SMALL), ResidualMeta(SMALL, "x", "h", 1, {}, ood))
+    forecasts, ranked = predictor.predict(scenes[:2], 4, 0), predictor.predict_ranked(scenes[:2])
     log_a, log_b = scenes[0].log_id, scenes[1].log_id
-    check = OodCheck(ood, SMALL, "auto", locations={log_a: "USA_Peach", log_b: "DEU_Unseen"})
-    checked, rows = check(scenes[:2], forecasts)
+    check = OodCheck(ood, SMALL, "auto", 4, locations={log_a: "USA_Peach", log_b: "DEU_Unseen"})
+    checked, rows = check(scenes[:2], ranked)
     np.testing.assert_array_equal(checked[0], forecasts[0])  # a road it trained on: the model, untouched
     assert not rows[0][2].any() and rows[1][2].all() and rows[1][1].all()
     observed = scenes[1].positions[np.asarray(scenes[1].target_mask, bool), :20]
     np.testing.assert_allclose(checked[1][:, 0], best_baseline.forecast(ood["fallback_k1"], observed, 30))
-    np.testing.assert_array_equal(checked[1][:, 1:], forecasts[1][:, 1:])
     _, _, reasons = ood_scores(target_inputs(scenes[1], SMALL), ood, location="DEU_Unseen")
     assert "not trained on this road (DEU_Unseen; trained on USA_Peach)" in reasons[0]
     # a road it trained on but whose validation never showed its K = 1 beating physics: physics at K = 1 too
     evidenced = ood | {"k1_by_location": {"USA_Peach": {"source": "model"}, "USA_Lanker": {"source": "physics"}}}
     both = {"USA_Peach": 5, "USA_Lanker": 5}
-    check = OodCheck(evidenced | {"locations": both}, SMALL, "auto",
+    check = OodCheck(evidenced | {"locations": both}, SMALL, "auto", 4,
                      locations={log_a: "USA_Peach", log_b: "USA_Lanker"})
-    checked, rows = check(scenes[:2], forecasts)
+    checked, rows = check(scenes[:2], ranked)
     np.testing.assert_array_equal(checked[0], forecasts[0])
     assert rows[1][2].all() and not rows[1][1].any()  # replaced, though not flagged: the road is a training one
     np.testing.assert_allclose(checked[1][:, 0], best_baseline.forecast(ood["fallback_k1"], observed, 30))
-    checked, _ = OodCheck(evidenced | {"locations": both}, SMALL, "warn",
-                          locations={log_a: "USA_Peach", log_b: "USA_Lanker"})(scenes[:2], forecasts)
+    checked, _ = OodCheck(evidenced | {"locations": both}, SMALL, "warn", 4,
+                          locations={log_a: "USA_Peach", log_b: "USA_Lanker"})(scenes[:2], ranked)
     np.testing.assert_array_equal(checked[1], forecasts[1])  # warn only marks
     no_record = training_distribution(inputs) | tune_baselines(inputs)  # older checkpoints: no road judged
     _, flags, _ = ood_scores(target_inputs(scenes[1], SMALL), no_record, location="DEU_Unseen")
