@@ -127,8 +127,8 @@ def _protocol(results: dict[str, Any]) -> str:
             "training locations too (`model.kinematic.best_baseline`; the CV sampler keeps plain CV as its mode 0). "
             "The mean head is the network's own K = 1; `logpipe predict` by default (`--out-of-distribution auto`) "
             "gives a target on a road the checkpoint never trained on (every target here) the best kinematic "
-            "baseline of the checkpoint's own training targets as mode 0, its best-scored mode heads after it. "
-            "Intervals: 95 % bootstrap over recording clusters within each location "
+            "baseline of the checkpoint's own training targets as mode 0, its mode heads around it "
+            "(`model.residual.modes`). Intervals: 95 % bootstrap over recording clusters within each location "
             "(CommonRoad files that share tracks form one cluster). K = 1 is each method's single forecast (the "
             "residual model's mean head); K = 6 is per agent, the best of 6 modes at the final step. Turning: the "
             "future's last 0.5 s heads more than 20 degrees away from the last 0.4 s observed.")
