@@ -88,7 +88,7 @@ def _train_rate(
             fmap = maps(scenes[lo : lo + 8], batch)
             loss = best_of_h_step_loss(net, batch, 20, torch.Generator().manual_seed(done), "scene", select, fmap)
             opt.zero_grad()
-            loss.backward()
+            loss.backward()  # type: ignore[no-untyped-call]
             opt.step()
             done += 8
         return done
@@ -116,7 +116,8 @@ def _train_env_cost(quick: bool) -> dict[str, Any]:
     scenes = make_scenes(n_scenes, seed=4, min_agents=5, max_agents=15, obs_len=20, pred_len=30, with_ego=True,
                          with_raster=True, channels=7)
     # Each sample its own raster (the synthetic stripes are the same in every scene), as on real data.
-    scenes = [replace(s, raster=np.roll(s.raster, 3 * i, axis=2)) for i, s in enumerate(scenes)]
+    scenes = [replace(s, raster=None if s.raster is None else np.roll(s.raster, 3 * i, axis=2))
+              for i, s in enumerate(scenes)]
     base = ModelConfig(obs_len=20, pred_len=30, raster_channels=7, backbone_bf16=False)
     frozen = replace(base, freeze_backbone=True)
     cache = BackboneFeatureCache(max_bytes=10**10)

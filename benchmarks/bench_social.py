@@ -79,7 +79,7 @@ def direct_generator_step(gan: gan_fit.Gan, batch: SocialBatch) -> tuple[float, 
     adversarial = functional.binary_cross_entropy_with_logits(scores, gan_fit.smoothed_labels(scores.shape[0], True))
     loss = adversarial + config.l2_loss_weight * l2
     gan.g_optimizer.zero_grad()
-    loss.backward()
+    loss.backward()  # type: ignore[no-untyped-call]
     if config.clipping_threshold_g > 0:
         torch.nn.utils.clip_grad_norm_(gan.generator.parameters(), config.clipping_threshold_g)
     gan.g_optimizer.step()

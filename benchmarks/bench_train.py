@@ -71,7 +71,7 @@ def _model_step(cfg: ModelConfig) -> Any:
     def step(batch: Batch, seed: int) -> None:
         loss = best_of_h_step_loss(net, batch, MODES_H, torch.Generator().manual_seed(seed), "scene", True)
         opt.zero_grad()
-        loss.backward()
+        loss.backward()  # type: ignore[no-untyped-call]
         opt.step()
 
     return step
@@ -189,7 +189,8 @@ def _scenes(quick: bool) -> tuple[list[SceneSample], list[SceneSample]]:
     mapped = make_scenes(n // 2, seed=4, min_agents=5, max_agents=15, obs_len=20, pred_len=30, with_ego=True,
                          with_raster=True, channels=7)
     # Each sample its own raster (the synthetic stripes are the same in every scene), as on real data.
-    mapped = [replace(s, raster=np.roll(s.raster, 3 * i, axis=2)) for i, s in enumerate(mapped)]
+    mapped = [replace(s, raster=None if s.raster is None else np.roll(s.raster, 3 * i, axis=2))
+              for i, s in enumerate(mapped)]
     return plain, mapped
 
 

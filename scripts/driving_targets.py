@@ -159,7 +159,8 @@ def load_targets(path: Path) -> tuple[Targets, dict[str, NDArrayFloat]]:
     """What ``save_targets`` cached (``samples`` empty)."""
     with np.load(path, allow_pickle=False) as data:
         got = {k: data[k] for k in data.files}
-    inputs = TargetInputs(**{f.name: got.get(f"inputs.{f.name}") for f in fields(TargetInputs)})
+    stored: dict[str, Any] = {f.name: got.get(f"inputs.{f.name}") for f in fields(TargetInputs)}
+    inputs = TargetInputs(**stored)
     extra = {k.removeprefix("extra."): v for k, v in got.items() if k.startswith("extra.")}
     return Targets(inputs, got["future"], got["location"], got["log"], got["cluster"], got["sample"], got["window"],
                    got["turning"], []), extra

@@ -11,7 +11,7 @@ from typing import Any
 import numpy as np
 
 from logpipe.model.checkpoint.format import InferenceSettings
-from logpipe.model.kinematic.constant_velocity import ConstantVelocity, ConstantVelocitySampler, LinearFit
+from logpipe.model.kinematic.constant_velocity import ConstantVelocity, LinearFit
 from logpipe.model.kinematic.kalman import KalmanCV
 from logpipe.model.predictor import Predictor, inference_id
 from logpipe.model.zhu2020.meta import amend_meta, read_meta
@@ -21,7 +21,14 @@ from logpipe.prediction.table import samples_table
 from logpipe.scoring.method_forecasts import load_method
 from logpipe.storage.io import write_parquet
 from logpipe.types import NDArrayFloat, SceneSample
-from scripts.validation import neighbour_cap, predicted_best_of_k, shifted_best_of_k, tune_inference, tuned
+from scripts.validation import (
+    chosen_sampler,
+    neighbour_cap,
+    predicted_best_of_k,
+    shifted_best_of_k,
+    tune_inference,
+    tuned,
+)
 
 
 def write_learned(  # noqa: PLR0913  script helper shared by the reproduce_* scripts and seeds.py
@@ -90,7 +97,7 @@ def write_classical(samples: Sequence[SceneSample], pred_len: int, seed: int, sa
                           pdir / "linear.parquet", "linear"),
         write_predictions(KalmanCV(pred_len=pred_len), samples, 1, seed, pred_len,
                           "kalman_cv accel_std=0.1 meas_std=0.05 init_vel_std=2.0", pdir / "kalman.parquet", "kalman"),
-        write_predictions(ConstantVelocitySampler(pred_len=pred_len, **sampler), samples, sampler_k, seed, pred_len,
+        write_predictions(chosen_sampler(sampler, pred_len), samples, sampler_k, seed, pred_len,
                           sampler_id, pdir / "cv_sampler.parquet", "cv_sampler"),
     ]
 

@@ -20,7 +20,7 @@ import argparse
 import json
 import sys
 import time
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -125,7 +125,7 @@ def render_across_seeds(methods: dict[str, Any], seeds: dict[int, dict[str, Any]
 
 
 def render(  # noqa: PLR0913  one parameter per section of the rendered page
-    report: dict[str, Any], choice: dict[str, float], grid: list[Any], noise: dict[str, Any],
+    report: Mapping[str, Any], choice: dict[str, float], grid: list[Any], noise: dict[str, Any],
     n_logs: dict[str, int], skipped: list[str], seconds: float, args: argparse.Namespace,
     seeds: dict[int, dict[str, Any]],
 ) -> str:

@@ -19,14 +19,14 @@ import argparse
 import json
 import sys
 import time
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
 import pyarrow as pa
 
 from logpipe.model.predictor import Predictor
-from logpipe.model.registry import RESIDUAL_KIND
+from logpipe.model.residual.config import MODEL_KIND as RESIDUAL_KIND
 from logpipe.model.residual.meta import ResidualMeta, model_kind, read_residual_meta
 from logpipe.model.residual.ood import ood_check_for
 from logpipe.model.residual.predictor import CheckedPredictor, ResidualPredictor
@@ -141,7 +141,7 @@ ROWS = (("Constant velocity", "cv"), ("Linear", "linear"), ("Kalman CV", "kalman
         ("Ours: residual driving model (predict's default; our extension, not the paper's method)", "residual"))
 
 
-def _table(report: dict[str, Any]) -> list[str]:
+def _table(report: Mapping[str, Any]) -> list[str]:
     lines = ["| method | K=1 ADE/FDE | K=1 MR | K=6 minADE/minFDE | K=6 MR |", "|---|---|---|---|---|"]
     for label, method in ROWS:
         e = report["methods"].get(method)
@@ -157,7 +157,7 @@ def _table(report: dict[str, Any]) -> list[str]:
 
 
 def render(  # noqa: PLR0913  one parameter per section of the rendered page
-    full: dict[str, Any], held: dict[str, Any], choice: dict[str, float], grid: list[Any],
+    full: Mapping[str, Any], held: Mapping[str, Any], choice: dict[str, float], grid: list[Any],
     skipped: list[str], held_only: list[str], seconds: float, timings: dict[str, float],
     args: argparse.Namespace,
 ) -> str:

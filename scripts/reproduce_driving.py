@@ -29,7 +29,7 @@ import numpy as np
 from logpipe.api import ingest, rasterise, train
 from logpipe.dataset.reader import Dataset
 from logpipe.errors import DatasetError
-from logpipe.model.kinematic.constant_velocity import ConstantVelocity, ConstantVelocitySampler
+from logpipe.model.kinematic.constant_velocity import ConstantVelocity
 from logpipe.model.kinematic.kalman import KalmanCV
 from logpipe.model.predictor import Predictor
 from logpipe.model.zhu2020.predictor import NetPredictor
@@ -39,7 +39,7 @@ from logpipe.stages.train import scene_samples
 from logpipe.types import NDArrayFloat, SceneSample
 from scripts.locations import REPO
 from scripts.tables import machine_note
-from scripts.validation import truth_of, tune_sampler
+from scripts.validation import chosen_sampler, truth_of, tune_sampler
 
 K = 6
 VARIANTS = ("full", "v4", "v3", "v2", "v1", "baseline")
@@ -166,7 +166,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     sampler, _ = tune_sampler(tune, pred_len, K, args.seed)
     baselines: dict[str, Predictor] = {
         "cv": ConstantVelocity(pred_len=pred_len), "kalman": KalmanCV(pred_len=pred_len),
-        "cv_sampler": ConstantVelocitySampler(pred_len=pred_len, **sampler)}
+        "cv_sampler": chosen_sampler(sampler, pred_len)}
     methods: dict[str, Any] = {}
     for name, predictor in baselines.items():
         s = scores(forecast(predictor, test, K if name == "cv_sampler" else 1, args.seed, ok), truth, window)

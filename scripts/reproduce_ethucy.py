@@ -27,7 +27,6 @@ from pathlib import Path
 from typing import Any
 
 from logpipe.dataset.reader import Dataset
-from logpipe.model.kinematic.constant_velocity import ConstantVelocitySampler
 from logpipe.stages.score import score
 from logpipe.stages.train import scene_samples
 from scripts.ethucy_checks import (
@@ -45,6 +44,7 @@ from scripts.tables import AS_TRAINED, PAPER
 from scripts.validation import (
     K_BEST,
     chosen_on,
+    chosen_sampler,
     grid_row,
     predicted_best_of_k,
     shifted_best_of_k,
@@ -135,7 +135,7 @@ def run_scene(scene: str, ds: Dataset, rate_ds: Dataset, templates: dict[str, st
     train = scene_samples(ds, f"{scene}/train")  # for the neighbour cap only
     choice, grid = tune_sampler(val, pred_len, K_BEST, args.seed)
     rate_val = scene_samples(rate_ds, f"{scene}/val")
-    sampler = ConstantVelocitySampler(pred_len=pred_len, **choice)
+    sampler = chosen_sampler(choice, pred_len)
     results["sampler"][scene] = {"choice": choice, "val_agents": int(sum(s.target_mask.sum() for s in val)),
                                  "grid": grid,
                                  "speed_shift_val": shifted_best_of_k(sampler, val, pred_len, K_BEST, args.seed),

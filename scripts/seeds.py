@@ -12,14 +12,13 @@ from typing import Any
 import numpy as np
 
 from logpipe.dataset.reader import Dataset
-from logpipe.model.kinematic.constant_velocity import ConstantVelocitySampler
 from logpipe.model.zhu2020.meta import read_meta
 from logpipe.stages.score import score
 from logpipe.types import SceneSample
 from scripts.forecasts import write_learned, write_predictions
 from scripts.locations import CHECKPOINTS, REPO, SEEDS_DIR, SHIPPED_PREFIX, find_checkpoint
 from scripts.tables import PAPER, verdict
-from scripts.validation import K_BEST, tune_sampler
+from scripts.validation import K_BEST, chosen_sampler, tune_sampler
 
 
 def training_seeds(kind: str, seeds_dir: Path = SEEDS_DIR, shipped: Path = CHECKPOINTS) -> list[int]:
@@ -106,7 +105,7 @@ def seed_run(  # noqa: PLR0913  one seed's rerun of the caller's loaded data and
     method -> (K, ADE, FDE)."""
     pred_len = ds.protocol.pred_len
     choice, _ = tune_sampler(val, pred_len, K_BEST, seed)
-    files = [write_predictions(ConstantVelocitySampler(pred_len=pred_len, **choice), test, K_BEST, seed, pred_len,
+    files = [write_predictions(chosen_sampler(choice, pred_len), test, K_BEST, seed, pred_len,
                                f"cv_sampler {choice} seed {seed}", work / "cv_sampler.parquet", "cv_sampler")]
     ks = {"cv_sampler": K_BEST}
     for method, (_, k) in learned.items():

@@ -23,7 +23,6 @@ from pathlib import Path
 
 import numpy as np
 
-from logpipe.model.kinematic.constant_velocity import ConstantVelocitySampler
 from logpipe.model.predictor import Predictor
 from logpipe.model.zhu2020.predictor import NetPredictor
 from logpipe.stages.train import scene_samples
@@ -31,7 +30,7 @@ from logpipe.types import NDArrayFloat, NDArrayInt, SceneSample
 from scripts.ethucy_report import SCENES
 from scripts.locations import REPO, ensure_dataset, find_checkpoint
 from scripts.reproduce_ethucy import LEARNED
-from scripts.validation import K_BEST, best_of_k, truth_of, tune_inference, tune_sampler, tuned
+from scripts.validation import K_BEST, best_of_k, chosen_sampler, truth_of, tune_inference, tune_sampler, tuned
 
 
 def farthest_points(x: NDArrayFloat, k: int) -> NDArrayInt:
@@ -93,7 +92,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         val = scene_samples(ds, f"{scene}/val")
         choice, _ = tune_sampler(val, pred_len, K_BEST, args.seed)
         methods: dict[str, object] = {
-            "cv_sampler": {"setting": choice, **compare(ConstantVelocitySampler(pred_len=pred_len, **choice), val,
+            "cv_sampler": {"setting": choice, **compare(chosen_sampler(choice, pred_len), val,
                                                         pred_len, args.draws, args.seed)}}
         for method in ("noise_lstm", "zhu2020"):
             ckpt = find_checkpoint(LEARNED[method][0], scene)

@@ -58,6 +58,12 @@ def best_of_k(pred: NDArrayFloat, truth: NDArrayFloat) -> tuple[float, float]:
     return float(best.ade.mean()), float(best.fde.mean())
 
 
+def chosen_sampler(choice: dict[str, float], pred_len: int) -> ConstantVelocitySampler:
+    """The CV sampler at a ``tune_sampler`` choice (its heading and speed noise)."""
+    return ConstantVelocitySampler(pred_len=pred_len, heading_std_rad=choice["heading_std_rad"],
+                                   speed_std_frac=choice["speed_std_frac"])
+
+
 def tune_sampler(val: Sequence[SceneSample], pred_len: int, k: int, seed: int) -> tuple[dict[str, float], list[Any]]:
     """Pick the sampler's (heading_std_rad, speed_std_frac) with the lowest per-agent best-of-k ADE (+FDE as a
     tie-break) on ``val``. Returns the choice and every grid point's (heading, speed, ade, fde)."""

@@ -182,7 +182,7 @@ def _prepare(dataset_dir: Path, out_dir: Path, opts: PredictOptions) -> tuple[_R
         "raster_run": rasters.run_dir.name if rasters is not None and raster_images else None,
     }
     ood_check = (ood_check_for(chosen.checkpoint, opts.out_of_distribution, modes, logs_table)
-                 if chosen.name == "residual" else None)
+                 if chosen.name == "residual" and chosen.checkpoint is not None else None)
     if ood_check is not None:
         settings["out_of_distribution"] = opts.out_of_distribution
     protocol = dataset.protocol

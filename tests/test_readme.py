@@ -25,7 +25,7 @@ import pytest
 REPO = Path(__file__).resolve().parents[1]
 README = REPO / "README.md"
 FENCE = re.compile(r"^```(\w*)\n(.*?)^```$", re.S | re.M)
-NOT_LINKED = {".git", "out", ".pytest_cache", ".mypy_cache", ".ruff_cache"}
+NOT_LINKED = {".git", "out", ".pytest_cache", ".mypy_cache", ".mypy-tree", ".ruff_cache"}
 """What a fresh clone lacks (outputs, caches) or what must not be shared with the working tree (git)."""
 
 
