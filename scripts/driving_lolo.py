@@ -38,7 +38,7 @@ from logpipe.model.residual.compare import cv_sampler, tune_sampler
 from logpipe.model.residual.config import ResidualConfig, load_residual_config
 from logpipe.model.residual.fit import fit_residual, ranked_forecasts
 from logpipe.model.residual.inputs import concat
-from logpipe.model.residual.modes import spread_modes
+from logpipe.model.residual.modes import model_modes
 from logpipe.model.residual.ood import fallback_forecasts, tune_baselines
 from logpipe.types import NDArrayFloat
 from scripts.driving_targets import (
@@ -186,7 +186,7 @@ def main(argv: list[str] | None = None) -> int:
             best, cost = fold_model(cfg, inputs, held, args.work / held / variant)
             net, _ = load_residual(best)
             ranked = ranked_forecasts(net, inputs.inputs.take(test))
-            record(variant, spread_modes(ranked[:, 0], ranked[:, 1:], K), test)
+            record(variant, model_modes(ranked, K), test)
             shipped, fallback = as_shipped(real, held, ranked, test)
             record(f"{variant}_auto", shipped, test)
             fold[variant] = cost | {"fallback_k1": fallback}

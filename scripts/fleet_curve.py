@@ -37,7 +37,7 @@ from logpipe.model.kinematic import best_baseline
 from logpipe.model.residual.checkpoint import load_residual
 from logpipe.model.residual.config import load_residual_config
 from logpipe.model.residual.fit import fit_residual, forecast, ranked_forecasts
-from logpipe.model.residual.modes import spread_modes
+from logpipe.model.residual.modes import model_modes
 from logpipe.model.residual.ood import fallback_forecasts
 from logpipe.types import NDArrayFloat
 from scripts.driving_lolo import CONFIG, K, errors, targets
@@ -129,14 +129,14 @@ def location_curve(real: Targets, datasets: dict[str, Dataset], location: str, w
         clusters = pool[: n or len(pool)]
         train, val, how = recipe_rows(real, datasets[_dataset(location)], clusters)
         point = run_point(real, (train, val), start, work / "fleet" / location / str(n or "all"))
-        net = load_residual(Path(point["best"]))[0]
-        fallback = load_residual(Path(point["best"]))[1].ood["fallback_k1"]  # chosen on its training targets
+        net, meta = load_residual(Path(point["best"]))
+        fallback = meta.ood["fallback_k1"]  # chosen on its training targets
         physics = best_baseline.forecast(fallback, observed, pred_len)[:, None]
         ranked = ranked_forecasts(net, real.inputs.take(test))
-        world = spread_modes(ranked[:, 0], ranked[:, 1:], K)
+        world = model_modes(ranked, K)
         k1 = _k1_source(real, net, fallback, val)
         # predict's default with a physics K = 1: physics as mode 0, the model's modes around it
-        shipped = fallback_forecasts({"fallback_k1": fallback}, observed, ranked, K) if k1 == "physics" else world
+        shipped = fallback_forecasts(meta.ood, observed, ranked, K) if k1 == "physics" else world
         out["points"][str(n or len(pool))] = point | {
             "clusters": len(clusters), "validation": how, "model": _fde(world, truth), "k1_source": k1,
             "as_predict_runs_it": _fde(shipped, truth),

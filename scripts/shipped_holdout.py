@@ -32,7 +32,7 @@ from logpipe.model.kinematic import best_baseline
 from logpipe.model.residual.compare import cv_sampler, tune_sampler
 from logpipe.model.residual.fit import collect
 from logpipe.model.residual.inputs import concat
-from logpipe.model.residual.modes import spread_modes
+from logpipe.model.residual.modes import model_modes
 from logpipe.model.residual.ood import OodCheck
 from logpipe.model.residual.predictor import ResidualPredictor
 from logpipe.raster.runs import find_raster_run
@@ -52,7 +52,7 @@ def dataset_rows(name: str, ds: Any, predictor: ResidualPredictor, sampler: dict
     meta = predictor.meta
     samples = scene_samples(ds, "hash/test", rasters=find_raster_run(ds.root, None, None))
     ranked = predictor.predict_ranked(samples)
-    futures = [spread_modes(r[:, 0], r[:, 1:], K) for r in ranked]
+    futures = [model_modes(r, K) for r in ranked]
     check = OodCheck(meta.ood, meta.config, "auto", K, {}, log_locations(ds.logs()))
     shipped, _ = check(samples, ranked)
     locations = check.locations

@@ -26,14 +26,13 @@ from logpipe.storage.io import open_nofollow
 from logpipe.types import NDArrayFloat, SceneSample
 
 from ..checkpoint.format import TrainingData
-from ..kinematic import best_baseline
 from .checkpoint import load_residual, save_residual
 from .config import ResidualConfig
 from .inputs import CROP_UNIT, TargetInputs, concat, target_inputs, world_truth
 from .meta import ResidualMeta
-from .modes import spread_modes
+from .modes import model_modes
 from .net import ResidualNet, training_loss
-from .ood import k1_evidence, training_distribution, tune_baselines
+from .ood import k1_evidence, physics_forecast, training_distribution, tune_baselines
 
 LOG = "train_log.jsonl"
 
@@ -89,8 +88,7 @@ def target_locations(logs: Iterable[pa.Table], samples: Sequence[SceneSample], w
 def forecast(net: ResidualNet, inputs: TargetInputs, num_modes: int) -> NDArrayFloat:
     """(N, num_modes, T, 2) world forecasts: mode 0 the mean head (the K = 1 forecast), then the mode heads as
     ``modes.spread_modes`` takes them (the mean head repeated where more are asked for than there are heads)."""
-    ranked = ranked_forecasts(net, inputs)
-    return spread_modes(ranked[:, 0], ranked[:, 1:], num_modes)
+    return model_modes(ranked_forecasts(net, inputs), num_modes)
 
 
 @torch.inference_mode()
@@ -150,8 +148,8 @@ def _record_evidence(best: Path, val: TargetInputs, val_locations: Sequence[str 
     """Add to the checkpoint in ``best`` where, by location, its K = 1 beat the best kinematic baseline on ``val``."""
     net, meta = load_residual(best)
     truth = world_truth(val)
-    model = forecast(net, val, 1)[:, 0, -1]
-    physics = best_baseline.forecast(meta.ood["fallback_k1"], val.observed, truth.shape[1])[:, -1]
+    model = ranked_forecasts(net, val)[:, 0, -1]  # the mean head
+    physics = physics_forecast(meta.ood, val.observed, truth.shape[1])[:, -1]
     meta.ood["k1_by_location"] = k1_evidence(np.linalg.norm(model - truth[:, -1], axis=-1),
                                              np.linalg.norm(physics - truth[:, -1], axis=-1), val_locations)
     save_residual(best, net, meta)

@@ -47,3 +47,9 @@ def spread_modes(first: NDArrayFloat, heads: NDArrayFloat, num_modes: int, gap_m
     if picked.shape[1] < num_modes:
         picked = np.concatenate([picked, np.repeat(first[:, None], num_modes - picked.shape[1], axis=1)], axis=1)
     return picked
+
+
+def model_modes(ranked: NDArrayFloat, num_modes: int) -> NDArrayFloat:
+    """(N, num_modes, T, 2): the model's own K modes from its ranked forecasts (N, 1 + heads, T, 2; the mean head
+    first, then the heads by score, as ``fit.ranked_forecasts`` gives them): the mean head, then the heads spread."""
+    return spread_modes(ranked[:, 0], ranked[:, 1:], num_modes)

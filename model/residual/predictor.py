@@ -22,7 +22,7 @@ from .checkpoint import load_residual
 from .fit import ranked_forecasts
 from .inputs import concat, target_inputs
 from .meta import ResidualMeta
-from .modes import spread_modes
+from .modes import model_modes
 from .net import ResidualNet
 from .ood import OodCheck
 
@@ -47,7 +47,7 @@ class ResidualPredictor:
     def predict(self, samples: Sequence[SceneSample], num_modes: int, seed: int) -> list[NDArrayFloat]:
         """Per sample (N_t, num_modes, T_pred, 2) world metres (see the module docstring)."""
         del seed
-        return [spread_modes(r[:, 0], r[:, 1:], num_modes) for r in self.predict_ranked(samples)]
+        return [model_modes(r, num_modes) for r in self.predict_ranked(samples)]
 
     def predict_ranked(self, samples: Sequence[SceneSample]) -> list[NDArrayFloat]:
         """Per sample (N_t, 1 + heads, T_pred, 2) world metres: the mean head, then every mode head by score."""
